@@ -1,0 +1,114 @@
+//! Dataset readers (EuRoC ASL, KITTI odometry, phone logger), trajectory IO and the
+//! synthetic world generator.
+//!
+//! Every reader produces the same plain [`Dataset`]: camera calibration, the list of frames
+//! (mid-row timestamps after the camera-IMU offset), IMU samples and optional ground truth.
+//! Readers are lenient where it is safe: a malformed or non-monotonic line is skipped and
+//! recorded in [`Dataset::issues`] (file + line), so the pipeline can count it and go on.
+#![deny(missing_docs)]
+
+pub mod detect;
+pub mod error;
+pub mod euroc;
+pub mod kitti;
+pub mod phone;
+pub mod sim;
+pub mod trajectory;
+
+use std::path::PathBuf;
+
+pub use detect::open;
+pub use error::DatasetError;
+pub use slam_core::camera::PinholeRadtan;
+
+/// Which reader produced a [`Dataset`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DatasetKind {
+    /// EuRoC ASL layout (`mav0/cam0`, `mav0/imu0`, ...), also written by `shoal sim`.
+    Euroc,
+    /// KITTI odometry (`image_0/`, `times.txt`, `calib.txt`, optional `poses.txt`).
+    Kitti,
+    /// The phone logger format (`frames/`, `movie_metadata.csv`, `gyro_accel.csv`).
+    Phone,
+}
+
+/// Camera calibration and timing of a dataset's camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraCalib {
+    /// Intrinsics, distortion and resolution.
+    pub model: PinholeRadtan,
+    /// Camera pose in the body (IMU) frame, `T_BS` (x_B = T_BS x_S). Identity when unknown.
+    pub t_bs: nalgebra::Isometry3<f64>,
+    /// Default rolling-shutter readout time t_r of a whole frame in ns (0 = global shutter).
+    pub readout_ns: i64,
+    /// Camera-IMU time offset t_d in ns, already added to every [`FrameRecord::t_ns`].
+    pub time_offset_ns: i64,
+    /// Nominal frame rate in Hz (0 when unknown).
+    pub rate_hz: f64,
+}
+
+/// One camera frame on disk.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameRecord {
+    /// Time of the middle row (and middle of the exposure), ns on the sensor clock, t_d applied.
+    pub t_ns: i64,
+    /// Image file (8-bit grayscale PNG expected; other PNGs are converted to gray).
+    pub path: PathBuf,
+    /// Exposure time in ns (0 when unknown).
+    pub exposure_ns: i64,
+    /// Rolling-shutter readout time of this frame in ns (0 = global shutter).
+    pub readout_ns: i64,
+}
+
+/// One IMU sample (body frame), seed eq. 2.53-2.56 measurements.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImuSample {
+    /// Sample time, ns on the sensor clock.
+    pub t_ns: i64,
+    /// Angular rate w_m, rad/s.
+    pub gyro: [f64; 3],
+    /// Specific force a_m, m/s².
+    pub accel: [f64; 3],
+}
+
+/// A pose with its time stamp.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StampedPose {
+    /// Time, ns on the sensor clock.
+    pub t_ns: i64,
+    /// The pose (camera-to-world for ground truth of the camera).
+    pub pose: nalgebra::Isometry3<f64>,
+}
+
+/// A problem found while reading a dataset that did not stop the read (a skipped line, a
+/// non-monotonic timestamp, a missing image). Counted and reported by the services.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InputIssue {
+    /// The file.
+    pub path: PathBuf,
+    /// 1-based line (0 when not tied to a line).
+    pub line: usize,
+    /// A short machine-friendly kind, e.g. `malformed_line`, `non_monotonic`, `missing_image`.
+    pub kind: String,
+    /// Human-readable detail.
+    pub detail: String,
+}
+
+/// A dataset, fully indexed (images are decoded on demand).
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// Which reader produced it.
+    pub kind: DatasetKind,
+    /// The folder it was read from.
+    pub root: PathBuf,
+    /// Camera calibration.
+    pub camera: CameraCalib,
+    /// Frames in strictly increasing time order.
+    pub frames: Vec<FrameRecord>,
+    /// IMU samples in strictly increasing time order (empty when the dataset has none).
+    pub imu: Vec<ImuSample>,
+    /// Camera-to-world ground truth of cam0 (at frame times where available), if any.
+    pub ground_truth: Option<Vec<StampedPose>>,
+    /// Problems met and skipped while reading.
+    pub issues: Vec<InputIssue>,
+}

@@ -1,0 +1,15 @@
+//! The one error type of `slam_core`.
+
+/// Errors of the pure algorithms.
+#[derive(Debug, thiserror::Error)]
+pub enum CoreError {
+    /// Not enough data (points, poses, matches) for the requested estimate.
+    #[error("not enough data: {0}")]
+    NotEnoughData(String),
+    /// A numerical method did not converge or met a degenerate configuration.
+    #[error("degenerate or non-convergent: {0}")]
+    Degenerate(String),
+    /// An argument is outside its valid domain.
+    #[error("invalid argument: {0}")]
+    InvalidArgument(String),
+}

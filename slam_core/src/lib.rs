@@ -1,0 +1,11 @@
+//! Pure SLAM algorithms: no IPC, no threads. Every function here can be tested on plain data.
+#![deny(missing_docs)]
+
+pub mod camera;
+pub mod error;
+pub mod geometry;
+pub mod imu;
+pub mod metrics;
+pub mod rolling_shutter;
+
+pub use error::CoreError;
