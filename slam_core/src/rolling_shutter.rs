@@ -1,1 +1,148 @@
-//! TODO(skeleton): filled by its owner.
+//! Rolling-shutter row timing, seed eq. 2.61-2.63.
+//!
+//! Rows are read top to bottom with a constant line delay `d = t_r / N`. The capture time of
+//! image row coordinate `v` is
+//!
+//! ```text
+//! t(v) = t_mid + (v - N/2) * t_r / N
+//! ```
+//!
+//! **Convention.** `v` is the continuous pixel coordinate of the row with pixel centres at
+//! integer values (the same convention as [`crate::camera::PinholeRadtan::project`]): row
+//! index `i` is read at `t(i)`, so the first row is at `t_mid - t_r/2` and the last at
+//! `t_mid + t_r/2 - t_r/N`. A projected point with image coordinate `v` is captured at
+//! `t(v)` directly, with no half-pixel shift. The synthetic renderer (`datasets::sim`) uses
+//! exactly [`row_time_ns`] with `row = i as f64` for row `i`.
+//!
+//! `t_mid` is the corrected frame time (image stamp + t_d), `t_r = 0` is a global shutter.
+
+/// Capture time (ns) of image row coordinate `row` of a frame whose middle row is captured
+/// at `t_mid_ns` and whose full readout takes `readout_ns` (seed eq. 2.61-2.63):
+/// `t(v) = t_mid + (v - N/2) t_r / N`, rounded to the nearest ns.
+///
+/// With `n_rows == 0` or `readout_ns == 0` (global shutter) this returns `t_mid_ns`.
+#[inline]
+pub fn row_time_ns(t_mid_ns: i64, readout_ns: i64, row: f64, n_rows: u32) -> i64 {
+    t_mid_ns + row_offset_ns(readout_ns, row, n_rows)
+}
+
+/// The offset `t(v) - t_mid` in ns (rounded), see [`row_time_ns`].
+#[inline]
+pub fn row_offset_ns(readout_ns: i64, row: f64, n_rows: u32) -> i64 {
+    if n_rows == 0 || readout_ns == 0 || !row.is_finite() {
+        return 0;
+    }
+    let n = f64::from(n_rows);
+    ((row - 0.5 * n) * readout_ns as f64 / n).round() as i64
+}
+
+/// The offset `t(v) - t_mid` in seconds (not rounded), for continuous-time models.
+#[inline]
+pub fn row_offset_s(readout_ns: i64, row: f64, n_rows: u32) -> f64 {
+    if n_rows == 0 {
+        return 0.0;
+    }
+    let n = f64::from(n_rows);
+    (row - 0.5 * n) * readout_ns as f64 * 1e-9 / n
+}
+
+/// Inverse of [`row_time_ns`]: the (continuous) row coordinate captured at `t_ns`.
+///
+/// Returns `None` for a global shutter (`readout_ns == 0`) or `n_rows == 0`, where every
+/// row has the same time. The result may lie outside `[0, N)` when `t_ns` is outside the
+/// frame's readout interval.
+pub fn row_at_time(t_mid_ns: i64, readout_ns: i64, t_ns: i64, n_rows: u32) -> Option<f64> {
+    if readout_ns == 0 || n_rows == 0 {
+        return None;
+    }
+    let n = f64::from(n_rows);
+    Some(0.5 * n + (t_ns - t_mid_ns) as f64 * n / readout_ns as f64)
+}
+
+/// Capture times (ns) of the first (`row = 0`) and last (`row = N-1`) rows of a frame.
+pub fn frame_row_span_ns(t_mid_ns: i64, readout_ns: i64, n_rows: u32) -> (i64, i64) {
+    let last = f64::from(n_rows.saturating_sub(1));
+    (
+        row_time_ns(t_mid_ns, readout_ns, 0.0, n_rows),
+        row_time_ns(t_mid_ns, readout_ns, last, n_rows),
+    )
+}
+
+/// Solves the rolling-shutter projection fixed point `v = project_v(t(v))`.
+///
+/// `project_v(t_ns)` returns the image row coordinate of the observed 3D point when the
+/// camera pose at time `t_ns` is used (or `None` when it is behind the camera). Starting at
+/// the middle row, the iteration `v_{k+1} = project_v(t(v_k))` converges quickly because
+/// image motion during the readout is a small fraction of the frame. Returns the row
+/// coordinate and its capture time once two iterates differ by less than `tol_rows`, or
+/// `None` when it does not converge in `max_iters` steps or the point leaves the view.
+pub fn solve_row_fixed_point<F>(
+    t_mid_ns: i64,
+    readout_ns: i64,
+    n_rows: u32,
+    tol_rows: f64,
+    max_iters: usize,
+    mut project_v: F,
+) -> Option<(f64, i64)>
+where
+    F: FnMut(i64) -> Option<f64>,
+{
+    let mut v = 0.5 * f64::from(n_rows);
+    for _ in 0..max_iters.max(1) {
+        let t = row_time_ns(t_mid_ns, readout_ns, v, n_rows);
+        let next = project_v(t)?;
+        if !next.is_finite() {
+            return None;
+        }
+        if (next - v).abs() < tol_rows {
+            return Some((next, row_time_ns(t_mid_ns, readout_ns, next, n_rows)));
+        }
+        v = next;
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn middle_row_is_t_mid_and_ends_are_half_readout_away() {
+        let (t, tr, n) = (1_000_000_000, 30_000_000, 480);
+        assert_eq!(row_time_ns(t, tr, 240.0, n), t);
+        assert_eq!(row_time_ns(t, tr, 0.0, n), t - 15_000_000);
+        assert_eq!(row_time_ns(t, tr, 480.0, n), t + 15_000_000);
+        assert_eq!(
+            frame_row_span_ns(t, tr, n),
+            (t - 15_000_000, t + 15_000_000 - 62_500)
+        );
+        assert_eq!(row_time_ns(t, 0, 17.0, n), t);
+        assert_eq!(row_time_ns(t, tr, 17.0, 0), t);
+        assert!((row_offset_s(tr, 0.0, n) + 0.015).abs() < 1e-15);
+    }
+
+    #[test]
+    fn inverse_round_trips() {
+        let (t, tr, n) = (5_000_000_000, 20_000_000, 480);
+        for row in [0.0, 13.25, 239.5, 479.0] {
+            let tt = row_time_ns(t, tr, row, n);
+            let back = row_at_time(t, tr, tt, n).expect("rolling shutter");
+            assert!((back - row).abs() < 1e-3, "{row} -> {back}");
+        }
+        assert!(row_at_time(t, 0, t, n).is_none());
+    }
+
+    #[test]
+    fn fixed_point_finds_row_of_moving_point() {
+        // A point moving down the image at 2000 px/s, at row 100 at t_mid.
+        let (t_mid, tr, n) = (1_000_000_000_i64, 30_000_000_i64, 480);
+        let f = |t: i64| Some(100.0 + 2000.0 * (t - t_mid) as f64 * 1e-9);
+        let (v, t) = solve_row_fixed_point(t_mid, tr, n, 1e-6, 50, f).expect("converges");
+        // Closed form: v = 100 + 2000 (v - 240) 30e-3 / 480.
+        let a = 2000.0 * 0.03 / 480.0;
+        let expect = (100.0 - 240.0 * a) / (1.0 - a);
+        assert!((v - expect).abs() < 1e-4, "{v} vs {expect}");
+        assert_eq!(t, row_time_ns(t_mid, tr, v, n));
+        assert!(solve_row_fixed_point(t_mid, tr, n, 1e-6, 5, |_| None).is_none());
+    }
+}
