@@ -48,4 +48,10 @@ pub enum DatasetError {
         /// What is wrong.
         detail: String,
     },
+    /// Parameters of a generator or tool are invalid (e.g. a zero image size for the simulator).
+    #[error("invalid configuration: {detail}")]
+    InvalidConfig {
+        /// What is wrong.
+        detail: String,
+    },
 }
