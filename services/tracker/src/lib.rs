@@ -1,1 +1,238 @@
-//! tracker service
+//! Tracker service of one client: where frames are consumed and poses leave.
+//!
+//! **Status: plumbing.** The monocular ORB tracker (seed §3.3) comes with the tracker issue.
+//! Until then this service does everything around it for real: it takes every frame from
+//! shared memory in place, checks its schema version and sequence number (gaps = frames
+//! dropped upstream), acknowledges it (lock-step pacing), drains and checks the IMU stream,
+//! publishes one [`TrackedPose`] per frame with state `NotInitialized` and real latency
+//! stamps (publish → receive → pose out), listens to mapper feedback, and keeps its counters
+//! in a status file. With `--frame-log` it writes, per frame, sequence number, dataset index,
+//! timestamps, size and an FNV-1a checksum of the pixels it read from shared memory (and per
+//! IMU sample its time), which the end-to-end tests compare with the dataset.
+#![deny(missing_docs)]
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use shm_schema::time::monotonic_ns;
+use shm_schema::topics;
+use shm_schema::{stage, FrameAck, MsgMeta, Pose, TrackState, TrackedPose, FLAG_END_OF_STREAM};
+use shoal_runtime::{Status, StatusFile};
+
+/// Parameters of the tracker service.
+#[derive(Debug, Clone, clap::Parser)]
+#[command(name = "tracker", about = "Client tracker service")]
+pub struct Params {
+    /// Client index.
+    #[arg(long, default_value_t = 0)]
+    pub client: u32,
+    /// Status file (JSON).
+    #[arg(long)]
+    pub status: Option<PathBuf>,
+    /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
+    #[arg(long)]
+    pub ipc_prefix: Option<String>,
+    /// Write a per-frame / per-IMU-sample log (tests).
+    #[arg(long)]
+    pub frame_log: Option<PathBuf>,
+    /// Sleep this many ms per frame (to simulate a slow consumer in tests).
+    #[arg(long, default_value_t = 0)]
+    pub work_ms: u64,
+}
+
+/// The service's name in reports.
+pub fn service_name(client: u32) -> String {
+    format!("tracker:{client}")
+}
+
+/// Runs the service; returns the process exit code.
+pub fn main_with(params: Params) -> i32 {
+    match run(&params) {
+        Ok(_) => 0,
+        Err(e) => {
+            eprintln!("[{}] fatal: {e:#}", service_name(params.client));
+            1
+        }
+    }
+}
+
+/// FNV-1a 64-bit hash of `bytes` (pixel checksums in frame logs).
+pub fn fnv1a(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+/// Consumes frames until the end of the stream or SIGINT/SIGTERM.
+pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let name = service_name(params.client);
+    let mut file = StatusFile::new(params.status.clone());
+    let mut status = shoal_runtime::resume_status(&file, &name);
+    let prefix = params.ipc_prefix.clone().unwrap_or_else(topics::prefix_from_env);
+    topics::check_foreign_versions(&prefix)?;
+    let node = topics::create_node(&format!("tracker_c{}", params.client), &prefix)?;
+    let c = params.client;
+    let frames = topics::frames_service(&node, c)?;
+    let frame_sub = topics::frame_subscriber(&frames, c)?;
+    let imu = topics::imu_service(&node, c)?;
+    let imu_sub = topics::subscriber(&imu)?;
+    let ack_pub = topics::publisher(&topics::frame_ack_service(&node, c)?)?;
+    let pose_pub = topics::publisher(&topics::poses_service(&node, c)?)?;
+    let feedback_sub = topics::subscriber(&topics::feedback_service(&node, c)?)?;
+    let mut log = match &params.frame_log {
+        Some(p) => Some(std::io::BufWriter::new(
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(p)
+                .with_context(|| format!("open frame log {}", p.display()))?,
+        )),
+        None => None,
+    };
+    // A restarted tracker starts a new VO session (design: faults).
+    let session_id = status.starts as u32;
+    shoal_runtime::signal_ready();
+
+    let mut last_seq: Option<u64> = status.values.get("last_frame_seq").map(|v| *v as u64);
+    let mut last_imu: Option<(u64, i64)> = None;
+    let mut ack_seq = 0u64;
+    let mut ended = false;
+    while !ended {
+        let mut idle = true;
+        // IMU first, so that a frame's IMU data is in before the frame is handled.
+        while let Some(s) = imu_sub.receive()? {
+            idle = false;
+            let m = *s.payload();
+            if let Err(e) = m.meta.check() {
+                status.error("schema_version", format!("imu of client {c}: {e}"));
+                continue;
+            }
+            if m.meta.is_end_of_stream() {
+                status.add("imu_end_of_stream", 1);
+                continue;
+            }
+            if let Some((seq, t)) = last_imu {
+                if m.meta.seq > seq + 1 {
+                    status.add("imu_samples_dropped", m.meta.seq - seq - 1);
+                }
+                if m.t_ns <= t {
+                    status.error(
+                        "non_monotonic",
+                        format!("imu sample {} at {} ns not after {} ns", m.meta.seq, m.t_ns, t),
+                    );
+                }
+            }
+            last_imu = Some((m.meta.seq, m.t_ns));
+            status.add("imu_samples_received", 1);
+            if let Some(l) = log.as_mut() {
+                writeln!(l, "imu {} {}", m.meta.seq, m.t_ns)?;
+            }
+        }
+        while let Some(fb) = feedback_sub.receive()? {
+            idle = false;
+            if fb.payload().meta.check().is_ok() {
+                status.add("feedback_received", 1);
+            }
+        }
+        if let Some(sample) = frame_sub.receive()? {
+            idle = false;
+            let recv = monotonic_ns();
+            let h = *sample.user_header();
+            if let Err(e) = h.meta.check() {
+                status.error("schema_version", format!("frame of client {c}: {e}"));
+                continue;
+            }
+            let eos = h.meta.is_end_of_stream();
+            let t_ns = if eos { i64::MAX } else { h.t_mid_ns };
+            let ack = FrameAck {
+                meta: MsgMeta::new(c, session_id, ack_seq, monotonic_ns()),
+                frame_seq: h.meta.seq,
+                frame_t_ns: t_ns,
+            };
+            if eos {
+                ended = true;
+                ack_pub.send_copy(ack)?;
+                status.set_value("end_of_stream_seq", h.meta.seq as f64);
+                let mut meta = MsgMeta::new(c, session_id, h.meta.seq, monotonic_ns());
+                meta.flags = FLAG_END_OF_STREAM;
+                pose_pub.send_copy(TrackedPose { meta, ..TrackedPose::default() })?;
+                break;
+            }
+            if last_seq.is_some_and(|l| h.meta.seq <= l) {
+                // A re-send of a frame already handled (e.g. the camera restarted): ack again.
+                status.add("frames_duplicate", 1);
+                ack_pub.send_copy(ack)?;
+                ack_seq += 1;
+                continue;
+            }
+            let expected = last_seq.map_or(0, |l| l + 1);
+            if h.meta.seq > expected {
+                status.add("frames_gap", h.meta.seq - expected);
+            }
+            last_seq = Some(h.meta.seq);
+            let pixels = sample.payload();
+            if pixels.len() != h.payload_len() {
+                status.error(
+                    "bad_frame",
+                    format!("frame {}: {} bytes, header says {}", h.meta.seq, pixels.len(), h.payload_len()),
+                );
+            }
+            if let Some(l) = log.as_mut() {
+                writeln!(
+                    l,
+                    "frame {} {} {} {} {} {} {} {:016x}",
+                    h.meta.seq,
+                    h.dataset_index,
+                    h.t_mid_ns,
+                    h.readout_ns,
+                    h.width,
+                    h.height,
+                    pixels.len(),
+                    fnv1a(pixels)
+                )?;
+            }
+            if params.work_ms > 0 {
+                std::thread::sleep(Duration::from_millis(params.work_ms));
+            }
+            drop(sample);
+            ack_pub.send_copy(ack)?;
+            ack_seq += 1;
+            status.add("frames_received", 1);
+            let mut stage_ms = [0f32; stage::COUNT];
+            let out = monotonic_ns();
+            stage_ms[stage::TOTAL] = (out - recv) as f32 * 1e-6;
+            let pose = TrackedPose {
+                meta: MsgMeta::new(c, session_id, h.meta.seq, out),
+                t_ns: h.t_mid_ns,
+                dataset_index: h.dataset_index,
+                pose: Pose::IDENTITY,
+                server_pose: Pose::IDENTITY,
+                state: TrackState::NotInitialized as u32,
+                has_server_pose: 0,
+                tracked_points: 0,
+                is_keyframe: 0,
+                frame_publish_mono_ns: h.meta.publish_mono_ns,
+                frame_receive_mono_ns: recv,
+                stage_ms,
+            };
+            pose_pub.send_copy(pose)?;
+            status.add("poses_published", 1);
+            status.set_value("last_frame_seq", h.meta.seq as f64);
+            let _ = file.write_every(&status, Duration::from_millis(200));
+        }
+        if idle && node.wait(Duration::from_micros(100)).is_err() {
+            break;
+        }
+    }
+    if let Some(l) = log.as_mut() {
+        l.flush()?;
+    }
+    status.finished = ended;
+    file.write(&status)?;
+    Ok(status)
+}

@@ -1,0 +1,249 @@
+//! What every shoal service process shares: the status report it keeps on disk (so the
+//! launcher can aggregate counters even of a SIGKILLed process, and a restarted service can
+//! resume), error records, the readiness line and the exit codes.
+#![deny(missing_docs)]
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+/// Line a service prints on stdout once its services are open and it is ready for data.
+pub const READY_LINE: &str = "SHOAL_READY";
+
+/// Exit code of a service that cannot run with its configuration (missing dataset, bad
+/// arguments): the launcher does not restart it.
+pub const EXIT_CONFIG: i32 = 3;
+
+/// Most error records a status keeps verbatim (all are counted).
+pub const MAX_ERROR_RECORDS: usize = 200;
+
+/// One error met by a service: where and what. Bad input is counted, not fatal.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ErrorRecord {
+    /// Service that met it, e.g. `camera_ingest:0`.
+    pub service: String,
+    /// Machine-friendly kind, e.g. `corrupt_image`, `malformed_line`, `schema_version`.
+    pub kind: String,
+    /// Human-readable detail naming the file/line or the message.
+    pub detail: String,
+}
+
+/// The on-disk status of one service: counters, errors, and whether it finished.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Status {
+    /// Service name with client index, e.g. `tracker:0`.
+    pub service: String,
+    /// Process id of the writer.
+    pub pid: u32,
+    /// How many times this service was started (1 = never restarted).
+    pub starts: u64,
+    /// True once the service reached the end of its input and stopped by itself.
+    pub finished: bool,
+    /// Named counters (frames_published, keyframes_acked, ...).
+    pub counters: BTreeMap<String, u64>,
+    /// Named values that are not counters (resume index, last sequence, ...).
+    pub values: BTreeMap<String, f64>,
+    /// Error counts per kind (all errors, also those not kept in `errors`).
+    pub error_counts: BTreeMap<String, u64>,
+    /// The first [`MAX_ERROR_RECORDS`] errors.
+    pub errors: Vec<ErrorRecord>,
+}
+
+impl Status {
+    /// A fresh status for `service`.
+    pub fn new(service: &str) -> Self {
+        Self { service: service.to_string(), pid: std::process::id(), starts: 1, ..Self::default() }
+    }
+
+    /// Adds `n` to counter `name`.
+    pub fn add(&mut self, name: &str, n: u64) {
+        *self.counters.entry(name.to_string()).or_insert(0) += n;
+    }
+
+    /// Value of counter `name` (0 when absent).
+    pub fn get(&self, name: &str) -> u64 {
+        self.counters.get(name).copied().unwrap_or(0)
+    }
+
+    /// Sets value `name`.
+    pub fn set_value(&mut self, name: &str, v: f64) {
+        self.values.insert(name.to_string(), v);
+    }
+
+    /// Records an error: counted by kind, kept verbatim up to [`MAX_ERROR_RECORDS`], and
+    /// printed on stderr (the service's log).
+    pub fn error(&mut self, kind: &str, detail: impl Into<String>) {
+        let detail = detail.into();
+        eprintln!("[{}] error {kind}: {detail}", self.service);
+        *self.error_counts.entry(kind.to_string()).or_insert(0) += 1;
+        if self.errors.len() < MAX_ERROR_RECORDS {
+            self.errors.push(ErrorRecord {
+                service: self.service.clone(),
+                kind: kind.to_string(),
+                detail,
+            });
+        }
+    }
+}
+
+/// Keeps a [`Status`] in a JSON file, written atomically (temp file + rename).
+#[derive(Debug)]
+pub struct StatusFile {
+    path: Option<PathBuf>,
+    last_write: std::time::Instant,
+}
+
+impl StatusFile {
+    /// A status file at `path` (`None`: keep nothing on disk).
+    pub fn new(path: Option<PathBuf>) -> Self {
+        Self { path, last_write: std::time::Instant::now() }
+    }
+
+    /// Loads the status a previous run of this service left (after a crash), if any.
+    pub fn load_previous(&self) -> Option<Status> {
+        let path = self.path.as_ref()?;
+        let text = std::fs::read_to_string(path).ok()?;
+        serde_json::from_str(&text).ok()
+    }
+
+    /// Writes `status` now.
+    pub fn write(&mut self, status: &Status) -> std::io::Result<()> {
+        self.last_write = std::time::Instant::now();
+        let Some(path) = &self.path else { return Ok(()) };
+        write_json_atomic(path, status)
+    }
+
+    /// Writes `status` if the last write is older than `period`.
+    pub fn write_every(
+        &mut self,
+        status: &Status,
+        period: std::time::Duration,
+    ) -> std::io::Result<()> {
+        if self.last_write.elapsed() >= period {
+            self.write(status)
+        } else {
+            Ok(())
+        }
+    }
+}
+
+/// Writes `value` as pretty JSON to `path` atomically.
+pub fn write_json_atomic<T: Serialize>(path: &Path, value: &T) -> std::io::Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = path.with_extension(format!("json.tmp{}", std::process::id()));
+    {
+        let mut f = std::fs::File::create(&tmp)?;
+        serde_json::to_writer_pretty(&mut f, value).map_err(std::io::Error::other)?;
+        f.write_all(b"\n")?;
+    }
+    std::fs::rename(&tmp, path)
+}
+
+/// Tells the launcher this service is ready.
+pub fn signal_ready() {
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{READY_LINE}");
+    let _ = out.flush();
+}
+
+/// Loads a status left by a previous start of this service and counts this start; a fresh
+/// status when there is none.
+pub fn resume_status(file: &StatusFile, service: &str) -> Status {
+    match file.load_previous() {
+        Some(mut prev) if prev.service == service => {
+            prev.starts += 1;
+            prev.pid = std::process::id();
+            prev.finished = false;
+            prev
+        }
+        _ => Status::new(service),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn status_round_trip_and_resume() {
+        let dir = std::env::temp_dir().join(format!("shoal_rt_{}", std::process::id()));
+        let path = dir.join("s.json");
+        let mut f = StatusFile::new(Some(path.clone()));
+        let mut s = Status::new("tracker:0");
+        s.add("frames", 3);
+        s.error("corrupt_image", "x.png: bad");
+        f.write(&s).unwrap();
+        let r = resume_status(&f, "tracker:0");
+        assert_eq!(r.get("frames"), 3);
+        assert_eq!(r.starts, 2);
+        assert_eq!(r.error_counts["corrupt_image"], 1);
+        let other = resume_status(&f, "tracker:1");
+        assert_eq!(other.starts, 1);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}
+
+/// How the ingests pace a replay.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ReplayMode {
+    /// On the dataset's clock (× a speed factor); a slow consumer loses frames.
+    Realtime,
+    /// Wait until the consumer took the previous frame: nothing dropped, deterministic.
+    Lockstep,
+}
+
+impl std::str::FromStr for ReplayMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "realtime" => Ok(Self::Realtime),
+            "lockstep" => Ok(Self::Lockstep),
+            other => Err(format!("unknown replay mode '{other}' (realtime | lockstep)")),
+        }
+    }
+}
+
+/// Maps sensor time to host `CLOCK_MONOTONIC` time in real-time replay:
+/// `mono = t0_mono + (t - t_origin) / rate`. Both ingests of a client use the same origin
+/// (the dataset's first frame time) and the launcher's `t0_mono`, so a restarted ingest
+/// knows where "now" is in the stream.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReplayClock {
+    /// Host time of the stream origin, ns.
+    pub t0_mono_ns: i64,
+    /// Sensor time of the stream origin, ns.
+    pub t_origin_ns: i64,
+    /// Speed factor (2.0 = twice real time).
+    pub rate: f64,
+}
+
+impl ReplayClock {
+    /// Host time at which sensor time `t_ns` is due.
+    pub fn due_mono_ns(&self, t_ns: i64) -> i64 {
+        self.t0_mono_ns + ((t_ns - self.t_origin_ns) as f64 / self.rate.max(1e-9)) as i64
+    }
+}
+
+/// True for the IMU files of the supported layouts (`imu0/...`, `gyro_accel.csv`): the IMU
+/// ingest reports reader problems of these files, the camera ingest all others.
+pub fn is_imu_file(path: &Path) -> bool {
+    path.components().any(|c| c.as_os_str() == "imu0")
+        || path.file_name().is_some_and(|n| n == "gyro_accel.csv")
+}
+
+/// Sensor time both ingests of a client map to the replay start: the earliest frame or IMU
+/// sample of the dataset.
+pub fn replay_origin_ns(dataset: &datasets::Dataset) -> i64 {
+    let f = dataset.frames.first().map(|f| f.t_ns);
+    let i = dataset.imu.first().map(|s| s.t_ns);
+    match (f, i) {
+        (Some(a), Some(b)) => a.min(b),
+        (Some(a), None) | (None, Some(a)) => a,
+        (None, None) => 0,
+    }
+}

@@ -1,0 +1,420 @@
+//! Message types. All are `#[repr(C)]`, `Copy`, fixed-size and [`ZeroCopySend`]; sizes and
+//! alignments are checked at compile time at the bottom of this file.
+use iceoryx2::prelude::ZeroCopySend;
+
+use crate::{MAGIC, SCHEMA_VERSION};
+
+/// Flag: the last message of a stream (end of the dataset). Carries no data.
+pub const FLAG_END_OF_STREAM: u32 = 1;
+/// Flag: this message is a re-send of one published before (e.g. after a consumer restart).
+pub const FLAG_RESEND: u32 = 1 << 1;
+
+/// Common head of every message: identity, version and the publish stamp.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[type_name("shoal::v1::MsgMeta")]
+#[repr(C)]
+pub struct MsgMeta {
+    /// [`MAGIC`].
+    pub magic: u32,
+    /// [`SCHEMA_VERSION`] of the publisher.
+    pub schema_version: u32,
+    /// Client (camera/phone) index.
+    pub client_id: u32,
+    /// VO session of the client (a tracker restarts it after tracking failure or a restart).
+    pub session_id: u32,
+    /// Sequence number on this stream, from 0, without gaps unless data was dropped.
+    pub seq: u64,
+    /// Host `CLOCK_MONOTONIC` ns when the message was published.
+    pub publish_mono_ns: i64,
+    /// Bit set of `FLAG_*`.
+    pub flags: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+}
+
+/// A received message whose head does not match this binary.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MetaError {
+    /// The magic number is wrong: the bytes are not a shoal message.
+    BadMagic(u32),
+    /// The message was written by a binary of another schema version.
+    SchemaVersion {
+        /// Version in the message.
+        found: u32,
+        /// Version of this binary.
+        expected: u32,
+    },
+}
+
+impl core::fmt::Display for MetaError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            MetaError::BadMagic(m) => write!(f, "not a shoal message (magic {m:#010x})"),
+            MetaError::SchemaVersion { found, expected } => write!(
+                f,
+                "message of schema version {found}, this binary speaks version {expected}"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for MetaError {}
+
+impl MsgMeta {
+    /// A head for a new message of this schema version.
+    pub fn new(client_id: u32, session_id: u32, seq: u64, publish_mono_ns: i64) -> Self {
+        Self {
+            magic: MAGIC,
+            schema_version: SCHEMA_VERSION,
+            client_id,
+            session_id,
+            seq,
+            publish_mono_ns,
+            flags: 0,
+            reserved: 0,
+        }
+    }
+
+    /// Checks magic and schema version.
+    pub fn check(&self) -> Result<(), MetaError> {
+        if self.magic != MAGIC {
+            return Err(MetaError::BadMagic(self.magic));
+        }
+        if self.schema_version != SCHEMA_VERSION {
+            return Err(MetaError::SchemaVersion {
+                found: self.schema_version,
+                expected: SCHEMA_VERSION,
+            });
+        }
+        Ok(())
+    }
+
+    /// True when the end-of-stream flag is set.
+    pub fn is_end_of_stream(&self) -> bool {
+        self.flags & FLAG_END_OF_STREAM != 0
+    }
+}
+
+/// A rigid pose `T_ab` (maps b-frame points into frame a): translation and a unit
+/// quaternion in Hamilton convention, stored `[x, y, z, w]` (TUM order).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::Pose")]
+#[repr(C)]
+pub struct Pose {
+    /// Translation `t_ab`.
+    pub t: [f64; 3],
+    /// Rotation `q_ab` as `[x, y, z, w]`.
+    pub q: [f64; 4],
+}
+
+impl Default for Pose {
+    fn default() -> Self {
+        Self::IDENTITY
+    }
+}
+
+impl Pose {
+    /// The identity pose.
+    pub const IDENTITY: Pose = Pose { t: [0.0; 3], q: [0.0, 0.0, 0.0, 1.0] };
+}
+
+/// Pixel formats of [`FrameHeader::pixel_format`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum PixelFormat {
+    /// 8-bit gray, one byte per pixel.
+    Gray8 = 1,
+}
+
+/// Camera intrinsics and radial-tangential distortion (seed eq. 2.57-2.60).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::Intrinsics")]
+#[repr(C)]
+pub struct Intrinsics {
+    /// `[fx, fy, cx, cy]` in pixels.
+    pub pinhole: [f64; 4],
+    /// `[k1, k2, p1, p2, k3]`.
+    pub distortion: [f64; 5],
+}
+
+/// User header of a frame sample; the payload is the `[u8]` pixel slice
+/// (`stride * height` bytes). Published by `camera_ingest`, read in place by the tracker.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::FrameHeader")]
+#[repr(C)]
+pub struct FrameHeader {
+    /// Identity, version, sequence number (= frame index in the stream), publish stamp.
+    pub meta: MsgMeta,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels (rolling-shutter row count N).
+    pub height: u32,
+    /// Bytes per row.
+    pub stride: u32,
+    /// A [`PixelFormat`] as `u32`.
+    pub pixel_format: u32,
+    /// Index of the frame in its dataset.
+    pub dataset_index: u64,
+    /// Sensor time of the middle row, ns, after adding the camera-IMU offset t_d.
+    pub t_mid_ns: i64,
+    /// Rolling-shutter readout time t_r of the whole frame, ns (0 = global shutter).
+    pub readout_ns: i64,
+    /// Exposure time, ns (0 = unknown).
+    pub exposure_ns: i64,
+    /// Camera-IMU time offset t_d already applied to `t_mid_ns`, ns.
+    pub time_offset_ns: i64,
+    /// Camera intrinsics and distortion.
+    pub intrinsics: Intrinsics,
+}
+
+impl FrameHeader {
+    /// Capture time of pixel row `row` (seed eq. 2.61-2.63), see [`crate::time::row_time_ns`].
+    pub fn row_time_ns(&self, row: u32) -> i64 {
+        crate::time::row_time_ns(self.t_mid_ns, self.readout_ns, row, self.height)
+    }
+
+    /// Number of pixel bytes the slice must hold.
+    pub fn payload_len(&self) -> usize {
+        self.stride as usize * self.height as usize
+    }
+}
+
+/// One IMU sample (body frame), published by `imu_ingest`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::ImuMsg")]
+#[repr(C)]
+pub struct ImuMsg {
+    /// Identity, version, sequence number, publish stamp.
+    pub meta: MsgMeta,
+    /// Sensor time, ns (same clock as frame times).
+    pub t_ns: i64,
+    /// Angular rate, rad/s.
+    pub gyro: [f64; 3],
+    /// Specific force, m/s².
+    pub accel: [f64; 3],
+}
+
+/// Sent by a frame consumer (the tracker) when it has taken a frame. In lock-step replay
+/// the ingests wait for it before publishing the next frame (and the IMU samples up to it).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::FrameAck")]
+#[repr(C)]
+pub struct FrameAck {
+    /// Identity; `meta.seq` is the ack's own sequence number.
+    pub meta: MsgMeta,
+    /// Sequence number of the frame taken.
+    pub frame_seq: u64,
+    /// `t_mid_ns` of the frame taken.
+    pub frame_t_ns: i64,
+}
+
+/// State of the tracker for one frame ([`TrackedPose::state`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum TrackState {
+    /// No tracker algorithm ran (plumbing only) or the system is not initialised yet.
+    NotInitialized = 0,
+    /// Two-view initialisation in progress.
+    Initializing = 1,
+    /// Tracking: the pose is valid.
+    Tracking = 2,
+    /// Lost: relocalisation is being tried; the pose is not valid.
+    Lost = 3,
+}
+
+impl TrackState {
+    /// From the wire value; unknown values map to `None`.
+    pub fn from_u32(v: u32) -> Option<Self> {
+        match v {
+            0 => Some(Self::NotInitialized),
+            1 => Some(Self::Initializing),
+            2 => Some(Self::Tracking),
+            3 => Some(Self::Lost),
+            _ => None,
+        }
+    }
+}
+
+/// Indices into [`TrackedPose::stage_ms`].
+pub mod stage {
+    /// Image pyramid.
+    pub const PYRAMID: usize = 0;
+    /// FAST detection and distribution.
+    pub const DETECT: usize = 1;
+    /// Orientation and rBRIEF descriptors.
+    pub const DESCRIBE: usize = 2;
+    /// Descriptor matching.
+    pub const MATCH: usize = 3;
+    /// Pose optimisation.
+    pub const POSE_OPT: usize = 4;
+    /// Local-map tracking.
+    pub const LOCAL_MAP: usize = 5;
+    /// Keyframe decision and creation.
+    pub const KEYFRAME: usize = 6;
+    /// Whole tracking step inside the tracker.
+    pub const TOTAL: usize = 7;
+    /// Number of stages.
+    pub const COUNT: usize = 8;
+    /// Names, in index order (used in reports).
+    pub const NAMES: [&str; COUNT] =
+        ["pyramid", "detect", "describe", "match", "pose_opt", "local_map", "keyframe", "total"];
+}
+
+/// Per-frame output of the tracker: pose, state, latency stamps and stage timings.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::TrackedPose")]
+#[repr(C)]
+pub struct TrackedPose {
+    /// Identity; `meta.seq` is the frame's sequence number, `meta.publish_mono_ns` the pose
+    /// publish stamp.
+    pub meta: MsgMeta,
+    /// Frame time (`FrameHeader::t_mid_ns`).
+    pub t_ns: i64,
+    /// Index of the frame in its dataset.
+    pub dataset_index: u64,
+    /// Camera-to-map pose `T_cam_to_client_map`, valid when `state` is `Tracking`.
+    pub pose: Pose,
+    /// Camera pose in the server map (from feedback, seed eq. 3.1/3.4), valid when
+    /// `has_server_pose != 0`.
+    pub server_pose: Pose,
+    /// A [`TrackState`] as `u32`.
+    pub state: u32,
+    /// 1 when `server_pose` is valid.
+    pub has_server_pose: u32,
+    /// Number of map points matched in this frame.
+    pub tracked_points: u32,
+    /// 1 when this frame became a keyframe.
+    pub is_keyframe: u32,
+    /// `FrameHeader::meta.publish_mono_ns` of the frame (ingest publish).
+    pub frame_publish_mono_ns: i64,
+    /// When the tracker took the frame.
+    pub frame_receive_mono_ns: i64,
+    /// Per-stage times in ms, see [`stage`].
+    pub stage_ms: [f32; stage::COUNT],
+}
+
+/// Header of a keyframe message (tracker → mapper); the payload is a slice of
+/// [`KeypointRecord`]s (seed §3.3: pose in the client map + keypoints + descriptors).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::KeyframeHeader")]
+#[repr(C)]
+pub struct KeyframeHeader {
+    /// Identity (client, session); `meta.seq` counts keyframe messages of the client.
+    pub meta: MsgMeta,
+    /// Keyframe id, unique per client across sessions.
+    pub keyframe_id: u64,
+    /// Frame time of the keyframe, ns.
+    pub t_ns: i64,
+    /// Pose of the keyframe in the client map, `T_ck` (p_c = R_ck p_k + t_ck; absolute).
+    pub pose_ck: Pose,
+    /// Intrinsics of the camera.
+    pub intrinsics: Intrinsics,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Number of keypoint records in the payload.
+    pub n_keypoints: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+}
+
+/// `map_point_id` of a keypoint with no map point.
+pub const NO_MAP_POINT: u64 = u64::MAX;
+
+/// One keypoint of a keyframe message (64 bytes).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::KeypointRecord")]
+#[repr(C)]
+pub struct KeypointRecord {
+    /// Pixel u (distorted image), level-0 coordinates.
+    pub u: f32,
+    /// Pixel v.
+    pub v: f32,
+    /// Orientation, degrees.
+    pub angle: f32,
+    /// FAST response.
+    pub response: f32,
+    /// Pyramid level.
+    pub octave: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+    /// Client map-point id, or [`NO_MAP_POINT`].
+    pub map_point_id: u64,
+    /// 256-bit rBRIEF descriptor.
+    pub descriptor: [u8; 32],
+}
+
+impl Default for KeypointRecord {
+    fn default() -> Self {
+        Self {
+            u: 0.0,
+            v: 0.0,
+            angle: 0.0,
+            response: 0.0,
+            octave: 0,
+            reserved: 0,
+            map_point_id: NO_MAP_POINT,
+            descriptor: [0; 32],
+        }
+    }
+}
+
+/// Mapper → tracker: acknowledgement and pose feedback (seed §3.4.1).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::Feedback")]
+#[repr(C)]
+pub struct Feedback {
+    /// Identity (client the feedback is for).
+    pub meta: MsgMeta,
+    /// Id of the last keyframe the mapper applied (journaled) for this client.
+    pub acked_keyframe_id: u64,
+    /// Session of that keyframe.
+    pub acked_session_id: u32,
+    /// 1 when `server_pose` / `scale_ratio` are valid.
+    pub has_pose: u32,
+    /// Server-map pose of the client's last keyframe, `T_sk`.
+    pub server_pose: Pose,
+    /// Scale ratio lambda (server / client, eq. 3.2-3.3).
+    pub scale_ratio: f64,
+    /// Id of the server map the client's keyframes are in.
+    pub server_map_id: u64,
+}
+
+const _: () = {
+    use core::mem::{align_of, size_of};
+    assert!(size_of::<MsgMeta>() == 40 && align_of::<MsgMeta>() == 8);
+    assert!(size_of::<Pose>() == 56 && align_of::<Pose>() == 8);
+    assert!(size_of::<Intrinsics>() == 72);
+    assert!(size_of::<FrameHeader>() == 40 + 24 + 32 + 72);
+    assert!(size_of::<ImuMsg>() == 40 + 8 + 48);
+    assert!(size_of::<FrameAck>() == 56);
+    assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 16 + 16 + 32);
+    assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16);
+    assert!(size_of::<KeypointRecord>() == 64 && align_of::<KeypointRecord>() == 8);
+    assert!(size_of::<Feedback>() == 40 + 16 + 56 + 16);
+};
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn meta_check_rejects_other_versions() {
+        let mut m = MsgMeta::new(0, 0, 5, 1);
+        assert_eq!(m.check(), Ok(()));
+        m.schema_version = SCHEMA_VERSION + 1;
+        let err = m.check().unwrap_err();
+        assert!(err.to_string().contains("schema version"), "{err}");
+        m.magic = 0;
+        assert!(matches!(m.check(), Err(MetaError::BadMagic(0))));
+    }
+
+    #[test]
+    fn track_state_round_trip() {
+        for s in [TrackState::NotInitialized, TrackState::Initializing, TrackState::Tracking] {
+            assert_eq!(TrackState::from_u32(s as u32), Some(s));
+        }
+        assert_eq!(TrackState::from_u32(99), None);
+    }
+}
