@@ -1,1 +1,403 @@
-//! TODO(skeleton): filled by its owner.
+//! EuRoC ASL reader (also the layout `shoal sim` writes).
+//!
+//! Layout (`root/mav0/...`, or `root` being the `mav0` folder itself):
+//! - `cam0/sensor.yaml`: `T_BS` (4x4 row-major, camera in body frame), `rate_hz`,
+//!   `resolution [w, h]`, `intrinsics [fu, fv, cu, cv]`, `distortion_coefficients
+//!   [k1, k2, p1, p2(, k3)]` (radial-tangential, seed eq. 2.57-2.60), and the optional keys of
+//!   our generator `readout_time_ns` (rolling-shutter t_r, seed eq. 2.61-2.63) and
+//!   `time_offset_ns` (camera-IMU offset t_d, added to every frame time). The OpenCV
+//!   `%YAML:1.0` directive line is stripped before parsing.
+//! - `cam0/data.csv`: `#timestamp [ns],filename`, images in `cam0/data/`.
+//! - `imu0/data.csv`: `t [ns], w xyz [rad/s], a xyz [m/s²]`.
+//! - ground truth, camera-to-world: `groundtruth_cam0.txt` (TUM, camera-to-world, on the
+//!   IMU clock) beside `mav0/` is preferred when present; otherwise the body poses of
+//!   `state_groundtruth_estimate0/data.csv` or `gt0/data.csv` (`t, p xyz, q wxyz, ...`) are
+//!   mapped to the camera, `T_WC = T_WB T_BS`. Ground truth is sampled at every frame time
+//!   (lerp + slerp between the neighbouring samples when stamps differ); frames outside the
+//!   ground-truth time range get no entry.
+//!
+//! Folders without `cam0` (e.g. an IMU + ground-truth excerpt) still open: zero frames, a
+//! placeholder calibration (0x0 image, unit focal length, identity `T_BS`), the IMU samples,
+//! and the whole ground-truth stream as body poses (T_BS = identity) at its own stamps.
+//! A `cam0` folder with no frames likewise keeps the whole stream, mapped to the camera.
+//! `imu0` is optional (a `missing_file` issue is recorded); `cam0/data.csv` and
+//! `cam0/sensor.yaml` are required when `cam0` exists.
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
+use serde::Deserialize;
+use slam_core::geometry::pose_from_pq;
+
+use crate::text::{
+    data_lines, fields, is_header, issue, parse_f64s, parse_i64, read_text, Monotonic,
+};
+use crate::trajectory::{interpolate_at, read_tum};
+use crate::{
+    CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, ImuSample, InputIssue,
+    PinholeRadtan, StampedPose,
+};
+
+#[derive(Deserialize)]
+struct MatYaml {
+    rows: usize,
+    cols: usize,
+    data: Vec<f64>,
+}
+
+#[derive(Deserialize)]
+struct SensorYaml {
+    #[serde(rename = "T_BS")]
+    t_bs: Option<MatYaml>,
+    rate_hz: Option<f64>,
+    resolution: Vec<u32>,
+    intrinsics: Vec<f64>,
+    distortion_model: Option<String>,
+    distortion_coefficients: Option<Vec<f64>>,
+    readout_time_ns: Option<f64>,
+    time_offset_ns: Option<f64>,
+}
+
+/// The `mav0` folder of a dataset root (or `root` itself when it is the mav0 folder).
+pub fn mav0_dir(root: &Path) -> Option<PathBuf> {
+    let m = root.join("mav0");
+    if m.is_dir() {
+        return Some(m);
+    }
+    let is_mav0 = root.join("cam0").is_dir() || root.join("imu0").is_dir();
+    is_mav0.then(|| root.to_path_buf())
+}
+
+fn parse_err(path: &Path, detail: impl Into<String>) -> DatasetError {
+    DatasetError::Parse {
+        path: path.to_path_buf(),
+        line: 0,
+        detail: detail.into(),
+    }
+}
+
+/// A placeholder calibration for a dataset without a camera: 0x0 pixels, unit focal length,
+/// identity `T_BS`, global shutter, no offset.
+pub fn no_camera_calib() -> CameraCalib {
+    CameraCalib {
+        model: PinholeRadtan::pinhole(0, 0, 1.0, 1.0, 0.0, 0.0),
+        t_bs: Isometry3::identity(),
+        readout_ns: 0,
+        time_offset_ns: 0,
+        rate_hz: 0.0,
+    }
+}
+
+/// Parses a `cam0/sensor.yaml`. Missing/invalid resolution or intrinsics, an unsupported
+/// distortion model or a `T_BS` that is not a rigid transform are hard errors.
+pub fn read_sensor_yaml(path: &Path) -> Result<CameraCalib, DatasetError> {
+    let text = read_text(path, "camera sensor.yaml")?;
+    // OpenCV writes a `%YAML:1.0` directive that YAML parsers reject; blank it (keeping the
+    // line count so parser line numbers still match the file).
+    let text: String = text
+        .lines()
+        .map(|l| {
+            if l.trim_start().starts_with("%YAML") {
+                ""
+            } else {
+                l
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    let y: SensorYaml = serde_saphyr::from_str(&text)
+        .map_err(|e| parse_err(path, format!("invalid camera YAML: {e}")))?;
+    let [w, h] = y.resolution[..] else {
+        return Err(parse_err(path, "`resolution` must be [width, height]"));
+    };
+    let [fx, fy, cx, cy] = y.intrinsics[..] else {
+        return Err(parse_err(path, "`intrinsics` must be [fu, fv, cu, cv]"));
+    };
+    if !(fx > 0.0
+        && fy > 0.0
+        && cx.is_finite()
+        && cy.is_finite()
+        && fx.is_finite()
+        && fy.is_finite())
+    {
+        return Err(parse_err(
+            path,
+            format!("invalid intrinsics {:?}", y.intrinsics),
+        ));
+    }
+    if let Some(m) = &y.distortion_model {
+        if !matches!(
+            m.as_str(),
+            "radial-tangential" | "radtan" | "plumb_bob" | "none"
+        ) {
+            return Err(parse_err(
+                path,
+                format!("unsupported distortion model `{m}`"),
+            ));
+        }
+    }
+    let mut model = PinholeRadtan::pinhole(w, h, fx, fy, cx, cy);
+    match y.distortion_coefficients.as_deref() {
+        None | Some([]) => {}
+        Some(&[k1, k2, p1, p2]) => (model.k1, model.k2, model.p1, model.p2) = (k1, k2, p1, p2),
+        Some(&[k1, k2, p1, p2, k3]) => {
+            (model.k1, model.k2, model.p1, model.p2, model.k3) = (k1, k2, p1, p2, k3)
+        }
+        Some(d) => {
+            return Err(parse_err(
+                path,
+                format!("expected 4 or 5 distortion coefficients, got {}", d.len()),
+            ))
+        }
+    }
+    let t_bs = match &y.t_bs {
+        None => Isometry3::identity(),
+        Some(m) => isometry_from_rows(m)
+            .ok_or_else(|| parse_err(path, "`T_BS` is not a 4x4 rigid transform"))?,
+    };
+    let ns = |v: Option<f64>, key: &str| -> Result<i64, DatasetError> {
+        match v {
+            None => Ok(0),
+            Some(x) if x.is_finite() && x.abs() < 1e15 => Ok(x.round() as i64),
+            Some(x) => Err(parse_err(path, format!("invalid `{key}`: {x}"))),
+        }
+    };
+    let readout_ns = ns(y.readout_time_ns, "readout_time_ns")?;
+    if readout_ns < 0 {
+        return Err(parse_err(path, "`readout_time_ns` is negative"));
+    }
+    Ok(CameraCalib {
+        model,
+        t_bs,
+        readout_ns,
+        time_offset_ns: ns(y.time_offset_ns, "time_offset_ns")?,
+        rate_hz: y
+            .rate_hz
+            .filter(|r| r.is_finite() && *r > 0.0)
+            .unwrap_or(0.0),
+    })
+}
+
+fn isometry_from_rows(m: &MatYaml) -> Option<Isometry3<f64>> {
+    if m.rows != 4 || m.cols != 4 || m.data.len() != 16 || !m.data.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let d = &m.data;
+    let r = Matrix3::new(d[0], d[1], d[2], d[4], d[5], d[6], d[8], d[9], d[10]);
+    if (r.transpose() * r - Matrix3::identity()).norm() > 1e-3 || r.determinant() <= 0.0 {
+        return None;
+    }
+    let rot = Rotation3::from_matrix_eps(&r, 1e-12, 100, Rotation3::identity());
+    Some(Isometry3::from_parts(
+        Translation3::new(d[3], d[7], d[11]),
+        UnitQuaternion::from_rotation_matrix(&rot),
+    ))
+}
+
+/// Reads `cam0/data.csv`: frames with `t + t_d`, images that exist.
+fn read_frames(
+    cam0: &Path,
+    calib: &CameraCalib,
+    issues: &mut Vec<InputIssue>,
+) -> Result<Vec<FrameRecord>, DatasetError> {
+    let csv = cam0.join("data.csv");
+    let text = read_text(&csv, "cam0 frame list (data.csv)")?;
+    let mut mono = Monotonic::default();
+    let mut frames = Vec::new();
+    for (line, l) in data_lines(&text) {
+        let f = fields(l, true);
+        let t = (f.len() >= 2 && !f[1].is_empty())
+            .then(|| parse_i64(f[0]))
+            .flatten();
+        let Some(t) = t.and_then(|t| t.checked_add(calib.time_offset_ns)) else {
+            issues.push(issue(
+                &csv,
+                line,
+                "malformed_line",
+                format!("expected `timestamp_ns,filename`, got `{l}`"),
+            ));
+            continue;
+        };
+        if !mono.accept(t, &csv, line, issues) {
+            continue;
+        }
+        let path = cam0.join("data").join(f[1]);
+        if !path.is_file() {
+            issues.push(issue(
+                &csv,
+                line,
+                "missing_image",
+                format!("{} does not exist; frame dropped", path.display()),
+            ));
+            continue;
+        }
+        frames.push(FrameRecord {
+            t_ns: t,
+            path,
+            exposure_ns: 0,
+            readout_ns: calib.readout_ns,
+        });
+    }
+    Ok(frames)
+}
+
+/// Reads an IMU CSV: `t [ns], w xyz, a xyz` (EuRoC `imu0/data.csv`, phone `gyro_accel.csv`;
+/// an optional named header row and extra trailing columns are accepted).
+pub fn read_imu_csv(
+    path: &Path,
+    issues: &mut Vec<InputIssue>,
+) -> Result<Vec<ImuSample>, DatasetError> {
+    let text = read_text(path, "IMU data.csv")?;
+    let mut mono = Monotonic::default();
+    let mut out = Vec::new();
+    for (i, (line, l)) in data_lines(&text).enumerate() {
+        if i == 0 && is_header(l) {
+            continue; // a named header row (phone logger) rather than a `#` comment
+        }
+        let f = fields(l, true);
+        // Extra trailing columns (e.g. the phone's `Unix time`) are ignored.
+        let parsed = (f.len() >= 7)
+            .then(|| parse_i64(f[0]).zip(parse_f64s(&f[1..7])))
+            .flatten();
+        let Some((t_ns, v)) = parsed else {
+            issues.push(issue(
+                path,
+                line,
+                "malformed_line",
+                format!("expected `t,wx,wy,wz,ax,ay,az`, got `{l}`"),
+            ));
+            continue;
+        };
+        if mono.accept(t_ns, path, line, issues) {
+            out.push(ImuSample {
+                t_ns,
+                gyro: [v[0], v[1], v[2]],
+                accel: [v[3], v[4], v[5]],
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Reads an ASL ground-truth CSV (`t, p xyz, q wxyz, ...`): body-to-world poses.
+pub fn read_gt_csv(
+    path: &Path,
+    issues: &mut Vec<InputIssue>,
+) -> Result<Vec<StampedPose>, DatasetError> {
+    let text = read_text(path, "ground-truth data.csv")?;
+    let mut mono = Monotonic::default();
+    let mut out = Vec::new();
+    for (line, l) in data_lines(&text) {
+        let f = fields(l, true);
+        let parsed = (f.len() >= 8)
+            .then(|| parse_i64(f[0]).zip(parse_f64s(&f[1..8])))
+            .flatten()
+            .and_then(|(t, v)| {
+                pose_from_pq([v[0], v[1], v[2]], [v[3], v[4], v[5], v[6]]).map(|p| (t, p))
+            });
+        let Some((t_ns, pose)) = parsed else {
+            issues.push(issue(
+                path,
+                line,
+                "malformed_line",
+                format!("expected `t,px,py,pz,qw,qx,qy,qz,...`, got `{l}`"),
+            ));
+            continue;
+        };
+        if mono.accept(t_ns, path, line, issues) {
+            out.push(StampedPose { t_ns, pose });
+        }
+    }
+    Ok(out)
+}
+
+/// Camera-to-world ground truth: the generator's TUM file if present, else the ASL CSV
+/// mapped through `T_BS`. `None` when the dataset has none.
+fn read_ground_truth(
+    root: &Path,
+    mav0: &Path,
+    t_bs: &Isometry3<f64>,
+    issues: &mut Vec<InputIssue>,
+) -> Result<Option<Vec<StampedPose>>, DatasetError> {
+    let parent = mav0.parent().unwrap_or(root);
+    for dir in [root, parent] {
+        let tum = dir.join("groundtruth_cam0.txt");
+        if tum.is_file() {
+            let t = read_tum(&tum)?;
+            issues.extend(t.issues);
+            return Ok(Some(t.poses));
+        }
+    }
+    for sub in ["state_groundtruth_estimate0", "gt0"] {
+        let csv = mav0.join(sub).join("data.csv");
+        if csv.is_file() {
+            let body = read_gt_csv(&csv, issues)?;
+            let cam = body
+                .into_iter()
+                .map(|p| StampedPose {
+                    t_ns: p.t_ns,
+                    pose: p.pose * t_bs,
+                })
+                .collect();
+            return Ok(Some(cam));
+        }
+    }
+    Ok(None)
+}
+
+/// Opens an EuRoC ASL dataset (see the module docs).
+pub fn read(root: &Path) -> Result<Dataset, DatasetError> {
+    if !root.is_dir() {
+        return Err(DatasetError::NotFound {
+            path: root.into(),
+            what: "EuRoC dataset folder".into(),
+        });
+    }
+    let mav0 = mav0_dir(root).ok_or_else(|| DatasetError::NotFound {
+        path: root.join("mav0"),
+        what: "EuRoC mav0 folder".into(),
+    })?;
+    let mut issues = Vec::new();
+    let cam0 = mav0.join("cam0");
+    let (camera, frames) = if cam0.is_dir() {
+        let calib = read_sensor_yaml(&cam0.join("sensor.yaml"))?;
+        let frames = read_frames(&cam0, &calib, &mut issues)?;
+        (calib, frames)
+    } else {
+        (no_camera_calib(), Vec::new())
+    };
+    let imu_csv = mav0.join("imu0").join("data.csv");
+    let imu = if imu_csv.is_file() {
+        read_imu_csv(&imu_csv, &mut issues)?
+    } else {
+        issues.push(issue(
+            &imu_csv,
+            0,
+            "missing_file",
+            "no IMU data in this dataset",
+        ));
+        Vec::new()
+    };
+    let gt = read_ground_truth(root, &mav0, &camera.t_bs, &mut issues)?;
+    let ground_truth = gt.map(|gt| {
+        if frames.is_empty() {
+            gt
+        } else {
+            frames
+                .iter()
+                .filter_map(|f| {
+                    interpolate_at(&gt, f.t_ns).map(|pose| StampedPose { t_ns: f.t_ns, pose })
+                })
+                .collect()
+        }
+    });
+    Ok(Dataset {
+        kind: DatasetKind::Euroc,
+        root: root.into(),
+        camera,
+        frames,
+        imu,
+        ground_truth,
+        issues,
+    })
+}

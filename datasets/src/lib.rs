@@ -11,14 +11,17 @@ pub mod detect;
 pub mod error;
 pub mod euroc;
 pub mod kitti;
+pub mod image_io;
 pub mod phone;
 pub mod sim;
+mod text;
 pub mod trajectory;
 
 use std::path::PathBuf;
 
 pub use detect::open;
 pub use error::DatasetError;
+pub use image_io::{decode_gray, decode_gray_into, image_size};
 pub use slam_core::camera::PinholeRadtan;
 
 /// Which reader produced a [`Dataset`].
