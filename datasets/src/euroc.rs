@@ -9,8 +9,10 @@
 //!   `%YAML:1.0` directive line is stripped before parsing.
 //! - `cam0/data.csv`: `#timestamp [ns],filename`, images in `cam0/data/`.
 //! - `imu0/data.csv`: `t [ns], w xyz [rad/s], a xyz [m/s²]`.
-//! - ground truth, camera-to-world: `groundtruth_cam0.txt` (TUM, camera-to-world, on the
-//!   IMU clock) beside `mav0/` is preferred when present; otherwise the body poses of
+//! - ground truth, camera-to-world: `groundtruth_cam0.txt` (TUM, camera-to-world, written by
+//!   our generator beside `mav0/`) is preferred when present. Its stamps are the frames'
+//!   `data.csv` stamps (camera clock), so t_d is added to them as to the frames; the poses
+//!   are at the true mid-row capture times. Otherwise the body poses of
 //!   `state_groundtruth_estimate0/data.csv` or `gt0/data.csv` (`t, p xyz, q wxyz, ...`) are
 //!   mapped to the camera, `T_WC = T_WB T_BS`. Ground truth is sampled at every frame time
 //!   (lerp + slerp between the neighbouring samples when stamps differ); frames outside the
@@ -317,6 +319,7 @@ fn read_ground_truth(
     root: &Path,
     mav0: &Path,
     t_bs: &Isometry3<f64>,
+    time_offset_ns: i64,
     issues: &mut Vec<InputIssue>,
 ) -> Result<Option<Vec<StampedPose>>, DatasetError> {
     let parent = mav0.parent().unwrap_or(root);
@@ -325,7 +328,18 @@ fn read_ground_truth(
         if tum.is_file() {
             let t = read_tum(&tum)?;
             issues.extend(t.issues);
-            return Ok(Some(t.poses));
+            // Stamped like `cam0/data.csv` (camera clock): move to the IMU clock with t_d.
+            let poses = t
+                .poses
+                .into_iter()
+                .filter_map(|p| {
+                    Some(StampedPose {
+                        t_ns: p.t_ns.checked_add(time_offset_ns)?,
+                        pose: p.pose,
+                    })
+                })
+                .collect();
+            return Ok(Some(poses));
         }
     }
     for sub in ["state_groundtruth_estimate0", "gt0"] {
@@ -378,7 +392,13 @@ pub fn read(root: &Path) -> Result<Dataset, DatasetError> {
         ));
         Vec::new()
     };
-    let gt = read_ground_truth(root, &mav0, &camera.t_bs, &mut issues)?;
+    let gt = read_ground_truth(
+        root,
+        &mav0,
+        &camera.t_bs,
+        camera.time_offset_ns,
+        &mut issues,
+    )?;
     let ground_truth = gt.map(|gt| {
         if frames.is_empty() {
             gt
