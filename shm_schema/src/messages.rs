@@ -115,7 +115,10 @@ impl Default for Pose {
 
 impl Pose {
     /// The identity pose.
-    pub const IDENTITY: Pose = Pose { t: [0.0; 3], q: [0.0, 0.0, 0.0, 1.0] };
+    pub const IDENTITY: Pose = Pose {
+        t: [0.0; 3],
+        q: [0.0, 0.0, 0.0, 1.0],
+    };
 }
 
 /// Pixel formats of [`FrameHeader::pixel_format`].
@@ -256,8 +259,16 @@ pub mod stage {
     /// Number of stages.
     pub const COUNT: usize = 8;
     /// Names, in index order (used in reports).
-    pub const NAMES: [&str; COUNT] =
-        ["pyramid", "detect", "describe", "match", "pose_opt", "local_map", "keyframe", "total"];
+    pub const NAMES: [&str; COUNT] = [
+        "pyramid",
+        "detect",
+        "describe",
+        "match",
+        "pose_opt",
+        "local_map",
+        "keyframe",
+        "total",
+    ];
 }
 
 /// Per-frame output of the tracker: pose, state, latency stamps and stage timings.
@@ -412,7 +423,11 @@ mod tests {
 
     #[test]
     fn track_state_round_trip() {
-        for s in [TrackState::NotInitialized, TrackState::Initializing, TrackState::Tracking] {
+        for s in [
+            TrackState::NotInitialized,
+            TrackState::Initializing,
+            TrackState::Tracking,
+        ] {
             assert_eq!(TrackState::from_u32(s as u32), Some(s));
         }
         assert_eq!(TrackState::from_u32(99), None);

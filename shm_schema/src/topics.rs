@@ -9,8 +9,8 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
-use crate::{FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeypointRecord, SCHEMA_VERSION};
 use crate::{Feedback, TrackedPose};
+use crate::{FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeypointRecord, SCHEMA_VERSION};
 
 /// The iceoryx2 service flavour used between processes.
 pub type Ipc = ipc::Service;
@@ -59,7 +59,10 @@ fn err(service: &str, e: impl core::fmt::Debug) -> TopicError {
             " (a process of another shoal build or schema version uses this service name)",
         );
     }
-    TopicError { service: service.to_string(), detail }
+    TopicError {
+        service: service.to_string(),
+        detail,
+    }
 }
 
 /// The name of a per-client topic, e.g. `shoal/v1/c0/frames`.
@@ -75,8 +78,12 @@ pub fn host_topic(topic: &str) -> String {
 /// iceoryx2 configuration with the given resource prefix (no config file is read).
 pub fn config_with_prefix(prefix: &str) -> Result<Config, TopicError> {
     let mut config = Config::default();
-    config.global.prefix = FileName::new(prefix.as_bytes())
-        .map_err(|e| err("config", format!("invalid iceoryx2 prefix '{prefix}': {e:?}")))?;
+    config.global.prefix = FileName::new(prefix.as_bytes()).map_err(|e| {
+        err(
+            "config",
+            format!("invalid iceoryx2 prefix '{prefix}': {e:?}"),
+        )
+    })?;
     Ok(config)
 }
 
@@ -321,7 +328,10 @@ mod tests {
 
     #[test]
     fn names_are_versioned() {
-        assert_eq!(client_topic(3, "frames"), format!("shoal/v{SCHEMA_VERSION}/c3/frames"));
+        assert_eq!(
+            client_topic(3, "frames"),
+            format!("shoal/v{SCHEMA_VERSION}/c3/frames")
+        );
         assert!(host_topic("loop_keyframes").starts_with("shoal/v"));
     }
 }

@@ -22,13 +22,16 @@ use anyhow::Context;
 use iceoryx2::prelude::*;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
-use shm_schema::{FrameAck, FrameHeader, Intrinsics, MsgMeta, PixelFormat, FLAG_END_OF_STREAM};
 use shm_schema::FLAG_RESEND;
+use shm_schema::{FrameAck, FrameHeader, Intrinsics, MsgMeta, PixelFormat, FLAG_END_OF_STREAM};
 use shoal_runtime::{ReplayClock, ReplayMode, Status, StatusFile};
 
 /// Parameters of the camera ingest.
 #[derive(Debug, Clone, clap::Parser)]
-#[command(name = "camera_ingest", about = "Replay a dataset's camera frames through iceoryx2")]
+#[command(
+    name = "camera_ingest",
+    about = "Replay a dataset's camera frames through iceoryx2"
+)]
 pub struct Params {
     /// Client index.
     #[arg(long, default_value_t = 0)]
@@ -92,7 +95,11 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let dataset = datasets::open(&params.dataset)?;
     if status.starts == 1 {
         // Problems the reader met and skipped (the IMU ingest reports the IMU files').
-        for issue in dataset.issues.iter().filter(|i| !shoal_runtime::is_imu_file(&i.path)) {
+        for issue in dataset
+            .issues
+            .iter()
+            .filter(|i| !shoal_runtime::is_imu_file(&i.path))
+        {
             status.error(
                 &issue.kind,
                 format!("{}:{}: {}", issue.path.display(), issue.line, issue.detail),
@@ -101,9 +108,15 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     }
     let cam = &dataset.camera;
     let (width, height) = (cam.model.width, cam.model.height);
-    let n_frames = params.max_frames.unwrap_or(usize::MAX).min(dataset.frames.len());
+    let n_frames = params
+        .max_frames
+        .unwrap_or(usize::MAX)
+        .min(dataset.frames.len());
     status.set_value("frames_total", n_frames as f64);
-    let prefix = params.ipc_prefix.clone().unwrap_or_else(topics::prefix_from_env);
+    let prefix = params
+        .ipc_prefix
+        .clone()
+        .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
     let node = topics::create_node(&format!("camera_ingest_c{}", params.client), &prefix)?;
     let frames = topics::frames_service(&node, params.client)?;
@@ -115,7 +128,13 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
 
     let intrinsics = Intrinsics {
         pinhole: [cam.model.fx, cam.model.fy, cam.model.cx, cam.model.cy],
-        distortion: [cam.model.k1, cam.model.k2, cam.model.p1, cam.model.p2, cam.model.k3],
+        distortion: [
+            cam.model.k1,
+            cam.model.k2,
+            cam.model.p1,
+            cam.model.p2,
+            cam.model.k3,
+        ],
     };
     let t_origin = shoal_runtime::replay_origin_ns(&dataset);
     let clock = ReplayClock {
@@ -123,7 +142,11 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         t_origin_ns: t_origin,
         rate: params.rate,
     };
-    let period_ns = if cam.rate_hz > 0.0 { (1e9 / cam.rate_hz) as i64 } else { 100_000_000 };
+    let period_ns = if cam.rate_hz > 0.0 {
+        (1e9 / cam.rate_hz) as i64
+    } else {
+        100_000_000
+    };
     let session_id = status.starts as u32;
     let mut next = status.values.get("next_index").copied().unwrap_or(0.0) as usize;
     let mut acked: Option<u64> = None;
@@ -158,9 +181,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             time_offset_ns: cam.time_offset_ns,
             intrinsics,
         };
-        let mut sample = publisher.loan_slice(frame_bytes).context("loan frame sample")?;
-        if let Err(e) = datasets::decode_gray_into(&rec.path, sample.payload_mut(), width, height)
-        {
+        let mut sample = publisher
+            .loan_slice(frame_bytes)
+            .context("loan frame sample")?;
+        if let Err(e) = datasets::decode_gray_into(&rec.path, sample.payload_mut(), width, height) {
             status.error("corrupt_image", e.to_string());
             next += 1;
             status.set_value("next_index", next as f64);
@@ -188,7 +212,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 AckWait::TimedOut => {
                     status.error(
                         "ack_timeout",
-                        format!("no consumer took frame {next} within {} ms", params.ack_timeout_ms),
+                        format!(
+                            "no consumer took frame {next} within {} ms",
+                            params.ack_timeout_ms
+                        ),
                     );
                     status.add("frames_unacked", 1);
                 }
@@ -201,7 +228,14 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     }
 
     if next >= n_frames {
-        send_end_of_stream(&node, &publisher, &ack_sub, params, n_frames as u64, session_id)?;
+        send_end_of_stream(
+            &node,
+            &publisher,
+            &ack_sub,
+            params,
+            n_frames as u64,
+            session_id,
+        )?;
         status.finished = true;
     }
     file.write(&status)?;
@@ -234,7 +268,11 @@ fn wait_for_ack(
             }
         }
         if acked.is_some_and(|a| a >= seq) {
-            return Ok(if resent > 0 { AckWait::Resent(resent) } else { AckWait::Acked });
+            return Ok(if resent > 0 {
+                AckWait::Resent(resent)
+            } else {
+                AckWait::Acked
+            });
         }
         let now = monotonic_ns();
         if now - start > params.ack_timeout_ms as i64 * 1_000_000 {
@@ -263,7 +301,10 @@ fn send_end_of_stream(
         let mut s = publisher.loan_slice(0)?;
         let mut meta = MsgMeta::new(params.client, session_id, seq, monotonic_ns());
         meta.flags = FLAG_END_OF_STREAM;
-        *s.user_header_mut() = FrameHeader { meta, ..FrameHeader::default() };
+        *s.user_header_mut() = FrameHeader {
+            meta,
+            ..FrameHeader::default()
+        };
         s.send()?;
         Ok(())
     };
@@ -271,7 +312,11 @@ fn send_end_of_stream(
     // The end of stream must reach the consumer even if it restarts now: re-send until it is
     // acknowledged (bounded).
     let mut acked = None;
-    let eos_params = Params { resend_ms: 250, ack_timeout_ms: params.ack_timeout_ms, ..params.clone() };
+    let eos_params = Params {
+        resend_ms: 250,
+        ack_timeout_ms: params.ack_timeout_ms,
+        ..params.clone()
+    };
     let _ = wait_for_ack(node, acks, seq, &mut acked, &eos_params, send)?;
     Ok(())
 }

@@ -18,7 +18,6 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use iceoryx2::prelude::*;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics;
 use shm_schema::{FrameAck, ImuMsg, MsgMeta, FLAG_END_OF_STREAM};
@@ -26,7 +25,10 @@ use shoal_runtime::{ReplayClock, ReplayMode, Status, StatusFile};
 
 /// Parameters of the IMU ingest.
 #[derive(Debug, Clone, clap::Parser)]
-#[command(name = "imu_ingest", about = "Replay a dataset's IMU samples through iceoryx2")]
+#[command(
+    name = "imu_ingest",
+    about = "Replay a dataset's IMU samples through iceoryx2"
+)]
 pub struct Params {
     /// Client index.
     #[arg(long, default_value_t = 0)]
@@ -84,14 +86,21 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let mut status = shoal_runtime::resume_status(&file, &name);
     let dataset = datasets::open(&params.dataset)?;
     if status.starts == 1 {
-        for issue in dataset.issues.iter().filter(|i| shoal_runtime::is_imu_file(&i.path)) {
+        for issue in dataset
+            .issues
+            .iter()
+            .filter(|i| shoal_runtime::is_imu_file(&i.path))
+        {
             status.error(
                 &issue.kind,
                 format!("{}:{}: {}", issue.path.display(), issue.line, issue.detail),
             );
         }
     }
-    let prefix = params.ipc_prefix.clone().unwrap_or_else(topics::prefix_from_env);
+    let prefix = params
+        .ipc_prefix
+        .clone()
+        .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
     let node = topics::create_node(&format!("imu_ingest_c{}", params.client), &prefix)?;
     let imu_service = topics::imu_service(&node, params.client)?;
@@ -169,10 +178,12 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     if next >= n {
         let mut meta = MsgMeta::new(params.client, session_id, n as u64, monotonic_ns());
         meta.flags = FLAG_END_OF_STREAM;
-        publisher.send_copy(ImuMsg { meta, ..ImuMsg::default() })?;
+        publisher.send_copy(ImuMsg {
+            meta,
+            ..ImuMsg::default()
+        })?;
         status.finished = true;
     }
     file.write(&status)?;
     Ok(status)
 }
-

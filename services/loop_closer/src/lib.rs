@@ -42,7 +42,10 @@ pub fn main_with(params: Params) -> i32 {
 pub fn run(params: &Params) -> anyhow::Result<Status> {
     let mut file = StatusFile::new(params.status.clone());
     let mut status = shoal_runtime::resume_status(&file, SERVICE_NAME);
-    let prefix = params.ipc_prefix.clone().unwrap_or_else(topics::prefix_from_env);
+    let prefix = params
+        .ipc_prefix
+        .clone()
+        .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
     let node = topics::create_node("loop_closer", &prefix)?;
     let sub = topics::keyframe_subscriber(&topics::loop_keyframes_service(&node)?)?;

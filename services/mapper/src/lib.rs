@@ -56,7 +56,11 @@ pub fn main_with(params: Params) -> i32 {
 /// A journal line: `client session keyframe_id t_ns n_keypoints`.
 fn parse_journal_line(line: &str) -> Option<(u32, u32, u64)> {
     let mut it = line.split_whitespace();
-    Some((it.next()?.parse().ok()?, it.next()?.parse().ok()?, it.next()?.parse().ok()?))
+    Some((
+        it.next()?.parse().ok()?,
+        it.next()?.parse().ok()?,
+        it.next()?.parse().ok()?,
+    ))
 }
 
 /// Serves keyframes until SIGINT/SIGTERM.
@@ -74,7 +78,11 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     }
                     None => status.error(
                         "journal",
-                        format!("{}:{}: unreadable journal line skipped", path.display(), i + 1),
+                        format!(
+                            "{}:{}: unreadable journal line skipped",
+                            path.display(),
+                            i + 1
+                        ),
                     ),
                 }
             }
@@ -82,10 +90,18 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     }
     status.set_value("journal_keyframes_on_start", applied.len() as f64);
     let mut journal = match &params.journal {
-        Some(p) => Some(std::fs::OpenOptions::new().create(true).append(true).open(p)?),
+        Some(p) => Some(
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(p)?,
+        ),
         None => None,
     };
-    let prefix = params.ipc_prefix.clone().unwrap_or_else(topics::prefix_from_env);
+    let prefix = params
+        .ipc_prefix
+        .clone()
+        .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
     let node = topics::create_node("mapper", &prefix)?;
     let mut clients = Vec::new();

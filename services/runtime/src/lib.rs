@@ -54,7 +54,12 @@ pub struct Status {
 impl Status {
     /// A fresh status for `service`.
     pub fn new(service: &str) -> Self {
-        Self { service: service.to_string(), pid: std::process::id(), starts: 1, ..Self::default() }
+        Self {
+            service: service.to_string(),
+            pid: std::process::id(),
+            starts: 1,
+            ..Self::default()
+        }
     }
 
     /// Adds `n` to counter `name`.
@@ -98,7 +103,10 @@ pub struct StatusFile {
 impl StatusFile {
     /// A status file at `path` (`None`: keep nothing on disk).
     pub fn new(path: Option<PathBuf>) -> Self {
-        Self { path, last_write: std::time::Instant::now() }
+        Self {
+            path,
+            last_write: std::time::Instant::now(),
+        }
     }
 
     /// Loads the status a previous run of this service left (after a crash), if any.
@@ -111,7 +119,9 @@ impl StatusFile {
     /// Writes `status` now.
     pub fn write(&mut self, status: &Status) -> std::io::Result<()> {
         self.last_write = std::time::Instant::now();
-        let Some(path) = &self.path else { return Ok(()) };
+        let Some(path) = &self.path else {
+            return Ok(());
+        };
         write_json_atomic(path, status)
     }
 
@@ -203,7 +213,9 @@ impl std::str::FromStr for ReplayMode {
         match s {
             "realtime" => Ok(Self::Realtime),
             "lockstep" => Ok(Self::Lockstep),
-            other => Err(format!("unknown replay mode '{other}' (realtime | lockstep)")),
+            other => Err(format!(
+                "unknown replay mode '{other}' (realtime | lockstep)"
+            )),
         }
     }
 }

@@ -73,7 +73,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let name = service_name(params.client);
     let mut file = StatusFile::new(params.status.clone());
     let mut status = shoal_runtime::resume_status(&file, &name);
-    let prefix = params.ipc_prefix.clone().unwrap_or_else(topics::prefix_from_env);
+    let prefix = params
+        .ipc_prefix
+        .clone()
+        .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
     let node = topics::create_node(&format!("tracker_c{}", params.client), &prefix)?;
     let c = params.client;
@@ -123,7 +126,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 if m.t_ns <= t {
                     status.error(
                         "non_monotonic",
-                        format!("imu sample {} at {} ns not after {} ns", m.meta.seq, m.t_ns, t),
+                        format!(
+                            "imu sample {} at {} ns not after {} ns",
+                            m.meta.seq, m.t_ns, t
+                        ),
                     );
                 }
             }
@@ -160,7 +166,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 status.set_value("end_of_stream_seq", h.meta.seq as f64);
                 let mut meta = MsgMeta::new(c, session_id, h.meta.seq, monotonic_ns());
                 meta.flags = FLAG_END_OF_STREAM;
-                pose_pub.send_copy(TrackedPose { meta, ..TrackedPose::default() })?;
+                pose_pub.send_copy(TrackedPose {
+                    meta,
+                    ..TrackedPose::default()
+                })?;
                 break;
             }
             if last_seq.is_some_and(|l| h.meta.seq <= l) {
@@ -179,7 +188,12 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             if pixels.len() != h.payload_len() {
                 status.error(
                     "bad_frame",
-                    format!("frame {}: {} bytes, header says {}", h.meta.seq, pixels.len(), h.payload_len()),
+                    format!(
+                        "frame {}: {} bytes, header says {}",
+                        h.meta.seq,
+                        pixels.len(),
+                        h.payload_len()
+                    ),
                 );
             }
             if let Some(l) = log.as_mut() {

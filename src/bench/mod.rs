@@ -1,0 +1,21 @@
+//! `shoal bench ...`: benchmarks whose figures go to BENCHMARKS.md (never asserted in tests).
+pub mod ipc;
+
+/// Benchmarks.
+#[derive(clap::Subcommand, Debug)]
+pub enum BenchCommand {
+    /// Frame hand-off latency between two processes: iceoryx2 (busy poll, WaitSet event) and
+    /// a copying Unix-socket baseline.
+    Ipc(ipc::IpcArgs),
+    /// The subscriber side of `bench ipc` (started by it as a child process).
+    #[command(hide = true)]
+    IpcPeer(ipc::PeerArgs),
+}
+
+/// Runs a benchmark.
+pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
+    match cmd {
+        BenchCommand::Ipc(a) => ipc::run(&a),
+        BenchCommand::IpcPeer(a) => ipc::peer(&a),
+    }
+}

@@ -1,0 +1,202 @@
+//! One supervised child process: spawn, readiness, exit, restart back-off.
+//!
+//! Children run `shoal service NAME ...` (the same binary), in their own process group (so a
+//! terminal Ctrl-C reaches the launcher first, which then stops them in order) and with
+//! `PR_SET_PDEATHSIG = SIGKILL` (a child never outlives a killed launcher). Their stdout is
+//! read by a thread that watches for the readiness line and copies the rest, with stderr, to
+//! `OUT/logs/NAME.log`.
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::process::{CommandExt, ExitStatusExt};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::mpsc::{channel, Receiver};
+use std::time::{Duration, Instant};
+
+/// What is known of a child's life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Spawned, readiness line not seen yet.
+    Starting,
+    /// Ready for data.
+    Running,
+    /// Exited with success after its input ended (or was stopped by the launcher).
+    Done,
+    /// Crashed; to be restarted at the given time.
+    WaitingRestart(Instant),
+    /// Failed for good (configuration error or too many restarts).
+    Failed,
+}
+
+/// A supervised service process.
+pub struct Supervised {
+    /// Service name in reports, e.g. `tracker:0`.
+    pub name: String,
+    /// Arguments after `shoal service`.
+    pub args: Vec<String>,
+    /// Extra environment.
+    pub env: Vec<(String, String)>,
+    /// Log file.
+    pub log: PathBuf,
+    /// Status file the service keeps.
+    pub status: PathBuf,
+    /// Current process, if any.
+    pub child: Option<Child>,
+    /// Readiness notifications of the current process.
+    ready_rx: Option<Receiver<()>>,
+    /// Life phase.
+    pub phase: Phase,
+    /// Restarts so far.
+    pub restarts: u32,
+    /// When the current process was spawned.
+    pub spawned_at: Instant,
+    /// When a crash was last seen (for recovery times).
+    pub crashed_at: Option<Instant>,
+    /// Recovery times (crash seen → ready again), seconds.
+    pub recoveries_s: Vec<f64>,
+    /// True for services that end by themselves at the end of their input.
+    pub ends_by_itself: bool,
+}
+
+/// How a child ended.
+pub fn describe_exit(st: &ExitStatus) -> String {
+    match (st.code(), st.signal()) {
+        (Some(c), _) => format!("exit code {c}"),
+        (None, Some(s)) => format!("killed by signal {s}"),
+        _ => "unknown exit".to_string(),
+    }
+}
+
+impl Supervised {
+    /// A service to supervise (not started yet).
+    pub fn new(name: &str, args: Vec<String>, out: &Path, ends_by_itself: bool) -> Self {
+        let file = name.replace(':', "_c");
+        Self {
+            name: name.to_string(),
+            args,
+            env: Vec::new(),
+            log: out.join("logs").join(format!("{file}.log")),
+            status: out.join("status").join(format!("{file}.json")),
+            child: None,
+            ready_rx: None,
+            phase: Phase::Starting,
+            restarts: 0,
+            spawned_at: Instant::now(),
+            crashed_at: None,
+            recoveries_s: Vec::new(),
+            ends_by_itself,
+        }
+    }
+
+    /// Spawns the process.
+    pub fn spawn(&mut self, exe: &Path) -> std::io::Result<()> {
+        if let Some(dir) = self.log.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        let mut log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.log)?;
+        writeln!(log, "--- start #{} of {} ---", self.restarts + 1, self.name)?;
+        let mut cmd = Command::new(exe);
+        cmd.arg("service")
+            .args(&self.args)
+            .arg("--status")
+            .arg(&self.status);
+        cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
+        cmd.stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(log.try_clone()?);
+        cmd.process_group(0);
+        // SAFETY: prctl is async-signal-safe; nothing else runs between fork and exec.
+        unsafe {
+            cmd.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+                Ok(())
+            });
+        }
+        let mut child = cmd.spawn()?;
+        let (tx, rx) = channel();
+        if let Some(stdout) = child.stdout.take() {
+            std::thread::spawn(move || {
+                for line in BufReader::new(stdout).lines() {
+                    let Ok(line) = line else { break };
+                    if line.trim() == shoal_runtime::READY_LINE {
+                        let _ = tx.send(());
+                    } else {
+                        let _ = writeln!(log, "{line}");
+                    }
+                }
+            });
+        }
+        self.child = Some(child);
+        self.ready_rx = Some(rx);
+        self.phase = Phase::Starting;
+        self.spawned_at = Instant::now();
+        Ok(())
+    }
+
+    /// Checks for the readiness line; true when the service just became ready.
+    pub fn poll_ready(&mut self) -> bool {
+        if self.phase != Phase::Starting {
+            return false;
+        }
+        if self
+            .ready_rx
+            .as_ref()
+            .is_some_and(|rx| rx.try_recv().is_ok())
+        {
+            self.phase = Phase::Running;
+            if let Some(t) = self.crashed_at.take() {
+                self.recoveries_s.push(t.elapsed().as_secs_f64());
+            }
+            return true;
+        }
+        false
+    }
+
+    /// Reaps the child if it exited (waitpid, so no zombie keeps its PID and locks alive).
+    pub fn try_reap(&mut self) -> Option<ExitStatus> {
+        let child = self.child.as_mut()?;
+        match child.try_wait() {
+            Ok(Some(st)) => {
+                self.child = None;
+                Some(st)
+            }
+            _ => None,
+        }
+    }
+
+    /// Process id of the running child.
+    pub fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(|c| c.id())
+    }
+
+    /// Sends `sig` to the running child.
+    pub fn signal(&self, sig: i32) {
+        if let Some(pid) = self.pid() {
+            // SAFETY: plain kill(2) on our own child's pid.
+            unsafe {
+                libc::kill(pid as i32, sig);
+            }
+        }
+    }
+
+    /// Back-off before the next restart: 100 ms doubling per restart, at most 3.2 s.
+    pub fn backoff(&self) -> Duration {
+        Duration::from_millis(100u64 << self.restarts.min(5))
+    }
+
+    /// Waits up to `timeout` for the child to exit, then SIGKILLs and reaps it.
+    pub fn stop(&mut self, timeout: Duration) -> Option<ExitStatus> {
+        self.signal(libc::SIGTERM);
+        let start = Instant::now();
+        while start.elapsed() < timeout {
+            if let Some(st) = self.try_reap() {
+                return Some(st);
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        self.signal(libc::SIGKILL);
+        self.child.as_mut().and_then(|c| c.wait().ok())
+    }
+}

@@ -1,0 +1,179 @@
+//! The recorder: where poses leave the pipeline. Subscribes to every client's `poses`
+//! service, keeps the tracked trajectory and the latency histograms.
+use hdrhistogram::Histogram;
+use shm_schema::topics::{self, Ipc};
+use shm_schema::{TrackState, TrackedPose};
+
+/// Latency percentiles in milliseconds.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct Percentiles {
+    /// Number of samples.
+    pub n: u64,
+    /// Median.
+    pub p50: f64,
+    /// 90th percentile.
+    pub p90: f64,
+    /// 99th percentile.
+    pub p99: f64,
+    /// Largest.
+    pub max: f64,
+    /// Mean.
+    pub mean: f64,
+}
+
+/// A latency histogram in microseconds (1 µs .. 60 s, 3 significant digits).
+pub struct LatencyHist(Histogram<u64>);
+
+impl Default for LatencyHist {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl LatencyHist {
+    /// An empty histogram.
+    pub fn new() -> Self {
+        // 1 µs .. 60 s with 3 significant figures: valid bounds, cannot fail.
+        Self(Histogram::new_with_bounds(1, 60_000_000, 3).expect("valid histogram bounds"))
+    }
+
+    /// Records a duration in nanoseconds (clamped to the histogram's range).
+    pub fn record_ns(&mut self, ns: i64) {
+        self.0.saturating_record((ns.max(0) as u64 / 1000).max(1));
+    }
+
+    /// Percentiles in ms.
+    pub fn percentiles(&self) -> Percentiles {
+        let h = &self.0;
+        let ms = |v: u64| v as f64 / 1000.0;
+        Percentiles {
+            n: h.len(),
+            p50: ms(h.value_at_quantile(0.5)),
+            p90: ms(h.value_at_quantile(0.9)),
+            p99: ms(h.value_at_quantile(0.99)),
+            max: ms(h.max()),
+            mean: h.mean() / 1000.0,
+        }
+    }
+}
+
+/// What the recorder keeps of one client.
+pub struct ClientRecord {
+    subscriber: iceoryx2::port::subscriber::Subscriber<Ipc, TrackedPose, ()>,
+    /// Poses received (one per frame the tracker handled).
+    pub poses: u64,
+    /// Frames with a valid pose.
+    pub tracked: u64,
+    /// Frames with a valid pose in the server map.
+    pub tracked_server: u64,
+    /// Valid poses, in arrival order: (t_ns, pose).
+    pub trajectory: Vec<(i64, shm_schema::Pose)>,
+    /// Valid server-map poses: (t_ns, pose).
+    pub server_trajectory: Vec<(i64, shm_schema::Pose)>,
+    /// True once the tracker sent its end of stream.
+    pub ended: bool,
+    /// Messages of another schema version.
+    pub bad_messages: u64,
+}
+
+/// The recorder of all clients.
+pub struct Recorder {
+    /// Per client.
+    pub clients: Vec<ClientRecord>,
+    /// Frame publish → pose publish.
+    pub publish_to_pose: LatencyHist,
+    /// Frame publish → frame taken by the tracker.
+    pub publish_to_receive: LatencyHist,
+    /// Inside the tracker: the whole tracking step.
+    pub tracker_total: LatencyHist,
+}
+
+impl Recorder {
+    /// Subscribes to the poses of `n_clients` clients.
+    pub fn new(node: &iceoryx2::node::Node<Ipc>, n_clients: u32) -> anyhow::Result<Self> {
+        let mut clients = Vec::new();
+        for c in 0..n_clients {
+            let service = topics::poses_service(node, c)?;
+            clients.push(ClientRecord {
+                subscriber: topics::subscriber(&service)?,
+                poses: 0,
+                tracked: 0,
+                tracked_server: 0,
+                trajectory: Vec::new(),
+                server_trajectory: Vec::new(),
+                ended: false,
+                bad_messages: 0,
+            });
+        }
+        Ok(Self {
+            clients,
+            publish_to_pose: LatencyHist::new(),
+            publish_to_receive: LatencyHist::new(),
+            tracker_total: LatencyHist::new(),
+        })
+    }
+
+    /// Takes every pose waiting; returns how many were taken.
+    pub fn drain(&mut self) -> anyhow::Result<usize> {
+        let mut n = 0;
+        for rec in self.clients.iter_mut() {
+            while let Some(sample) = rec.subscriber.receive()? {
+                n += 1;
+                let p = *sample.payload();
+                if p.meta.check().is_err() {
+                    rec.bad_messages += 1;
+                    continue;
+                }
+                if p.meta.is_end_of_stream() {
+                    rec.ended = true;
+                    continue;
+                }
+                rec.poses += 1;
+                self.publish_to_pose
+                    .record_ns(p.meta.publish_mono_ns - p.frame_publish_mono_ns);
+                self.publish_to_receive
+                    .record_ns(p.frame_receive_mono_ns - p.frame_publish_mono_ns);
+                self.tracker_total
+                    .record_ns((p.stage_ms[shm_schema::stage::TOTAL] as f64 * 1e6).round() as i64);
+                if TrackState::from_u32(p.state) == Some(TrackState::Tracking) {
+                    rec.tracked += 1;
+                    rec.trajectory.push((p.t_ns, p.pose));
+                    if p.has_server_pose != 0 {
+                        rec.tracked_server += 1;
+                        rec.server_trajectory.push((p.t_ns, p.server_pose));
+                    }
+                }
+            }
+        }
+        Ok(n)
+    }
+}
+
+/// Writes a TUM trajectory (`t tx ty tz qx qy qz qw`, t in seconds).
+pub fn write_tum(path: &std::path::Path, poses: &[(i64, shm_schema::Pose)]) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
+    writeln!(f, "# t tx ty tz qx qy qz qw (camera-to-world, shoal)")?;
+    for (t, p) in poses {
+        writeln!(
+            f,
+            "{} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
+            seconds_text(*t),
+            p.t[0],
+            p.t[1],
+            p.t[2],
+            p.q[0],
+            p.q[1],
+            p.q[2],
+            p.q[3]
+        )?;
+    }
+    f.flush()
+}
+
+/// Nanoseconds as exact decimal seconds (`1403715273.262142976`), no float rounding.
+pub fn seconds_text(t_ns: i64) -> String {
+    let sign = if t_ns < 0 { "-" } else { "" };
+    let a = t_ns.unsigned_abs();
+    format!("{sign}{}.{:09}", a / 1_000_000_000, a % 1_000_000_000)
+}

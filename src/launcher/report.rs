@@ -1,0 +1,284 @@
+//! `OUT/report.json`: what a run did, aggregated from the services' status files and the
+//! recorder; and the progress bar.
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+
+use serde::Serialize;
+use shoal_runtime::{ErrorRecord, Status};
+
+use super::child::Supervised;
+use super::recorder::{write_tum, Percentiles, Recorder};
+use super::RunConfig;
+
+/// Per-client figures.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ClientReport {
+    /// Dataset folder.
+    pub dataset: String,
+    /// Frames in the dataset (after `--max-frames`).
+    pub frames_total: u64,
+    /// Frames the camera ingest published (re-sends not counted).
+    pub frames_published: u64,
+    /// Frames the tracker took from shared memory.
+    pub frames_received: u64,
+    /// Frames with a valid tracked pose.
+    pub frames_tracked: u64,
+    /// Frames published but never taken by the tracker, plus frames the ingest missed while
+    /// it was down (real time).
+    pub frames_dropped: u64,
+    /// Frames re-sent in lock-step because no ack came (consumer restarted).
+    pub frames_resent: u64,
+    /// IMU samples published.
+    pub imu_samples_published: u64,
+    /// IMU samples the tracker took.
+    pub imu_samples_received: u64,
+    /// IMU samples lost between ingest and tracker.
+    pub imu_samples_dropped: u64,
+    /// Keyframe messages the tracker sent (re-sends not counted).
+    pub keyframes_sent: u64,
+    /// Keyframe acknowledgements the mapper sent.
+    pub keyframes_acked: u64,
+    /// Keyframes the mapper applied (journaled).
+    pub keyframes_applied: u64,
+    /// Trajectory file written, if any.
+    pub trajectory: Option<String>,
+}
+
+/// Per-service figures.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ServiceReport {
+    /// Restarts by the launcher.
+    pub restarts: u32,
+    /// Final phase (`done`, `stopped`, `failed`).
+    pub outcome: String,
+    /// Recovery times in s (crash seen → ready again).
+    pub recovery_s: Vec<f64>,
+    /// The service's own counters.
+    pub counters: BTreeMap<String, u64>,
+}
+
+/// Latency figures of the run.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct LatencyReport {
+    /// Frame publish (ingest) → pose publish (tracker).
+    pub publish_to_pose: Percentiles,
+    /// Frame publish → the tracker holds the frame.
+    pub publish_to_receive: Percentiles,
+    /// The tracking step inside the tracker.
+    pub tracker_total: Percentiles,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct RunReport {
+    /// shoal version.
+    pub shoal_version: String,
+    /// Message schema version.
+    pub schema_version: u32,
+    /// `lockstep` or `realtime`.
+    pub mode: String,
+    /// Speed factor (real time).
+    pub rate: f64,
+    /// Wall time of the run, s.
+    pub wall_time_s: f64,
+    /// True when the run was stopped by SIGINT/SIGTERM.
+    pub interrupted: bool,
+    /// True when `--max-seconds` stopped the run.
+    pub timed_out: bool,
+    /// Per client.
+    pub clients: Vec<ClientReport>,
+    /// Latencies, ms.
+    pub latency_ms: LatencyReport,
+    /// Per service.
+    pub services: BTreeMap<String, ServiceReport>,
+    /// Errors (bad input, schema mismatches, crashes given up), at most 200 per service.
+    pub errors: Vec<ErrorRecord>,
+    /// Error counts per `service/kind`, including those not listed in `errors`.
+    pub error_counts: BTreeMap<String, u64>,
+}
+
+fn load_status(path: &Path) -> Status {
+    std::fs::read_to_string(path)
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or_default()
+}
+
+impl RunReport {
+    /// A report for a run that could not start.
+    pub fn failed(cfg: &RunConfig, errors: Vec<ErrorRecord>, wall: Duration) -> Self {
+        let mut error_counts = BTreeMap::new();
+        for e in &errors {
+            *error_counts
+                .entry(format!("{}/{}", e.service, e.kind))
+                .or_insert(0) += 1;
+        }
+        Self {
+            shoal_version: env!("CARGO_PKG_VERSION").to_string(),
+            schema_version: shm_schema::SCHEMA_VERSION,
+            mode: format!("{:?}", cfg.mode).to_lowercase(),
+            rate: cfg.rate,
+            wall_time_s: wall.as_secs_f64(),
+            errors,
+            error_counts,
+            ..Self::default()
+        }
+    }
+
+    /// Aggregates the services' status files and the recorder; writes trajectories.
+    #[allow(clippy::too_many_arguments)]
+    pub fn collect(
+        cfg: &RunConfig,
+        datasets: &[datasets::Dataset],
+        services: &[Supervised],
+        recorder: &Recorder,
+        launcher_errors: Vec<ErrorRecord>,
+        wall: Duration,
+        interrupted: bool,
+        timed_out: bool,
+    ) -> anyhow::Result<Self> {
+        let mut rep = Self::failed(cfg, launcher_errors, wall);
+        rep.interrupted = interrupted;
+        rep.timed_out = timed_out;
+        let statuses: BTreeMap<String, Status> = services
+            .iter()
+            .map(|s| (s.name.clone(), load_status(&s.status)))
+            .collect();
+        let get = |svc: &str, key: &str| statuses.get(svc).map_or(0, |s| s.get(key));
+        let mapper = statuses.get("mapper");
+        for (c, ds) in datasets.iter().enumerate() {
+            let cam = format!("camera_ingest:{c}");
+            let imu = format!("imu_ingest:{c}");
+            let trk = format!("tracker:{c}");
+            let total = cfg.max_frames.unwrap_or(usize::MAX).min(ds.frames.len()) as u64;
+            let published = get(&cam, "frames_published");
+            let received = get(&trk, "frames_received");
+            let rec = &recorder.clients[c];
+            let mut trajectory = None;
+            if !rec.trajectory.is_empty() {
+                let path = cfg.out.join(format!("trajectory_c{c}.txt"));
+                write_tum(&path, &rec.trajectory)?;
+                trajectory = Some(path.display().to_string());
+            }
+            if !rec.server_trajectory.is_empty() {
+                write_tum(
+                    &cfg.out.join(format!("trajectory_server_c{c}.txt")),
+                    &rec.server_trajectory,
+                )?;
+            }
+            let m = |k: &str| mapper.map_or(0, |s| s.get(&format!("c{c}.{k}")));
+            rep.clients.push(ClientReport {
+                dataset: ds.root.display().to_string(),
+                frames_total: total,
+                frames_published: published,
+                frames_received: received,
+                frames_tracked: rec.tracked,
+                frames_dropped: published.saturating_sub(received)
+                    + get(&cam, "frames_skipped_late"),
+                frames_resent: get(&cam, "frames_resent"),
+                imu_samples_published: get(&imu, "imu_samples_published"),
+                imu_samples_received: get(&trk, "imu_samples_received"),
+                imu_samples_dropped: get(&trk, "imu_samples_dropped")
+                    + get(&imu, "imu_samples_skipped_late"),
+                keyframes_sent: get(&trk, "keyframes_sent"),
+                keyframes_acked: m("keyframes_acked"),
+                keyframes_applied: m("keyframes_applied"),
+                trajectory,
+            });
+        }
+        rep.latency_ms = LatencyReport {
+            publish_to_pose: recorder.publish_to_pose.percentiles(),
+            publish_to_receive: recorder.publish_to_receive.percentiles(),
+            tracker_total: recorder.tracker_total.percentiles(),
+        };
+        for sv in services {
+            let st = statuses.get(&sv.name).cloned().unwrap_or_default();
+            for e in &st.errors {
+                rep.errors.push(e.clone());
+            }
+            for (kind, n) in &st.error_counts {
+                *rep.error_counts
+                    .entry(format!("{}/{kind}", sv.name))
+                    .or_insert(0) += n;
+            }
+            let outcome = match sv.phase {
+                super::child::Phase::Done => "done",
+                super::child::Phase::Failed => "failed",
+                _ => "stopped",
+            };
+            rep.services.insert(
+                sv.name.clone(),
+                ServiceReport {
+                    restarts: sv.restarts,
+                    outcome: outcome.to_string(),
+                    recovery_s: sv.recoveries_s.clone(),
+                    counters: st.counters.clone(),
+                },
+            );
+        }
+        Ok(rep)
+    }
+
+    /// Total number of errors.
+    pub fn error_total(&self) -> u64 {
+        self.error_counts.values().sum()
+    }
+
+    /// Writes the report as pretty JSON.
+    pub fn write(&self, path: &Path) -> anyhow::Result<()> {
+        shoal_runtime::write_json_atomic(path, self)?;
+        Ok(())
+    }
+}
+
+/// Progress bars, one per client (hidden when stderr is not a terminal).
+pub struct Progress {
+    bars: Vec<indicatif::ProgressBar>,
+    _multi: indicatif::MultiProgress,
+}
+
+impl Progress {
+    /// Bars for the clients' frame counts.
+    pub fn new(enabled: bool, datasets: &[datasets::Dataset], max_frames: Option<usize>) -> Self {
+        let multi = if enabled {
+            indicatif::MultiProgress::new()
+        } else {
+            indicatif::MultiProgress::with_draw_target(indicatif::ProgressDrawTarget::hidden())
+        };
+        let style = indicatif::ProgressStyle::with_template(
+            "client {prefix} [{bar:40}] {pos}/{len} frames {per_sec} {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar());
+        let bars = datasets
+            .iter()
+            .enumerate()
+            .map(|(c, d)| {
+                let n = max_frames.unwrap_or(usize::MAX).min(d.frames.len());
+                let b = multi.add(indicatif::ProgressBar::new(n as u64));
+                b.set_style(style.clone());
+                b.set_prefix(c.to_string());
+                b
+            })
+            .collect();
+        Self {
+            bars,
+            _multi: multi,
+        }
+    }
+
+    /// Shows the poses received so far.
+    pub fn update(&self, rec: &Recorder) {
+        for (b, c) in self.bars.iter().zip(&rec.clients) {
+            b.set_position(c.poses);
+            b.set_message(format!("tracked {}", c.tracked));
+        }
+    }
+
+    /// Closes the bars.
+    pub fn finish(&self) {
+        for b in &self.bars {
+            b.finish();
+        }
+    }
+}
