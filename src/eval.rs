@@ -134,7 +134,21 @@ pub struct EvalReport {
 }
 
 fn read(path: &Path) -> anyhow::Result<Trajectory> {
-    read_trajectory(path).with_context(|| format!("reading trajectory {}", path.display()))
+    let t =
+        read_trajectory(path).with_context(|| format!("reading trajectory {}", path.display()))?;
+    if t.poses.is_empty() {
+        let first = t.issues.first().map_or(String::new(), |i| {
+            format!(
+                " (first problem: {}:{}: {}: {})",
+                i.path.display(),
+                i.line,
+                i.kind,
+                i.detail
+            )
+        });
+        bail!("{}: no valid poses{first}", path.display());
+    }
+    Ok(t)
 }
 
 /// A KITTI file re-read with the `times.txt` beside it, if there is one.
