@@ -105,7 +105,13 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let mut last_imu: Option<(u64, i64)> = None;
     let mut ack_seq = 0u64;
     let mut ended = false;
-    while !ended {
+    let mut imu_ended = false;
+    // After the frames' end of stream, wait this long at most for the IMU's.
+    let mut end_deadline: Option<i64> = None;
+    loop {
+        if ended && (imu_ended || end_deadline.is_some_and(|d| monotonic_ns() > d)) {
+            break;
+        }
         let mut idle = true;
         // IMU first, so that a frame's IMU data is in before the frame is handled.
         while let Some(s) = imu_sub.receive()? {
@@ -116,7 +122,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 continue;
             }
             if m.meta.is_end_of_stream() {
-                status.add("imu_end_of_stream", 1);
+                imu_ended = true;
                 continue;
             }
             if let Some((seq, t)) = last_imu {
@@ -145,6 +151,12 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 status.add("feedback_received", 1);
             }
         }
+        if ended {
+            if node.wait(Duration::from_micros(200)).is_err() {
+                break;
+            }
+            continue;
+        }
         if let Some(sample) = frame_sub.receive()? {
             idle = false;
             let recv = monotonic_ns();
@@ -170,7 +182,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     meta,
                     ..TrackedPose::default()
                 })?;
-                break;
+                end_deadline = Some(monotonic_ns() + 5_000_000_000);
+                continue;
             }
             if last_seq.is_some_and(|l| h.meta.seq <= l) {
                 // A re-send of a frame already handled (e.g. the camera restarted): ack again.

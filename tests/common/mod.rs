@@ -1,0 +1,162 @@
+//! Helpers shared by the end-to-end tests: the shoal binary, the shared data folder,
+//! per-test iceoryx2 prefixes, running a pipeline and reading its outputs.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// The `shoal` binary under test.
+pub fn shoal() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_shoal"))
+}
+
+/// `../shared/data` beside the checkout (or `$SHOAL_DATA`), if present.
+pub fn shared_data() -> Option<PathBuf> {
+    if let Ok(p) = std::env::var("SHOAL_DATA") {
+        let p = PathBuf::from(p);
+        if p.is_dir() {
+            return Some(p);
+        }
+    }
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+    p.is_dir().then_some(p)
+}
+
+/// The shared data sub-folder `name`, or `None` after printing why the test skips.
+pub fn shared_dataset(name: &str) -> Option<PathBuf> {
+    match shared_data() {
+        Some(d) if d.join(name).is_dir() => Some(d.join(name)),
+        _ => {
+            eprintln!("SKIP: ../shared/data/{name} not found (set SHOAL_DATA to run this test)");
+            None
+        }
+    }
+}
+
+/// A unique iceoryx2 prefix for one test, so parallel tests never see each other.
+pub fn prefix(test: &str) -> String {
+    format!("st{}_{}_", std::process::id(), test)
+}
+
+/// A fresh temporary folder.
+pub fn tempdir() -> tempfile::TempDir {
+    tempfile::tempdir().expect("temp dir")
+}
+
+/// Runs `shoal run` on `datasets` into `out`; returns the process output.
+pub fn run_pipeline(datasets: &[&Path], out: &Path, test: &str, extra: &[&str]) -> Output {
+    let mut cmd = shoal();
+    cmd.arg("run");
+    for d in datasets {
+        cmd.arg("--dataset").arg(d);
+    }
+    cmd.arg("--out")
+        .arg(out)
+        .arg("--quiet")
+        .arg("--ipc-prefix")
+        .arg(prefix(test));
+    cmd.arg("--max-seconds").arg("240");
+    cmd.args(extra);
+    let out = cmd.output().expect("run shoal");
+    if !out.status.success() {
+        eprintln!("stdout:\n{}", String::from_utf8_lossy(&out.stdout));
+        eprintln!("stderr:\n{}", String::from_utf8_lossy(&out.stderr));
+    }
+    out
+}
+
+/// Reads `OUT/report.json`.
+pub fn report(out: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(out.join("report.json")).expect("report.json");
+    serde_json::from_str(&text).expect("report.json is JSON")
+}
+
+/// Generates a small synthetic sequence (EuRoC layout) of `frames` frames; returns the
+/// agent folders.
+pub fn synthetic(
+    dir: &Path,
+    scenario: &str,
+    frames: usize,
+    readout_ms: Option<f64>,
+) -> Vec<PathBuf> {
+    let mut p = datasets::sim::SimParams::new(scenario.parse().expect("scenario"));
+    p.frames = Some(frames);
+    p.readout_ms = readout_ms;
+    p.seed = 3;
+    let s = datasets::sim::generate(&p, dir).expect("generate synthetic sequence");
+    s.agents.into_iter().map(|a| a.dir).collect()
+}
+
+/// FNV-1a 64 (as the tracker's frame log).
+pub fn fnv1a(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+/// One frame line of a tracker frame log.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameLine {
+    pub seq: u64,
+    pub index: usize,
+    pub t_ns: i64,
+    pub readout_ns: i64,
+    pub width: u32,
+    pub height: u32,
+    pub bytes: usize,
+    pub checksum: u64,
+}
+
+/// Parses a tracker frame log: (frames, imu (seq, t_ns)).
+pub fn frame_log(path: &Path) -> (Vec<FrameLine>, Vec<(u64, i64)>) {
+    let text = std::fs::read_to_string(path).expect("frame log");
+    let mut frames = Vec::new();
+    let mut imu = Vec::new();
+    for line in text.lines() {
+        let f: Vec<&str> = line.split_whitespace().collect();
+        match f.first() {
+            Some(&"frame") => frames.push(FrameLine {
+                seq: f[1].parse().unwrap(),
+                index: f[2].parse().unwrap(),
+                t_ns: f[3].parse().unwrap(),
+                readout_ns: f[4].parse().unwrap(),
+                width: f[5].parse().unwrap(),
+                height: f[6].parse().unwrap(),
+                bytes: f[7].parse().unwrap(),
+                checksum: u64::from_str_radix(f[8], 16).unwrap(),
+            }),
+            Some(&"imu") => imu.push((f[1].parse().unwrap(), f[2].parse().unwrap())),
+            _ => {}
+        }
+    }
+    (frames, imu)
+}
+
+/// Checks that `frames` are exactly the dataset's frames, in order, with the right
+/// timestamps, sizes and pixels.
+pub fn assert_frames_match(dataset: &Path, frames: &[FrameLine]) {
+    let ds = datasets::open(dataset).expect("open dataset");
+    assert_eq!(
+        frames.len(),
+        ds.frames.len(),
+        "every frame arrived exactly once"
+    );
+    let (w, h) = (ds.camera.model.width, ds.camera.model.height);
+    let mut buf = vec![0u8; (w * h) as usize];
+    for (k, (f, rec)) in frames.iter().zip(&ds.frames).enumerate() {
+        assert_eq!(f.seq, k as u64, "sequence number of frame {k}");
+        assert_eq!(f.index, k, "dataset index of frame {k}");
+        assert_eq!(f.t_ns, rec.t_ns, "timestamp of frame {k}");
+        assert_eq!(f.readout_ns, rec.readout_ns, "readout time of frame {k}");
+        assert_eq!(
+            (f.width, f.height, f.bytes),
+            (w, h, buf.len()),
+            "size of frame {k}"
+        );
+        datasets::decode_gray_into(&rec.path, &mut buf, w, h).expect("decode");
+        assert_eq!(f.checksum, fnv1a(&buf), "pixel checksum of frame {k}");
+    }
+}

@@ -1,0 +1,117 @@
+//! Faults: real SIGKILLs of real child processes, restarts by the launcher, and a consumer
+//! that dies while the ingest keeps publishing.
+mod common;
+
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use common::*;
+
+/// Waits until `OUT/status/NAME.json` exists with `counter >= min`; returns the status.
+fn wait_status(out: &std::path::Path, file: &str, counter: &str, min: u64) -> serde_json::Value {
+    let path = out.join("status").join(format!("{file}.json"));
+    let start = Instant::now();
+    loop {
+        if let Ok(text) = std::fs::read_to_string(&path) {
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
+                if v["counters"][counter].as_u64().unwrap_or(0) >= min {
+                    return v;
+                }
+            }
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "{file} never reached {counter} >= {min}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn sigkill(pid: u64) {
+    // SAFETY: kill(2) on a pid read from our own run's status file.
+    let r = unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    assert_eq!(r, 0, "SIGKILL {pid}");
+}
+
+/// Real-time replay; the tracker (the frame consumer) is SIGKILLed mid-stream. The camera
+/// keeps publishing on schedule (safe overflow: a dead subscriber never blocks it), the
+/// launcher restarts the tracker, and the restarted tracker resumes taking frames.
+#[test]
+fn killed_consumer_never_blocks_the_ingest_and_resumes() {
+    let dir = tempdir();
+    let agents = synthetic(dir.path(), "loop", 120, None); // 6 s at 20 Hz
+    let out = tempdir();
+    let mut child = shoal()
+        .args(["run", "--rate", "1.0", "--quiet", "--max-seconds", "120"])
+        .arg("--dataset")
+        .arg(&agents[0])
+        .arg("--out")
+        .arg(out.path())
+        .arg("--ipc-prefix")
+        .arg(prefix("kill"))
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let st = wait_status(out.path(), "tracker_c0", "frames_received", 20);
+    let before = st["counters"]["frames_received"].as_u64().unwrap();
+    sigkill(st["pid"].as_u64().unwrap());
+    let status = child.wait().unwrap();
+    assert!(status.success());
+    let rep = report(out.path());
+    let c = &rep["clients"][0];
+    // The camera published every frame on time: nothing was late, nothing blocked.
+    assert_eq!(c["frames_published"], 120);
+    assert_eq!(
+        rep["services"]["camera_ingest:0"]["counters"]["frames_skipped_late"],
+        serde_json::Value::Null
+    );
+    assert_eq!(
+        rep["services"]["tracker:0"]["restarts"], 1,
+        "the launcher restarted the tracker"
+    );
+    assert_eq!(rep["services"]["tracker:0"]["outcome"], "done");
+    let received = c["frames_received"].as_u64().unwrap();
+    assert!(
+        received > before + 20,
+        "the restarted tracker resumed ({before} -> {received})"
+    );
+    // What was lost while it was down is counted, not hidden.
+    assert_eq!(c["frames_dropped"].as_u64().unwrap(), 120 - received);
+    assert!(
+        rep["services"]["tracker:0"]["recovery_s"][0]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
+}
+
+/// Lock-step replay; the camera ingest is SIGKILLed mid-stream, restarted by the launcher,
+/// and resumes where it stopped: every frame still arrives, in order, exactly once.
+#[test]
+fn killed_ingest_is_restarted_and_resumes() {
+    let dir = tempdir();
+    let agents = synthetic(dir.path(), "loop", 80, None);
+    let out = tempdir();
+    let log = out.path().join("frames_c{c}.log");
+    let mut child = shoal()
+        .args(["run", "--lockstep", "--quiet", "--max-seconds", "120"])
+        .arg("--dataset")
+        .arg(&agents[0])
+        .arg("--out")
+        .arg(out.path())
+        .arg("--ipc-prefix")
+        .arg(prefix("killcam"))
+        .arg(format!("--tracker-arg=--frame-log={}", log.display()))
+        .arg("--tracker-arg=--work-ms=20")
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let st = wait_status(out.path(), "camera_ingest_c0", "frames_published", 15);
+    sigkill(st["pid"].as_u64().unwrap());
+    assert!(child.wait().unwrap().success());
+    let rep = report(out.path());
+    assert_eq!(rep["services"]["camera_ingest:0"]["restarts"], 1);
+    let (frames, _) = frame_log(&out.path().join("frames_c0.log"));
+    assert_frames_match(&agents[0], &frames);
+    assert_eq!(rep["clients"][0]["frames_dropped"], 0);
+}
