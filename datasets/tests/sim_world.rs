@@ -202,7 +202,9 @@ fn integrate_and_compare(scenario: Scenario, start_idx: usize, max_pos: f64, max
     let dp = (p - s1.p_wb).norm();
     let dr = (r.inverse() * s1.q_wb).angle();
     let dv = (v - s1.v_w).norm();
-    eprintln!("{scenario}: 1 s of IMU integration: dp {dp:.2e} m, dv {dv:.2e} m/s, dr {dr:.2e} rad");
+    eprintln!(
+        "{scenario}: 1 s of IMU integration: dp {dp:.2e} m, dv {dv:.2e} m/s, dr {dr:.2e} rad"
+    );
     assert!(
         dp < max_pos && dr < max_rot && dv < 2.0 * max_pos,
         "{scenario}: dp {dp} m, dv {dv} m/s, dr {dr} rad"
@@ -230,10 +232,10 @@ fn imu_biases_and_noise_are_recorded() {
     ideal.initial_biases = ImuBiases::default();
     let exact = SimWorld::new(ideal).expect("world");
     let (sg, sa) = params.noise.discrete_white_sigma(0.005);
-    for k in 0..gt.len() {
-        let (m, e) = (&world.imu_samples()[k], &exact.imu_samples()[k]);
-        let ng = Vector3::from(m.gyro) - Vector3::from(e.gyro) - gt[k].biases.gyro;
-        let na = Vector3::from(m.accel) - Vector3::from(e.accel) - gt[k].biases.accel;
+    let triples = gt.iter().zip(world.imu_samples()).zip(exact.imu_samples());
+    for (k, ((s, m), e)) in triples.enumerate() {
+        let ng = Vector3::from(m.gyro) - Vector3::from(e.gyro) - s.biases.gyro;
+        let na = Vector3::from(m.accel) - Vector3::from(e.accel) - s.biases.accel;
         assert!(ng.amax() < 6.0 * sg && na.amax() < 6.0 * sa, "sample {k}");
     }
 }
@@ -248,7 +250,11 @@ fn scenario_geometry() {
         let world = SimWorld::new(SimParams::new(sc)).expect("world");
         assert_eq!(world.n_frames(), frames);
         let len = world.path_length_m();
-        eprintln!("{sc}: {} frames, {:.2} s, camera path {len:.2} m", world.n_frames(), world.duration_s());
+        eprintln!(
+            "{sc}: {} frames, {:.2} s, camera path {len:.2} m",
+            world.n_frames(),
+            world.duration_s()
+        );
         assert!((min_len..max_len).contains(&len), "{sc}: path {len} m");
         // The loop closes: the end of lap 1 is the start of lap 2.
         if sc == Scenario::Loop {

@@ -168,7 +168,7 @@ impl Renderer {
                 [c[0] - margin, c[1] + margin, c[2] - margin, c[3] + margin]
             })
             .collect();
-        let mut rng = Rng::new(0x6E01_5E);
+        let mut rng = Rng::new(0x006E_015E);
         let noise_table = (0..NOISE_TABLE).map(|_| rng.normal() as f32).collect();
         Self {
             cam,

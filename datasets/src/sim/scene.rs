@@ -52,6 +52,9 @@ pub struct Scene {
     pub rects: Vec<Rect>,
 }
 
+/// (origin, axis u, axis v, size u, size v, texel size) of a rectangle to build.
+type RectSpec = (Vector3<f64>, Vector3<f64>, Vector3<f64>, f64, f64, f64);
+
 /// Index of the first panel in [`Scene::room`] (0-5 are floor, ceiling and walls).
 pub const FIRST_PANEL: usize = 6;
 
@@ -63,7 +66,7 @@ impl Scene {
         let ex = Vector3::x();
         let ey = Vector3::y();
         let ez = Vector3::z();
-        let mut specs: Vec<(Vector3<f64>, Vector3<f64>, Vector3<f64>, f64, f64, f64)> = vec![
+        let mut specs: Vec<RectSpec> = vec![
             // floor, ceiling (1.5 cm texels: large and seen obliquely)
             (Vector3::new(x0, y0, 0.0), ex, ey, x1 - x0, y1 - y0, 0.015),
             (Vector3::new(x0, y0, h), ex, ey, x1 - x0, y1 - y0, 0.015),
