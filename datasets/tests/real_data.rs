@@ -57,7 +57,7 @@ fn euroc_v101_static() {
     assert_eq!(ds.frames[0].t_ns, 1_403_715_273_262_142_976);
     assert!(ds.frames.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
     assert_eq!(ds.imu.len(), 29120);
-    assert!((ds.imu[0].accel[0] - 9.0874956666666655).abs() < 1e-12);
+    assert!((ds.imu[0].accel[0] - 9.087_495_666_666_666).abs() < 1e-12);
     assert!(ds.imu.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
     // Ground truth at every frame (same stamps), camera pose = T_WB T_BS.
     let gt = ds.ground_truth.as_ref().expect("gt");
