@@ -115,3 +115,44 @@ fn killed_ingest_is_restarted_and_resumes() {
     assert_frames_match(&agents[0], &frames);
     assert_eq!(rep["clients"][0]["frames_dropped"], 0);
 }
+
+/// A run left behind by SIGKILL of every process (stale shared memory, stale node files)
+/// does not stop the next run on the same prefix: it cleans up and starts.
+#[test]
+fn stale_state_of_a_killed_run_does_not_stop_the_next() {
+    let dir = tempdir();
+    let agents = synthetic(dir.path(), "loop", 60, None);
+    let out = tempdir();
+    let pfx = prefix("stale");
+    let mut child = shoal()
+        .args(["run", "--rate", "1.0", "--quiet", "--max-seconds", "120"])
+        .arg("--dataset")
+        .arg(&agents[0])
+        .arg("--out")
+        .arg(out.path())
+        .arg("--ipc-prefix")
+        .arg(&pfx)
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    wait_status(out.path(), "tracker_c0", "frames_received", 5);
+    let mut pids = vec![];
+    for f in ["camera_ingest_c0", "imu_ingest_c0", "tracker_c0", "mapper", "loop_closer"] {
+        let v: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out.path().join("status").join(format!("{f}.json"))).unwrap(),
+        )
+        .unwrap();
+        pids.push(v["pid"].as_u64().unwrap());
+    }
+    // Children first (so the launcher cannot restart them), then the launcher.
+    for p in &pids {
+        sigkill(*p);
+    }
+    sigkill(child.id() as u64);
+    let _ = child.wait();
+    std::thread::sleep(Duration::from_millis(200));
+    let out2 = tempdir();
+    let res = run_pipeline(&[&agents[0]], out2.path(), "stale", &["--lockstep"]);
+    assert!(res.status.success(), "the next run starts despite the stale state");
+    assert_eq!(report(out2.path())["clients"][0]["frames_received"], 60);
+}
