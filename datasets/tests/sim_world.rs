@@ -157,12 +157,10 @@ fn two_agents_write_two_layouts_in_one_world_frame() {
         assert!(tmp.path().join(a).join("groundtruth_cam0.txt").is_file());
     }
     // Overlap: every pose of agent 1 has a pose of agent 0 nearby looking the same way.
-    let p = SimParams::new(Scenario::TwoAgents);
     let (a0, a1) = (
         Scenario::TwoAgents.trajectory(0).expect("a0"),
         Scenario::TwoAgents.trajectory(1).expect("a1"),
     );
-    let _ = p;
     for i in 0..64 {
         let q = a1.pose_cam(f64::from(i) * 0.5);
         let near = (0..640).any(|j| {

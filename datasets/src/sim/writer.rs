@@ -131,7 +131,7 @@ fn yaml_matrix(name: &str, t: &Isometry3<f64>) -> String {
         if r > 0 {
             s.push_str("         ");
         }
-        let row: Vec<String> = (0..4).map(|c| format!("{}", m[(r, c)])).collect();
+        let row: Vec<String> = (0..4).map(|c| format!("{:?}", m[(r, c)])).collect();
         s.push_str(&row.join(", "));
         s.push_str(if r < 3 { ",\n" } else { "]\n" });
     }
