@@ -7,7 +7,9 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod demo;
+mod eval;
 mod launcher;
+mod sim_cmd;
 
 /// shoal: zero-copy, multi-process collaborative SLAM on one host.
 #[derive(Parser)]
@@ -23,6 +25,10 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Run the pipeline on one or more datasets (one client each).
     Run(RunArgs),
+    /// Generate a synthetic sequence (EuRoC ASL layout + ground truth).
+    Sim(sim_cmd::SimArgs),
+    /// Trajectory error (ATE, RPE) of an estimate against ground truth, as evo computes it.
+    Eval(eval::EvalArgs),
     /// Benchmarks (IPC hand-off, ...).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -121,6 +127,8 @@ fn main() -> ExitCode {
             let result = match command {
                 Command::Demo(a) => demo::run(a),
                 Command::Run(a) => run_cmd(a),
+                Command::Sim(a) => sim_cmd::run(&a),
+                Command::Eval(a) => eval::run(&a).map(|r| eval::print(&r, a.json)),
                 Command::Bench(b) => bench::run(b),
                 Command::Service(_) => Ok(()),
             };
