@@ -355,7 +355,8 @@ const NO_HIT: u32 = u32::MAX;
 
 /// The nearest hits of one chunk of rays (structure of arrays, vectorisable).
 struct ChunkHits<'a> {
-    scene: &'a Scene,
+    /// Texture of each scene rectangle (by index).
+    textures: [Option<&'a MipTexture>; MAX_RECTS],
     /// Index of the chunk's first pixel in the image.
     base: usize,
     t: [f32; CHUNK],
@@ -373,8 +374,12 @@ struct ChunkHits<'a> {
 
 impl<'a> ChunkHits<'a> {
     fn new(scene: &'a Scene) -> Self {
+        let mut textures = [None; MAX_RECTS];
+        for (t, r) in textures.iter_mut().zip(&scene.rects) {
+            *t = Some(&*r.texture);
+        }
         Self {
-            scene,
+            textures,
             base: 0,
             t: [0.0; CHUNK],
             cos: [0.0; CHUNK],
@@ -451,8 +456,7 @@ impl<'a> ChunkHits<'a> {
     /// Texture of the rectangle hit by pixel `i`.
     #[inline(always)]
     fn texture(&self, i: usize) -> Option<&'a MipTexture> {
-        let k = self.rect_index(i)?;
-        self.scene.rects.get(k).map(|r| &*r.texture)
+        self.textures.get(self.rect_index(i)?).copied().flatten()
     }
 }
 

@@ -28,12 +28,14 @@ struct Level {
 #[derive(Debug, Clone)]
 pub struct MipTexture {
     data: Vec<u8>,
-    levels: Vec<Level>,
+    /// Mip levels, finest first (unused entries repeat the coarsest one).
+    levels: [Level; MAX_LEVELS],
+    n_levels: usize,
     /// Texels per metre of level 0 (geometric mean of u and v).
     texels_per_m: f32,
 }
 
-/// Coarsest level count (level 0 included).
+/// Largest level count (level 0 included); a power of two.
 const MAX_LEVELS: usize = 8;
 
 impl MipTexture {
@@ -77,7 +79,12 @@ impl MipTexture {
         let texels_per_m = ((w as f64 / size_u) * (h as f64 / size_v)).sqrt() as f32;
         Self {
             data,
-            levels,
+            levels: {
+                let mut arr = [levels[levels.len() - 1]; MAX_LEVELS];
+                arr[..levels.len()].copy_from_slice(&levels);
+                arr
+            },
+            n_levels: levels.len(),
             texels_per_m,
         }
     }
@@ -89,13 +96,14 @@ impl MipTexture {
 
     /// Number of mip levels.
     pub fn n_levels(&self) -> usize {
-        self.levels.len()
+        self.n_levels
     }
 
     /// Bilinear sample of level `lvl` at plane coordinates `(s, w)` metres (clamped to edge).
     #[inline(always)]
     fn bilinear(&self, lvl: usize, s: f32, w: f32) -> f32 {
-        let l = &self.levels[lvl];
+        // MAX_LEVELS is a power of two: the mask lets the compiler drop the bounds check.
+        let l = &self.levels[lvl & (MAX_LEVELS - 1)];
         let x = (s * l.scale_u - 0.5).clamp(0.0, l.max_x);
         let y = (w * l.scale_v - 0.5).clamp(0.0, l.max_y);
         let (x0, y0) = (x as usize, y as usize);
@@ -120,7 +128,7 @@ impl MipTexture {
     /// filtering, with one bilinear fetch for about half of the pixels.
     #[inline(always)]
     pub fn sample_lod(&self, s: f32, w: f32, lod: f32) -> f32 {
-        let top = self.levels.len() - 1;
+        let top = self.n_levels - 1;
         if lod <= 0.25 {
             return self.bilinear(0, s, w);
         }
