@@ -180,8 +180,22 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
                         }
                     }
                 }
-                while monotonic_ns() < next {
-                    std::hint::spin_loop();
+                // Sleep (not spin) between frames so the subscriber has a core of its own.
+                let left = next - monotonic_ns();
+                if left > 0 {
+                    std::thread::sleep(Duration::from_nanos(left as u64));
+                }
+            }
+            if method != "uds_copy" {
+                // End of stream (a few times: the subscriber stops at the first it sees).
+                for _ in 0..5 {
+                    let mut sample = publisher.loan_slice(bytes)?;
+                    let mut meta = MsgMeta::new(0, 0, args.frames as u64, monotonic_ns());
+                    meta.flags = shm_schema::FLAG_END_OF_STREAM;
+                    *sample.user_header_mut() = FrameHeader { meta, ..Default::default() };
+                    sample.send()?;
+                    notifier.notify().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+                    std::thread::sleep(Duration::from_millis(2));
                 }
             }
             let result_line = lines.next().context("subscriber gave no result")??;
@@ -253,9 +267,12 @@ pub fn peer(args: &PeerArgs) -> anyhow::Result<()> {
             writeln!(out, "READY")?;
             out.flush()?;
             let mut k = 0;
-            while k < args.frames {
+            loop {
                 if let Some(sample) = subscriber.receive()? {
                     let now = monotonic_ns();
+                    if sample.user_header().meta.is_end_of_stream() {
+                        break;
+                    }
                     let t = sample.user_header().meta.publish_mono_ns;
                     if k >= WARMUP {
                         hist.record(now - t, sample.payload()[bytes / 2]);
@@ -276,7 +293,8 @@ pub fn peer(args: &PeerArgs) -> anyhow::Result<()> {
             writeln!(out, "READY")?;
             out.flush()?;
             let mut k = 0;
-            while k < args.frames {
+            let mut done = false;
+            while !done {
                 let mut err = None;
                 waitset
                     .wait_and_process_once(|id| {
@@ -286,6 +304,10 @@ pub fn peer(args: &PeerArgs) -> anyhow::Result<()> {
                                 match subscriber.receive() {
                                     Ok(Some(sample)) => {
                                         let now = monotonic_ns();
+                                        if sample.user_header().meta.is_end_of_stream() {
+                                            done = true;
+                                            break;
+                                        }
                                         let t = sample.user_header().meta.publish_mono_ns;
                                         if k >= WARMUP {
                                             hist.record(now - t, sample.payload()[bytes / 2]);
