@@ -3,6 +3,7 @@
 
 pub mod camera;
 pub mod error;
+pub mod features;
 pub mod geometry;
 pub mod imu;
 pub mod metrics;
