@@ -113,10 +113,11 @@ fn time(path: &str, runs: usize, params: &OrbParams) -> AnyResult<()> {
         cols[3].push(ms(t.orient));
         cols[4].push(ms(t.describe));
     }
+    let min = cols[0].iter().copied().fold(f64::INFINITY, f64::min);
     let [tot, pyr, det, ori, des] = cols.each_mut().map(|c| median(c));
     println!(
-        "{path} {w}x{h}: {} kps, median total {tot:.3} ms (pyramid {pyr:.3}, detect {det:.3}, \
-         orient {ori:.3}, describe {des:.3})",
+        "{path} {w}x{h}: {} kps, median total {tot:.3} ms, min {min:.3} ms (median stages: \
+         pyramid {pyr:.3}, detect {det:.3}, orient {ori:.3}, describe {des:.3})",
         f.len()
     );
     Ok(())

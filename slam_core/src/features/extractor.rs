@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 use super::distribute::{distribute, QuadtreeScratch};
 use super::fast::{self, Candidate, FastConfig};
 use super::image::{GrayBuffer, GrayImage};
-use super::orb::{DescriptorTable, OrientationTable, HALF_PATCH, PATTERN_REACH};
+use super::orb::{orientations, DescriptorTable, OrientationTable, PATTERN_REACH};
 use super::pyramid::{gaussian_blur7, Pyramid};
 use crate::CoreError;
 
@@ -131,10 +131,11 @@ pub struct OrbExtractor {
     pyramid: Pyramid,
     per_level: Vec<usize>,
     blurred: GrayBuffer,
-    blur_tmp: Vec<u32>,
+    blur_tmp: Vec<u16>,
     score: Vec<u8>,
     cands: Vec<Candidate>,
     keep: Vec<u32>,
+    angles: Vec<f32>,
     quad: QuadtreeScratch,
     orientation: OrientationTable,
     brief: DescriptorTable,
@@ -169,6 +170,7 @@ impl OrbExtractor {
             score: vec![0; width * height],
             cands: Vec::with_capacity(max_cands),
             keep: Vec::with_capacity(4 * max_per_level + 64),
+            angles: Vec::with_capacity(4 * max_per_level + 64),
             quad: QuadtreeScratch::with_capacity(max_cands, 4 * max_per_level + 64),
             orientation: OrientationTable::new(),
             brief: DescriptorTable::new(params.angle_bins, width),
@@ -279,14 +281,20 @@ impl OrbExtractor {
             t.detect += clock.lap();
 
             let first = out.keypoints.len();
-            for &i in &self.keep {
+            self.angles.clear();
+            orientations(
+                &self.orientation,
+                data,
+                stride,
+                &self.cands,
+                &self.keep,
+                &mut self.angles,
+            );
+            for (&i, &angle) in self.keep.iter().zip(&self.angles) {
                 let c = self.cands[i as usize];
-                let (x, y) = (c.x as usize, c.y as usize);
-                debug_assert!(x >= HALF_PATCH && y >= HALF_PATCH);
-                let angle = self.orientation.angle(data, stride, x, y);
                 out.keypoints.push(KeyPoint {
-                    x: x as f32 * scale,
-                    y: y as f32 * scale,
+                    x: c.x as f32 * scale,
+                    y: c.y as f32 * scale,
                     angle,
                     response: c.score as f32,
                     size: PATCH_SIZE * scale,

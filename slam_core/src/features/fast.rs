@@ -8,6 +8,8 @@
 //! vectorises over a block of 32 pixels; a cheap test on the four compass pixels (an arc of 9
 //! always holds two consecutive ones) skips blocks with no possible corner.
 
+use super::simd::dispatch;
+
 /// Pixels processed together by the vectorised kernel (also the width of a detection cell).
 pub(crate) const BLOCK: usize = 32;
 /// Height of a detection cell, in rows.
@@ -225,6 +227,32 @@ pub(crate) fn detect(
     out: &mut Vec<Candidate>,
 ) {
     out.clear();
+    detect_cells(img, stride, w, h, cfg, score, out);
+}
+
+dispatch! {
+    /// Scoring over the cells, then suppression (see [`detect`]).
+    fn detect_cells(
+        img: &[u8],
+        stride: usize,
+        w: usize,
+        h: usize,
+        cfg: FastConfig,
+        score: &mut [u8],
+        out: &mut Vec<Candidate>,
+    ) => detect_cells_impl
+}
+
+#[inline(always)]
+fn detect_cells_impl(
+    img: &[u8],
+    stride: usize,
+    w: usize,
+    h: usize,
+    cfg: FastConfig,
+    score: &mut [u8],
+    out: &mut Vec<Candidate>,
+) {
     let b = cfg.border.max(3);
     if w < 2 * b + 1 || h < 2 * b + 1 || score.len() < h * stride || img.len() < h * stride {
         return;
@@ -262,6 +290,7 @@ pub(crate) fn detect(
 }
 
 /// 3x3 non-maximum suppression over the area; pushes the survivors to `out`.
+#[inline(always)]
 fn suppress(
     score: &[u8],
     stride: usize,
@@ -271,39 +300,79 @@ fn suppress(
     ay1: usize,
     out: &mut Vec<Candidate>,
 ) {
+    const CHUNK: usize = 64;
+    if ax1 - ax0 < CHUNK {
+        return suppress_scalar(score, stride, ax0, ax1, ay0, ay1, out);
+    }
     for y in ay0..ay1 {
         let up = &score[(y - 1) * stride..y * stride];
         let mid = &score[y * stride..(y + 1) * stride];
         let down = &score[(y + 1) * stride..(y + 2) * stride];
         let mut x = ax0;
         while x < ax1 {
-            // Skip 8 zero scores at a time.
-            if x + 8 <= ax1 {
-                if let Some(chunk) = mid[x..].first_chunk::<8>() {
-                    if u64::from_ne_bytes(*chunk) == 0 {
-                        x += 8;
-                        continue;
-                    }
+            // Chunks of fixed size; the last one overlaps the previous (skip `x - xs` pixels).
+            let xs = x.min(ax1 - CHUNK);
+            let window = |r: &[u8]| r.get(xs - 1..)?.first_chunk::<{ CHUNK + 2 }>().copied();
+            let (Some(u), Some(m), Some(d)) = (window(up), window(mid), window(down)) else {
+                break;
+            };
+            // Strict maximum over the neighbours before in raster order, >= over those after.
+            let mut keep = [0u8; CHUNK];
+            for i in 0..CHUNK {
+                let s = m[i + 1];
+                let before = u[i].max(u[i + 1]).max(u[i + 2]).max(m[i]);
+                let after = m[i + 2].max(d[i]).max(d[i + 1]).max(d[i + 2]);
+                keep[i] = ((s > before) & (s >= after) & (s != 0)) as u8;
+            }
+            keep[..x - xs].fill(0);
+            for (wi, word) in keep.chunks_exact(8).enumerate() {
+                let mut bits = u64::from_le_bytes([
+                    word[0], word[1], word[2], word[3], word[4], word[5], word[6], word[7],
+                ]);
+                while bits != 0 {
+                    let i = wi * 8 + (bits.trailing_zeros() / 8) as usize;
+                    bits &= bits - 1;
+                    out.push(Candidate {
+                        x: (xs + i) as u16,
+                        y: y as u16,
+                        score: m[i + 1],
+                    });
                 }
             }
-            let s = mid[x];
-            if s != 0
-                && s > up[x - 1]
-                && s > up[x]
-                && s > up[x + 1]
-                && s > mid[x - 1]
-                && s >= mid[x + 1]
-                && s >= down[x - 1]
-                && s >= down[x]
-                && s >= down[x + 1]
-            {
+            x = xs + CHUNK;
+        }
+    }
+}
+
+/// [`suppress`] for areas narrower than a chunk.
+fn suppress_scalar(
+    score: &[u8],
+    stride: usize,
+    ax0: usize,
+    ax1: usize,
+    ay0: usize,
+    ay1: usize,
+    out: &mut Vec<Candidate>,
+) {
+    for y in ay0..ay1 {
+        let at = |dx: usize, dy: usize, x: usize| score[(y + dy - 1) * stride + x + dx - 1];
+        for x in ax0..ax1 {
+            let s = at(1, 1, x);
+            let before = at(0, 0, x)
+                .max(at(1, 0, x))
+                .max(at(2, 0, x))
+                .max(at(0, 1, x));
+            let after = at(2, 1, x)
+                .max(at(0, 2, x))
+                .max(at(1, 2, x))
+                .max(at(2, 2, x));
+            if s != 0 && s > before && s >= after {
                 out.push(Candidate {
                     x: x as u16,
                     y: y as u16,
                     score: s,
                 });
             }
-            x += 1;
         }
     }
 }

@@ -20,6 +20,7 @@ mod matching;
 mod orb;
 mod pattern;
 mod pyramid;
+mod simd;
 
 pub use extractor::{KeyPoint, OrbExtractor, OrbFeatures, OrbParams, OrbTimings, PATCH_SIZE};
 pub use image::{GrayBuffer, GrayImage};

@@ -8,7 +8,9 @@
 //! keypoint angle. As proposed in the ORB paper, the angle is quantised to `bins` steps and the
 //! rotated pattern of every step is precomputed as pixel offsets for the (shared) row stride.
 
+use super::fast::Candidate;
 use super::pattern::BIT_PATTERN_31;
+use super::simd::dispatch;
 
 /// Radius of the orientation patch.
 pub(crate) const HALF_PATCH: usize = 15;
@@ -50,7 +52,7 @@ impl OrientationTable {
     /// Orientation in degrees `[0, 360)` of the keypoint at `(x, y)`; needs
     /// `HALF_PATCH <= x < w - HALF_PATCH - 1` and `HALF_PATCH <= y < h - HALF_PATCH`.
     /// Returns 0 when the patch does not fit `img`.
-    #[inline]
+    #[inline(always)]
     pub(crate) fn angle(&self, img: &[u8], stride: usize, x: usize, y: usize) -> f32 {
         if x < HALF_PATCH || y < HALF_PATCH {
             return 0.0;
@@ -79,6 +81,36 @@ impl OrientationTable {
         } else {
             deg
         }
+    }
+}
+
+dispatch! {
+    /// Orientations of the candidates `cands[keep[i]]`, appended to `out`.
+    pub(crate) fn orientations(
+        table: &OrientationTable,
+        img: &[u8],
+        stride: usize,
+        cands: &[Candidate],
+        keep: &[u32],
+        out: &mut Vec<f32>,
+    ) => orientations_impl
+}
+
+#[inline(always)]
+fn orientations_impl(
+    table: &OrientationTable,
+    img: &[u8],
+    stride: usize,
+    cands: &[Candidate],
+    keep: &[u32],
+    out: &mut Vec<f32>,
+) {
+    for &i in keep {
+        let a = match cands.get(i as usize) {
+            Some(c) => table.angle(img, stride, c.x as usize, c.y as usize),
+            None => 0.0,
+        };
+        out.push(a);
     }
 }
 
