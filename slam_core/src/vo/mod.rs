@@ -1,0 +1,13 @@
+//! Monocular visual odometry of a client (seed §3.3, "ORB-VO"): the client map and the
+//! rules of the tracking and local-mapping threads, as pure functions on plain data.
+//!
+//! **Status:** the map structures and the keyframe rule are here; the tracking state machine
+//! (initialisation, motion-model / reference-keyframe tracking, relocalisation, local-map
+//! tracking) and local mapping come with the tracker issue, built on `features`,
+//! `twoview`, `optim` and bundle adjustment.
+
+pub mod keyframe_rule;
+pub mod map;
+
+pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
+pub use map::{ClientMap, KfId, Keyframe, MapPoint, PointId};
