@@ -154,9 +154,13 @@ pub(crate) fn distribute(
         }
     }
 
-    // Full rounds of splitting.
-    loop {
-        let prev = s.nodes.len();
+    // Full rounds of splitting. Unlike ORB-SLAM, a round that leaves the node count unchanged
+    // (all points in one child) does not stop the division; boxes shrink every round, and the
+    // round cap guards against duplicate positions.
+    for _round in 0..64 {
+        if s.nodes.iter().all(|nd| nd.len() <= 1) {
+            break;
+        }
         s.next.clear();
         let mut splittable = 0;
         for node in &s.nodes {
@@ -167,7 +171,7 @@ pub(crate) fn distribute(
             }
         }
         std::mem::swap(&mut s.nodes, &mut s.next);
-        if s.nodes.len() >= n || s.nodes.len() == prev {
+        if s.nodes.len() >= n {
             break;
         }
         if s.nodes.len() + 3 * splittable > n {
@@ -234,5 +238,55 @@ fn split_largest_first(cands: &[Candidate], n: usize, s: &mut QuadtreeScratch) {
         if s.nodes.len() == prev || s.nodes.len() >= n {
             return;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keeps_the_strongest_spread_over_the_area() {
+        // A dense 100x100 block of candidates in the top-left corner plus 4 isolated weak ones.
+        let mut cands = Vec::new();
+        for y in 20..120u16 {
+            for x in 20..120u16 {
+                let score = 10 + ((x * 7 + y * 13) % 200) as u8;
+                cands.push(Candidate { x, y, score });
+            }
+        }
+        for (x, y) in [(500u16, 40u16), (500, 300), (300, 300), (40, 300)] {
+            cands.push(Candidate { x, y, score: 1 });
+        }
+        let mut s = QuadtreeScratch::default();
+        let mut keep = Vec::new();
+        distribute(&cands, (19, 19, 621, 461), 20, &mut s, &mut keep);
+        assert_eq!(keep.len(), 20);
+        // Isolated weak corners take slots from the stronger dense block: they are alone in
+        // their nodes (at most 3 leaves beyond `n` are trimmed, weakest first).
+        let kept: Vec<Candidate> = keep.iter().map(|&i| cands[i as usize]).collect();
+        assert!(kept.iter().filter(|c| c.score == 1).count() >= 1);
+        // Within the block, kept points are spread, not clustered on the strongest scores.
+        let block: Vec<&Candidate> = kept.iter().filter(|c| c.score > 1).collect();
+        let (min_x, max_x) = (
+            block.iter().map(|c| c.x).min(),
+            block.iter().map(|c| c.x).max(),
+        );
+        let (min_y, max_y) = (
+            block.iter().map(|c| c.y).min(),
+            block.iter().map(|c| c.y).max(),
+        );
+        assert!(max_x.unwrap() - min_x.unwrap() > 60 && max_y.unwrap() - min_y.unwrap() > 60);
+        // Deterministic and without duplicates.
+        let mut again = Vec::new();
+        distribute(&cands, (19, 19, 621, 461), 20, &mut s, &mut again);
+        assert_eq!(keep, again);
+        let mut sorted = keep.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        assert_eq!(sorted.len(), keep.len());
+        // Fewer candidates than wanted: all are kept.
+        distribute(&cands[..3], (19, 19, 621, 461), 20, &mut s, &mut keep);
+        assert_eq!(keep.len(), 3);
     }
 }

@@ -21,6 +21,8 @@ mod orb;
 mod pattern;
 mod pyramid;
 mod simd;
+#[cfg(test)]
+mod tests;
 
 pub use extractor::{KeyPoint, OrbExtractor, OrbFeatures, OrbParams, OrbTimings, PATCH_SIZE};
 pub use image::{GrayBuffer, GrayImage};
