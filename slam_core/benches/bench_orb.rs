@@ -11,8 +11,12 @@ fn load(path: &str) -> Option<(Vec<u8>, usize, usize)> {
     Some((img.into_raw(), w, h))
 }
 
+/// `$SHOAL_DATA`, else `<workspace>/../shared/data`.
 fn data_dir() -> std::path::PathBuf {
-    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data")
+    match std::env::var_os("SHOAL_DATA") {
+        Some(d) => d.into(),
+        None => std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"),
+    }
 }
 
 fn euroc_image() -> Option<String> {
