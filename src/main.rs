@@ -9,6 +9,7 @@ mod bench;
 mod demo;
 mod eval;
 mod launcher;
+mod plot;
 mod sim_cmd;
 
 /// shoal: zero-copy, multi-process collaborative SLAM on one host.

@@ -192,7 +192,10 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
                     let mut sample = publisher.loan_slice(bytes)?;
                     let mut meta = MsgMeta::new(0, 0, args.frames as u64, monotonic_ns());
                     meta.flags = shm_schema::FLAG_END_OF_STREAM;
-                    *sample.user_header_mut() = FrameHeader { meta, ..Default::default() };
+                    *sample.user_header_mut() = FrameHeader {
+                        meta,
+                        ..Default::default()
+                    };
                     sample.send()?;
                     notifier.notify().map_err(|e| anyhow::anyhow!("{e:?}"))?;
                     std::thread::sleep(Duration::from_millis(2));

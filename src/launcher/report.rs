@@ -43,6 +43,69 @@ pub struct ClientReport {
     pub keyframes_applied: u64,
     /// Trajectory file written, if any.
     pub trajectory: Option<String>,
+    /// Accuracy of the trajectory against the dataset's ground truth, if both exist.
+    pub ate: Option<AteReport>,
+}
+
+/// Absolute trajectory error after Sim(3) alignment (as `shoal eval --align sim3`).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct AteReport {
+    /// Associated poses.
+    pub n: usize,
+    /// RMSE of the position error, m.
+    pub rmse_m: f64,
+    /// Largest position error, m.
+    pub max_m: f64,
+    /// Ground-truth path length over the associated poses, m.
+    pub path_length_m: f64,
+    /// RMSE in % of the path length.
+    pub rmse_percent: f64,
+    /// Scale of the alignment (monocular scale).
+    pub scale: f64,
+    /// Top-view plot written.
+    pub plot: Option<String>,
+}
+
+/// Evaluates `traj` against the ground truth of `ds` (Sim(3) alignment) and plots it.
+fn evaluate_client(
+    ds: &datasets::Dataset,
+    traj: &[(i64, shm_schema::Pose)],
+    plot: &Path,
+) -> Option<AteReport> {
+    let gt = ds.ground_truth.as_ref()?;
+    let to_iso = |p: &shm_schema::Pose| {
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            p.q[3], p.q[0], p.q[1], p.q[2],
+        ));
+        nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(p.t[0], p.t[1], p.t[2]), q)
+    };
+    let gt_t: Vec<i64> = gt.iter().map(|g| g.t_ns).collect();
+    let gt_p: Vec<_> = gt.iter().map(|g| g.pose).collect();
+    let est_t: Vec<i64> = traj.iter().map(|(t, _)| *t).collect();
+    let est_p: Vec<_> = traj.iter().map(|(_, p)| to_iso(p)).collect();
+    let params = slam_core::metrics::EvalParams {
+        alignment: slam_core::metrics::Alignment::Sim3,
+        ..Default::default()
+    };
+    let r = slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &params).ok()?;
+    let aligned: Vec<_> = r
+        .pairs
+        .iter()
+        .map(|(_, j)| r.alignment.transform_point(&est_p[*j].translation.vector))
+        .collect();
+    let gt_pts: Vec<_> = gt_p.iter().map(|g| g.translation.vector).collect();
+    let plot = crate::plot::top_view(&aligned, &gt_pts, plot)
+        .ok()
+        .map(|_| plot.display().to_string());
+    Some(AteReport {
+        n: r.pairs.len(),
+        rmse_m: r.ape.rmse,
+        max_m: r.ape.max,
+        path_length_m: r.ref_path_length_m,
+        rmse_percent: 100.0 * r.ape.rmse / r.ref_path_length_m.max(1e-12),
+        scale: r.alignment.scale,
+        plot,
+    })
 }
 
 /// Per-service figures.
@@ -156,7 +219,13 @@ impl RunReport {
             let received = get(&trk, "frames_received");
             let rec = &recorder.clients[c];
             let mut trajectory = None;
+            let mut ate = None;
             if !rec.trajectory.is_empty() {
+                ate = evaluate_client(
+                    ds,
+                    &rec.trajectory,
+                    &cfg.out.join(format!("trajectory_c{c}.png")),
+                );
                 let path = cfg.out.join(format!("trajectory_c{c}.txt"));
                 write_tum(&path, &rec.trajectory)?;
                 trajectory = Some(path.display().to_string());
@@ -185,6 +254,7 @@ impl RunReport {
                 keyframes_acked: m("keyframes_acked"),
                 keyframes_applied: m("keyframes_applied"),
                 trajectory,
+                ate,
             });
         }
         rep.latency_ms = LatencyReport {
