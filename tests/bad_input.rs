@@ -47,13 +47,22 @@ fn corrupt_image_truncated_csv_and_non_monotonic_stamps_are_reported_and_skipped
     let rep = report(out.path());
     let corrupt = errors_of(&rep, "corrupt_image");
     assert_eq!(corrupt.len(), 1, "{corrupt:?}");
-    assert!(corrupt[0].contains(bad_png.file_name().unwrap().to_str().unwrap()), "{corrupt:?}");
+    assert!(
+        corrupt[0].contains(bad_png.file_name().unwrap().to_str().unwrap()),
+        "{corrupt:?}"
+    );
     let nm = errors_of(&rep, "non_monotonic");
     assert_eq!(nm.len(), 1, "{nm:?}");
-    assert!(nm[0].contains("cam0/data.csv:14"), "names file and line: {nm:?}");
+    assert!(
+        nm[0].contains("cam0/data.csv:14"),
+        "names file and line: {nm:?}"
+    );
     let trunc = errors_of(&rep, "malformed_line");
     assert_eq!(trunc.len(), 1, "{trunc:?}");
-    assert!(trunc[0].contains(&format!("imu0/data.csv:{}", n_imu_lines + 1)), "{trunc:?}");
+    assert!(
+        trunc[0].contains(&format!("imu0/data.csv:{}", n_imu_lines + 1)),
+        "{trunc:?}"
+    );
     assert_eq!(rep["error_counts"]["camera_ingest:0/corrupt_image"], 1);
     assert_eq!(rep["error_counts"]["imu_ingest:0/malformed_line"], 1);
     // 30 frames - the non-monotonic one skipped by the reader - the corrupt one.
@@ -69,7 +78,10 @@ fn missing_folder_is_a_clear_error() {
     let res = run_pipeline(&[&missing], out.path(), "missing", &[]);
     assert!(!res.status.success());
     let stderr = String::from_utf8_lossy(&res.stderr);
-    assert!(stderr.contains("no_such_dataset"), "names the folder: {stderr}");
+    assert!(
+        stderr.contains("no_such_dataset"),
+        "names the folder: {stderr}"
+    );
     assert!(!stderr.contains("panicked"), "{stderr}");
     let rep = report(out.path());
     let errs = errors_of(&rep, "dataset");
@@ -82,16 +94,33 @@ fn a_pipeline_of_another_schema_version_is_refused() {
     use iceoryx2::prelude::*;
     let prefix = prefix("schema");
     let config = shm_schema::topics::config_with_prefix(&prefix).unwrap();
-    let node = NodeBuilder::new().config(&config).create::<ipc::Service>().unwrap();
+    let node = NodeBuilder::new()
+        .config(&config)
+        .create::<ipc::Service>()
+        .unwrap();
     let foreign = ServiceName::new("shoal/v999/c0/frames").unwrap();
-    let _svc = node.service_builder(&foreign).publish_subscribe::<u64>().create().unwrap();
+    let _svc = node
+        .service_builder(&foreign)
+        .publish_subscribe::<u64>()
+        .create()
+        .unwrap();
     let out = tempdir();
     let res = shoal()
-        .args(["service", "tracker", "--client", "0", "--ipc-prefix", &prefix])
+        .args([
+            "service",
+            "tracker",
+            "--client",
+            "0",
+            "--ipc-prefix",
+            &prefix,
+        ])
         .output()
         .unwrap();
     assert!(!res.status.success());
     let stderr = String::from_utf8_lossy(&res.stderr);
-    assert!(stderr.contains("schema version") && stderr.contains("v999"), "{stderr}");
+    assert!(
+        stderr.contains("schema version") && stderr.contains("v999"),
+        "{stderr}"
+    );
     drop(out);
 }

@@ -137,7 +137,13 @@ fn stale_state_of_a_killed_run_does_not_stop_the_next() {
         .unwrap();
     wait_status(out.path(), "tracker_c0", "frames_received", 5);
     let mut pids = vec![];
-    for f in ["camera_ingest_c0", "imu_ingest_c0", "tracker_c0", "mapper", "loop_closer"] {
+    for f in [
+        "camera_ingest_c0",
+        "imu_ingest_c0",
+        "tracker_c0",
+        "mapper",
+        "loop_closer",
+    ] {
         let v: serde_json::Value = serde_json::from_str(
             &std::fs::read_to_string(out.path().join("status").join(format!("{f}.json"))).unwrap(),
         )
@@ -153,6 +159,9 @@ fn stale_state_of_a_killed_run_does_not_stop_the_next() {
     std::thread::sleep(Duration::from_millis(200));
     let out2 = tempdir();
     let res = run_pipeline(&[&agents[0]], out2.path(), "stale", &["--lockstep"]);
-    assert!(res.status.success(), "the next run starts despite the stale state");
+    assert!(
+        res.status.success(),
+        "the next run starts despite the stale state"
+    );
     assert_eq!(report(out2.path())["clients"][0]["frames_received"], 60);
 }
