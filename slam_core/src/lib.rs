@@ -7,6 +7,10 @@ pub mod features;
 pub mod geometry;
 pub mod imu;
 pub mod metrics;
+pub mod optim;
+pub mod pnp;
+pub mod ransac;
 pub mod rolling_shutter;
+pub mod twoview;
 
 pub use error::CoreError;

@@ -1,0 +1,38 @@
+//! Non-linear least-squares building blocks: SE(3) increments, robust kernels and the
+//! motion-only (pose-only) optimisation of tracking (Mur-Artal et al. 2015, section V-D).
+//!
+//! Conventions shared by everything here (and meant for the bundle adjustment that will
+//! live beside it, e.g. `optim/ba*.rs`):
+//! - Poses are world-to-camera `T_cw`; an increment `δ = [ρ; φ]` (translation first, then
+//!   rotation) is applied on the **left**: `T_cw ← Exp(δ) · T_cw` (see [`se3::se3_exp`]).
+//! - Residuals are `predicted - observed` in pixels; a residual's information is the scalar
+//!   `1 / σ²` with `σ = 1.2^octave` ([`inv_sigma2_for_octave`]); robust kernels act on the
+//!   squared Mahalanobis error `χ² = rᵀ Ω r` ([`robust::RobustKernel`]).
+//! - Levenberg-Marquardt with multiplicative damping of the diagonal (`H + λ diag(H)`).
+
+pub mod ba;
+pub mod pose_only;
+pub mod robust;
+pub mod se3;
+
+pub use pose_only::{PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, Velocity};
+pub use robust::RobustKernel;
+
+/// ORB-SLAM's information of a keypoint detected at pyramid level `octave` with scale factor
+/// `scale_factor` (1.2): `1 / σ²` with `σ = scale_factor^octave` pixels.
+pub fn inv_sigma2_for_octave(octave: u32, scale_factor: f64) -> f64 {
+    let sigma = scale_factor.powi(octave.min(64) as i32);
+    1.0 / (sigma * sigma)
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn octave_information() {
+        assert_eq!(super::inv_sigma2_for_octave(0, 1.2), 1.0);
+        assert!((super::inv_sigma2_for_octave(2, 1.2) - 1.0 / 1.44f64.powi(2)).abs() < 1e-12);
+    }
+}
+
+#[cfg(test)]
+mod pose_only_tests;

@@ -1,0 +1,408 @@
+//! Motion-only (pose-only) optimisation of a frame against fixed map points, as in
+//! ORB-SLAM's tracking (Mur-Artal et al. 2015, section V-D; the seed uses the same
+//! refinement for its server keyframes, section 3.4.1): Levenberg-Marquardt on SE(3)
+//! minimising the robust reprojection error in pixels, in rounds that reclassify inliers.
+//!
+//! **Model.** The pose is `T_cw` (world to camera at the frame's mid-row time); increments
+//! are on the left, `T_cw ← Exp(δ) T_cw`, `δ = [ρ; φ]` ([`super::se3::se3_exp`]). The
+//! residual of an observation is `π(p_c) - u` (pixels) with `π` the full
+//! [`PinholeRadtan`] projection (distortion included); its Jacobian is analytic:
+//! `∂π/∂p_c = diag(fx, fy) · ∂distort/∂x_n · ∂x_n/∂p_c` and `∂p_c/∂δ = R_A [I | -[q]x]`,
+//! with `q = T_cw p_w` and `A` the rolling-shutter correction below (identity for a global
+//! shutter). Information is `1 / σ²` per observation; the cost is `Σ ρ(rᵀ Ω r)`.
+//!
+//! **Rounds (ORB-SLAM).** [`PoseOptParams::rounds`] (4) rounds of at most
+//! [`PoseOptParams::iterations_per_round`] (10) LM iterations over the current inliers; after
+//! each round every observation is classified by `χ² = rᵀ Ω r ≤ chi2` (5.991, 2 dof) at the
+//! new pose — outliers can come back. The Huber kernel (`δ = √5.991`) is used in the first
+//! [`PoseOptParams::huber_rounds`] (2) rounds, plain least squares afterwards. Unlike
+//! ORB-SLAM, a round starts from the previous round's pose, not from the initial guess.
+//!
+//! **Rolling shutter.** An observation may carry `dt`, its capture time minus the frame's
+//! mid-row time (seconds, e.g. [`crate::rolling_shutter::row_offset_s`] of its row). With a
+//! constant camera velocity `ξ = [v; ω]` (linear m/s and angular rad/s, both expressed in
+//! the camera frame at mid-row: a body twist) the camera pose at that time is
+//! `T_wc(dt) = T_wc ∘ Exp(dt ξ)`, so the point is projected from
+//! `p_c = Exp(-dt ξ) · T_cw · p_w` (`A = Exp(-dt ξ)`, computed once per call). The velocity
+//! is an input (e.g. from the motion model or IMU), not estimated. `velocity = None` or
+//! `dt = 0` is the global-shutter case.
+//!
+//! **Memory.** [`PoseOptimizer`] keeps its per-observation buffers between calls; once they
+//! have grown to the largest problem, nothing is allocated.
+
+use nalgebra::{
+    Isometry3, Matrix2x3, Matrix2x6, Matrix3, Matrix6, Point3, Vector2, Vector3, Vector6,
+};
+
+use super::robust::RobustKernel;
+use super::se3::se3_exp;
+use crate::camera::PinholeRadtan;
+use crate::geometry::skew;
+use crate::CoreError;
+
+/// One observation of a fixed map point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseObservation {
+    /// The map point in the world frame.
+    pub point_w: Vector3<f64>,
+    /// The observed (distorted) keypoint, pixels.
+    pub pixel: Vector2<f64>,
+    /// Information `1 / σ²` (pixels⁻²), see [`super::inv_sigma2_for_octave`].
+    pub inv_sigma2: f64,
+    /// Capture time minus the frame's mid-row time, seconds (0 for a global shutter).
+    pub dt: f64,
+}
+
+/// Constant camera velocity for the rolling-shutter model: a body twist in the camera frame
+/// at mid-row time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Velocity {
+    /// Linear velocity `v`, m/s, camera frame.
+    pub linear: Vector3<f64>,
+    /// Angular velocity `ω`, rad/s, camera frame.
+    pub angular: Vector3<f64>,
+}
+
+/// Parameters of [`PoseOptimizer::optimize`]; defaults are ORB-SLAM's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseOptParams {
+    /// Optimisation rounds with inlier reclassification (4).
+    pub rounds: usize,
+    /// Largest number of LM iterations (accepted or rejected steps) per round (10).
+    pub iterations_per_round: usize,
+    /// Inlier bound on `χ² = rᵀ Ω r` (5.991: chi-square, 2 dof, 95%).
+    pub chi2: f64,
+    /// Rounds (from the first) that use the Huber kernel (2).
+    pub huber_rounds: usize,
+    /// Huber threshold on the whitened residual norm (√5.991).
+    pub huber_delta: f64,
+    /// Initial LM damping, relative to the diagonal (1e-4).
+    pub initial_lambda: f64,
+    /// A round stops when the step norm falls below this (1e-10).
+    pub min_step: f64,
+}
+
+impl Default for PoseOptParams {
+    fn default() -> Self {
+        Self {
+            rounds: 4,
+            iterations_per_round: 10,
+            chi2: 5.991,
+            huber_rounds: 2,
+            huber_delta: 5.991f64.sqrt(),
+            initial_lambda: 1e-4,
+            min_step: 1e-10,
+        }
+    }
+}
+
+/// Outcome of [`PoseOptimizer::optimize`] (the inlier mask is written to the caller's slice).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseOptResult {
+    /// Optimised world-to-camera pose at mid-row time.
+    pub t_cw: Isometry3<f64>,
+    /// Number of inliers after the last classification.
+    pub n_inliers: usize,
+    /// Final cost `Σ ρ(χ²)` over the inliers of the last round (kernel of that round).
+    pub final_cost: f64,
+    /// LM iterations run in total (accepted and rejected steps).
+    pub iterations: usize,
+}
+
+/// Reusable motion-only optimiser (keeps its buffers; see the module docs).
+#[derive(Debug, Clone, Default)]
+pub struct PoseOptimizer {
+    /// Per-observation rolling-shutter correction `Exp(-dt ξ)` (identity when unused).
+    shutter: Vec<Isometry3<f64>>,
+    /// Whether any observation has a non-identity correction.
+    rolling: bool,
+}
+
+/// Residual and Jacobian of one observation at a pose.
+struct Linearised {
+    r: Vector2<f64>,
+    j: Matrix2x6<f64>,
+}
+
+impl PoseOptimizer {
+    /// An optimiser with empty buffers.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// An optimiser whose buffers already hold `n` observations.
+    pub fn with_capacity(n: usize) -> Self {
+        Self {
+            shutter: Vec::with_capacity(n),
+            rolling: false,
+        }
+    }
+
+    /// The camera-frame point of observation `i` at pose `t_cw` and the point `q = T_cw p_w`.
+    #[inline]
+    fn camera_point(
+        &self,
+        t_cw: &Isometry3<f64>,
+        i: usize,
+        p_w: &Vector3<f64>,
+    ) -> (Vector3<f64>, Vector3<f64>) {
+        let q = (t_cw * Point3::from(*p_w)).coords;
+        if self.rolling {
+            ((self.shutter[i] * Point3::from(q)).coords, q)
+        } else {
+            (q, q)
+        }
+    }
+
+    /// Residual in pixels (`None` behind the camera).
+    #[inline]
+    fn residual(
+        &self,
+        cam: &PinholeRadtan,
+        t_cw: &Isometry3<f64>,
+        i: usize,
+        o: &PoseObservation,
+    ) -> Option<Vector2<f64>> {
+        let (p, _) = self.camera_point(t_cw, i, &o.point_w);
+        cam.project(&p).map(|uv| uv - o.pixel)
+    }
+
+    /// Residual and analytic Jacobian (left perturbation of `T_cw`).
+    fn linearise(
+        &self,
+        cam: &PinholeRadtan,
+        t_cw: &Isometry3<f64>,
+        i: usize,
+        o: &PoseObservation,
+    ) -> Option<Linearised> {
+        let (p, q) = self.camera_point(t_cw, i, &o.point_w);
+        if p.z <= 1e-9 {
+            return None;
+        }
+        let uv = cam.project(&p)?;
+        let iz = 1.0 / p.z;
+        let xn = Vector2::new(p.x * iz, p.y * iz);
+        let d = cam.distort_jacobian(&xn);
+        let dxn_dp = Matrix2x3::new(iz, 0.0, -xn.x * iz, 0.0, iz, -xn.y * iz);
+        let mut du_dp = d * dxn_dp;
+        du_dp.row_mut(0).scale_mut(cam.fx);
+        du_dp.row_mut(1).scale_mut(cam.fy);
+        let r_a: Matrix3<f64> = if self.rolling {
+            self.shutter[i].rotation.to_rotation_matrix().into_inner()
+        } else {
+            Matrix3::identity()
+        };
+        let a = du_dp * r_a;
+        let b = -(a * skew(&q));
+        let mut j = Matrix2x6::zeros();
+        j.fixed_view_mut::<2, 3>(0, 0).copy_from(&a);
+        j.fixed_view_mut::<2, 3>(0, 3).copy_from(&b);
+        Some(Linearised { r: uv - o.pixel, j })
+    }
+
+    /// Robust cost over the inliers at `t_cw`; `None` when an inlier falls behind the camera.
+    fn cost(
+        &self,
+        cam: &PinholeRadtan,
+        t_cw: &Isometry3<f64>,
+        obs: &[PoseObservation],
+        inl: &[bool],
+        k: &RobustKernel,
+    ) -> Option<f64> {
+        let mut c = 0.0;
+        for (i, o) in obs.iter().enumerate() {
+            if inl[i] {
+                let r = self.residual(cam, t_cw, i, o)?;
+                c += k.cost(r.norm_squared() * o.inv_sigma2);
+            }
+        }
+        Some(c)
+    }
+
+    /// Optimises `t_cw` (initial guess) against `obs`; see the module docs. Writes the final
+    /// inlier classification to `inliers` (same length as `obs`).
+    ///
+    /// Errors: `InvalidArgument` on mismatched lengths, a non-finite guess, observation or
+    /// velocity, or non-positive information; `NotEnoughData` with fewer than 3 observations.
+    /// A pose that cannot be improved is returned as is (with its classification).
+    pub fn optimize(
+        &mut self,
+        camera: &PinholeRadtan,
+        t_cw: &Isometry3<f64>,
+        obs: &[PoseObservation],
+        velocity: Option<&Velocity>,
+        params: &PoseOptParams,
+        inliers: &mut [bool],
+    ) -> Result<PoseOptResult, CoreError> {
+        if inliers.len() != obs.len() {
+            return Err(CoreError::InvalidArgument(format!(
+                "pose-only: {} observations but {} inlier flags",
+                obs.len(),
+                inliers.len()
+            )));
+        }
+        if obs.len() < 3 {
+            return Err(CoreError::NotEnoughData(format!(
+                "pose-only: {} observations",
+                obs.len()
+            )));
+        }
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        if !finite(t_cw.translation.vector.as_slice()) || !finite(t_cw.rotation.coords.as_slice()) {
+            return Err(CoreError::InvalidArgument(
+                "pose-only: non-finite initial pose".into(),
+            ));
+        }
+        if obs.iter().any(|o| {
+            !finite(o.point_w.as_slice())
+                || !finite(o.pixel.as_slice())
+                || !o.dt.is_finite()
+                || o.inv_sigma2.is_nan()
+                || o.inv_sigma2 <= 0.0
+        }) {
+            return Err(CoreError::InvalidArgument(
+                "pose-only: invalid observation".into(),
+            ));
+        }
+        // Rolling-shutter corrections, once per call.
+        self.shutter.clear();
+        self.rolling = false;
+        if let Some(v) = velocity {
+            if !finite(v.linear.as_slice()) || !finite(v.angular.as_slice()) {
+                return Err(CoreError::InvalidArgument(
+                    "pose-only: non-finite velocity".into(),
+                ));
+            }
+            let xi = Vector6::new(
+                v.linear.x,
+                v.linear.y,
+                v.linear.z,
+                v.angular.x,
+                v.angular.y,
+                v.angular.z,
+            );
+            if xi != Vector6::zeros() && obs.iter().any(|o| o.dt != 0.0) {
+                self.rolling = true;
+                self.shutter
+                    .extend(obs.iter().map(|o| se3_exp(&(xi * -o.dt))));
+            }
+        }
+        inliers.iter_mut().for_each(|b| *b = true);
+        let mut pose = *t_cw;
+        let mut iterations = 0;
+        let mut final_cost = 0.0;
+        for round in 0..params.rounds {
+            let kernel = if round < params.huber_rounds {
+                RobustKernel::Huber {
+                    delta: params.huber_delta,
+                }
+            } else {
+                RobustKernel::None
+            };
+            let (p, c, it) = self.lm_round(camera, pose, obs, inliers, &kernel, params);
+            pose = p;
+            final_cost = c;
+            iterations += it;
+            // Reclassify every observation at the new pose.
+            let mut n_in = 0;
+            for (i, o) in obs.iter().enumerate() {
+                inliers[i] = self
+                    .residual(camera, &pose, i, o)
+                    .is_some_and(|r| r.norm_squared() * o.inv_sigma2 <= params.chi2);
+                n_in += usize::from(inliers[i]);
+            }
+            if n_in < 3 {
+                break;
+            }
+        }
+        let n_inliers = inliers.iter().filter(|&&b| b).count();
+        Ok(PoseOptResult {
+            t_cw: pose,
+            n_inliers,
+            final_cost,
+            iterations,
+        })
+    }
+
+    /// One round of LM over the current inliers. Returns the pose, its cost and the number of
+    /// iterations.
+    fn lm_round(
+        &self,
+        cam: &PinholeRadtan,
+        mut pose: Isometry3<f64>,
+        obs: &[PoseObservation],
+        inl: &[bool],
+        kernel: &RobustKernel,
+        params: &PoseOptParams,
+    ) -> (Isometry3<f64>, f64, usize) {
+        let Some(mut cost) = self.cost(cam, &pose, obs, inl, kernel) else {
+            // Some inlier is behind the camera: cost only the visible ones.
+            return (pose, f64::INFINITY, 0);
+        };
+        let mut lambda = params.initial_lambda;
+        let mut iters = 0;
+        let mut need_build = true;
+        let (mut h, mut g) = (Matrix6::zeros(), Vector6::zeros());
+        while iters < params.iterations_per_round {
+            if need_build {
+                h = Matrix6::zeros();
+                g = Vector6::zeros();
+                for (i, o) in obs.iter().enumerate() {
+                    if !inl[i] {
+                        continue;
+                    }
+                    let Some(l) = self.linearise(cam, &pose, i, o) else {
+                        continue;
+                    };
+                    let w = o.inv_sigma2 * kernel.weight(l.r.norm_squared() * o.inv_sigma2);
+                    h += l.j.transpose() * l.j * w;
+                    g += l.j.transpose() * l.r * w;
+                }
+                need_build = false;
+            }
+            iters += 1;
+            let mut a = h;
+            for k in 0..6 {
+                a[(k, k)] += lambda * h[(k, k)].max(1e-12);
+            }
+            let Some(chol) = a.cholesky() else {
+                lambda *= 10.0;
+                continue;
+            };
+            let delta = -chol.solve(&g);
+            let cand = se3_exp(&delta) * pose;
+            match self.cost(cam, &cand, obs, inl, kernel) {
+                Some(c) if c.is_finite() && c <= cost => {
+                    pose = cand;
+                    cost = c;
+                    lambda = (lambda * 0.1).max(1e-12);
+                    need_build = true;
+                    if delta.norm() < params.min_step {
+                        break;
+                    }
+                }
+                _ => {
+                    lambda *= 10.0;
+                    if lambda > 1e12 {
+                        break;
+                    }
+                }
+            }
+        }
+        (pose, cost, iters)
+    }
+}
+
+#[cfg(test)]
+impl PoseOptimizer {
+    /// Residual and Jacobian of observation `i` (tests only).
+    pub(crate) fn test_linearise(
+        &self,
+        cam: &PinholeRadtan,
+        t_cw: &Isometry3<f64>,
+        i: usize,
+        o: &PoseObservation,
+    ) -> Option<(Vector2<f64>, Matrix2x6<f64>)> {
+        self.linearise(cam, t_cw, i, o).map(|l| (l.r, l.j))
+    }
+}

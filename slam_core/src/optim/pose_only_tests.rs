@@ -1,0 +1,293 @@
+//! Tests of [`super::pose_only`] on synthetic scenes.
+
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector2, Vector3, Vector6};
+
+use super::pose_only::*;
+use super::se3::se3_exp;
+use crate::camera::PinholeRadtan;
+use crate::rolling_shutter::row_offset_s;
+use crate::twoview::synth::{box_point, Rng};
+use crate::CoreError;
+
+fn true_pose() -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(0.3, -0.2, 1.0),
+        UnitQuaternion::from_euler_angles(0.1, -0.3, 0.05),
+    )
+}
+
+/// Observations of random points (octaves 0..4, noise σ = 1.2^octave px), a fraction
+/// `outliers` moved to random pixels. With a velocity, pixels follow the rolling-shutter
+/// model with readout `readout_ns` and `dt` of the observed row.
+fn scene(
+    rng: &mut Rng,
+    cam: &PinholeRadtan,
+    t_cw: &Isometry3<f64>,
+    n: usize,
+    outliers: f64,
+    vel: Option<(&Velocity, i64)>,
+) -> (Vec<PoseObservation>, Vec<bool>) {
+    let t_wc = t_cw.inverse();
+    let mut obs = Vec::new();
+    let mut is_out = Vec::new();
+    while obs.len() < n {
+        let p_w = (t_wc * Point3::from(box_point(rng))).coords;
+        let octave = (rng.0.next_f64() * 4.0) as u32;
+        let sigma = 1.2f64.powi(octave as i32);
+        let (uv, dt) = match vel {
+            None => match cam.project(&(t_cw * Point3::from(p_w)).coords) {
+                Some(uv) => (uv, 0.0),
+                None => continue,
+            },
+            Some((v, readout)) => {
+                let xi = Vector6::new(
+                    v.linear.x,
+                    v.linear.y,
+                    v.linear.z,
+                    v.angular.x,
+                    v.angular.y,
+                    v.angular.z,
+                );
+                let mut dt = 0.0;
+                let mut uv = Vector2::zeros();
+                let mut ok = true;
+                for _ in 0..8 {
+                    let p = se3_exp(&(xi * -dt)) * (t_cw * Point3::from(p_w));
+                    match cam.project(&p.coords) {
+                        Some(u) => uv = u,
+                        None => ok = false,
+                    }
+                    dt = row_offset_s(readout, uv.y, cam.height);
+                }
+                if !ok {
+                    continue;
+                }
+                (uv, dt)
+            }
+        };
+        if !cam.contains(&uv) {
+            continue;
+        }
+        let out = rng.0.next_f64() < outliers;
+        let pixel = if out {
+            Vector2::new(rng.uniform(0.0, 752.0), rng.uniform(0.0, 480.0))
+        } else {
+            uv + rng.normal2(sigma)
+        };
+        obs.push(PoseObservation {
+            point_w: p_w,
+            pixel,
+            inv_sigma2: 1.0 / (sigma * sigma),
+            dt,
+        });
+        is_out.push(out);
+    }
+    (obs, is_out)
+}
+
+fn perturb(t: &Isometry3<f64>, deg: f64, metres: f64) -> Isometry3<f64> {
+    let axis = Vector3::new(0.3, -0.8, 0.5).normalize();
+    let dir = Vector3::new(-0.6, 0.2, 0.77).normalize();
+    Isometry3::from_parts(
+        Translation3::from(dir * metres),
+        UnitQuaternion::from_scaled_axis(axis * deg.to_radians()),
+    ) * t
+}
+
+fn pose_error(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
+    let d = a.inverse() * b;
+    (
+        d.rotation.angle().to_degrees(),
+        (a.inverse().translation.vector - b.inverse().translation.vector).norm(),
+    )
+}
+
+#[test]
+fn converges_from_perturbation_and_flags_outliers() {
+    let cam = PinholeRadtan::euroc_cam0();
+    let truth = true_pose();
+    let mut opt = PoseOptimizer::new();
+    for seed in 1..=5 {
+        let mut rng = Rng::new(seed);
+        let (obs, is_out) = scene(&mut rng, &cam, &truth, 300, 0.2, None);
+        let init = perturb(&truth, 5.0, 0.1);
+        let mut inl = vec![false; obs.len()];
+        let res = opt
+            .optimize(&cam, &init, &obs, None, &PoseOptParams::default(), &mut inl)
+            .expect("optimised");
+        let (r_err, t_err) = pose_error(&res.t_cw, &truth);
+        let missed = (0..obs.len()).filter(|&i| is_out[i] && inl[i]).count();
+        let lost = (0..obs.len()).filter(|&i| !is_out[i] && !inl[i]).count();
+        let n_out = is_out.iter().filter(|&&b| b).count();
+        eprintln!(
+            "seed {seed}: R err {r_err:.4} deg, t err {:.2} mm, {} iters, outliers kept {missed}/{n_out}, inliers lost {lost}",
+            t_err * 1e3,
+            res.iterations
+        );
+        assert!(r_err < 0.1, "rotation error {r_err}");
+        assert!(t_err < 0.01, "position error {t_err}");
+        assert!(missed * 50 <= n_out, "{missed} of {n_out} outliers kept");
+        // ~5% of true inliers exceed chi2(2) at 95% by definition.
+        assert!(lost * 10 <= obs.len() - n_out, "{lost} inliers lost");
+        assert_eq!(res.n_inliers, inl.iter().filter(|&&b| b).count());
+        assert!(res.final_cost.is_finite());
+    }
+}
+
+#[test]
+fn jacobian_matches_finite_differences() {
+    let cam = PinholeRadtan::euroc_cam0();
+    let truth = true_pose();
+    let mut rng = Rng::new(9);
+    let v = Velocity {
+        linear: Vector3::new(0.5, -0.2, 0.3),
+        angular: Vector3::new(0.4, 1.2, -0.3),
+    };
+    let (obs, _) = scene(&mut rng, &cam, &truth, 20, 0.0, Some((&v, 30_000_000)));
+    let mut opt = PoseOptimizer::new();
+    let mut inl = vec![true; obs.len()];
+    // Zero rounds: only sets up the shutter buffers.
+    let p = PoseOptParams {
+        rounds: 0,
+        ..PoseOptParams::default()
+    };
+    opt.optimize(&cam, &truth, &obs, Some(&v), &p, &mut inl)
+        .expect("setup");
+    for (i, o) in obs.iter().enumerate() {
+        let (r0, j) = opt.test_linearise(&cam, &truth, i, o).expect("visible");
+        for k in 0..6 {
+            let mut d = Vector6::zeros();
+            d[k] = 1e-6;
+            let rp = opt
+                .test_linearise(&cam, &(se3_exp(&d) * truth), i, o)
+                .expect("visible")
+                .0;
+            let rm = opt
+                .test_linearise(&cam, &(se3_exp(&(-d)) * truth), i, o)
+                .expect("visible")
+                .0;
+            let num = (rp - rm) / 2e-6;
+            assert!(
+                (num - j.column(k)).norm() < 1e-4 * (1.0 + num.norm()),
+                "obs {i} col {k}: {num} vs {}",
+                j.column(k)
+            );
+        }
+        assert!(r0.norm() < 10.0);
+    }
+}
+
+#[test]
+fn rolling_shutter_model_recovers_the_pose_and_global_shutter_does_not() {
+    let cam = PinholeRadtan::euroc_cam0();
+    let truth = true_pose();
+    let v = Velocity {
+        linear: Vector3::new(0.8, 0.1, -0.3),
+        angular: Vector3::new(0.3, 1.5, 0.2),
+    };
+    let readout = 30_000_000; // 30 ms
+    let mut rng = Rng::new(21);
+    let (obs, _) = scene(&mut rng, &cam, &truth, 300, 0.1, Some((&v, readout)));
+    let init = perturb(&truth, 3.0, 0.05);
+    let mut opt = PoseOptimizer::with_capacity(300);
+    let mut inl = vec![false; obs.len()];
+    let rs = opt
+        .optimize(
+            &cam,
+            &init,
+            &obs,
+            Some(&v),
+            &PoseOptParams::default(),
+            &mut inl,
+        )
+        .expect("rs");
+    let rs_inliers = rs.n_inliers;
+    let gs = opt
+        .optimize(&cam, &init, &obs, None, &PoseOptParams::default(), &mut inl)
+        .expect("gs");
+    let (rs_r, rs_t) = pose_error(&rs.t_cw, &truth);
+    let (gs_r, gs_t) = pose_error(&gs.t_cw, &truth);
+    eprintln!(
+        "RS: {rs_r:.4} deg {:.2} mm, {rs_inliers} inliers, cost {:.1}; GS: {gs_r:.4} deg {:.2} mm, {} inliers, cost {:.1}",
+        rs_t * 1e3,
+        rs.final_cost,
+        gs_t * 1e3,
+        gs.n_inliers,
+        gs.final_cost
+    );
+    assert!(
+        rs_r < 0.15 && rs_t < 0.01,
+        "rolling-shutter model error {rs_r} deg {rs_t} m"
+    );
+    assert!(
+        gs_r > 5.0 * rs_r || gs_t > 5.0 * rs_t,
+        "global-shutter error not clearly larger"
+    );
+    assert!(rs_inliers > gs.n_inliers);
+    // dt = 0 everywhere is the global-shutter case, whatever the velocity.
+    let gs_obs: Vec<_> = obs
+        .iter()
+        .map(|o| PoseObservation { dt: 0.0, ..*o })
+        .collect();
+    let a = opt
+        .optimize(
+            &cam,
+            &init,
+            &gs_obs,
+            Some(&v),
+            &PoseOptParams::default(),
+            &mut inl,
+        )
+        .expect("a");
+    let b = opt
+        .optimize(
+            &cam,
+            &init,
+            &gs_obs,
+            None,
+            &PoseOptParams::default(),
+            &mut inl,
+        )
+        .expect("b");
+    assert_eq!(a, b);
+}
+
+#[test]
+fn bad_input_is_refused() {
+    let cam = PinholeRadtan::euroc_cam0();
+    let truth = true_pose();
+    let mut rng = Rng::new(2);
+    let (mut obs, _) = scene(&mut rng, &cam, &truth, 10, 0.0, None);
+    let mut opt = PoseOptimizer::new();
+    let p = PoseOptParams::default();
+    let mut inl = vec![false; 9];
+    assert!(matches!(
+        opt.optimize(&cam, &truth, &obs, None, &p, &mut inl),
+        Err(CoreError::InvalidArgument(_))
+    ));
+    let mut inl = vec![false; 2];
+    assert!(matches!(
+        opt.optimize(&cam, &truth, &obs[..2], None, &p, &mut inl),
+        Err(CoreError::NotEnoughData(_))
+    ));
+    let mut inl = vec![false; 10];
+    obs[3].inv_sigma2 = 0.0;
+    assert!(opt
+        .optimize(&cam, &truth, &obs, None, &p, &mut inl)
+        .is_err());
+    obs[3].inv_sigma2 = 1.0;
+    obs[4].pixel.x = f64::NAN;
+    assert!(opt
+        .optimize(&cam, &truth, &obs, None, &p, &mut inl)
+        .is_err());
+    obs[4].pixel.x = 10.0;
+    // All points behind the camera: no panic, everything an outlier.
+    let flipped = Isometry3::from_parts(
+        Translation3::identity(),
+        UnitQuaternion::from_euler_angles(0.0, std::f64::consts::PI, 0.0),
+    ) * truth;
+    let r = opt
+        .optimize(&cam, &flipped, &obs, None, &p, &mut inl)
+        .expect("runs");
+    assert_eq!(r.n_inliers, 0);
+}
