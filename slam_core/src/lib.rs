@@ -12,5 +12,6 @@ pub mod pnp;
 pub mod ransac;
 pub mod rolling_shutter;
 pub mod twoview;
+pub mod vo;
 
 pub use error::CoreError;

@@ -20,7 +20,13 @@ pub struct KeyframeRuleParams {
 
 impl Default for KeyframeRuleParams {
     fn default() -> Self {
-        Self { min_tracked: 15, few_tracked: 200, ref_ratio: 0.9, min_frames: 0, max_frames: 20 }
+        Self {
+            min_tracked: 15,
+            few_tracked: 200,
+            ref_ratio: 0.9,
+            min_frames: 0,
+            max_frames: 20,
+        }
     }
 }
 
@@ -54,8 +60,14 @@ mod tests {
         let r = KeyframeRule::default();
         assert!(!r.needs_keyframe(15, 1000, 5), "needs more than 15 points");
         assert!(r.needs_keyframe(100, 120, 1), "fewer than 200 points");
-        assert!(r.needs_keyframe(400, 500, 1), "fewer than 90% of the reference");
+        assert!(
+            r.needs_keyframe(400, 500, 1),
+            "fewer than 90% of the reference"
+        );
         assert!(!r.needs_keyframe(480, 500, 1), "still 96% of the reference");
-        assert!(r.needs_keyframe(480, 500, 20), "max frames between keyframes");
+        assert!(
+            r.needs_keyframe(480, 500, 20),
+            "max frames between keyframes"
+        );
     }
 }

@@ -94,7 +94,11 @@ pub struct ClientMap {
 impl ClientMap {
     /// An empty map for session `session_id`; point ids start at `first_point_id`.
     pub fn new(session_id: u32, first_point_id: PointId) -> Self {
-        Self { session_id, next_point_id: first_point_id, ..Self::default() }
+        Self {
+            session_id,
+            next_point_id: first_point_id,
+            ..Self::default()
+        }
     }
 
     /// Next point id that will be given.
@@ -155,8 +159,12 @@ impl ClientMap {
 
     /// Adds an observation of point `p` by keypoint `i` of keyframe `k`.
     pub fn add_observation(&mut self, p: PointId, k: KfId, i: u32) {
-        let Some(kf) = self.keyframes.get_mut(&k) else { return };
-        let Some(slot) = kf.points.get_mut(i as usize) else { return };
+        let Some(kf) = self.keyframes.get_mut(&k) else {
+            return;
+        };
+        let Some(slot) = kf.points.get_mut(i as usize) else {
+            return;
+        };
         if let Some(old) = slot.replace(p) {
             if old != p {
                 if let Some(mp) = self.points.get_mut(&old) {
@@ -217,7 +225,9 @@ impl ClientMap {
 
     /// Recomputes the covisibility edges of keyframe `k` (weights = shared points).
     pub fn update_covisibility(&mut self, k: KfId) {
-        let Some(kf) = self.keyframes.get(&k) else { return };
+        let Some(kf) = self.keyframes.get(&k) else {
+            return;
+        };
         let mut counts: HashMap<KfId, u32> = HashMap::new();
         for p in kf.points.iter().flatten() {
             if let Some(mp) = self.points.get(p) {
@@ -243,7 +253,11 @@ impl ClientMap {
 
     /// Covisibility weight between two keyframes.
     pub fn covis_weight(&self, a: KfId, b: KfId) -> u32 {
-        self.covis.get(&a).and_then(|m| m.get(&b)).copied().unwrap_or(0)
+        self.covis
+            .get(&a)
+            .and_then(|m| m.get(&b))
+            .copied()
+            .unwrap_or(0)
     }
 
     /// The `n` keyframes sharing most points with `k` (weight ≥ `min_weight`), best first.
@@ -251,7 +265,12 @@ impl ClientMap {
         let mut v: Vec<(KfId, u32)> = self
             .covis
             .get(&k)
-            .map(|m| m.iter().filter(|(_, w)| **w >= min_weight).map(|(a, w)| (*a, *w)).collect())
+            .map(|m| {
+                m.iter()
+                    .filter(|(_, w)| **w >= min_weight)
+                    .map(|(a, w)| (*a, *w))
+                    .collect()
+            })
             .unwrap_or_default();
         v.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
         v.truncate(n);
@@ -261,7 +280,9 @@ impl ClientMap {
     /// Recomputes a point's descriptor (the observation descriptor with the least median
     /// Hamming distance to the others) and mean viewing direction.
     pub fn update_point(&mut self, p: PointId) {
-        let Some(mp) = self.points.get(&p) else { return };
+        let Some(mp) = self.points.get(&p) else {
+            return;
+        };
         let mut descs: Vec<[u8; 32]> = Vec::with_capacity(mp.observations.len());
         let mut normal = Vector3::zeros();
         for (k, i) in &mp.observations {
@@ -311,7 +332,11 @@ impl ClientMap {
             kf.points
                 .iter()
                 .flatten()
-                .filter(|p| self.points.get(p).is_some_and(|m| m.observations.len() >= min_obs))
+                .filter(|p| {
+                    self.points
+                        .get(p)
+                        .is_some_and(|m| m.observations.len() >= min_obs)
+                })
                 .count()
         })
     }
@@ -343,7 +368,14 @@ mod tests {
     use crate::features::KeyPoint;
 
     fn kf(id: KfId, n: usize, x: f64) -> Keyframe {
-        let kp = KeyPoint { x: 0.0, y: 0.0, angle: 0.0, response: 1.0, size: 31.0, octave: 0 };
+        let kp = KeyPoint {
+            x: 0.0,
+            y: 0.0,
+            angle: 0.0,
+            response: 1.0,
+            size: 31.0,
+            octave: 0,
+        };
         Keyframe {
             id,
             t_ns: id as i64,

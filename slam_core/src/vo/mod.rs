@@ -7,7 +7,11 @@
 //! `twoview`, `optim` and bundle adjustment.
 
 pub mod keyframe_rule;
+pub mod local_mapping;
 pub mod map;
+pub mod search;
+pub mod tracker;
 
 pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
-pub use map::{ClientMap, KfId, Keyframe, MapPoint, PointId};
+pub use map::{ClientMap, Keyframe, KfId, MapPoint, PointId};
+pub use tracker::{StageTimes, VoFrame, VoOutput, VoParams, VoState, VoTracker};

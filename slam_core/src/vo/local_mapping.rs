@@ -1,0 +1,132 @@
+//! Local mapping steps of the client VO (seed §3.3): new map points by triangulation with
+//! neighbour keyframes, and culling of recent points that are rarely re-found.
+use nalgebra::Vector2;
+
+use super::map::{ClientMap, KfId};
+use crate::features::{match_brute_force, MatchParams};
+use crate::optim::inv_sigma2_for_octave;
+use crate::twoview::triangulate::{
+    check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
+};
+
+/// Triangulates new points between keyframe `k` and up to `n_neighbours` of its best
+/// covisible keyframes (or the previous keyframes when it has no covisible ones yet), from
+/// descriptor matches of keypoints without a map point, checked by the epipolar constraint,
+/// positive depth, reprojection error (χ² 5.991) and parallax. Returns the points created.
+pub fn create_points_with_neighbours(map: &mut ClientMap, k: KfId, n_neighbours: usize) -> usize {
+    let mut neighbours = map.covisible(k, n_neighbours, 1);
+    if neighbours.len() < 2 {
+        for id in map.keyframes.keys().rev().copied() {
+            if id != k && !neighbours.contains(&id) && neighbours.len() < n_neighbours.min(3) {
+                neighbours.push(id);
+            }
+        }
+    }
+    let mut created = 0;
+    let check = TriangulationCheck::default();
+    for n in neighbours {
+        let (Some(kf1), Some(kf2)) = (map.keyframes.get(&k), map.keyframes.get(&n)) else {
+            continue;
+        };
+        // Enough baseline for the scene depth.
+        let baseline = (kf1.center() - kf2.center()).norm();
+        let depth = map.median_depth(n).unwrap_or(1.0);
+        if baseline / depth.max(1e-9) < 0.01 {
+            continue;
+        }
+        let free1: Vec<usize> = (0..kf1.points.len())
+            .filter(|i| kf1.points[*i].is_none())
+            .collect();
+        let free2: Vec<usize> = (0..kf2.points.len())
+            .filter(|i| kf2.points[*i].is_none())
+            .collect();
+        let d1: Vec<[u8; 32]> = free1.iter().map(|i| kf1.features.descriptors[*i]).collect();
+        let d2: Vec<[u8; 32]> = free2.iter().map(|i| kf2.features.descriptors[*i]).collect();
+        let mut matches = Vec::new();
+        let mp = MatchParams {
+            ratio: 0.6,
+            ..MatchParams::default()
+        };
+        match_brute_force(&d1, &d2, &mp, &mut matches);
+        // Relative pose 1 → 2 for the epipolar test in normalised coordinates.
+        let t_21 = kf2.t_cw * kf1.t_cw.inverse();
+        let r = t_21.rotation.to_rotation_matrix();
+        let e = crate::geometry::skew(&t_21.translation.vector) * r.matrix();
+        let (p1, p2) = (projection_matrix(&kf1.t_cw), projection_matrix(&kf2.t_cw));
+        let cam1 = kf1.camera;
+        let mut new_points = Vec::new();
+        for m in &matches {
+            let (i1, i2) = (free1[m.query as usize], free2[m.train as usize]);
+            let (k1, k2) = (kf1.features.keypoints[i1], kf2.features.keypoints[i2]);
+            let px1 = Vector2::new(k1.x as f64, k1.y as f64);
+            let px2 = Vector2::new(k2.x as f64, k2.y as f64);
+            let b1 = cam1.unproject(&px1);
+            let b2 = kf2.camera.unproject(&px2);
+            let x1 = b1 / b1.z;
+            let x2 = b2 / b2.z;
+            // Distance of x2 to the epipolar line E x1, in pixels (≈ fx × normalised).
+            let l = e * x1;
+            let dist = x2.dot(&l).abs() / (l.x * l.x + l.y * l.y).sqrt().max(1e-12) * cam1.fx;
+            let sigma2 = 1.0 / inv_sigma2_for_octave(k2.octave as u32, 1.2);
+            if dist * dist > 3.84 * sigma2 {
+                continue;
+            }
+            let Some(p_w) = triangulate_dlt(&p1, &b1, &p2, &b2) else {
+                continue;
+            };
+            let views = [
+                CheckView {
+                    t_cw: kf1.t_cw,
+                    pixel: px1,
+                    inv_sigma2: inv_sigma2_for_octave(k1.octave as u32, 1.2),
+                },
+                CheckView {
+                    t_cw: kf2.t_cw,
+                    pixel: px2,
+                    inv_sigma2: inv_sigma2_for_octave(k2.octave as u32, 1.2),
+                },
+            ];
+            if check_point(&p_w, &views, &cam1, &check).is_err() {
+                continue;
+            }
+            new_points.push((p_w, i1 as u32, i2 as u32));
+        }
+        for (p_w, i1, i2) in new_points {
+            // Both keypoints may have been taken by an earlier neighbour in this loop.
+            let free = map
+                .keyframes
+                .get(&k)
+                .is_some_and(|kf| kf.points[i1 as usize].is_none())
+                && map
+                    .keyframes
+                    .get(&n)
+                    .is_some_and(|kf| kf.points[i2 as usize].is_none());
+            if free {
+                map.add_point(p_w, k, &[(k, i1), (n, i2)]);
+                created += 1;
+            }
+        }
+        map.update_covisibility(n);
+    }
+    map.update_covisibility(k);
+    created
+}
+
+/// Culls recent points (created in the last keyframes before `current`) that tracking
+/// rarely re-finds (found/visible < 0.25) or that, after two more keyframes, are seen by
+/// fewer than 2 keyframes (ORB-SLAM's MapPointCulling).
+pub fn cull_recent_points(map: &mut ClientMap, current: KfId) {
+    let bad: Vec<u64> = map
+        .points
+        .values()
+        .filter(|p| {
+            let age = current.saturating_sub(p.first_kf);
+            (age >= 1 && p.visible >= 4 && p.found_ratio() < 0.25)
+                || (age >= 2 && p.observations.len() < 2)
+        })
+        .map(|p| p.id)
+        .collect();
+    for p in bad {
+        map.erase_point(p);
+    }
+}

@@ -1,0 +1,367 @@
+//! Tracking of an initialised map: motion model, reference-keyframe fallback, local map,
+//! keyframe creation (seed §3.3).
+use std::time::Instant;
+
+use nalgebra::{Isometry3, Vector2};
+
+use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
+use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
+use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptParams, Velocity};
+use crate::vo::local_mapping::{create_points_with_neighbours, cull_recent_points};
+use crate::vo::map::{Keyframe, KfId, PointId};
+use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
+use crate::CoreError;
+
+/// Time of row `y` minus the mid-row time, s (seed eq. 2.61-2.63).
+pub fn row_dt(y: f32, readout_ns: i64, rows: u32) -> f64 {
+    if readout_ns == 0 || rows == 0 {
+        return 0.0;
+    }
+    (y as f64 - rows as f64 / 2.0) * readout_ns as f64 * 1e-9 / rows as f64
+}
+
+impl VoTracker {
+    pub(super) fn track(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        out: &mut VoOutput,
+    ) -> Result<(), CoreError> {
+        let Some((pred, vel)) = self.predict(frame.t_ns) else {
+            self.state = VoState::NotInitialized;
+            return Ok(());
+        };
+        let vel = if self.params.rolling_shutter && frame.readout_ns != 0 {
+            vel
+        } else {
+            None
+        };
+        self.frame_points.clear();
+        self.frame_points.resize(feats.len(), None);
+        // 1. Motion model: the last frame's points around their predicted positions.
+        let m0 = Instant::now();
+        let mut ok = false;
+        let mut t_cw = pred;
+        if self.velocity.is_some() && self.state == VoState::Tracking {
+            self.gather_last_frame_candidates();
+            let mut n = self.search(&t_cw, feats, &ProjSearchParams::motion_model());
+            if n < 20 {
+                let wide = ProjSearchParams {
+                    radius: 30.0,
+                    ..ProjSearchParams::motion_model()
+                };
+                self.frame_points.iter_mut().for_each(|p| *p = None);
+                n = self.search(&t_cw, feats, &wide);
+            }
+            out.times.matching += m0.elapsed().as_secs_f32() * 1e3;
+            if n >= 20 {
+                let p0 = Instant::now();
+                if let Some((pose, inl)) = self.optimize(frame, feats, &t_cw, vel.as_ref()) {
+                    ok = inl >= 10;
+                    t_cw = pose;
+                }
+                out.times.pose_opt += p0.elapsed().as_secs_f32() * 1e3;
+            }
+        }
+        // 2. Fallback: match the reference keyframe by descriptors.
+        if !ok {
+            let m1 = Instant::now();
+            self.frame_points.iter_mut().for_each(|p| *p = None);
+            let n = self.match_reference_keyframe(feats);
+            out.times.matching += m1.elapsed().as_secs_f32() * 1e3;
+            if n >= 15 {
+                let p1 = Instant::now();
+                let guess = self.last.as_ref().map_or(pred, |l| l.t_cw);
+                if let Some((pose, inl)) = self.optimize(frame, feats, &guess, vel.as_ref()) {
+                    ok = inl >= 10;
+                    t_cw = pose;
+                }
+                out.times.pose_opt += p1.elapsed().as_secs_f32() * 1e3;
+            }
+        }
+        if !ok {
+            self.failures += 1;
+            self.state = VoState::Lost;
+            if self.failures >= self.params.max_failures {
+                self.start_new_session(out);
+            }
+            return Ok(());
+        }
+        // 3. Local map: points of the reference keyframe's neighbourhood.
+        let l0 = Instant::now();
+        self.gather_local_map_candidates();
+        out.times.local_map += l0.elapsed().as_secs_f32() * 1e3;
+        let m2 = Instant::now();
+        self.search(&t_cw, feats, &ProjSearchParams::local_map());
+        out.times.matching += m2.elapsed().as_secs_f32() * 1e3;
+        let p2 = Instant::now();
+        let tracked = match self.optimize(frame, feats, &t_cw, vel.as_ref()) {
+            Some((pose, inl)) => {
+                t_cw = pose;
+                inl
+            }
+            None => 0,
+        };
+        out.times.pose_opt += p2.elapsed().as_secs_f32() * 1e3;
+        if tracked < self.params.min_inliers {
+            self.failures += 1;
+            self.state = VoState::Lost;
+            if self.failures >= self.params.max_failures {
+                self.start_new_session(out);
+            }
+            return Ok(());
+        }
+        self.failures = 0;
+        self.state = VoState::Tracking;
+        // Motion model update.
+        if let Some(last) = &self.last {
+            let dt = (frame.t_ns - last.t_ns) as f64 * 1e-9;
+            if dt > 0.0 {
+                self.velocity = Some((t_cw * last.t_cw.inverse(), dt));
+            }
+        }
+        out.t_cw = Some(t_cw);
+        out.tracked = tracked;
+        self.update_reference_keyframe();
+        // 4. Keyframe?
+        self.frames_since_kf += 1;
+        let ref_tracked = self.ref_kf.map_or(0, |k| {
+            let min_obs = if self.map.keyframes.len() <= 2 { 2 } else { 3 };
+            self.map.tracked_points(k, min_obs)
+        });
+        let k0 = Instant::now();
+        if self
+            .rule
+            .needs_keyframe(tracked, ref_tracked, self.frames_since_kf)
+        {
+            let id = self.create_keyframe(frame, feats, t_cw);
+            out.keyframe = Some(id);
+            while self.map.keyframes.len() > self.params.window {
+                let Some(&oldest) = self.map.keyframes.keys().next() else {
+                    break;
+                };
+                if let Some(kf) = self.map.remove_keyframe(oldest, 1) {
+                    out.evicted.push(kf);
+                }
+            }
+        }
+        out.times.keyframe = k0.elapsed().as_secs_f32() * 1e3;
+        self.last = Some(LastFrame {
+            t_ns: frame.t_ns,
+            t_cw,
+            features: feats.clone(),
+            points: self.frame_points.clone(),
+        });
+        Ok(())
+    }
+
+    fn gather_last_frame_candidates(&mut self) {
+        self.cands.clear();
+        let Some(last) = &self.last else { return };
+        for (i, p) in last.points.iter().enumerate() {
+            let Some(mp) = p.and_then(|p| self.map.points.get(&p)) else {
+                continue;
+            };
+            self.cands.push(ProjCandidate {
+                p_w: mp.p_w,
+                descriptor: mp.descriptor,
+                octave: last.features.keypoints[i].octave,
+                tag: mp.id,
+            });
+        }
+    }
+
+    fn gather_local_map_candidates(&mut self) {
+        self.cands.clear();
+        let Some(r) = self.ref_kf else { return };
+        let mut kfs = vec![r];
+        kfs.extend(self.map.covisible(r, self.params.local_keyframes, 1));
+        let already: std::collections::HashSet<PointId> =
+            self.frame_points.iter().flatten().copied().collect();
+        let mut seen = std::collections::HashSet::new();
+        for k in kfs {
+            let Some(kf) = self.map.keyframes.get(&k) else {
+                continue;
+            };
+            for (i, p) in kf.points.iter().enumerate() {
+                let Some(p) = p else { continue };
+                if already.contains(p) || !seen.insert(*p) {
+                    continue;
+                }
+                if let Some(mp) = self.map.points.get(p) {
+                    self.cands.push(ProjCandidate {
+                        p_w: mp.p_w,
+                        descriptor: mp.descriptor,
+                        octave: kf.features.keypoints[i].octave,
+                        tag: *p,
+                    });
+                }
+            }
+        }
+    }
+
+    /// Projection search of `self.cands` into the frame; fills the free `frame_points`.
+    fn search(
+        &mut self,
+        t_cw: &Isometry3<f64>,
+        feats: &OrbFeatures,
+        p: &ProjSearchParams,
+    ) -> usize {
+        self.taken.clear();
+        self.taken
+            .extend(self.frame_points.iter().map(|x| x.is_some()));
+        search_by_projection(
+            &self.cands,
+            t_cw,
+            &self.camera,
+            feats,
+            &self.grid,
+            p,
+            &self.taken,
+            &mut self.found,
+        );
+        for (k, f) in self.found.iter().enumerate() {
+            if let Some((ci, _)) = f {
+                self.frame_points[k] = Some(self.cands[*ci].tag);
+            }
+        }
+        self.frame_points.iter().filter(|x| x.is_some()).count()
+    }
+
+    fn match_reference_keyframe(&mut self, feats: &OrbFeatures) -> usize {
+        let Some(kf) = self.ref_kf.and_then(|k| self.map.keyframes.get(&k)) else {
+            return 0;
+        };
+        let mut matches = Vec::new();
+        let mp = MatchParams {
+            ratio: 0.7,
+            ..MatchParams::default()
+        };
+        match_brute_force(
+            &kf.features.descriptors,
+            &feats.descriptors,
+            &mp,
+            &mut matches,
+        );
+        rotation_consistency(&mut matches, &kf.features.keypoints, &feats.keypoints, 30);
+        let mut n = 0;
+        for m in &matches {
+            if let Some(p) = kf.points.get(m.query as usize).copied().flatten() {
+                if self.map.points.contains_key(&p) {
+                    self.frame_points[m.train as usize] = Some(p);
+                    n += 1;
+                }
+            }
+        }
+        n
+    }
+
+    /// Pose-only optimisation over the frame's matched points; outliers are unmatched.
+    fn optimize(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        guess: &Isometry3<f64>,
+        vel: Option<&Velocity>,
+    ) -> Option<(Isometry3<f64>, usize)> {
+        self.obs.clear();
+        self.obs_kp.clear();
+        let rows = self.camera.height;
+        for (k, p) in self.frame_points.iter().enumerate() {
+            let Some(mp) = p.and_then(|p| self.map.points.get(&p)) else {
+                continue;
+            };
+            let kp = feats.keypoints[k];
+            self.obs.push(PoseObservation {
+                point_w: mp.p_w,
+                pixel: Vector2::new(kp.x as f64, kp.y as f64),
+                inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
+                dt: row_dt(kp.y, frame.readout_ns, rows),
+            });
+            self.obs_kp.push(k);
+        }
+        if self.obs.len() < 6 {
+            return None;
+        }
+        self.inliers.clear();
+        self.inliers.resize(self.obs.len(), true);
+        let params = PoseOptParams::default();
+        let res = self
+            .optimizer
+            .optimize(
+                &self.camera,
+                guess,
+                &self.obs,
+                vel,
+                &params,
+                &mut self.inliers,
+            )
+            .ok()?;
+        for (j, &k) in self.obs_kp.iter().enumerate() {
+            if !self.inliers[j] {
+                self.frame_points[k] = None;
+            } else if let Some(mp) = self.frame_points[k].and_then(|p| self.map.points.get_mut(&p))
+            {
+                mp.found += 1;
+            }
+        }
+        Some((res.t_cw, res.n_inliers))
+    }
+
+    /// The keyframe sharing most points with the current frame.
+    fn update_reference_keyframe(&mut self) {
+        let mut counts: std::collections::HashMap<KfId, u32> = std::collections::HashMap::new();
+        for p in self.frame_points.iter().flatten() {
+            if let Some(mp) = self.map.points.get(p) {
+                for (k, _) in &mp.observations {
+                    *counts.entry(*k).or_insert(0) += 1;
+                }
+            }
+        }
+        if let Some((k, _)) = counts
+            .into_iter()
+            .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
+        {
+            self.ref_kf = Some(k);
+        }
+    }
+
+    fn create_keyframe(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        t_cw: Isometry3<f64>,
+    ) -> KfId {
+        let id = self.next_kf_id;
+        self.next_kf_id += 1;
+        let kf = Keyframe {
+            id,
+            t_ns: frame.t_ns,
+            t_cw,
+            camera: self.camera,
+            readout_ns: frame.readout_ns,
+            features: feats.clone(),
+            points: self.frame_points.clone(),
+        };
+        self.map.insert_keyframe(kf);
+        for p in self.frame_points.iter().flatten() {
+            self.map.update_point(*p);
+        }
+        // Local mapping (run here, in order): new points with the neighbours (seed change 3:
+        // the tracking thread itself triangulates at keyframe creation), culling.
+        let created = create_points_with_neighbours(&mut self.map, id, 10);
+        // The new points are seen by this frame too.
+        if let Some(kf) = self.map.keyframes.get(&id) {
+            for (k, p) in kf.points.iter().enumerate() {
+                if self.frame_points[k].is_none() && p.is_some() {
+                    self.frame_points[k] = *p;
+                }
+            }
+        }
+        cull_recent_points(&mut self.map, id);
+        self.ref_kf = Some(id);
+        self.frames_since_kf = 0;
+        let _ = created;
+        id
+    }
+}
