@@ -425,3 +425,5 @@ pub fn initialize(
 pub(crate) mod synth;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod timing;
