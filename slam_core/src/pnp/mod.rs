@@ -2,8 +2,9 @@
 //! section V-C: EPnP inside RANSAC, then motion-only optimisation).
 //!
 //! [`solve_pnp_ransac`] draws minimal sets of [`PnpParams::sample_size`] correspondences
-//! (deterministic from [`PnpParams::seed`]), solves each with EPnP ([`epnp`]), counts the
-//! correspondences whose reprojection error is within `chi2 / inv_sigma2` (pixels, through
+//! (deterministic from [`PnpParams::seed`]), solves each with EPnP (Lepetit, Moreno-Noguer
+//! & Fua 2009; `pnp/epnp.rs`), counts the correspondences whose reprojection error is
+//! within `chi2 / inv_sigma2` (pixels, through
 //! [`PnpParams::pixel_scale`]), adapts the number of iterations to the inlier ratio, refits
 //! EPnP on the best inlier set, and polishes the pose with the robust motion-only
 //! optimisation of [`crate::optim::PoseOptimizer`] (which also gives the final inliers).
