@@ -235,7 +235,7 @@ fixed_topic!(
     feedback_service,
     Feedback,
     "feedback",
-    16,
+    256,
     "Mapper → tracker acknowledgements and pose feedback of a client."
 );
 

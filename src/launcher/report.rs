@@ -37,7 +37,7 @@ pub struct ClientReport {
     pub imu_samples_dropped: u64,
     /// Keyframe messages the tracker sent (re-sends not counted).
     pub keyframes_sent: u64,
-    /// Keyframe acknowledgements the mapper sent.
+    /// Keyframes the tracker saw acknowledged by the mapper.
     pub keyframes_acked: u64,
     /// Keyframes the mapper applied (journaled).
     pub keyframes_applied: u64,
@@ -251,7 +251,7 @@ impl RunReport {
                 imu_samples_dropped: get(&trk, "imu_samples_dropped")
                     + get(&imu, "imu_samples_skipped_late"),
                 keyframes_sent: get(&trk, "keyframes_sent"),
-                keyframes_acked: m("keyframes_acked"),
+                keyframes_acked: get(&trk, "keyframes_acked_seen"),
                 keyframes_applied: m("keyframes_applied"),
                 trajectory,
                 ate,

@@ -1,12 +1,16 @@
 //! Tracker service of one client: where frames are consumed and poses leave.
 //!
-//! **Status: plumbing.** The monocular ORB tracker (seed §3.3) comes with the tracker issue.
-//! Until then this service does everything around it for real: it takes every frame from
-//! shared memory in place, checks its schema version and sequence number (gaps = frames
-//! dropped upstream), acknowledges it (lock-step pacing), drains and checks the IMU stream,
-//! publishes one [`TrackedPose`] per frame with state `NotInitialized` and real latency
-//! stamps (publish → receive → pose out), listens to mapper feedback, and keeps its counters
-//! in a status file. With `--frame-log` it writes, per frame, sequence number, dataset index,
+//! It takes every frame from shared memory in place (the VO reads the pixels inside the
+//! sample, no copy), checks its schema version and sequence number (gaps = frames dropped
+//! upstream), runs the client VO of `slam_core::vo` (seed §3.3) on it, acknowledges it
+//! (lock-step pacing) and publishes one [`TrackedPose`] per frame (pose, state, latency
+//! stamps, per-stage timings). Keyframes leaving the client map are sent to the mapper and
+//! kept in an [`outbox::Outbox`] until acknowledged. It drains and checks the IMU stream and
+//! keeps its counters in a status file.
+//!
+//! **Status:** the VO runs tracking and keyframe triangulation in this thread; a separate
+//! local-mapping thread with local bundle adjustment, relocalisation and the use of IMU
+//! samples for rolling-shutter compensation are not wired yet (see the tracker issue). With `--frame-log` it writes, per frame, sequence number, dataset index,
 //! timestamps, size and an FNV-1a checksum of the pixels it read from shared memory (and per
 //! IMU sample its time), which the end-to-end tests compare with the dataset.
 #![deny(missing_docs)]
@@ -20,6 +24,51 @@ use shm_schema::time::monotonic_ns;
 use shm_schema::topics;
 use shm_schema::{stage, FrameAck, MsgMeta, Pose, TrackState, TrackedPose, FLAG_END_OF_STREAM};
 use shoal_runtime::{Status, StatusFile};
+use slam_core::features::GrayImage;
+use slam_core::vo::{VoFrame, VoOutput, VoParams, VoState, VoTracker};
+
+fn new_vo(params: &Params, h: &shm_schema::FrameHeader) -> anyhow::Result<VoTracker> {
+    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
+    let [k1, k2, p1, p2, k3] = h.intrinsics.distortion;
+    let camera = slam_core::camera::PinholeRadtan {
+        width: h.width,
+        height: h.height,
+        fx,
+        fy,
+        cx,
+        cy,
+        k1,
+        k2,
+        p1,
+        p2,
+        k3,
+    };
+    let mut vp = VoParams {
+        rolling_shutter: !params.no_rs,
+        window: params.window.max(2),
+        ..VoParams::default()
+    };
+    vp.orb.n_features = params.features;
+    Ok(VoTracker::new(vp, camera)?)
+}
+
+fn run_vo(
+    vo: &mut VoTracker,
+    pixels: &[u8],
+    h: &shm_schema::FrameHeader,
+) -> anyhow::Result<VoOutput> {
+    let image = GrayImage::new(
+        pixels,
+        h.width as usize,
+        h.height as usize,
+        h.stride as usize,
+    )?;
+    Ok(vo.process(&VoFrame {
+        image,
+        t_ns: h.t_mid_ns,
+        readout_ns: h.readout_ns,
+    })?)
+}
 
 /// Parameters of the tracker service.
 #[derive(Debug, Clone, clap::Parser)]
@@ -40,7 +89,21 @@ pub struct Params {
     /// Sleep this many ms per frame (to simulate a slow consumer in tests).
     #[arg(long, default_value_t = 0)]
     pub work_ms: u64,
+    /// Do not run the VO (transport only: replay and IPC tests).
+    #[arg(long)]
+    pub no_vo: bool,
+    /// Turn rolling-shutter compensation off (for comparison).
+    #[arg(long)]
+    pub no_rs: bool,
+    /// Most keyframes in the client map (seed: N = 100).
+    #[arg(long, default_value_t = 100)]
+    pub window: usize,
+    /// ORB features per frame.
+    #[arg(long, default_value_t = 1000)]
+    pub features: usize,
 }
+
+pub mod outbox;
 
 /// The service's name in reports.
 pub fn service_name(client: u32) -> String {
@@ -97,8 +160,13 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         )),
         None => None,
     };
-    // A restarted tracker starts a new VO session (design: faults).
-    let session_id = status.starts as u32;
+    // A restarted tracker starts a new VO session (design: faults): session ids carry the
+    // start count in their high bits, the VO's own session counter in the low ones.
+    let session_base = (status.starts as u32) << 16;
+    let session_id = session_base | 1;
+    let kf_pub = topics::keyframe_publisher(&topics::keyframes_service(&node, c)?)?;
+    let mut outbox = outbox::Outbox::new(c);
+    let mut vo: Option<VoTracker> = None;
     shoal_runtime::signal_ready();
 
     let mut last_seq: Option<u64> = status.values.get("last_frame_seq").map(|v| *v as u64);
@@ -109,7 +177,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     // After the frames' end of stream, wait this long at most for the IMU's.
     let mut end_deadline: Option<i64> = None;
     loop {
-        if ended && (imu_ended || end_deadline.is_some_and(|d| monotonic_ns() > d)) {
+        if ended
+            && ((imu_ended && outbox.pending() == 0)
+                || end_deadline.is_some_and(|d| monotonic_ns() > d))
+        {
             break;
         }
         let mut idle = true;
@@ -147,10 +218,13 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         }
         while let Some(fb) = feedback_sub.receive()? {
             idle = false;
-            if fb.payload().meta.check().is_ok() {
+            let f = *fb.payload();
+            if f.meta.check().is_ok() {
                 status.add("feedback_received", 1);
+                outbox.ack(f.acked_session_id, f.acked_keyframe_id);
             }
         }
+        outbox.resend_stale(&kf_pub, 2_000_000_000)?;
         if ended {
             if node.wait(Duration::from_micros(200)).is_err() {
                 break;
@@ -174,6 +248,12 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             };
             if eos {
                 ended = true;
+                if let Some(v) = vo.as_mut() {
+                    let sess = session_base | v.session_id();
+                    for kf in v.drain_keyframes() {
+                        outbox.send(&kf_pub, &kf, sess)?;
+                    }
+                }
                 ack_pub.send_copy(ack)?;
                 status.set_value("end_of_stream_seq", h.meta.seq as f64);
                 let mut meta = MsgMeta::new(c, session_id, h.meta.seq, monotonic_ns());
@@ -226,23 +306,72 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             if params.work_ms > 0 {
                 std::thread::sleep(Duration::from_millis(params.work_ms));
             }
+            let mut stage_ms = [0f32; stage::COUNT];
+            let mut state = TrackState::NotInitialized;
+            let mut pose_out = Pose::IDENTITY;
+            let mut tracked = 0;
+            let mut is_kf = 0;
+            let mut vo_session = session_id;
+            if !params.no_vo && pixels.len() >= h.payload_len() && h.width > 0 {
+                if vo.is_none() {
+                    vo = Some(new_vo(params, &h)?);
+                }
+                if let Some(v) = vo.as_mut() {
+                    match run_vo(v, pixels, &h) {
+                        Ok(o) => {
+                            state = match o.state {
+                                VoState::NotInitialized => TrackState::NotInitialized,
+                                VoState::Initializing => TrackState::Initializing,
+                                VoState::Tracking => TrackState::Tracking,
+                                VoState::Lost => TrackState::Lost,
+                            };
+                            if let (TrackState::Tracking, Some(t)) = (state, o.t_cw) {
+                                pose_out = outbox::wire_pose(&t);
+                            }
+                            tracked = o.tracked as u32;
+                            is_kf = o.keyframe.is_some() as u32;
+                            let t = &o.times;
+                            stage_ms[stage::PYRAMID] = t.pyramid;
+                            stage_ms[stage::DETECT] = t.detect;
+                            stage_ms[stage::DESCRIBE] = t.describe;
+                            stage_ms[stage::MATCH] = t.matching;
+                            stage_ms[stage::POSE_OPT] = t.pose_opt;
+                            stage_ms[stage::LOCAL_MAP] = t.local_map;
+                            stage_ms[stage::KEYFRAME] = t.keyframe;
+                            if o.new_session {
+                                status.add("vo_sessions_started", 1);
+                            }
+                            // Evicted keyframes belong to the session they were made in.
+                            let sess =
+                                session_base | v.session_id().saturating_sub(o.new_session as u32);
+                            for kf in &o.evicted {
+                                outbox.send(&kf_pub, kf, sess)?;
+                            }
+                            vo_session = session_base | v.session_id();
+                        }
+                        Err(e) => status.error("vo", format!("frame {}: {e}", h.meta.seq)),
+                    }
+                }
+            }
             drop(sample);
             ack_pub.send_copy(ack)?;
             ack_seq += 1;
             status.add("frames_received", 1);
-            let mut stage_ms = [0f32; stage::COUNT];
+            if state == TrackState::Tracking {
+                status.add("frames_tracked", 1);
+            }
             let out = monotonic_ns();
             stage_ms[stage::TOTAL] = (out - recv) as f32 * 1e-6;
             let pose = TrackedPose {
-                meta: MsgMeta::new(c, session_id, h.meta.seq, out),
+                meta: MsgMeta::new(c, vo_session, h.meta.seq, out),
                 t_ns: h.t_mid_ns,
                 dataset_index: h.dataset_index,
-                pose: Pose::IDENTITY,
+                pose: pose_out,
                 server_pose: Pose::IDENTITY,
-                state: TrackState::NotInitialized as u32,
+                state: state as u32,
                 has_server_pose: 0,
-                tracked_points: 0,
-                is_keyframe: 0,
+                tracked_points: tracked,
+                is_keyframe: is_kf,
                 frame_publish_mono_ns: h.meta.publish_mono_ns,
                 frame_receive_mono_ns: recv,
                 stage_ms,
@@ -259,6 +388,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     if let Some(l) = log.as_mut() {
         l.flush()?;
     }
+    status.add("keyframes_sent", outbox.sent);
+    status.add("keyframes_resent", outbox.resent);
+    status.add("keyframes_acked_seen", outbox.acked);
+    status.set_value("keyframes_unacked", outbox.pending() as f64);
     status.finished = ended;
     file.write(&status)?;
     Ok(status)

@@ -236,6 +236,15 @@ impl VoTracker {
         Ok(out)
     }
 
+    /// Removes every keyframe from the client map (oldest first), e.g. to send them all to
+    /// the server at the end of the stream.
+    pub fn drain_keyframes(&mut self) -> Vec<Keyframe> {
+        let ids: Vec<KfId> = self.map.keyframes.keys().copied().collect();
+        ids.into_iter()
+            .filter_map(|k| self.map.remove_keyframe(k, 0))
+            .collect()
+    }
+
     fn start_new_session(&mut self, out: &mut VoOutput) {
         // The old map's keyframes go to the server before it is dropped.
         let ids: Vec<KfId> = self.map.keyframes.keys().copied().collect();

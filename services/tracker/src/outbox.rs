@@ -1,0 +1,182 @@
+//! Keyframes on their way to the mapper: every keyframe leaving the client map (window
+//! eviction, new session, end of stream) is published as a keyframe message and kept until
+//! the mapper acknowledges it on the feedback service; unacknowledged ones are re-sent
+//! (e.g. to a restarted mapper). Nothing is dropped while it is unacknowledged.
+use std::collections::BTreeMap;
+
+use iceoryx2::port::publisher::Publisher;
+use shm_schema::time::monotonic_ns;
+use shm_schema::topics::{Ipc, MAX_KEYPOINTS};
+use shm_schema::{
+    Intrinsics, KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT,
+};
+use slam_core::vo::Keyframe;
+
+/// One keyframe message, ready to (re-)send.
+struct Pending {
+    header: KeyframeHeader,
+    records: Vec<KeypointRecord>,
+    /// 0 while queued (not sent yet).
+    last_sent_ns: i64,
+}
+
+/// Keyframe messages in flight (sent, unacknowledged) at most: the mapper's buffer holds
+/// `KEYFRAME_BUFFER` (64) per client, so a burst (end of stream, new session) is paced.
+pub const MAX_IN_FLIGHT: usize = 32;
+
+/// Keyframes sent and not yet acknowledged.
+pub struct Outbox {
+    client: u32,
+    next_seq: u64,
+    pending: BTreeMap<(u32, u64), Pending>,
+    /// Keyframe messages sent (first sends).
+    pub sent: u64,
+    /// Re-sends.
+    pub resent: u64,
+    /// Acknowledged keyframes.
+    pub acked: u64,
+}
+
+/// Camera-to-map pose of a keyframe as a wire [`Pose`] (`T_ck`, p_c = R_ck p_k + t_ck).
+pub fn wire_pose(t_cw: &nalgebra::Isometry3<f64>) -> Pose {
+    let t_wc = t_cw.inverse();
+    let q = t_wc.rotation.quaternion();
+    let t = t_wc.translation.vector;
+    Pose {
+        t: [t.x, t.y, t.z],
+        q: [q.i, q.j, q.k, q.w],
+    }
+}
+
+impl Outbox {
+    /// An empty outbox for `client`.
+    pub fn new(client: u32) -> Self {
+        Self {
+            client,
+            next_seq: 0,
+            pending: BTreeMap::new(),
+            sent: 0,
+            resent: 0,
+            acked: 0,
+        }
+    }
+
+    /// Number of keyframes waiting for an acknowledgement.
+    pub fn pending(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// Converts and publishes `kf` of VO session `session`, keeping it until acknowledged.
+    pub fn send(
+        &mut self,
+        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+        kf: &Keyframe,
+        session: u32,
+    ) -> anyhow::Result<()> {
+        let c = &kf.camera;
+        let n = kf.features.len().min(MAX_KEYPOINTS);
+        let records: Vec<KeypointRecord> = (0..n)
+            .map(|i| {
+                let k = kf.features.keypoints[i];
+                KeypointRecord {
+                    u: k.x,
+                    v: k.y,
+                    angle: k.angle,
+                    response: k.response,
+                    octave: k.octave as u32,
+                    reserved: 0,
+                    map_point_id: kf.points[i].unwrap_or(NO_MAP_POINT),
+                    descriptor: kf.features.descriptors[i],
+                }
+            })
+            .collect();
+        let header = KeyframeHeader {
+            meta: MsgMeta::new(self.client, session, self.next_seq, 0),
+            keyframe_id: kf.id,
+            t_ns: kf.t_ns,
+            pose_ck: wire_pose(&kf.t_cw),
+            intrinsics: Intrinsics {
+                pinhole: [c.fx, c.fy, c.cx, c.cy],
+                distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
+            },
+            width: c.width,
+            height: c.height,
+            n_keypoints: n as u32,
+            reserved: 0,
+        };
+        self.next_seq += 1;
+        self.pending.insert(
+            (session, kf.id),
+            Pending {
+                header,
+                records,
+                last_sent_ns: 0,
+            },
+        );
+        self.pump(publisher)
+    }
+
+    /// Sends queued keyframes while fewer than [`MAX_IN_FLIGHT`] are unacknowledged.
+    pub fn pump(
+        &mut self,
+        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+    ) -> anyhow::Result<()> {
+        let mut in_flight = self
+            .pending
+            .values()
+            .filter(|p| p.last_sent_ns != 0)
+            .count();
+        for p in self.pending.values_mut() {
+            if in_flight >= MAX_IN_FLIGHT {
+                break;
+            }
+            if p.last_sent_ns == 0 {
+                publish(publisher, p, false)?;
+                self.sent += 1;
+                in_flight += 1;
+            }
+        }
+        Ok(())
+    }
+
+    /// The mapper applied keyframe `id` of `session`.
+    pub fn ack(&mut self, session: u32, id: u64) {
+        if self.pending.remove(&(session, id)).is_some() {
+            self.acked += 1;
+        }
+    }
+
+    /// Re-sends keyframes unacknowledged for longer than `after_ns` (and sends queued ones).
+    pub fn resend_stale(
+        &mut self,
+        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+        after_ns: i64,
+    ) -> anyhow::Result<()> {
+        let now = monotonic_ns();
+        for p in self.pending.values_mut() {
+            if p.last_sent_ns != 0 && now - p.last_sent_ns > after_ns {
+                publish(publisher, p, true)?;
+                self.resent += 1;
+            }
+        }
+        self.pump(publisher)
+    }
+}
+
+fn publish(
+    publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+    p: &mut Pending,
+    resend: bool,
+) -> anyhow::Result<()> {
+    let sample = publisher.loan_slice_uninit(p.records.len())?;
+    let mut sample = sample.write_from_slice(&p.records);
+    let mut h = p.header;
+    if resend {
+        h.meta.flags |= FLAG_RESEND;
+    }
+    p.last_sent_ns = monotonic_ns();
+    h.meta.publish_mono_ns = p.last_sent_ns;
+    *sample.user_header_mut() = h;
+    sample.send()?;
+    Ok(())
+}
