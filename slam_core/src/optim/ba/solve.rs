@@ -39,7 +39,8 @@ pub struct BaParams {
     pub initial_lambda: f64,
     /// Rejected steps allowed within one iteration before the stage stops (10, as g2o).
     pub max_rejected_steps: usize,
-    /// A stage stops when an accepted step reduces the cost by less than this fraction (1e-9).
+    /// A stage stops when an accepted step reduces the cost by less than this fraction (1e-6,
+    /// Ceres' function tolerance).
     pub min_relative_decrease: f64,
     /// Linear solver of the reduced camera system.
     pub solver: LinearSolverKind,
@@ -66,7 +67,7 @@ impl BaParams {
             robust_second_stage: false,
             initial_lambda: 1e-4,
             max_rejected_steps: 10,
-            min_relative_decrease: 1e-9,
+            min_relative_decrease: 1e-6,
             solver: LinearSolverKind::Auto,
             dense_max_keyframes: 40,
         }
@@ -97,6 +98,8 @@ pub struct BaReport {
     pub final_rmse: f64,
     /// LM iterations (linearisations followed by an accepted or a final rejected step).
     pub iterations: usize,
+    /// Rejected LM steps (each costs one more reduced-system solve and cost evaluation).
+    pub rejected_steps: usize,
     /// Observations with `χ² <= chi2_threshold` in front of their camera at the final state.
     pub n_inliers: usize,
     /// The other observations.
@@ -228,6 +231,7 @@ impl BundleAdjuster {
             initial_rmse: 0.0,
             final_rmse: 0.0,
             iterations: 0,
+            rejected_steps: 0,
             n_inliers: 0,
             n_outliers: 0,
             free_keyframes: n_cams,
@@ -248,6 +252,7 @@ impl BundleAdjuster {
                 &huber,
                 params.first_stage_iterations,
                 abort,
+                &mut report.rejected_steps,
             );
             report.final_cost = cost;
             report.iterations += it;
@@ -266,6 +271,7 @@ impl BundleAdjuster {
                         &kernel,
                         params.second_stage_iterations,
                         abort,
+                        &mut report.rejected_steps,
                     );
                     report.final_cost = cost;
                     report.iterations += it;
@@ -349,6 +355,7 @@ impl BundleAdjuster {
         kernel: &RobustKernel,
         max_iterations: usize,
         abort: Option<&AtomicBool>,
+        rejected: &mut usize,
     ) -> (f64, usize, bool) {
         let mut cost = self.cost(problem, false, kernel);
         let mut lambda = params.initial_lambda.max(1e-12);
@@ -380,6 +387,7 @@ impl BundleAdjuster {
                         break;
                     }
                 }
+                *rejected += 1;
                 lambda *= nu;
                 nu *= 2.0;
                 if !lambda.is_finite() || lambda > 1e32 {
