@@ -130,3 +130,109 @@ pub fn cull_recent_points(map: &mut ClientMap, current: KfId) {
         map.erase_point(p);
     }
 }
+
+/// Local bundle adjustment around keyframe `k` (ORB-SLAM's LocalBundleAdjustment): `k` and
+/// its covisible keyframes are free (the oldest keyframe of the map stays fixed as the
+/// gauge), the keyframes that also see those points are fixed; the local points are free.
+/// Outlier observations are removed from the map afterwards. Returns the BA report.
+pub fn local_bundle_adjustment(
+    map: &mut ClientMap,
+    k: KfId,
+    ba: &mut crate::optim::ba::BundleAdjuster,
+    problem: &mut crate::optim::ba::BaProblem,
+    n_neighbours: usize,
+) -> Option<crate::optim::ba::BaReport> {
+    use std::collections::HashMap;
+    let first = *map.keyframes.keys().next()?;
+    let mut local: Vec<KfId> = vec![k];
+    local.extend(map.covisible(k, n_neighbours, 1));
+    let mut kf_index: HashMap<KfId, usize> = HashMap::new();
+    let mut pt_index: HashMap<u64, usize> = HashMap::new();
+    let mut kf_ids = Vec::new();
+    let mut pt_ids = Vec::new();
+    problem.clear();
+    for id in &local {
+        let kf = map.keyframes.get(id)?;
+        kf_index.insert(*id, problem.add_keyframe(kf.t_cw, kf.camera, *id == first));
+        kf_ids.push(*id);
+    }
+    for id in &local {
+        let kf = &map.keyframes[id];
+        for p in kf.points.iter().flatten() {
+            if pt_index.contains_key(p) {
+                continue;
+            }
+            if let Some(mp) = map.points.get(p) {
+                pt_index.insert(*p, problem.add_point(mp.p_w, false));
+                pt_ids.push(*p);
+            }
+        }
+    }
+    // Fixed keyframes: others that see local points.
+    let mut obs_keys = Vec::new();
+    for (pi, p) in pt_ids.iter().enumerate() {
+        let Some(mp) = map.points.get(p) else { continue };
+        for (kid, i) in &mp.observations {
+            let ki = match kf_index.get(kid) {
+                Some(ki) => *ki,
+                None => {
+                    let kf = map.keyframes.get(kid)?;
+                    let ki = problem.add_keyframe(kf.t_cw, kf.camera, true);
+                    kf_index.insert(*kid, ki);
+                    kf_ids.push(*kid);
+                    ki
+                }
+            };
+            let kf = &map.keyframes[kid];
+            let kp = kf.features.keypoints[*i as usize];
+            problem.add_observation(
+                ki,
+                pi,
+                nalgebra::Vector2::new(kp.x as f64, kp.y as f64),
+                inv_sigma2_for_octave(kp.octave as u32, 1.2),
+            );
+            obs_keys.push((*p, *kid, *i));
+        }
+    }
+    if problem.observations.len() < 20 {
+        return None;
+    }
+    let report = ba.optimize(problem, &crate::optim::ba::BaParams::local()).ok()?;
+    for (ki, id) in kf_ids.iter().enumerate() {
+        if let Some(kf) = map.keyframes.get_mut(id) {
+            kf.t_cw = problem.keyframes[ki].t_cw;
+        }
+    }
+    for (pi, p) in pt_ids.iter().enumerate() {
+        if let Some(mp) = map.points.get_mut(p) {
+            mp.p_w = problem.points[pi].p_w;
+        }
+    }
+    let inliers = ba.inliers();
+    for (j, (p, kid, i)) in obs_keys.iter().enumerate() {
+        if !inliers.get(j).copied().unwrap_or(true) {
+            let erase = match map.points.get_mut(p) {
+                Some(mp) => {
+                    mp.observations.retain(|o| *o != (*kid, *i));
+                    mp.observations.len() < 2
+                }
+                None => false,
+            };
+            if let Some(kf) = map.keyframes.get_mut(kid) {
+                if kf.points[*i as usize] == Some(*p) {
+                    kf.points[*i as usize] = None;
+                }
+            }
+            if erase {
+                map.erase_point(*p);
+            }
+        }
+    }
+    for id in &local {
+        map.update_covisibility(*id);
+    }
+    for p in &pt_ids {
+        map.update_point(*p);
+    }
+    Some(report)
+}

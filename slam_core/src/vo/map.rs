@@ -425,7 +425,8 @@ mod tests {
 
     #[test]
     fn best_descriptor_is_the_median_one() {
-        let d = [[0u8; 32], [1u8; 32], [3u8; 32], [255u8; 32]];
+        // Median distances to all (self included): 64, 32, 32, 64, 192 bits.
+        let d = [[0u8; 32], [1u8; 32], [3u8; 32], [7u8; 32], [255u8; 32]];
         assert_eq!(best_descriptor(&d), Some([1u8; 32]));
     }
 }

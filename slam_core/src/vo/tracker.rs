@@ -40,6 +40,8 @@ pub struct VoParams {
     pub min_inliers: usize,
     /// Keyframes of the local map (reference + best covisible).
     pub local_keyframes: usize,
+    /// Local bundle adjustment at each new keyframe.
+    pub local_ba: bool,
 }
 
 impl Default for VoParams {
@@ -53,6 +55,7 @@ impl Default for VoParams {
             init_min_matches: 100,
             min_inliers: 15,
             local_keyframes: 15,
+            local_ba: true,
         }
     }
 }
@@ -157,6 +160,8 @@ pub struct VoTracker {
     obs: Vec<PoseObservation>,
     obs_kp: Vec<usize>,
     inliers: Vec<bool>,
+    ba: crate::optim::ba::BundleAdjuster,
+    ba_problem: crate::optim::ba::BaProblem,
 }
 
 impl VoTracker {
@@ -188,6 +193,8 @@ impl VoTracker {
             obs: Vec::new(),
             obs_kp: Vec::new(),
             inliers: Vec::new(),
+            ba: crate::optim::ba::BundleAdjuster::new(),
+            ba_problem: crate::optim::ba::BaProblem::new(),
             params,
             camera,
         })

@@ -7,7 +7,9 @@ use nalgebra::{Isometry3, Vector2};
 use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
 use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptParams, Velocity};
-use crate::vo::local_mapping::{create_points_with_neighbours, cull_recent_points};
+use crate::vo::local_mapping::{
+    create_points_with_neighbours, cull_recent_points, local_bundle_adjustment,
+};
 use crate::vo::map::{Keyframe, KfId, PointId};
 use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
 use crate::CoreError;
@@ -359,6 +361,15 @@ impl VoTracker {
             }
         }
         cull_recent_points(&mut self.map, id);
+        if self.params.local_ba {
+            local_bundle_adjustment(&mut self.map, id, &mut self.ba, &mut self.ba_problem, 10);
+            // Points culled by BA are no longer matched in this frame.
+            for p in self.frame_points.iter_mut() {
+                if p.is_some_and(|id| !self.map.points.contains_key(&id)) {
+                    *p = None;
+                }
+            }
+        }
         self.ref_kf = Some(id);
         self.frames_since_kf = 0;
         let _ = created;
