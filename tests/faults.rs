@@ -49,6 +49,7 @@ fn killed_consumer_never_blocks_the_ingest_and_resumes() {
         .arg(out.path())
         .arg("--ipc-prefix")
         .arg(prefix("kill"))
+        .arg("--tracker-arg=--no-vo")
         .stdout(Stdio::null())
         .spawn()
         .unwrap();
@@ -103,6 +104,7 @@ fn killed_ingest_is_restarted_and_resumes() {
         .arg(prefix("killcam"))
         .arg(format!("--tracker-arg=--frame-log={}", log.display()))
         .arg("--tracker-arg=--work-ms=20")
+        .arg("--tracker-arg=--no-vo")
         .stdout(Stdio::null())
         .spawn()
         .unwrap();

@@ -156,7 +156,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         if params.mode == ReplayMode::Realtime {
             let due = clock.due_mono_ns(rec.t_ns);
             let now = monotonic_ns();
-            if now > due + period_ns {
+            // Late by more than a frame period and 250 ms: missed while this service was
+            // down (a restart resumes "now"), not a scheduling hiccup of a loaded machine.
+            if now > due + period_ns.max(250_000_000) {
                 // Missed while this service was down (or hopelessly late): counted, never
                 // silently skipped.
                 status.add("frames_skipped_late", 1);
