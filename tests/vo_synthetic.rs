@@ -30,7 +30,13 @@ fn run_vo(scenario: Scenario, frames: usize, params: VoParams) -> VoRun {
         world.render_frame_into(k, &mut img).unwrap();
         let t = world.frame_time_ns(k);
         let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize).unwrap();
-        let out = vo.process(&VoFrame { image, t_ns: t, readout_ns: cal.readout_ns }).unwrap();
+        let out = vo
+            .process(&VoFrame {
+                image,
+                t_ns: t,
+                readout_ns: cal.readout_ns,
+            })
+            .unwrap();
         sessions += out.new_session as usize;
         gt_t.push(t);
         gt.push(world.pose_cam_at(world.frame_capture_time_ns(k)));
@@ -39,7 +45,10 @@ fn run_vo(scenario: Scenario, frames: usize, params: VoParams) -> VoRun {
             est.push(t_cw.inverse());
         }
     }
-    let params = EvalParams { alignment: Alignment::Sim3, ..Default::default() };
+    let params = EvalParams {
+        alignment: Alignment::Sim3,
+        ..Default::default()
+    };
     let r = evaluate(&gt_t, &gt, &est_t, &est, &params).unwrap();
     VoRun {
         frames: world.n_frames(),
@@ -59,6 +68,9 @@ fn synthetic_loop_global_shutter_accuracy() {
         r.tracked, r.frames, r.ate_rmse, r.path
     );
     assert_eq!(r.sessions, 1, "no tracking loss");
-    assert!(r.tracked + 5 >= r.frames, "all frames after initialisation tracked");
+    assert!(
+        r.tracked + 5 >= r.frames,
+        "all frames after initialisation tracked"
+    );
     assert!(pct <= 0.5, "ATE {pct:.3}% of the distance (target 0.5%)");
 }

@@ -25,7 +25,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(dir) = png_dir {
             if k % 50 == 0 {
                 let path = std::path::Path::new(dir).join(format!("{scenario}_{k:05}.png"));
-                image::save_buffer(&path, &img, cam.width, cam.height, image::ExtendedColorType::L8)?;
+                image::save_buffer(
+                    &path,
+                    &img,
+                    cam.width,
+                    cam.height,
+                    image::ExtendedColorType::L8,
+                )?;
             }
         }
     }

@@ -10,8 +10,8 @@
 pub mod detect;
 pub mod error;
 pub mod euroc;
-pub mod kitti;
 pub mod image_io;
+pub mod kitti;
 pub mod phone;
 pub mod sim;
 mod text;

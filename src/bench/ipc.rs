@@ -368,13 +368,8 @@ impl LatencyHistNs {
 
 /// A thin wrapper that reuses the recorder's µs histogram but keeps 0.1 µs resolution by
 /// recording in units of 100 ns.
+#[derive(Default)]
 struct HistNs(LatencyHist);
-
-impl Default for HistNs {
-    fn default() -> Self {
-        Self(LatencyHist::new())
-    }
-}
 
 impl HistNs {
     fn record(&mut self, ns: i64) {

@@ -171,7 +171,9 @@ pub fn local_bundle_adjustment(
     // Fixed keyframes: others that see local points.
     let mut obs_keys = Vec::new();
     for (pi, p) in pt_ids.iter().enumerate() {
-        let Some(mp) = map.points.get(p) else { continue };
+        let Some(mp) = map.points.get(p) else {
+            continue;
+        };
         for (kid, i) in &mp.observations {
             let ki = match kf_index.get(kid) {
                 Some(ki) => *ki,
@@ -197,7 +199,9 @@ pub fn local_bundle_adjustment(
     if problem.observations.len() < 20 {
         return None;
     }
-    let report = ba.optimize(problem, &crate::optim::ba::BaParams::local()).ok()?;
+    let report = ba
+        .optimize(problem, &crate::optim::ba::BaParams::local())
+        .ok()?;
     for (ki, id) in kf_ids.iter().enumerate() {
         if let Some(kf) = map.keyframes.get_mut(id) {
             kf.t_cw = problem.keyframes[ki].t_cw;
