@@ -66,17 +66,7 @@ pub fn service_name(client: u32) -> String {
 
 /// Runs the service; returns the process exit code (0 at the end of the data).
 pub fn main_with(params: Params) -> i32 {
-    match run(&params) {
-        Ok(_) => 0,
-        Err(e) => {
-            eprintln!("[{}] fatal: {e:#}", service_name(params.client));
-            if e.downcast_ref::<datasets::DatasetError>().is_some() {
-                shoal_runtime::EXIT_CONFIG
-            } else {
-                1
-            }
-        }
-    }
+    shoal_runtime::exit_code(&service_name(params.client), run(&params))
 }
 
 /// Replays the IMU samples; returns the final status. Stops early on SIGINT/SIGTERM.

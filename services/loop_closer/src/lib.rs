@@ -29,13 +29,7 @@ pub const SERVICE_NAME: &str = "loop_closer";
 
 /// Runs the service; returns the process exit code.
 pub fn main_with(params: Params) -> i32 {
-    match run(&params) {
-        Ok(_) => 0,
-        Err(e) => {
-            eprintln!("[{SERVICE_NAME}] fatal: {e:#}");
-            1
-        }
-    }
+    shoal_runtime::exit_code(SERVICE_NAME, run(&params))
 }
 
 /// Receives keyframes until SIGINT/SIGTERM.

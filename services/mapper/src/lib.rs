@@ -44,13 +44,7 @@ pub const SERVICE_NAME: &str = "mapper";
 
 /// Runs the service; returns the process exit code.
 pub fn main_with(params: Params) -> i32 {
-    match run(&params) {
-        Ok(_) => 0,
-        Err(e) => {
-            eprintln!("[{SERVICE_NAME}] fatal: {e:#}");
-            1
-        }
-    }
+    shoal_runtime::exit_code(SERVICE_NAME, run(&params))
 }
 
 /// A journal line: `client session keyframe_id t_ns n_keypoints`.

@@ -259,3 +259,20 @@ pub fn replay_origin_ns(dataset: &datasets::Dataset) -> i64 {
         (None, None) => 0,
     }
 }
+
+/// The process exit code of a service's `run` result: 0 on success; on error the message is
+/// printed (the service's log) and [`EXIT_CONFIG`] is returned for dataset/configuration
+/// errors (the launcher does not restart those), 1 otherwise.
+pub fn exit_code<T>(service: &str, result: anyhow::Result<T>) -> i32 {
+    match result {
+        Ok(_) => 0,
+        Err(e) => {
+            eprintln!("[{service}] fatal: {e:#}");
+            if e.downcast_ref::<datasets::DatasetError>().is_some() {
+                EXIT_CONFIG
+            } else {
+                1
+            }
+        }
+    }
+}

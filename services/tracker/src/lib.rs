@@ -112,13 +112,7 @@ pub fn service_name(client: u32) -> String {
 
 /// Runs the service; returns the process exit code.
 pub fn main_with(params: Params) -> i32 {
-    match run(&params) {
-        Ok(_) => 0,
-        Err(e) => {
-            eprintln!("[{}] fatal: {e:#}", service_name(params.client));
-            1
-        }
-    }
+    shoal_runtime::exit_code(&service_name(params.client), run(&params))
 }
 
 /// FNV-1a 64-bit hash of `bytes` (pixel checksums in frame logs).
