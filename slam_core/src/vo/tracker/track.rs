@@ -148,12 +148,24 @@ impl VoTracker {
             }
         }
         out.times.keyframe = k0.elapsed().as_secs_f32() * 1e3;
-        self.last = Some(LastFrame {
-            t_ns: frame.t_ns,
+        // Reuse the previous last frame's buffers: no allocation once they have grown.
+        let mut last = self.last.take().unwrap_or(LastFrame {
+            t_ns: 0,
             t_cw,
-            features: feats.clone(),
-            points: self.frame_points.clone(),
+            features: OrbFeatures::default(),
+            points: Vec::new(),
         });
+        last.t_ns = frame.t_ns;
+        last.t_cw = t_cw;
+        last.features.keypoints.clear();
+        last.features.keypoints.extend_from_slice(&feats.keypoints);
+        last.features.descriptors.clear();
+        last.features
+            .descriptors
+            .extend_from_slice(&feats.descriptors);
+        last.points.clear();
+        last.points.extend_from_slice(&self.frame_points);
+        self.last = Some(last);
         Ok(())
     }
 
