@@ -1,5 +1,6 @@
 //! `shoal bench ...`: benchmarks whose figures go to BENCHMARKS.md (never asserted in tests).
 pub mod ipc;
+pub mod tracking;
 
 /// Benchmarks.
 #[derive(clap::Subcommand, Debug)]
@@ -7,6 +8,9 @@ pub enum BenchCommand {
     /// Frame hand-off latency between two processes: iceoryx2 (busy poll, WaitSet event) and
     /// a copying Unix-socket baseline.
     Ipc(ipc::IpcArgs),
+    /// Latency of the tracking core on a dataset: per stage inside the tracker, and frame
+    /// publish → pose publish through the pipeline.
+    Tracking(tracking::TrackingArgs),
     /// The subscriber side of `bench ipc` (started by it as a child process).
     #[command(hide = true)]
     IpcPeer(ipc::PeerArgs),
@@ -17,5 +21,6 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Ipc(a) => ipc::run(&a),
         BenchCommand::IpcPeer(a) => ipc::peer(&a),
+        BenchCommand::Tracking(a) => tracking::run(&a),
     }
 }

@@ -1,0 +1,139 @@
+//! `shoal bench tracking`: latency of the tracking core on a dataset, per stage and in total,
+//! measured (1) inside the tracker, in this process, one tracking thread, images decoded
+//! before timing, and (2) through the whole pipeline, from frame publish (camera ingest) to
+//! pose publish (tracker), in a lock-step `shoal run`.
+use std::path::PathBuf;
+
+use serde::Serialize;
+use slam_core::features::GrayImage;
+use slam_core::vo::{VoFrame, VoParams, VoState, VoTracker};
+
+use crate::launcher::recorder::{LatencyHist, Percentiles};
+
+/// Arguments of `shoal bench tracking`.
+#[derive(clap::Args, Debug)]
+pub struct TrackingArgs {
+    /// Dataset folder (any supported format).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// At most this many frames.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// ORB features per frame.
+    #[arg(long, default_value_t = 1000)]
+    pub features: usize,
+    /// Skip the pipeline run (inside-the-tracker figures only).
+    #[arg(long)]
+    pub no_pipeline: bool,
+    /// Output folder of the pipeline run.
+    #[arg(long, default_value = "out/bench_tracking")]
+    pub out: PathBuf,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct TrackingReport {
+    dataset: String,
+    width: u32,
+    height: u32,
+    frames: usize,
+    frames_tracked: usize,
+    pyramid_ms: Percentiles,
+    detect_ms: Percentiles,
+    describe_ms: Percentiles,
+    orb_extract_ms: Percentiles,
+    match_ms: Percentiles,
+    pose_opt_ms: Percentiles,
+    local_map_ms: Percentiles,
+    keyframe_ms: Percentiles,
+    total_ms: Percentiles,
+    publish_to_pose_ms: Option<Percentiles>,
+}
+
+/// Runs the benchmark.
+pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
+    let ds = datasets::open(&args.dataset)?;
+    let cam = ds.camera.model;
+    let n = args.max_frames.unwrap_or(usize::MAX).min(ds.frames.len());
+    let mut params = VoParams::default();
+    params.orb.n_features = args.features;
+    let mut vo = VoTracker::new(params, cam)?;
+    let mut img = vec![0u8; (cam.width * cam.height) as usize];
+    let mut h: [LatencyHist; 9] = Default::default();
+    let mut tracked = 0;
+    for rec in ds.frames.iter().take(n) {
+        datasets::decode_gray_into(&rec.path, &mut img, cam.width, cam.height)?;
+        let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize)?;
+        let out = vo.process(&VoFrame { image, t_ns: rec.t_ns, readout_ns: rec.readout_ns })?;
+        tracked += (out.state == VoState::Tracking) as usize;
+        let t = out.times;
+        let orb = t.pyramid + t.detect + t.describe;
+        for (hist, ms) in h.iter_mut().zip([
+            t.pyramid,
+            t.detect,
+            t.describe,
+            orb,
+            t.matching,
+            t.pose_opt,
+            t.local_map,
+            t.keyframe,
+            t.total,
+        ]) {
+            hist.record_ns((ms as f64 * 1e6) as i64);
+        }
+    }
+    let publish_to_pose_ms = if args.no_pipeline {
+        None
+    } else {
+        let mut cfg = crate::launcher::RunConfig::new(vec![args.dataset.clone()], args.out.clone());
+        cfg.max_frames = args.max_frames;
+        cfg.progress = false;
+        cfg.ipc_prefix = format!("shoal_benchtrk_{}_", std::process::id());
+        let rep = crate::launcher::run(&cfg)?;
+        Some(rep.latency_ms.publish_to_pose)
+    };
+    let p = |i: usize| h[i].percentiles();
+    let rep = TrackingReport {
+        dataset: ds.root.display().to_string(),
+        width: cam.width,
+        height: cam.height,
+        frames: n,
+        frames_tracked: tracked,
+        pyramid_ms: p(0),
+        detect_ms: p(1),
+        describe_ms: p(2),
+        orb_extract_ms: p(3),
+        match_ms: p(4),
+        pose_opt_ms: p(5),
+        local_map_ms: p(6),
+        keyframe_ms: p(7),
+        total_ms: p(8),
+        publish_to_pose_ms,
+    };
+    if args.json {
+        println!("{}", serde_json::to_string(&rep)?);
+    } else {
+        println!("{} ({}x{}), {} frames, {} tracked", rep.dataset, rep.width, rep.height, n, tracked);
+        let row = |name: &str, q: &Percentiles| {
+            println!(
+                "{name:<16} p50 {:>7.2}  p90 {:>7.2}  p99 {:>7.2}  max {:>7.2} ms",
+                q.p50, q.p90, q.p99, q.max
+            )
+        };
+        row("pyramid", &rep.pyramid_ms);
+        row("detect", &rep.detect_ms);
+        row("describe", &rep.describe_ms);
+        row("orb_extract", &rep.orb_extract_ms);
+        row("match", &rep.match_ms);
+        row("pose_opt", &rep.pose_opt_ms);
+        row("local_map", &rep.local_map_ms);
+        row("keyframe", &rep.keyframe_ms);
+        row("total", &rep.total_ms);
+        if let Some(q) = &rep.publish_to_pose_ms {
+            row("publish_to_pose", q);
+        }
+    }
+    Ok(())
+}
