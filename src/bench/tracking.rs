@@ -66,7 +66,11 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     for rec in ds.frames.iter().take(n) {
         datasets::decode_gray_into(&rec.path, &mut img, cam.width, cam.height)?;
         let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize)?;
-        let out = vo.process(&VoFrame { image, t_ns: rec.t_ns, readout_ns: rec.readout_ns })?;
+        let out = vo.process(&VoFrame {
+            image,
+            t_ns: rec.t_ns,
+            readout_ns: rec.readout_ns,
+        })?;
         tracked += (out.state == VoState::Tracking) as usize;
         let t = out.times;
         let orb = t.pyramid + t.detect + t.describe;
@@ -115,7 +119,10 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     if args.json {
         println!("{}", serde_json::to_string(&rep)?);
     } else {
-        println!("{} ({}x{}), {} frames, {} tracked", rep.dataset, rep.width, rep.height, n, tracked);
+        println!(
+            "{} ({}x{}), {} frames, {} tracked",
+            rep.dataset, rep.width, rep.height, n, tracked
+        );
         let row = |name: &str, q: &Percentiles| {
             println!(
                 "{name:<16} p50 {:>7.2}  p90 {:>7.2}  p99 {:>7.2}  max {:>7.2} ms",
