@@ -87,15 +87,8 @@ pub fn synthetic(
     s.agents.into_iter().map(|a| a.dir).collect()
 }
 
-/// FNV-1a 64 (as the tracker's frame log).
-pub fn fnv1a(bytes: &[u8]) -> u64 {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for &b in bytes {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x0000_0100_0000_01b3);
-    }
-    h
-}
+/// FNV-1a 64, the checksum of the tracker's frame log.
+pub use tracker::fnv1a;
 
 /// One frame line of a tracker frame log.
 #[derive(Debug, Clone, PartialEq)]

@@ -14,14 +14,6 @@ use crate::vo::map::{Keyframe, KfId, PointId};
 use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
 use crate::CoreError;
 
-/// Time of row `y` minus the mid-row time, s (seed eq. 2.61-2.63).
-pub fn row_dt(y: f32, readout_ns: i64, rows: u32) -> f64 {
-    if readout_ns == 0 || rows == 0 {
-        return 0.0;
-    }
-    (y as f64 - rows as f64 / 2.0) * readout_ns as f64 * 1e-9 / rows as f64
-}
-
 impl VoTracker {
     pub(super) fn track(
         &mut self,
@@ -290,7 +282,7 @@ impl VoTracker {
                 point_w: mp.p_w,
                 pixel: Vector2::new(kp.x as f64, kp.y as f64),
                 inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
-                dt: row_dt(kp.y, frame.readout_ns, rows),
+                dt: crate::rolling_shutter::row_offset_s(frame.readout_ns, kp.y as f64, rows),
             });
             self.obs_kp.push(k);
         }
