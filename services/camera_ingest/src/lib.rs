@@ -15,7 +15,6 @@
 //! real time at the frame due now, counting the frames it missed as dropped.
 #![deny(missing_docs)]
 
-use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -24,7 +23,7 @@ use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::FLAG_RESEND;
 use shm_schema::{FrameAck, FrameHeader, Intrinsics, MsgMeta, PixelFormat, FLAG_END_OF_STREAM};
-use shoal_runtime::{ReplayClock, ReplayMode, Status, StatusFile};
+use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status, StatusFile};
 
 /// Parameters of the camera ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -33,27 +32,9 @@ use shoal_runtime::{ReplayClock, ReplayMode, Status, StatusFile};
     about = "Replay a dataset's camera frames through iceoryx2"
 )]
 pub struct Params {
-    /// Client index.
-    #[arg(long, default_value_t = 0)]
-    pub client: u32,
-    /// Dataset folder (format auto-detected).
-    #[arg(long)]
-    pub dataset: PathBuf,
-    /// Replay mode: realtime | lockstep.
-    #[arg(long, default_value = "lockstep")]
-    pub mode: ReplayMode,
-    /// Speed factor in real-time mode.
-    #[arg(long, default_value_t = 1.0)]
-    pub rate: f64,
-    /// Host CLOCK_MONOTONIC ns of the stream origin (real time; default: now).
-    #[arg(long)]
-    pub t0_mono_ns: Option<i64>,
-    /// Status file (JSON), also used to resume after a restart.
-    #[arg(long)]
-    pub status: Option<PathBuf>,
-    /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
-    #[arg(long)]
-    pub ipc_prefix: Option<String>,
+    /// Dataset, client, pacing, status and IPC prefix.
+    #[command(flatten)]
+    pub replay: ReplayArgs,
     /// Lock-step: re-send a frame when its ack has not come after this many ms.
     #[arg(long, default_value_t = 1000)]
     pub resend_ms: u64,
@@ -61,9 +42,6 @@ pub struct Params {
     /// many ms.
     #[arg(long, default_value_t = 60_000)]
     pub ack_timeout_ms: u64,
-    /// Publish at most this many frames.
-    #[arg(long)]
-    pub max_frames: Option<usize>,
 }
 
 /// The service's name in reports.
@@ -73,16 +51,16 @@ pub fn service_name(client: u32) -> String {
 
 /// Runs the service; returns the process exit code (0 at the end of the data).
 pub fn main_with(params: Params) -> i32 {
-    shoal_runtime::exit_code(&service_name(params.client), run(&params))
+    shoal_runtime::exit_code(&service_name(params.replay.client), run(&params))
 }
 
 /// Replays the dataset; returns the final status. Stops early (without error) on
 /// SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
-    let name = service_name(params.client);
-    let mut file = StatusFile::new(params.status.clone());
+    let name = service_name(params.replay.client);
+    let mut file = StatusFile::new(params.replay.status.clone());
     let mut status = shoal_runtime::resume_status(&file, &name);
-    let dataset = datasets::open(&params.dataset)?;
+    let dataset = datasets::open(&params.replay.dataset)?;
     if status.starts == 1 {
         // Problems the reader met and skipped (the IMU ingest reports the IMU files').
         for issue in dataset
@@ -99,20 +77,22 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let cam = &dataset.camera;
     let (width, height) = (cam.model.width, cam.model.height);
     let n_frames = params
+        .replay
         .max_frames
         .unwrap_or(usize::MAX)
         .min(dataset.frames.len());
     status.set_value("frames_total", n_frames as f64);
     let prefix = params
+        .replay
         .ipc_prefix
         .clone()
         .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
-    let node = topics::create_node(&format!("camera_ingest_c{}", params.client), &prefix)?;
-    let frames = topics::frames_service(&node, params.client)?;
+    let node = topics::create_node(&format!("camera_ingest_c{}", params.replay.client), &prefix)?;
+    let frames = topics::frames_service(&node, params.replay.client)?;
     let frame_bytes = (width as usize * height as usize).max(1);
-    let publisher = topics::frame_publisher(&frames, frame_bytes, params.client)?;
-    let acks = topics::frame_ack_service(&node, params.client)?;
+    let publisher = topics::frame_publisher(&frames, frame_bytes, params.replay.client)?;
+    let acks = topics::frame_ack_service(&node, params.replay.client)?;
     let ack_sub = topics::subscriber(&acks)?;
     shoal_runtime::signal_ready();
 
@@ -128,9 +108,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     };
     let t_origin = shoal_runtime::replay_origin_ns(&dataset);
     let clock = ReplayClock {
-        t0_mono_ns: params.t0_mono_ns.unwrap_or_else(monotonic_ns),
+        t0_mono_ns: params.replay.t0_mono_ns.unwrap_or_else(monotonic_ns),
         t_origin_ns: t_origin,
-        rate: params.rate,
+        rate: params.replay.rate,
     };
     let period_ns = if cam.rate_hz > 0.0 {
         (1e9 / cam.rate_hz) as i64
@@ -143,7 +123,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
 
     while next < n_frames {
         let rec = &dataset.frames[next];
-        if params.mode == ReplayMode::Realtime {
+        if params.replay.mode == ReplayMode::Realtime {
             let due = clock.due_mono_ns(rec.t_ns);
             let now = monotonic_ns();
             // Late by more than a frame period and 250 ms: missed while this service was
@@ -161,7 +141,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             }
         }
         let mut header = FrameHeader {
-            meta: MsgMeta::new(params.client, session_id, next as u64, 0),
+            meta: MsgMeta::new(params.replay.client, session_id, next as u64, 0),
             width,
             height,
             stride: width,
@@ -187,7 +167,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         sample.send().context("send frame")?;
         status.add("frames_published", 1);
 
-        if params.mode == ReplayMode::Lockstep {
+        if params.replay.mode == ReplayMode::Lockstep {
             match wait_for_ack(&node, &ack_sub, next as u64, &mut acked, params, || {
                 let mut s = publisher.loan_slice(frame_bytes)?;
                 datasets::decode_gray_into(&rec.path, s.payload_mut(), width, height)
@@ -291,7 +271,7 @@ fn send_end_of_stream(
 ) -> anyhow::Result<()> {
     let send = || -> anyhow::Result<()> {
         let mut s = publisher.loan_slice(0)?;
-        let mut meta = MsgMeta::new(params.client, session_id, seq, monotonic_ns());
+        let mut meta = MsgMeta::new(params.replay.client, session_id, seq, monotonic_ns());
         meta.flags = FLAG_END_OF_STREAM;
         *s.user_header_mut() = FrameHeader {
             meta,

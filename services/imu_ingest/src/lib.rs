@@ -15,13 +15,12 @@
 //! counted as dropped.
 #![deny(missing_docs)]
 
-use std::path::PathBuf;
 use std::time::Duration;
 
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics;
 use shm_schema::{FrameAck, ImuMsg, MsgMeta, FLAG_END_OF_STREAM};
-use shoal_runtime::{ReplayClock, ReplayMode, Status, StatusFile};
+use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status, StatusFile};
 
 /// Parameters of the IMU ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -30,33 +29,12 @@ use shoal_runtime::{ReplayClock, ReplayMode, Status, StatusFile};
     about = "Replay a dataset's IMU samples through iceoryx2"
 )]
 pub struct Params {
-    /// Client index.
-    #[arg(long, default_value_t = 0)]
-    pub client: u32,
-    /// Dataset folder (format auto-detected).
-    #[arg(long)]
-    pub dataset: PathBuf,
-    /// Replay mode: realtime | lockstep.
-    #[arg(long, default_value = "lockstep")]
-    pub mode: ReplayMode,
-    /// Speed factor in real-time mode.
-    #[arg(long, default_value_t = 1.0)]
-    pub rate: f64,
-    /// Host CLOCK_MONOTONIC ns of the stream origin (real time; default: now).
-    #[arg(long)]
-    pub t0_mono_ns: Option<i64>,
-    /// Status file (JSON), also used to resume after a restart.
-    #[arg(long)]
-    pub status: Option<PathBuf>,
-    /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
-    #[arg(long)]
-    pub ipc_prefix: Option<String>,
+    /// Dataset, client, pacing, status and IPC prefix.
+    #[command(flatten)]
+    pub replay: ReplayArgs,
     /// Lock-step: publish samples up to this many ms past the last acknowledged frame.
     #[arg(long, default_value_t = 100)]
     pub lookahead_ms: u64,
-    /// Only replay samples up to the time of the frame with this index (tests).
-    #[arg(long)]
-    pub max_frames: Option<usize>,
 }
 
 /// The service's name in reports.
@@ -66,15 +44,15 @@ pub fn service_name(client: u32) -> String {
 
 /// Runs the service; returns the process exit code (0 at the end of the data).
 pub fn main_with(params: Params) -> i32 {
-    shoal_runtime::exit_code(&service_name(params.client), run(&params))
+    shoal_runtime::exit_code(&service_name(params.replay.client), run(&params))
 }
 
 /// Replays the IMU samples; returns the final status. Stops early on SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
-    let name = service_name(params.client);
-    let mut file = StatusFile::new(params.status.clone());
+    let name = service_name(params.replay.client);
+    let mut file = StatusFile::new(params.replay.status.clone());
     let mut status = shoal_runtime::resume_status(&file, &name);
-    let dataset = datasets::open(&params.dataset)?;
+    let dataset = datasets::open(&params.replay.dataset)?;
     if status.starts == 1 {
         for issue in dataset
             .issues
@@ -88,29 +66,30 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         }
     }
     let prefix = params
+        .replay
         .ipc_prefix
         .clone()
         .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
-    let node = topics::create_node(&format!("imu_ingest_c{}", params.client), &prefix)?;
-    let imu_service = topics::imu_service(&node, params.client)?;
+    let node = topics::create_node(&format!("imu_ingest_c{}", params.replay.client), &prefix)?;
+    let imu_service = topics::imu_service(&node, params.replay.client)?;
     let publisher = topics::publisher(&imu_service)?;
-    let acks = topics::frame_ack_service(&node, params.client)?;
+    let acks = topics::frame_ack_service(&node, params.replay.client)?;
     let ack_sub = topics::subscriber(&acks)?;
     shoal_runtime::signal_ready();
 
     // Samples after the last frame replayed are not needed.
-    let t_end = match params.max_frames {
+    let t_end = match params.replay.max_frames {
         Some(n) if n < dataset.frames.len() => dataset.frames[n].t_ns,
         _ => i64::MAX,
     };
     let n = dataset.imu.partition_point(|s| s.t_ns < t_end);
     let clock = ReplayClock {
-        t0_mono_ns: params.t0_mono_ns.unwrap_or_else(monotonic_ns),
+        t0_mono_ns: params.replay.t0_mono_ns.unwrap_or_else(monotonic_ns),
         t_origin_ns: shoal_runtime::replay_origin_ns(&dataset),
-        rate: params.rate,
+        rate: params.replay.rate,
     };
-    let lockstep = params.mode == ReplayMode::Lockstep && !dataset.frames.is_empty();
+    let lockstep = params.replay.mode == ReplayMode::Lockstep && !dataset.frames.is_empty();
     let first_frame_t = dataset.frames.first().map_or(i64::MIN, |f| f.t_ns);
     let lookahead = params.lookahead_ms as i64 * 1_000_000;
     let session_id = status.starts as u32;
@@ -154,7 +133,12 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             break;
         }
         let msg = ImuMsg {
-            meta: MsgMeta::new(params.client, session_id, next as u64, monotonic_ns()),
+            meta: MsgMeta::new(
+                params.replay.client,
+                session_id,
+                next as u64,
+                monotonic_ns(),
+            ),
             t_ns: s.t_ns,
             gyro: s.gyro,
             accel: s.accel,
@@ -166,7 +150,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         let _ = file.write_every(&status, Duration::from_millis(200));
     }
     if next >= n {
-        let mut meta = MsgMeta::new(params.client, session_id, n as u64, monotonic_ns());
+        let mut meta = MsgMeta::new(params.replay.client, session_id, n as u64, monotonic_ns());
         meta.flags = FLAG_END_OF_STREAM;
         publisher.send_copy(ImuMsg {
             meta,

@@ -276,3 +276,32 @@ pub fn exit_code<T>(service: &str, result: anyhow::Result<T>) -> i32 {
         }
     }
 }
+
+/// Arguments both ingest services take (flattened into their `Params`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct ReplayArgs {
+    /// Client index.
+    #[arg(long, default_value_t = 0)]
+    pub client: u32,
+    /// Dataset folder (format auto-detected).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Replay mode: realtime | lockstep.
+    #[arg(long, default_value = "lockstep")]
+    pub mode: ReplayMode,
+    /// Speed factor in real-time mode.
+    #[arg(long, default_value_t = 1.0)]
+    pub rate: f64,
+    /// Host CLOCK_MONOTONIC ns of the stream origin (real time; default: now).
+    #[arg(long)]
+    pub t0_mono_ns: Option<i64>,
+    /// Status file (JSON), also used to resume after a restart.
+    #[arg(long)]
+    pub status: Option<PathBuf>,
+    /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
+    #[arg(long)]
+    pub ipc_prefix: Option<String>,
+    /// Replay at most this many frames (the IMU: samples up to that frame's time).
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+}
