@@ -14,7 +14,7 @@
 //! 3. decomposes the chosen model into motion hypotheses (4 for the essential matrix, 4 for
 //!    the homography) and keeps the one that triangulates most inliers in front of both
 //!    cameras ([`select`] explains the acceptance rules: ≥ 90% of inliers, no close second,
-//!    median parallax ≥ 1°).
+//!    parallax ≥ 1° for the 50 points seeing most of it, as ORB-SLAM).
 //!
 //! The motion is `X2 = R X1 + t` (so `T_21`, view 1 to view 2) with `|t| = 1`; points are in
 //! view 1's frame at that scale. Thresholds are in pixels through
@@ -73,8 +73,8 @@ pub struct TwoViewParams {
     /// Points whose rays have a parallax cosine above this are not triangulated
     /// (0.99998 ≈ 0.36°); they still count as explained.
     pub max_parallax_cos: f64,
-    /// Refuse the initialisation when the median parallax of the explained points is below
-    /// this (degrees, 1.0).
+    /// Refuse the initialisation when fewer than `min_triangulated` explained points have a
+    /// parallax of at least this (degrees, 1.0).
     pub min_parallax_deg: f64,
     /// Least number of explained points (50).
     pub min_triangulated: usize,
@@ -153,8 +153,8 @@ pub struct TwoViewResult {
     pub score_h: f64,
     /// Fundamental score `S_F`.
     pub score_f: f64,
-    /// Median parallax (degrees) of the explained points.
-    pub median_parallax_deg: f64,
+    /// Parallax (degrees) of the `min_triangulated`-th most parallax-rich explained point.
+    pub parallax_deg: f64,
 }
 
 impl TwoViewResult {
@@ -417,7 +417,7 @@ pub fn initialize(
         inliers,
         score_h,
         score_f,
-        median_parallax_deg: eval.median_parallax_deg,
+        parallax_deg: eval.parallax_deg,
     })
 }
 

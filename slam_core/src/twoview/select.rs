@@ -14,8 +14,8 @@ use crate::CoreError;
 pub(crate) struct Evaluation {
     /// Inliers with positive depth and small reprojection error in both views.
     pub good: usize,
-    /// Median parallax (degrees) over the good points.
-    pub median_parallax_deg: f64,
+    /// Parallax (degrees) of the `min_triangulated`-th most parallax-rich good point.
+    pub parallax_deg: f64,
 }
 
 /// Two-view geometry of one hypothesis `X2 = R X1 + t` in normalised coordinates.
@@ -56,7 +56,7 @@ fn reproj2(p: &Vector3<f64>, x: &Vector2<f64>) -> f64 {
 
 /// Triangulates every inlier under hypothesis `(r, t)` and counts the good ones; fills
 /// `points` (frame-1 coordinates) and `triangulated` (good and with enough parallax) when
-/// given, and uses `parallax` as scratch for the median.
+/// given, and uses `parallax` as scratch for the parallax order statistic.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn evaluate(
     r: &Rotation3<f64>,
@@ -108,16 +108,20 @@ pub(crate) fn evaluate(
             tri[i] = enough_parallax;
         }
     }
-    let median_parallax_deg = if parallax.is_empty() {
+    // ORB-SLAM's measure: the parallax of the `min_triangulated`-th largest parallax (so at
+    // least that many points see the motion from more than `min_parallax_deg` apart), not
+    // the median, which far points of a forward-moving camera keep tiny for long.
+    let parallax_deg = if parallax.is_empty() {
         0.0
     } else {
-        let mid = parallax.len() / 2;
-        let (_, m, _) = parallax.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+        let k = params.min_triangulated.min(parallax.len() - 1);
+        let idx = parallax.len() - 1 - k;
+        let (_, m, _) = parallax.select_nth_unstable_by(idx, |a, b| a.total_cmp(b));
         *m
     };
     Evaluation {
         good,
-        median_parallax_deg,
+        parallax_deg,
     }
 }
 
@@ -151,8 +155,9 @@ pub(crate) fn rank(
 
 /// ORB-SLAM's acceptance rules for the best hypothesis `e` (section IV-4): it explains at
 /// least `max(min_good_ratio · inliers, min_triangulated)` points, the second best explains
-/// at most `ambiguity_ratio` times as many, and the median parallax is at least
-/// `min_parallax_deg`. The error message says which rule failed.
+/// at most `ambiguity_ratio` times as many, and the parallax is at least
+/// `min_parallax_deg` for the `min_triangulated`-th largest parallax. The error message says
+/// which rule failed.
 pub(crate) fn accept(
     e: &Evaluation,
     second_good: usize,
@@ -174,10 +179,10 @@ pub(crate) fn accept(
             e.good, second_good
         )));
     }
-    if e.median_parallax_deg < params.min_parallax_deg {
+    if e.parallax_deg < params.min_parallax_deg {
         return Err(CoreError::Degenerate(format!(
-            "two-view: median parallax {:.3} deg < {} deg",
-            e.median_parallax_deg, params.min_parallax_deg
+            "two-view: parallax {:.3} deg < {} deg",
+            e.parallax_deg, params.min_parallax_deg
         )));
     }
     Ok(())

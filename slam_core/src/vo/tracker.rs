@@ -7,18 +7,14 @@
 //! velocity over it; `VoParams::rolling_shutter = false` turns that off for comparison.
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Vector2, Vector3};
+use nalgebra::{Isometry3, Vector3};
 
 use super::map::{ClientMap, Keyframe, KfId, PointId};
 use super::search::ProjCandidate;
 use super::{KeyframeRule, KeyframeRuleParams};
 use crate::camera::PinholeRadtan;
-use crate::features::{
-    match_two_frames_windowed, FeatureGrid, GrayImage, OrbExtractor, OrbFeatures, OrbParams,
-    WindowMatchParams,
-};
+use crate::features::{FeatureGrid, GrayImage, OrbExtractor, OrbFeatures, OrbParams};
 use crate::optim::{PoseObservation, PoseOptimizer, Velocity};
-use crate::twoview::{initialize, normalize_pixels, TwoViewParams};
 use crate::CoreError;
 
 /// Parameters of the VO.
@@ -42,6 +38,8 @@ pub struct VoParams {
     pub local_keyframes: usize,
     /// Local bundle adjustment at each new keyframe.
     pub local_ba: bool,
+    /// The initialisation extracts this many times `orb.n_features` (ORB-SLAM: 2).
+    pub init_feature_factor: usize,
 }
 
 impl Default for VoParams {
@@ -56,6 +54,7 @@ impl Default for VoParams {
             min_inliers: 15,
             local_keyframes: 15,
             local_ba: true,
+            init_feature_factor: 2,
         }
     }
 }
@@ -109,6 +108,9 @@ pub struct VoOutput {
     pub new_session: bool,
     /// Keyframes evicted from the window (oldest first), to be sent to the server.
     pub evicted: Vec<Keyframe>,
+    /// Poses `(frame time, T_cw)` of earlier frames found when the map was initialised with
+    /// this frame: the reference frame and the frames between it and this one.
+    pub backfill: Vec<(i64, Isometry3<f64>)>,
     /// Stage times.
     pub times: StageTimes,
 }
@@ -144,7 +146,10 @@ pub struct VoTracker {
     state: VoState,
     session_id: u32,
     next_kf_id: KfId,
-    init_ref: Option<LastFrame>,
+    init: Option<init::InitState>,
+    init_matches: Vec<crate::features::Match>,
+    /// Extractor of the initialisation (more features, as ORB-SLAM's monocular initialiser).
+    init_extractor: OrbExtractor,
     last: Option<LastFrame>,
     /// Motion model: `T_cw(k) * T_cw(k-1)^-1` per frame period and that period, s.
     velocity: Option<(Isometry3<f64>, f64)>,
@@ -179,7 +184,16 @@ impl VoTracker {
             state: VoState::NotInitialized,
             session_id: 1,
             next_kf_id: 0,
-            init_ref: None,
+            init: None,
+            init_matches: Vec::new(),
+            init_extractor: OrbExtractor::new(
+                OrbParams {
+                    n_features: params.orb.n_features * params.init_feature_factor.max(1),
+                    ..params.orb.clone()
+                },
+                w,
+                h,
+            )?,
             last: None,
             velocity: None,
             ref_kf: None,
@@ -216,8 +230,16 @@ impl VoTracker {
         let mut times = StageTimes::default();
         let mut timings = crate::features::OrbTimings::default();
         let mut feats = std::mem::take(&mut self.feats);
-        self.extractor
-            .extract_timed(&frame.image, &mut feats, &mut timings)?;
+        let initializing = matches!(
+            self.state,
+            VoState::NotInitialized | VoState::Initializing
+        );
+        let extractor = if initializing {
+            &mut self.init_extractor
+        } else {
+            &mut self.extractor
+        };
+        extractor.extract_timed(&frame.image, &mut feats, &mut timings)?;
         times.pyramid = timings.pyramid.as_secs_f32() * 1e3;
         times.detect = (timings.detect + timings.orient).as_secs_f32() * 1e3;
         times.describe = timings.describe.as_secs_f32() * 1e3;
@@ -229,6 +251,7 @@ impl VoTracker {
             keyframe: None,
             new_session: false,
             evicted: Vec::new(),
+            backfill: Vec::new(),
             times,
         };
         match self.state {
@@ -264,135 +287,12 @@ impl VoTracker {
         let next_point = self.map.next_point_id();
         self.map = ClientMap::new(self.session_id, next_point);
         self.state = VoState::NotInitialized;
-        self.init_ref = None;
+        self.init = None;
         self.last = None;
         self.velocity = None;
         self.ref_kf = None;
         self.failures = 0;
         out.new_session = true;
-    }
-
-    fn try_initialize(&mut self, frame: &VoFrame<'_>, feats: &OrbFeatures, out: &mut VoOutput) {
-        let enough = feats.len() >= self.params.init_min_matches;
-        let Some(reference) = self.init_ref.as_ref() else {
-            if enough {
-                self.set_init_ref(frame, feats);
-            }
-            return;
-        };
-        let m0 = Instant::now();
-        let mut matches = Vec::new();
-        let wp = WindowMatchParams {
-            radius: 100.0,
-            ..WindowMatchParams::default()
-        };
-        if match_two_frames_windowed(
-            &reference.features,
-            feats,
-            &self.grid,
-            None,
-            &wp,
-            &mut matches,
-        )
-        .is_err()
-            || matches.len() < self.params.init_min_matches
-        {
-            out.times.matching = m0.elapsed().as_secs_f32() * 1e3;
-            // Too far from the reference: start again from this frame.
-            if enough {
-                self.set_init_ref(frame, feats);
-            }
-            return;
-        }
-        let px = |f: &OrbFeatures, i: usize| {
-            let k = f.keypoints[i];
-            Vector2::new(k.x as f64, k.y as f64)
-        };
-        let p1: Vec<Vector2<f64>> = matches
-            .iter()
-            .map(|m| px(&reference.features, m.query as usize))
-            .collect();
-        let p2: Vec<Vector2<f64>> = matches
-            .iter()
-            .map(|m| px(feats, m.train as usize))
-            .collect();
-        let (mut x1, mut x2) = (Vec::new(), Vec::new());
-        normalize_pixels(&self.camera, &p1, &mut x1);
-        normalize_pixels(&self.camera, &p2, &mut x2);
-        out.times.matching = m0.elapsed().as_secs_f32() * 1e3;
-        let tv = TwoViewParams::for_camera(&self.camera);
-        let Ok(res) = initialize(&x1, &x2, &tv) else {
-            return;
-        };
-        // Scale: median depth of the initial points = 1 (the map's unit).
-        let mut depths: Vec<f64> = res
-            .points
-            .iter()
-            .zip(&res.triangulated)
-            .filter(|(_, t)| **t)
-            .map(|(p, _)| p.z)
-            .collect();
-        if depths.len() < 50 {
-            return;
-        }
-        depths.sort_by(f64::total_cmp);
-        let s = 1.0 / depths[depths.len() / 2].max(1e-9);
-        let t_21 = res.pose_21();
-        let t_cw2 = Isometry3::from_parts((t_21.translation.vector * s).into(), t_21.rotation);
-        let Some(reference) = self.init_ref.take() else {
-            return;
-        };
-        let id1 = self.next_kf_id;
-        let id2 = id1 + 1;
-        self.next_kf_id += 2;
-        let n1 = reference.features.len();
-        let kf1 = Keyframe {
-            id: id1,
-            t_ns: reference.t_ns,
-            t_cw: Isometry3::identity(),
-            camera: self.camera,
-            readout_ns: 0,
-            features: reference.features,
-            points: vec![None; n1],
-        };
-        let kf2 = Keyframe {
-            id: id2,
-            t_ns: frame.t_ns,
-            t_cw: t_cw2,
-            camera: self.camera,
-            readout_ns: frame.readout_ns,
-            features: feats.clone(),
-            points: vec![None; feats.len()],
-        };
-        self.map.insert_keyframe(kf1);
-        self.map.insert_keyframe(kf2);
-        for (k, m) in matches.iter().enumerate() {
-            if res.triangulated[k] {
-                self.map
-                    .add_point(res.points[k] * s, id1, &[(id1, m.query), (id2, m.train)]);
-            }
-        }
-        self.map.update_covisibility(id1);
-        self.map.update_covisibility(id2);
-        let dt = (frame.t_ns - reference.t_ns) as f64 * 1e-9;
-        self.velocity = Some((t_cw2, dt.max(1e-6)));
-        self.ref_kf = Some(id2);
-        self.last = Some(self.last_from_kf(id2));
-        self.state = VoState::Tracking;
-        self.frames_since_kf = 0;
-        out.t_cw = Some(t_cw2);
-        out.keyframe = Some(id2);
-        out.tracked = self.map.keyframes.get(&id2).map_or(0, |k| k.n_points());
-    }
-
-    fn set_init_ref(&mut self, frame: &VoFrame<'_>, feats: &OrbFeatures) {
-        self.init_ref = Some(LastFrame {
-            t_ns: frame.t_ns,
-            t_cw: Isometry3::identity(),
-            features: feats.clone(),
-            points: Vec::new(),
-        });
-        self.state = VoState::Initializing;
     }
 
     fn last_from_kf(&self, k: KfId) -> LastFrame {
@@ -443,6 +343,7 @@ pub fn se3_log(t: &Isometry3<f64>) -> nalgebra::Vector6<f64> {
     nalgebra::Vector6::new(rho.x, rho.y, rho.z, phi.x, phi.y, phi.z)
 }
 
+mod init;
 mod track;
 
 #[cfg(test)]
