@@ -37,6 +37,7 @@ fn main() -> anyhow::Result<()> {
             image,
             t_ns: f.t_ns,
             readout_ns: f.readout_ns,
+            angular_velocity: None,
         })?;
         totals.push(out.times.total);
         kfs += usize::from(out.keyframe.is_some());

@@ -18,6 +18,10 @@ fn main() -> anyhow::Result<()> {
     let mut p = SimParams::new(scenario);
     p.frames = Some(frames);
     p.seed = 3;
+    if args.iter().any(|a| a == "--gs") {
+        p.readout_ms = Some(0.0);
+    }
+    let gyro = args.iter().any(|a| a == "--gyro");
     let world = SimWorld::new(p)?;
     let cam = world.calib().model;
     let readout = world.calib().readout_ns;
@@ -39,6 +43,13 @@ fn main() -> anyhow::Result<()> {
             image,
             t_ns: t,
             readout_ns: readout,
+            angular_velocity: gyro.then(|| {
+                // A perfect gyro: ω from the ground truth, R_wc(t+h) = R_wc(t) Exp(ω h).
+                let h = 1_000_000;
+                let a = world.pose_cam_at(t - h).rotation;
+                let b = world.pose_cam_at(t + h).rotation;
+                (a.inverse() * b).scaled_axis() / 2e-3
+            }),
         })?;
         totals.push(out.times.total);
         gt_t.push(t);

@@ -35,6 +35,7 @@ fn run_vo(scenario: Scenario, frames: usize, params: VoParams) -> VoRun {
                 image,
                 t_ns: t,
                 readout_ns: cal.readout_ns,
+                angular_velocity: None,
             })
             .unwrap();
         sessions += out.new_session as usize;

@@ -8,6 +8,9 @@ use crate::{MAGIC, SCHEMA_VERSION};
 pub const FLAG_END_OF_STREAM: u32 = 1;
 /// Flag: this message is a re-send of one published before (e.g. after a consumer restart).
 pub const FLAG_RESEND: u32 = 1 << 1;
+/// A [`TrackedPose`] of an earlier frame, found later (the frames seen while the VO was
+/// initialising get their poses once the map exists); not a new frame, no latency stamps.
+pub const FLAG_BACKFILL: u32 = 1 << 2;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
@@ -168,6 +171,9 @@ pub struct FrameHeader {
     pub time_offset_ns: i64,
     /// Camera intrinsics and distortion.
     pub intrinsics: Intrinsics,
+    /// Camera pose in the body (IMU) frame, `T_BS` (x_B = R_BS x_S + t_BS), so that the
+    /// tracker can rotate gyro rates into the camera for rolling-shutter compensation.
+    pub t_bs: Pose,
 }
 
 impl FrameHeader {
@@ -397,7 +403,7 @@ const _: () = {
     assert!(size_of::<MsgMeta>() == 40 && align_of::<MsgMeta>() == 8);
     assert!(size_of::<Pose>() == 56 && align_of::<Pose>() == 8);
     assert!(size_of::<Intrinsics>() == 72);
-    assert!(size_of::<FrameHeader>() == 40 + 24 + 32 + 72);
+    assert!(size_of::<FrameHeader>() == 40 + 24 + 32 + 72 + 56);
     assert!(size_of::<ImuMsg>() == 40 + 8 + 48);
     assert!(size_of::<FrameAck>() == 56);
     assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 16 + 16 + 32);

@@ -173,6 +173,49 @@ pub fn measure_noisy(
     (a + n_a, w + n_g)
 }
 
+/// Mean angular rate over `[t0_ns, t1_ns]` from gyro samples `(t_ns, ω)` sorted by time:
+/// the integral of the linearly interpolated rate divided by the span, i.e. the rotation
+/// vector of the integrated gyro over the interval per second (exact to first order). Used
+/// to rotate rolling-shutter rows to the frame's mid-row time. `None` when the samples do
+/// not bracket the interval (the caller waits for more or falls back to another estimate).
+pub fn mean_rate(samples: &[(i64, Vector3<f64>)], t0_ns: i64, t1_ns: i64) -> Option<Vector3<f64>> {
+    if t1_ns < t0_ns || samples.len() < 2 {
+        return None;
+    }
+    let (first, last) = (samples[0].0, samples[samples.len() - 1].0);
+    if first > t0_ns || last < t1_ns {
+        return None;
+    }
+    let rate_at = |i: usize, t: i64| {
+        let (ta, wa) = samples[i];
+        let (tb, wb) = samples[i + 1];
+        let a = if tb > ta {
+            (t - ta) as f64 / (tb - ta) as f64
+        } else {
+            0.0
+        };
+        wa + (wb - wa) * a
+    };
+    // Segment containing t0.
+    let mut i = samples.partition_point(|s| s.0 <= t0_ns).saturating_sub(1);
+    if t1_ns == t0_ns {
+        return Some(rate_at(i.min(samples.len() - 2), t0_ns));
+    }
+    let mut sum = Vector3::zeros();
+    let mut t = t0_ns;
+    while t < t1_ns && i + 1 < samples.len() {
+        let end = samples[i + 1].0.min(t1_ns);
+        if end > t {
+            // Trapezoid over [t, end] of the linear segment.
+            let w = (rate_at(i, t) + rate_at(i, end)) * 0.5;
+            sum += w * (end - t) as f64;
+            t = end;
+        }
+        i += 1;
+    }
+    Some(sum / (t1_ns - t0_ns) as f64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -236,5 +279,23 @@ mod tests {
             &[1.0, 0.0, 0.0, 0.0, 0.0, -1.0],
         );
         assert!((a.x - sa).abs() < 1e-15 && (w.z + sg).abs() < 1e-15);
+    }
+
+    #[test]
+    fn mean_rate_integrates_the_interpolated_gyro() {
+        // ω(t) = (t, 2, -t) with t in ms at 5 ms spacing; the mean over [2, 13] ms is
+        // (7.5, 2, -7.5).
+        let s: Vec<(i64, Vector3<f64>)> = (0..6)
+            .map(|k| {
+                let t = k as f64 * 5.0;
+                ((t * 1e6) as i64, Vector3::new(t, 2.0, -t))
+            })
+            .collect();
+        let m = mean_rate(&s, 2_000_000, 13_000_000).unwrap();
+        assert!((m - Vector3::new(7.5, 2.0, -7.5)).norm() < 1e-9, "{m}");
+        assert!(mean_rate(&s, -1, 10_000_000).is_none(), "not bracketed");
+        assert!(mean_rate(&s, 20_000_000, 26_000_000).is_none());
+        let p = mean_rate(&s, 7_000_000, 7_000_000).unwrap();
+        assert!((p.x - 7.0).abs() < 1e-9);
     }
 }

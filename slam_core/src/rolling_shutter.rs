@@ -16,6 +16,12 @@
 //!
 //! `t_mid` is the corrected frame time (image stamp + t_d), `t_r = 0` is a global shutter.
 
+use nalgebra::{Vector2, Vector3};
+
+use crate::camera::PinholeRadtan;
+use crate::features::KeyPoint;
+use crate::geometry::so3_exp;
+
 /// Capture time (ns) of image row coordinate `row` of a frame whose middle row is captured
 /// at `t_mid_ns` and whose full readout takes `readout_ns` (seed eq. 2.61-2.63):
 /// `t(v) = t_mid + (v - N/2) t_r / N`, rounded to the nearest ns.
@@ -102,6 +108,35 @@ where
     None
 }
 
+/// Rotates every keypoint's bearing from its row's capture time to the frame's mid-row time
+/// (rolling-shutter compensation of rotation, seed eq. 2.61-2.63), in place.
+///
+/// `omega` is the camera's angular velocity in its own frame (rad/s; the gyro rate rotated
+/// into the camera, or the motion model's angular velocity). With
+/// `R_wc(t_mid + dt) = R_wc(t_mid) Exp(ω dt)`, a bearing seen at row time `t_mid + dt` is
+/// `b_mid = Exp(ω dt) b_row` at mid-row time. The translation during the readout is left
+/// to the pose optimiser's velocity model. Keypoints stay in distorted pixel coordinates.
+pub fn derotate_keypoints(
+    camera: &PinholeRadtan,
+    readout_ns: i64,
+    omega: &Vector3<f64>,
+    keypoints: &mut [KeyPoint],
+) {
+    if readout_ns == 0 || camera.height == 0 || omega.norm_squared() == 0.0 {
+        return;
+    }
+    let rows = camera.height;
+    for k in keypoints {
+        let dt = row_offset_s(readout_ns, k.y as f64, rows);
+        let r = so3_exp(&(omega * dt));
+        let b = r * camera.unproject(&Vector2::new(k.x as f64, k.y as f64));
+        if let Some(p) = camera.project(&b) {
+            k.x = p.x as f32;
+            k.y = p.y as f32;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -144,5 +179,37 @@ mod tests {
         assert!((v - expect).abs() < 1e-4, "{v} vs {expect}");
         assert_eq!(t, row_time_ns(t_mid, tr, v, n));
         assert!(solve_row_fixed_point(t_mid, tr, n, 1e-6, 5, |_| None).is_none());
+    }
+
+    #[test]
+    fn derotation_undoes_a_rotating_rolling_shutter() {
+        // A camera turning at ω: a static point seen at row time t_mid + dt lands where the
+        // mid-row camera would see Exp(-ω dt) applied to it; derotation brings it back.
+        let cam = PinholeRadtan::pinhole(752, 480, 458.0, 457.0, 367.0, 248.0);
+        let omega = Vector3::new(0.4, -2.5, 0.8);
+        let tr = 30_000_000;
+        let p_mid = Vector3::new(0.7, -0.4, 3.0);
+        let expect = cam.project(&p_mid).unwrap();
+        // Fixed point: the row at which the point is captured.
+        let mut v = expect.y;
+        let mut px = expect;
+        for _ in 0..20 {
+            let dt = row_offset_s(tr, v, cam.height);
+            let p_row = so3_exp(&(-omega * dt)) * p_mid;
+            px = cam.project(&p_row).unwrap();
+            v = px.y;
+        }
+        assert!((px - expect).norm() > 3.0, "the shutter moves the point");
+        let mut kps = [KeyPoint {
+            x: px.x as f32,
+            y: px.y as f32,
+            angle: 0.0,
+            response: 0.0,
+            size: 31.0,
+            octave: 0,
+        }];
+        derotate_keypoints(&cam, tr, &omega, &mut kps);
+        let got = Vector2::new(kps[0].x as f64, kps[0].y as f64);
+        assert!((got - expect).norm() < 1e-2, "{got} vs {expect}");
     }
 }

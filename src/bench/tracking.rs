@@ -70,6 +70,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             image,
             t_ns: rec.t_ns,
             readout_ns: rec.readout_ns,
+            angular_velocity: None,
         })?;
         tracked += (out.state == VoState::Tracking) as usize;
         let t = out.times;

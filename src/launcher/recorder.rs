@@ -62,11 +62,13 @@ pub struct ClientRecord {
     subscriber: iceoryx2::port::subscriber::Subscriber<Ipc, TrackedPose, ()>,
     /// Poses received (one per frame the tracker handled).
     pub poses: u64,
-    /// Frames with a valid pose.
+    /// Frames with a valid pose when they were tracked.
     pub tracked: u64,
+    /// Frames given a pose later, when the VO initialised (`FLAG_BACKFILL`).
+    pub backfilled: u64,
     /// Frames with a valid pose in the server map.
     pub tracked_server: u64,
-    /// Valid poses, in arrival order: (t_ns, pose).
+    /// Valid poses, in arrival order (backfilled ones arrive late): (t_ns, pose).
     pub trajectory: Vec<(i64, shm_schema::Pose)>,
     /// Valid server-map poses: (t_ns, pose).
     pub server_trajectory: Vec<(i64, shm_schema::Pose)>,
@@ -99,6 +101,7 @@ impl Recorder {
                 poses: 0,
                 tracked: 0,
                 tracked_server: 0,
+                backfilled: 0,
                 trajectory: Vec::new(),
                 server_trajectory: Vec::new(),
                 ended: false,
@@ -126,6 +129,14 @@ impl Recorder {
                 }
                 if p.meta.is_end_of_stream() {
                     rec.ended = true;
+                    continue;
+                }
+                if p.meta.flags & shm_schema::FLAG_BACKFILL != 0 {
+                    // An earlier frame's pose found at initialisation: no latency stamps.
+                    if TrackState::from_u32(p.state) == Some(TrackState::Tracking) {
+                        rec.backfilled += 1;
+                        rec.trajectory.push((p.t_ns, p.pose));
+                    }
                     continue;
                 }
                 rec.poses += 1;

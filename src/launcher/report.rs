@@ -22,8 +22,10 @@ pub struct ClientReport {
     pub frames_published: u64,
     /// Frames the tracker took from shared memory.
     pub frames_received: u64,
-    /// Frames with a valid tracked pose.
+    /// Frames with a valid pose when they were tracked.
     pub frames_tracked: u64,
+    /// Frames seen while the VO initialised, given a pose once the map existed.
+    pub frames_backfilled: u64,
     /// Frames published but never taken by the tracker, plus frames the ingest missed while
     /// it was down (real time).
     pub frames_dropped: u64,
@@ -218,16 +220,20 @@ impl RunReport {
             let published = get(&cam, "frames_published");
             let received = get(&trk, "frames_received");
             let rec = &recorder.clients[c];
+            // Backfilled poses arrive after later frames: order by time.
+            let mut traj = rec.trajectory.clone();
+            traj.sort_by_key(|p| p.0);
+            traj.dedup_by_key(|p| p.0);
             let mut trajectory = None;
             let mut ate = None;
-            if !rec.trajectory.is_empty() {
+            if !traj.is_empty() {
                 ate = evaluate_client(
                     ds,
-                    &rec.trajectory,
+                    &traj,
                     &cfg.out.join(format!("trajectory_c{c}.png")),
                 );
                 let path = cfg.out.join(format!("trajectory_c{c}.txt"));
-                write_tum(&path, &rec.trajectory)?;
+                write_tum(&path, &traj)?;
                 trajectory = Some(path.display().to_string());
             }
             if !rec.server_trajectory.is_empty() {
@@ -243,6 +249,7 @@ impl RunReport {
                 frames_published: published,
                 frames_received: received,
                 frames_tracked: rec.tracked,
+                frames_backfilled: rec.backfilled,
                 frames_dropped: published.saturating_sub(received)
                     + get(&cam, "frames_skipped_late"),
                 frames_resent: get(&cam, "frames_resent"),

@@ -22,7 +22,9 @@ use iceoryx2::prelude::*;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::FLAG_RESEND;
-use shm_schema::{FrameAck, FrameHeader, Intrinsics, MsgMeta, PixelFormat, FLAG_END_OF_STREAM};
+use shm_schema::{
+    FrameAck, FrameHeader, Intrinsics, MsgMeta, PixelFormat, Pose, FLAG_END_OF_STREAM,
+};
 use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status, StatusFile};
 
 /// Parameters of the camera ingest.
@@ -106,6 +108,14 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             cam.model.k3,
         ],
     };
+    let t_bs = {
+        let q = cam.t_bs.rotation.quaternion();
+        let t = cam.t_bs.translation.vector;
+        Pose {
+            t: [t.x, t.y, t.z],
+            q: [q.i, q.j, q.k, q.w],
+        }
+    };
     let t_origin = shoal_runtime::replay_origin_ns(&dataset);
     let clock = ReplayClock {
         t0_mono_ns: params.replay.t0_mono_ns.unwrap_or_else(monotonic_ns),
@@ -152,6 +162,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             exposure_ns: rec.exposure_ns,
             time_offset_ns: cam.time_offset_ns,
             intrinsics,
+            t_bs,
         };
         let mut sample = publisher
             .loan_slice(frame_bytes)

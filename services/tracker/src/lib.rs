@@ -8,9 +8,12 @@
 //! kept in an [`outbox::Outbox`] until acknowledged. It drains and checks the IMU stream and
 //! keeps its counters in a status file.
 //!
-//! **Status:** the VO runs tracking and keyframe triangulation in this thread; a separate
-//! local-mapping thread with local bundle adjustment, relocalisation and the use of IMU
-//! samples for rolling-shutter compensation are not wired yet (see the tracker issue). With `--frame-log` it writes, per frame, sequence number, dataset index,
+//! Rolling shutter: when the IMU stream is live, the mean gyro rate over each frame's readout
+//! ([`imu::ImuInput::camera_rate`]) rotates every keypoint to the mid-row time; without it
+//! the VO uses its motion model. The frames seen while the VO initialises get their poses
+//! once the map exists; they are published afterwards flagged [`FLAG_BACKFILL`].
+//!
+//! With `--frame-log` it writes, per frame, sequence number, dataset index,
 //! timestamps, size and an FNV-1a checksum of the pixels it read from shared memory (and per
 //! IMU sample its time), which the end-to-end tests compare with the dataset.
 #![deny(missing_docs)]
@@ -22,7 +25,9 @@ use std::time::Duration;
 use anyhow::Context;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics;
-use shm_schema::{stage, FrameAck, MsgMeta, Pose, TrackState, TrackedPose, FLAG_END_OF_STREAM};
+use shm_schema::{
+    stage, FrameAck, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL, FLAG_END_OF_STREAM,
+};
 use shoal_runtime::{Status, StatusFile};
 use slam_core::features::GrayImage;
 use slam_core::vo::{VoFrame, VoOutput, VoParams, VoState, VoTracker};
@@ -56,6 +61,7 @@ fn run_vo(
     vo: &mut VoTracker,
     pixels: &[u8],
     h: &shm_schema::FrameHeader,
+    angular_velocity: Option<nalgebra::Vector3<f64>>,
 ) -> anyhow::Result<VoOutput> {
     let image = GrayImage::new(
         pixels,
@@ -67,6 +73,7 @@ fn run_vo(
         image,
         t_ns: h.t_mid_ns,
         readout_ns: h.readout_ns,
+        angular_velocity,
     })?)
 }
 
@@ -101,8 +108,12 @@ pub struct Params {
     /// ORB features per frame.
     #[arg(long, default_value_t = 1000)]
     pub features: usize,
+    /// Wait at most this long (ms) for the gyro samples up to a frame's last row.
+    #[arg(long, default_value_t = 40)]
+    pub imu_wait_ms: u64,
 }
 
+pub mod imu;
 pub mod outbox;
 
 /// The service's name in reports.
@@ -164,51 +175,22 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     shoal_runtime::signal_ready();
 
     let mut last_seq: Option<u64> = status.values.get("last_frame_seq").map(|v| *v as u64);
-    let mut last_imu: Option<(u64, i64)> = None;
+    let mut imu_in = imu::ImuInput::default();
     let mut ack_seq = 0u64;
     let mut ended = false;
-    let mut imu_ended = false;
     // After the frames' end of stream, wait this long at most for the IMU's.
     let mut end_deadline: Option<i64> = None;
     loop {
         if ended
-            && ((imu_ended && outbox.pending() == 0)
+            && ((imu_in.ended && outbox.pending() == 0)
                 || end_deadline.is_some_and(|d| monotonic_ns() > d))
         {
             break;
         }
         let mut idle = true;
         // IMU first, so that a frame's IMU data is in before the frame is handled.
-        while let Some(s) = imu_sub.receive()? {
+        if imu_in.drain(&imu_sub, &mut status, c, log.as_mut())? > 0 {
             idle = false;
-            let m = *s.payload();
-            if let Err(e) = m.meta.check() {
-                status.error("schema_version", format!("imu of client {c}: {e}"));
-                continue;
-            }
-            if m.meta.is_end_of_stream() {
-                imu_ended = true;
-                continue;
-            }
-            if let Some((seq, t)) = last_imu {
-                if m.meta.seq > seq + 1 {
-                    status.add("imu_samples_dropped", m.meta.seq - seq - 1);
-                }
-                if m.t_ns <= t {
-                    status.error(
-                        "non_monotonic",
-                        format!(
-                            "imu sample {} at {} ns not after {} ns",
-                            m.meta.seq, m.t_ns, t
-                        ),
-                    );
-                }
-            }
-            last_imu = Some((m.meta.seq, m.t_ns));
-            status.add("imu_samples_received", 1);
-            if let Some(l) = log.as_mut() {
-                writeln!(l, "imu {} {}", m.meta.seq, m.t_ns)?;
-            }
         }
         while let Some(fb) = feedback_sub.receive()? {
             idle = false;
@@ -310,8 +292,30 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 if vo.is_none() {
                     vo = Some(new_vo(params, &h)?);
                 }
+                // Rolling shutter: the gyro over the frame's readout, waiting a little for
+                // the samples up to its last row when the IMU stream is live.
+                let omega = if params.no_rs || h.readout_ns == 0 {
+                    None
+                } else {
+                    let need = h.t_mid_ns + h.readout_ns / 2;
+                    let deadline = monotonic_ns() + params.imu_wait_ms as i64 * 1_000_000;
+                    while imu_in.live()
+                        && imu_in.newest_ns().is_some_and(|t| t < need)
+                        && monotonic_ns() < deadline
+                    {
+                        if imu_in.drain(&imu_sub, &mut status, c, log.as_mut())? == 0
+                            && node.wait(Duration::from_micros(200)).is_err()
+                        {
+                            break;
+                        }
+                    }
+                    imu_in.camera_rate(&h)
+                };
+                if omega.is_some() {
+                    status.add("frames_gyro_rs", 1);
+                }
                 if let Some(v) = vo.as_mut() {
-                    match run_vo(v, pixels, &h) {
+                    match run_vo(v, pixels, &h, omega) {
                         Ok(o) => {
                             state = match o.state {
                                 VoState::NotInitialized => TrackState::NotInitialized,
@@ -342,6 +346,20 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                                 outbox.send(&kf_pub, kf, sess)?;
                             }
                             vo_session = session_base | v.session_id();
+                            // Poses of the frames seen while initialising.
+                            for (t_ns, t_cw) in &o.backfill {
+                                let mut meta =
+                                    MsgMeta::new(c, vo_session, h.meta.seq, monotonic_ns());
+                                meta.flags = FLAG_BACKFILL;
+                                pose_pub.send_copy(TrackedPose {
+                                    meta,
+                                    t_ns: *t_ns,
+                                    pose: outbox::wire_pose(t_cw),
+                                    state: TrackState::Tracking as u32,
+                                    ..TrackedPose::default()
+                                })?;
+                                status.add("frames_backfilled", 1);
+                            }
                         }
                         Err(e) => status.error("vo", format!("frame {}: {e}", h.meta.seq)),
                     }

@@ -124,6 +124,10 @@ pub struct VoFrame<'a> {
     pub t_ns: i64,
     /// Rolling-shutter readout time, ns.
     pub readout_ns: i64,
+    /// Angular velocity of the camera in its own frame during the readout (rad/s), e.g. the
+    /// bias-corrected gyro rotated into the camera. Without it the rolling-shutter
+    /// compensation uses the motion model's angular velocity.
+    pub angular_velocity: Option<Vector3<f64>>,
 }
 
 struct LastFrame {
@@ -156,6 +160,8 @@ pub struct VoTracker {
     ref_kf: Option<KfId>,
     frames_since_kf: u32,
     failures: u32,
+    /// The current frame's keypoints were rotated to its mid-row time.
+    derotated: bool,
     // Reusable buffers.
     feats: OrbFeatures,
     cands: Vec<ProjCandidate>,
@@ -199,6 +205,7 @@ impl VoTracker {
             ref_kf: None,
             frames_since_kf: 0,
             failures: 0,
+            derotated: false,
             feats: OrbFeatures::with_capacity(params.orb.n_features),
             cands: Vec::new(),
             found: Vec::new(),
@@ -240,6 +247,26 @@ impl VoTracker {
             &mut self.extractor
         };
         extractor.extract_timed(&frame.image, &mut feats, &mut timings)?;
+        // Rolling shutter: every bearing rotated to the mid-row time before anything uses it.
+        self.derotated = false;
+        if self.params.rolling_shutter && frame.readout_ns != 0 {
+            let omega = frame.angular_velocity.or_else(|| {
+                (!initializing)
+                    .then(|| self.predict(frame.t_ns))
+                    .flatten()
+                    .and_then(|(_, v)| v)
+                    .map(|v| v.angular)
+            });
+            if let Some(w) = omega {
+                crate::rolling_shutter::derotate_keypoints(
+                    &self.camera,
+                    frame.readout_ns,
+                    &w,
+                    &mut feats.keypoints,
+                );
+                self.derotated = true;
+            }
+        }
         times.pyramid = timings.pyramid.as_secs_f32() * 1e3;
         times.detect = (timings.detect + timings.orient).as_secs_f32() * 1e3;
         times.describe = timings.describe.as_secs_f32() * 1e3;

@@ -26,7 +26,15 @@ impl VoTracker {
             return Ok(());
         };
         let vel = if self.params.rolling_shutter && frame.readout_ns != 0 {
-            vel
+            // Rotation during the readout is already taken out of the keypoints.
+            vel.map(|v| Velocity {
+                angular: if self.derotated {
+                    nalgebra::Vector3::zeros()
+                } else {
+                    v.angular
+                },
+                ..v
+            })
         } else {
             None
         };

@@ -1,0 +1,117 @@
+//! The tracker's IMU input: takes the IMU stream from shared memory, checks it (schema,
+//! gaps, monotonic time) and keeps the recent gyro samples, so that each frame's rolling
+//! shutter can be compensated with the gyro rate over its readout (rotated into the camera
+//! with the frame's `T_BS`).
+use std::collections::VecDeque;
+use std::io::Write;
+
+use iceoryx2::port::subscriber::Subscriber;
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use shm_schema::topics::Ipc;
+use shm_schema::{FrameHeader, ImuMsg};
+use shoal_runtime::Status;
+
+/// Gyro samples older than this before the newest frame are dropped, ns.
+const KEEP_NS: i64 = 2_000_000_000;
+
+/// State of the IMU stream of one client.
+#[derive(Debug, Default)]
+pub struct ImuInput {
+    /// `(seq, t_ns)` of the last sample taken.
+    last: Option<(u64, i64)>,
+    /// The IMU ingest sent its end of stream.
+    pub ended: bool,
+    /// Recent gyro samples `(t_ns, ω_body)`, increasing time.
+    gyro: VecDeque<(i64, Vector3<f64>)>,
+    /// Scratch for the contiguous slice given to `slam_core::imu::mean_rate`.
+    scratch: Vec<(i64, Vector3<f64>)>,
+}
+
+impl ImuInput {
+    /// Takes every waiting sample; returns how many messages were taken.
+    pub fn drain(
+        &mut self,
+        sub: &Subscriber<Ipc, ImuMsg, ()>,
+        status: &mut Status,
+        client: u32,
+        mut log: Option<&mut impl Write>,
+    ) -> anyhow::Result<usize> {
+        let mut n = 0;
+        while let Some(s) = sub.receive()? {
+            n += 1;
+            let m = *s.payload();
+            if let Err(e) = m.meta.check() {
+                status.error("schema_version", format!("imu of client {client}: {e}"));
+                continue;
+            }
+            if m.meta.is_end_of_stream() {
+                self.ended = true;
+                continue;
+            }
+            if let Some((seq, t)) = self.last {
+                if m.meta.seq > seq + 1 {
+                    status.add("imu_samples_dropped", m.meta.seq - seq - 1);
+                }
+                if m.t_ns <= t {
+                    status.error(
+                        "non_monotonic",
+                        format!(
+                            "imu sample {} at {} ns not after {} ns",
+                            m.meta.seq, m.t_ns, t
+                        ),
+                    );
+                    continue;
+                }
+            }
+            self.last = Some((m.meta.seq, m.t_ns));
+            status.add("imu_samples_received", 1);
+            let w = Vector3::from(m.gyro);
+            if w.iter().all(|v| v.is_finite()) {
+                self.gyro.push_back((m.t_ns, w));
+            }
+            if let Some(l) = log.as_mut() {
+                writeln!(l, "imu {} {}", m.meta.seq, m.t_ns)?;
+            }
+        }
+        Ok(n)
+    }
+
+    /// The IMU stream is live: samples were seen and it has not ended.
+    pub fn live(&self) -> bool {
+        self.last.is_some() && !self.ended
+    }
+
+    /// Time of the newest sample, ns.
+    pub fn newest_ns(&self) -> Option<i64> {
+        self.gyro.back().map(|s| s.0)
+    }
+
+    /// Mean angular rate of the camera (camera frame, rad/s) over the readout of frame `h`,
+    /// from the gyro: `ω_c = R_BSᵀ ω_b`. When the samples end inside the readout, the part
+    /// they cover is used (at least up to the mid row); `None` without enough samples.
+    pub fn camera_rate(&mut self, h: &FrameHeader) -> Option<Vector3<f64>> {
+        let half = h.readout_ns / 2;
+        let (t0, t1) = (h.t_mid_ns - half, h.t_mid_ns + half);
+        while self
+            .gyro
+            .front()
+            .is_some_and(|s| s.0 < h.t_mid_ns - KEEP_NS)
+        {
+            self.gyro.pop_front();
+        }
+        let newest = self.newest_ns()?;
+        let end = t1.min(newest);
+        if end < h.t_mid_ns {
+            return None;
+        }
+        self.scratch.clear();
+        self.scratch.extend(self.gyro.iter().copied());
+        let w_b = slam_core::imu::mean_rate(&self.scratch, t0, end)?;
+        let [x, y, z, w] = h.t_bs.q;
+        let q = UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z));
+        if !q.coords.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        Some(q.inverse() * w_b)
+    }
+}
