@@ -27,7 +27,8 @@ fn main() -> anyhow::Result<()> {
     let mut totals = vec![];
     let mut kfs = 0;
     for (k, f) in ds.frames.iter().enumerate() {
-        if let Err(e) = datasets::image_io::decode_gray_into(&f.path, &mut img, cam.width, cam.height)
+        if let Err(e) =
+            datasets::image_io::decode_gray_into(&f.path, &mut img, cam.width, cam.height)
         {
             eprintln!("frame {k}: {e}");
             continue;

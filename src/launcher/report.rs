@@ -227,11 +227,7 @@ impl RunReport {
             let mut trajectory = None;
             let mut ate = None;
             if !traj.is_empty() {
-                ate = evaluate_client(
-                    ds,
-                    &traj,
-                    &cfg.out.join(format!("trajectory_c{c}.png")),
-                );
+                ate = evaluate_client(ds, &traj, &cfg.out.join(format!("trajectory_c{c}.png")));
                 let path = cfg.out.join(format!("trajectory_c{c}.txt"));
                 write_tum(&path, &traj)?;
                 trajectory = Some(path.display().to_string());

@@ -119,10 +119,7 @@ pub(crate) fn evaluate(
         let (_, m, _) = parallax.select_nth_unstable_by(idx, |a, b| a.total_cmp(b));
         *m
     };
-    Evaluation {
-        good,
-        parallax_deg,
-    }
+    Evaluation { good, parallax_deg }
 }
 
 /// Evaluates every hypothesis and returns the index of the one explaining most inliers,

@@ -237,10 +237,7 @@ impl VoTracker {
         let mut times = StageTimes::default();
         let mut timings = crate::features::OrbTimings::default();
         let mut feats = std::mem::take(&mut self.feats);
-        let initializing = matches!(
-            self.state,
-            VoState::NotInitialized | VoState::Initializing
-        );
+        let initializing = matches!(self.state, VoState::NotInitialized | VoState::Initializing);
         let extractor = if initializing {
             &mut self.init_extractor
         } else {

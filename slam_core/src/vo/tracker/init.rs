@@ -176,7 +176,8 @@ impl VoTracker {
         self.map.update_covisibility(id1);
         self.map.update_covisibility(id2);
         // Poses of the reference and of the frames in between.
-        out.backfill.push((init.reference.t_ns, Isometry3::identity()));
+        out.backfill
+            .push((init.reference.t_ns, Isometry3::identity()));
         let span = (frame.t_ns - init.reference.t_ns) as f64;
         for f in init.frames.iter().filter(|f| f.t_ns != frame.t_ns) {
             let a = if span > 0.0 {
