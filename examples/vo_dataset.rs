@@ -57,8 +57,8 @@ fn main() -> anyhow::Result<()> {
                 out.state,
                 out.tracked,
                 out.keyframe,
-                vo.map.keyframes.len(),
-                vo.map.points.len(),
+                vo.with_map(|m| m.keyframes.len()),
+                vo.with_map(|m| m.points.len()),
                 out.times.total
             );
         }

@@ -69,8 +69,8 @@ fn main() -> anyhow::Result<()> {
                 "frame {k}: {:?} tracked {} kfs {} points {} total {:.1} ms",
                 out.state,
                 out.tracked,
-                vo.map.keyframes.len(),
-                vo.map.points.len(),
+                vo.with_map(|m| m.keyframes.len()),
+                vo.with_map(|m| m.points.len()),
                 out.times.total
             );
         }

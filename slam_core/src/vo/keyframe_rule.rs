@@ -40,14 +40,26 @@ pub struct KeyframeRule {
 impl KeyframeRule {
     /// Should the current frame become a keyframe? `tracked`: map points matched in this
     /// frame (inliers); `ref_tracked`: points of the reference keyframe (seen by ≥ 2
-    /// keyframes, or all in a young map); `frames_since_kf`: frames since the last keyframe.
-    pub fn needs_keyframe(&self, tracked: usize, ref_tracked: usize, frames_since_kf: u32) -> bool {
+    /// keyframes, or all in a young map); `frames_since_kf`: frames since the last keyframe;
+    /// `mapping_idle`: local mapping has no keyframe waiting.
+    ///
+    /// As in ORB-SLAM, a keyframe the seed's rule asks for is only made when local mapping
+    /// is idle (or `max_frames` have passed), so that keyframes come no faster than they can
+    /// be mapped.
+    pub fn needs_keyframe(
+        &self,
+        tracked: usize,
+        ref_tracked: usize,
+        frames_since_kf: u32,
+        mapping_idle: bool,
+    ) -> bool {
         let p = &self.params;
         if tracked <= p.min_tracked || frames_since_kf < p.min_frames {
             return false;
         }
+        let overdue = p.max_frames > 0 && frames_since_kf >= p.max_frames;
         let weak = (tracked as f64) < p.ref_ratio * ref_tracked as f64 || tracked < p.few_tracked;
-        weak || (p.max_frames > 0 && frames_since_kf >= p.max_frames)
+        (weak && mapping_idle) || overdue
     }
 }
 
@@ -58,16 +70,27 @@ mod tests {
     #[test]
     fn seed_rule() {
         let r = KeyframeRule::default();
-        assert!(!r.needs_keyframe(15, 1000, 5), "needs more than 15 points");
-        assert!(r.needs_keyframe(100, 120, 1), "fewer than 200 points");
+        assert!(!r.needs_keyframe(15, 1000, 5, true), "needs more than 15 points");
+        assert!(r.needs_keyframe(100, 120, 1, true), "fewer than 200 points");
         assert!(
-            r.needs_keyframe(400, 500, 1),
+            r.needs_keyframe(400, 500, 1, true),
             "fewer than 90% of the reference"
         );
-        assert!(!r.needs_keyframe(480, 500, 1), "still 96% of the reference");
         assert!(
-            r.needs_keyframe(480, 500, 20),
+            !r.needs_keyframe(480, 500, 1, true),
+            "still 96% of the reference"
+        );
+        assert!(
+            r.needs_keyframe(480, 500, 20, true),
             "max frames between keyframes"
+        );
+        assert!(
+            !r.needs_keyframe(100, 120, 1, false),
+            "local mapping busy: wait"
+        );
+        assert!(
+            r.needs_keyframe(480, 500, 20, false),
+            "overdue even when busy"
         );
     }
 }

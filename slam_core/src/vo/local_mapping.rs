@@ -135,6 +135,9 @@ pub fn cull_recent_points(map: &mut ClientMap, current: KfId) {
 /// its covisible keyframes are free (the oldest keyframe of the map stays fixed as the
 /// gauge), the keyframes that also see those points are fixed; the local points are free.
 /// Outlier observations are removed from the map afterwards. Returns the BA report.
+///
+/// The three steps are also available apart ([`prepare_local_ba`], the solve, and
+/// [`apply_local_ba`]) so that a local-mapping thread can solve without holding the map.
 pub fn local_bundle_adjustment(
     map: &mut ClientMap,
     k: KfId,
@@ -142,19 +145,48 @@ pub fn local_bundle_adjustment(
     problem: &mut crate::optim::ba::BaProblem,
     n_neighbours: usize,
 ) -> Option<crate::optim::ba::BaReport> {
+    let job = prepare_local_ba(map, k, problem, n_neighbours)?;
+    let report = ba
+        .optimize(problem, &crate::optim::ba::BaParams::local())
+        .ok()?;
+    apply_local_ba(map, &job, problem, ba.inliers());
+    Some(report)
+}
+
+/// The map elements of a local BA problem built by [`prepare_local_ba`], in problem order.
+#[derive(Debug, Clone, Default)]
+pub struct LocalBaJob {
+    /// Keyframe of each problem keyframe.
+    pub kf_ids: Vec<KfId>,
+    /// The free (local) keyframes.
+    pub local: Vec<KfId>,
+    /// Point of each problem point.
+    pub pt_ids: Vec<u64>,
+    /// `(point, keyframe, keypoint)` of each problem observation.
+    pub obs_keys: Vec<(u64, KfId, u32)>,
+}
+
+/// Builds the local BA problem around keyframe `k` into `problem` (a snapshot: the map is
+/// not needed while it is solved). `None` when there is too little to adjust.
+pub fn prepare_local_ba(
+    map: &ClientMap,
+    k: KfId,
+    problem: &mut crate::optim::ba::BaProblem,
+    n_neighbours: usize,
+) -> Option<LocalBaJob> {
     use std::collections::HashMap;
     let first = *map.keyframes.keys().next()?;
+    map.keyframes.get(&k)?;
     let mut local: Vec<KfId> = vec![k];
     local.extend(map.covisible(k, n_neighbours, 1));
     let mut kf_index: HashMap<KfId, usize> = HashMap::new();
     let mut pt_index: HashMap<u64, usize> = HashMap::new();
-    let mut kf_ids = Vec::new();
-    let mut pt_ids = Vec::new();
+    let mut job = LocalBaJob::default();
     problem.clear();
     for id in &local {
         let kf = map.keyframes.get(id)?;
         kf_index.insert(*id, problem.add_keyframe(kf.t_cw, kf.camera, *id == first));
-        kf_ids.push(*id);
+        job.kf_ids.push(*id);
     }
     for id in &local {
         let kf = &map.keyframes[id];
@@ -164,13 +196,12 @@ pub fn local_bundle_adjustment(
             }
             if let Some(mp) = map.points.get(p) {
                 pt_index.insert(*p, problem.add_point(mp.p_w, false));
-                pt_ids.push(*p);
+                job.pt_ids.push(*p);
             }
         }
     }
     // Fixed keyframes: others that see local points.
-    let mut obs_keys = Vec::new();
-    for (pi, p) in pt_ids.iter().enumerate() {
+    for (pi, p) in job.pt_ids.iter().enumerate() {
         let Some(mp) = map.points.get(p) else {
             continue;
         };
@@ -181,7 +212,7 @@ pub fn local_bundle_adjustment(
                     let kf = map.keyframes.get(kid)?;
                     let ki = problem.add_keyframe(kf.t_cw, kf.camera, true);
                     kf_index.insert(*kid, ki);
-                    kf_ids.push(*kid);
+                    job.kf_ids.push(*kid);
                     ki
                 }
             };
@@ -193,27 +224,39 @@ pub fn local_bundle_adjustment(
                 nalgebra::Vector2::new(kp.x as f64, kp.y as f64),
                 inv_sigma2_for_octave(kp.octave as u32, 1.2),
             );
-            obs_keys.push((*p, *kid, *i));
+            job.obs_keys.push((*p, *kid, *i));
         }
     }
     if problem.observations.len() < 20 {
         return None;
     }
-    let report = ba
-        .optimize(problem, &crate::optim::ba::BaParams::local())
-        .ok()?;
-    for (ki, id) in kf_ids.iter().enumerate() {
-        if let Some(kf) = map.keyframes.get_mut(id) {
-            kf.t_cw = problem.keyframes[ki].t_cw;
+    job.local = local;
+    Some(job)
+}
+
+/// Writes a solved local BA back into the map: keyframe poses, point positions, and the
+/// removal of outlier observations (`inliers` per observation). Keyframes and points that
+/// left the map since [`prepare_local_ba`] (evicted, culled) are skipped, so the map may
+/// change while the problem is solved.
+pub fn apply_local_ba(
+    map: &mut ClientMap,
+    job: &LocalBaJob,
+    problem: &crate::optim::ba::BaProblem,
+    inliers: &[bool],
+) {
+    for (ki, id) in job.kf_ids.iter().enumerate() {
+        if let (Some(kf), Some(pk)) = (map.keyframes.get_mut(id), problem.keyframes.get(ki)) {
+            if !pk.fixed {
+                kf.t_cw = pk.t_cw;
+            }
         }
     }
-    for (pi, p) in pt_ids.iter().enumerate() {
-        if let Some(mp) = map.points.get_mut(p) {
-            mp.p_w = problem.points[pi].p_w;
+    for (pi, p) in job.pt_ids.iter().enumerate() {
+        if let (Some(mp), Some(pp)) = (map.points.get_mut(p), problem.points.get(pi)) {
+            mp.p_w = pp.p_w;
         }
     }
-    let inliers = ba.inliers();
-    for (j, (p, kid, i)) in obs_keys.iter().enumerate() {
+    for (j, (p, kid, i)) in job.obs_keys.iter().enumerate() {
         if !inliers.get(j).copied().unwrap_or(true) {
             let erase = match map.points.get_mut(p) {
                 Some(mp) => {
@@ -223,7 +266,7 @@ pub fn local_bundle_adjustment(
                 None => false,
             };
             if let Some(kf) = map.keyframes.get_mut(kid) {
-                if kf.points[*i as usize] == Some(*p) {
+                if kf.points.get(*i as usize).copied().flatten() == Some(*p) {
                     kf.points[*i as usize] = None;
                 }
             }
@@ -232,11 +275,14 @@ pub fn local_bundle_adjustment(
             }
         }
     }
-    for id in &local {
-        map.update_covisibility(*id);
+    for id in &job.local {
+        if map.keyframes.contains_key(id) {
+            map.update_covisibility(*id);
+        }
     }
-    for p in &pt_ids {
-        map.update_point(*p);
+    for p in &job.pt_ids {
+        if map.points.contains_key(p) {
+            map.update_point(*p);
+        }
     }
-    Some(report)
 }

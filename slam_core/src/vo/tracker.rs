@@ -5,6 +5,7 @@
 //! Rolling shutter: every observation carries its row's time offset from the mid-row time
 //! (seed eq. 2.61-2.63) and the pose optimiser moves the camera along the motion model's
 //! velocity over it; `VoParams::rolling_shutter = false` turns that off for comparison.
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use nalgebra::{Isometry3, Vector3};
@@ -40,6 +41,20 @@ pub struct VoParams {
     pub local_ba: bool,
     /// The initialisation extracts this many times `orb.n_features` (ORB-SLAM: 2).
     pub init_feature_factor: usize,
+    /// Run local mapping (triangulation with neighbours, culling, local BA) in its own
+    /// thread (seed §3.3); `false` runs it inline at keyframe creation (deterministic).
+    pub local_mapping_thread: bool,
+    /// Neighbour keyframes of local mapping (triangulation and local BA).
+    pub mapping_neighbours: usize,
+}
+
+impl VoParams {
+    fn local_mapping(&self) -> local_mapper::LocalMappingParams {
+        local_mapper::LocalMappingParams {
+            neighbours: self.mapping_neighbours,
+            local_ba: self.local_ba,
+        }
+    }
 }
 
 impl Default for VoParams {
@@ -55,6 +70,8 @@ impl Default for VoParams {
             local_keyframes: 15,
             local_ba: true,
             init_feature_factor: 2,
+            local_mapping_thread: true,
+            mapping_neighbours: 10,
         }
     }
 }
@@ -145,8 +162,14 @@ pub struct VoTracker {
     grid: FeatureGrid,
     optimizer: PoseOptimizer,
     rule: KeyframeRule,
-    /// The client map of the current session.
-    pub map: ClientMap,
+    /// The client map of the current session while a frame is processed (swapped in from
+    /// `shared`, whose lock is held meanwhile); an empty placeholder between frames.
+    map: ClientMap,
+    /// The client map, shared with the local-mapping thread.
+    shared: Arc<Mutex<ClientMap>>,
+    /// The local-mapping thread (`None`: local mapping runs inline at keyframe creation).
+    mapping: Option<local_mapper::LocalMappingThread>,
+    /// Buffers of inline local mapping.
     state: VoState,
     session_id: u32,
     next_kf_id: KfId,
@@ -179,6 +202,15 @@ impl VoTracker {
     /// A tracker for `camera` images.
     pub fn new(params: VoParams, camera: PinholeRadtan) -> Result<Self, CoreError> {
         let (w, h) = (camera.width as usize, camera.height as usize);
+        let shared = Arc::new(Mutex::new(ClientMap::new(1, 0)));
+        let mapping = if params.local_mapping_thread {
+            Some(local_mapper::LocalMappingThread::spawn(
+                Arc::clone(&shared),
+                params.local_mapping(),
+            )?)
+        } else {
+            None
+        };
         Ok(Self {
             extractor: OrbExtractor::new(params.orb.clone(), w, h)?,
             grid: FeatureGrid::new(w, h, 16.0)?,
@@ -187,6 +219,8 @@ impl VoTracker {
                 params: params.keyframe_rule,
             },
             map: ClientMap::new(1, 0),
+            shared: Arc::clone(&shared),
+            mapping,
             state: VoState::NotInitialized,
             session_id: 1,
             next_kf_id: 0,
@@ -278,12 +312,21 @@ impl VoTracker {
             backfill: Vec::new(),
             times,
         };
-        match self.state {
+        // The map is locked (and swapped into `self.map`) for the rest of the frame; the
+        // local-mapping thread works between frames.
+        let shared = Arc::clone(&self.shared);
+        let mut guard = lock(&shared);
+        std::mem::swap(&mut self.map, &mut *guard);
+        let res = match self.state {
             VoState::NotInitialized | VoState::Initializing => {
                 self.try_initialize(frame, &feats, &mut out);
+                Ok(())
             }
-            VoState::Tracking | VoState::Lost => self.track(frame, &feats, &mut out)?,
-        }
+            VoState::Tracking | VoState::Lost => self.track(frame, &feats, &mut out),
+        };
+        std::mem::swap(&mut self.map, &mut *guard);
+        drop(guard);
+        res?;
         self.feats = feats;
         out.state = self.state;
         out.times.total = start.elapsed().as_secs_f32() * 1e3;
@@ -292,11 +335,26 @@ impl VoTracker {
 
     /// Removes every keyframe from the client map (oldest first), e.g. to send them all to
     /// the server at the end of the stream.
+    /// Waits (up to 10 s) for the local-mapping thread to finish its keyframes first.
     pub fn drain_keyframes(&mut self) -> Vec<Keyframe> {
-        let ids: Vec<KfId> = self.map.keyframes.keys().copied().collect();
+        if let Some(m) = &self.mapping {
+            m.wait_idle(std::time::Duration::from_secs(10));
+        }
+        let mut map = lock(&self.shared);
+        let ids: Vec<KfId> = map.keyframes.keys().copied().collect();
         ids.into_iter()
-            .filter_map(|k| self.map.remove_keyframe(k, 0))
+            .filter_map(|k| map.remove_keyframe(k, 0))
             .collect()
+    }
+
+    /// Reads the client map (locks it; the local-mapping thread waits meanwhile).
+    pub fn with_map<R>(&self, f: impl FnOnce(&ClientMap) -> R) -> R {
+        f(&lock(&self.shared))
+    }
+
+    /// Waits until the local-mapping thread has mapped every keyframe (at most `timeout`).
+    pub fn wait_local_mapping(&self, timeout: std::time::Duration) -> bool {
+        self.mapping.as_ref().is_none_or(|m| m.wait_idle(timeout))
     }
 
     fn start_new_session(&mut self, out: &mut VoOutput) {
@@ -368,7 +426,10 @@ pub fn se3_log(t: &Isometry3<f64>) -> nalgebra::Vector6<f64> {
 }
 
 mod init;
+mod local_mapper;
 mod track;
+
+use local_mapper::lock;
 
 #[cfg(test)]
 mod tests {

@@ -7,9 +7,7 @@ use nalgebra::{Isometry3, Vector2};
 use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
 use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptParams, Velocity};
-use crate::vo::local_mapping::{
-    create_points_with_neighbours, cull_recent_points, local_bundle_adjustment,
-};
+use crate::vo::local_mapping::create_points_with_neighbours;
 use crate::vo::map::{Keyframe, KfId, PointId};
 use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
 use crate::CoreError;
@@ -132,9 +130,10 @@ impl VoTracker {
             self.map.tracked_points(k, min_obs)
         });
         let k0 = Instant::now();
+        let mapping_idle = self.mapping.as_ref().is_none_or(|m| m.idle());
         if self
             .rule
-            .needs_keyframe(tracked, ref_tracked, self.frames_since_kf)
+            .needs_keyframe(tracked, ref_tracked, self.frames_since_kf, mapping_idle)
         {
             let id = self.create_keyframe(frame, feats, t_cw);
             out.keyframe = Some(id);
@@ -361,10 +360,24 @@ impl VoTracker {
         for p in self.frame_points.iter().flatten() {
             self.map.update_point(*p);
         }
-        // Local mapping (run here, in order): new points with the neighbours (seed change 3:
-        // the tracking thread itself triangulates at keyframe creation), culling.
-        let created = create_points_with_neighbours(&mut self.map, id, 10);
-        // The new points are seen by this frame too.
+        // Seed change 3: the tracking thread itself triangulates with its reference keyframe,
+        // so that tracking survives fast rotation; the rest of local mapping runs in the
+        // local-mapping thread (or inline).
+        create_points_with_neighbours(&mut self.map, id, 1);
+        match &self.mapping {
+            Some(m) => m.submit(id),
+            None => {
+                let p = self.params.local_mapping();
+                super::local_mapper::map_keyframe_inline(
+                    &mut self.map,
+                    id,
+                    &p,
+                    &mut self.ba,
+                    &mut self.ba_problem,
+                );
+            }
+        }
+        // The new points are seen by this frame too; points culled are not.
         if let Some(kf) = self.map.keyframes.get(&id) {
             for (k, p) in kf.points.iter().enumerate() {
                 if self.frame_points[k].is_none() && p.is_some() {
@@ -372,19 +385,13 @@ impl VoTracker {
                 }
             }
         }
-        cull_recent_points(&mut self.map, id);
-        if self.params.local_ba {
-            local_bundle_adjustment(&mut self.map, id, &mut self.ba, &mut self.ba_problem, 10);
-            // Points culled by BA are no longer matched in this frame.
-            for p in self.frame_points.iter_mut() {
-                if p.is_some_and(|id| !self.map.points.contains_key(&id)) {
-                    *p = None;
-                }
+        for p in self.frame_points.iter_mut() {
+            if p.is_some_and(|id| !self.map.points.contains_key(&id)) {
+                *p = None;
             }
         }
         self.ref_kf = Some(id);
         self.frames_since_kf = 0;
-        let _ = created;
         id
     }
 }
