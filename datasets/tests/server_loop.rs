@@ -136,6 +136,15 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
         }
         let t_ns = kf.t_ns;
         let r = h.handle(kf.clone()).expect("handle");
+        if std::env::var_os("SHOAL_SERVER_DEBUG").is_some() {
+            let e = r
+                .t_sk
+                .map(|t| (t.translation.vector - kf.t_ck.translation.vector).norm());
+            eprintln!(
+                "kf {} {:?} inliers {} new {} lm {:?} l {:.3} |t_sk - t_ck| {:?}",
+                kf.id, r.status, r.inliers, r.new_points, r.lambda_measured, r.lambda, e
+            );
+        }
         statuses[r.status as usize] += 1;
         if let Some(t) = r.t_sk {
             handled.push((t_ns, t));

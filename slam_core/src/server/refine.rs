@@ -78,10 +78,10 @@ impl Refiner {
             ratio: 0.8,
             ..ProjSearchParams::motion_model()
         };
-        self.search(map, kf, &t_sk, &wide, frame_points);
+        self.search(kf, &t_sk, &wide, frame_points);
         let mut inliers = self.optimize(map, kf, &mut t_sk, params, frame_points)?;
         if inliers >= params.min_refine_inliers {
-            self.search(map, kf, &t_sk, &ProjSearchParams::local_map(), frame_points);
+            self.search(kf, &t_sk, &ProjSearchParams::local_map(), frame_points);
             inliers = self.optimize(map, kf, &mut t_sk, params, frame_points)?;
         }
         if inliers < params.min_refine_inliers {
@@ -160,7 +160,6 @@ impl Refiner {
     /// Projection search of the candidates not yet matched; fills free `frame_points`.
     fn search(
         &mut self,
-        map: &ServerMap,
         kf: &ServerKeyframe,
         t_sk: &Isometry3<f64>,
         p: &ProjSearchParams,
@@ -176,7 +175,6 @@ impl Refiner {
         self.seen.extend(frame_points.iter().flatten().copied());
         let seen = &self.seen;
         self.cands.retain(|c| !seen.contains(&c.tag));
-        let _ = map;
         search_by_projection(
             &self.cands,
             &t_sk.inverse(),

@@ -47,7 +47,7 @@ pub fn measured_scale_ratio(
     min_client_translation: f64,
 ) -> Option<f64> {
     let client = relative_translation(t_cj, t_ck).norm();
-    if !(client > min_client_translation.max(0.0)) {
+    if client.is_nan() || client <= min_client_translation.max(0.0) {
         return None;
     }
     let lambda = relative_translation(t_sj, t_sk).norm() / client;

@@ -122,9 +122,8 @@ impl ServerMap {
             if !free {
                 continue;
             }
-            if let Some(s) = self.server_point(c) {
+            if self.server_point(c).is_some() {
                 // Associated, but the refinement rejected or missed the match: leave it.
-                let _ = s;
                 continue;
             }
             let candidates = self.pending.get(&c).cloned().unwrap_or_default();
