@@ -485,3 +485,7 @@ impl KeyframeHandler {
         server_kf_id(self.client_id, kf_id)
     }
 }
+
+#[cfg(test)]
+#[path = "handler_tests.rs"]
+mod tests;
