@@ -160,6 +160,15 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
     let ate_client = ate(world, &client_traj);
     let ate_server_map = ate(world, &map.trajectory());
     let ate_server_handled = ate(world, &handled);
+    let (h1, h2): (Vec<_>, Vec<_>) = handled.iter().partition(|p| p.0 < lap2_start);
+    let (c1, c2): (Vec<_>, Vec<_>) = client_traj.iter().partition(|p| p.0 < lap2_start);
+    println!(
+        "per lap ATE (Sim3 per lap): handled server poses {:.4} / {:.4} m, client {:.4} / {:.4} m",
+        ate(world, &h1),
+        ate(world, &h2),
+        ate(world, &c1),
+        ate(world, &c2)
+    );
     let growth = server_final as f64 / server_lap1 as f64 - 1.0;
     let (lmin, lmax) = lambdas
         .iter()
