@@ -11,6 +11,7 @@ pub mod optim;
 pub mod pnp;
 pub mod ransac;
 pub mod rolling_shutter;
+pub mod server;
 pub mod twoview;
 pub mod vo;
 

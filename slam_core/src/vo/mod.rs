@@ -7,11 +7,13 @@
 //! `twoview`, `optim` and bundle adjustment.
 
 pub mod keyframe_rule;
+pub mod kf_culling;
 pub mod local_mapping;
 pub mod map;
 pub mod search;
 pub mod tracker;
 
 pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
+pub use kf_culling::{cull_redundant_keyframes, KfCullingParams};
 pub use map::{ClientMap, Keyframe, KfId, MapPoint, PointId};
 pub use tracker::{StageTimes, VoFrame, VoOutput, VoParams, VoState, VoTracker};

@@ -1,0 +1,491 @@
+//! The keyframe handler of one client (seed §3.4.1): builds the client's server map from its
+//! first two keyframes, then predicts (eq. 3.1, 3.4), refines and keeps or discards each
+//! next keyframe, tracks the scale ratio (eq. 3.2-3.3), and when idle runs local BA and
+//! culls redundant keyframes. A new VO session starts a new server map.
+//!
+//! Plain data, no threads: the mapper service owns one handler per client and calls
+//! [`KeyframeHandler::handle`] per keyframe and [`KeyframeHandler::idle_step`] when its
+//! queue is empty. Everything is deterministic: the same sequence of `handle` and
+//! `idle_step` calls on a fresh handler gives the same maps bit for bit (so a mapper can
+//! rebuild from a journal; calling `idle_step` once after each `handle` is a schedule that
+//! a journal of keyframes alone reproduces).
+use std::collections::{BTreeMap, HashMap};
+
+use nalgebra::Isometry3;
+
+use super::refine::Refiner;
+use super::scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
+use super::server_map::ServerMap;
+use super::types::{
+    server_kf_id, server_map_id, HandleReport, KeptKeyframe, KeyframeStatus, MapId, ServerFeedback,
+    ServerKeyframe,
+};
+use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
+use crate::optim::PoseOptParams;
+use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
+use crate::vo::local_mapping::{
+    create_points_with_neighbours, cull_recent_points, local_bundle_adjustment,
+};
+use crate::vo::{KfId, PointId};
+use crate::CoreError;
+
+/// Parameters of the handler; defaults follow the seed where it gives a value.
+#[derive(Debug, Clone)]
+pub struct HandlerParams {
+    /// Scale-ratio smoothing factor α of eq. 3.3 (seed: 0.2).
+    pub alpha: f64,
+    /// Keep a keyframe seeing fewer than this fraction of its reference keyframe's points
+    /// (seed: 0.9).
+    pub keep_ref_ratio: f64,
+    /// Keep a keyframe seeing fewer than this many points (seed: 50).
+    pub keep_min_points: usize,
+    /// Best covisible keyframes of the reference in the local map.
+    pub local_keyframes: usize,
+    /// Keyframes near the predicted pose added to the local map (revisits).
+    pub spatial_keyframes: usize,
+    /// "Near": camera centres within this many median scene depths of the reference.
+    pub spatial_radius: f64,
+    /// "Near": cosine of the angle between optical axes at least this.
+    pub spatial_min_cos: f64,
+    /// Window radius (pixels at octave 0) of the first projection search around the
+    /// prediction.
+    pub search_radius: f32,
+    /// Fewer inliers than this: the refinement is not trusted, the pose is the prediction.
+    pub min_refine_inliers: usize,
+    /// Inliers needed to measure the scale ratio (eq. 3.2).
+    pub min_inliers_for_scale: usize,
+    /// The scale ratio is measured only when the server translation between the keyframes
+    /// is at least this many median scene depths (a ratio of two tiny lengths is noise).
+    pub min_translation_for_scale: f64,
+    /// Neighbour keyframes for triangulating new points.
+    pub triangulation_neighbours: usize,
+    /// Covisible keyframes free in local BA.
+    pub ba_neighbours: usize,
+    /// Redundant keyframe culling.
+    pub culling: KfCullingParams,
+    /// Pose-only optimisation.
+    pub pose_opt: PoseOptParams,
+}
+
+impl Default for HandlerParams {
+    fn default() -> Self {
+        Self {
+            alpha: 0.2,
+            keep_ref_ratio: 0.9,
+            keep_min_points: 50,
+            local_keyframes: 10,
+            spatial_keyframes: 10,
+            spatial_radius: 0.5,
+            spatial_min_cos: 0.7,
+            search_radius: 15.0,
+            min_refine_inliers: 15,
+            min_inliers_for_scale: 30,
+            min_translation_for_scale: 0.02,
+            triangulation_neighbours: 10,
+            ba_neighbours: 10,
+            culling: KfCullingParams::default(),
+            pose_opt: PoseOptParams::default(),
+        }
+    }
+}
+
+/// Counters of a handler.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct HandlerStats {
+    /// Keyframes received (duplicates included).
+    pub received: u64,
+    /// Keyframes inserted in a server map (the two of each map creation included).
+    pub kept: u64,
+    /// Keyframes refined and discarded.
+    pub discarded: u64,
+    /// Duplicates ignored.
+    pub duplicates: u64,
+    /// Keyframes culled as redundant.
+    pub culled: u64,
+    /// Server maps created.
+    pub maps: u64,
+}
+
+/// What an idle step did.
+#[derive(Debug, Clone)]
+pub struct IdleReport {
+    /// Local BA report (`None` when the problem was too small or failed).
+    pub ba: Option<BaReport>,
+    /// Keyframes culled as redundant.
+    pub culled: Vec<KfId>,
+}
+
+/// The last keyframe handled in the current session (keyframe `j` of eq. 3.1-3.4).
+#[derive(Debug, Clone, Copy)]
+struct Last {
+    client_kf_id: KfId,
+    t_ck: Isometry3<f64>,
+    t_sk: Isometry3<f64>,
+    lambda: f64,
+    /// Its server keyframe when it was kept (its pose may since have moved in BA).
+    server_kf: Option<KfId>,
+}
+
+/// The server keyframe handler of one client.
+#[derive(Debug)]
+pub struct KeyframeHandler {
+    client_id: u32,
+    params: HandlerParams,
+    maps: BTreeMap<MapId, ServerMap>,
+    current: Option<MapId>,
+    session: Option<u32>,
+    first: Option<ServerKeyframe>,
+    last: Option<Last>,
+    acked: Option<(KfId, u32)>,
+    reference: Option<KfId>,
+    latest_kept: Option<KfId>,
+    converged: bool,
+    next_point_id: PointId,
+    stats: HandlerStats,
+    refiner: Refiner,
+    frame_points: Vec<Option<PointId>>,
+    ba: BundleAdjuster,
+    ba_problem: BaProblem,
+}
+
+impl KeyframeHandler {
+    /// A handler for client `client_id` (server point ids start at `client_id << 40`).
+    pub fn new(client_id: u32, params: HandlerParams) -> Self {
+        Self {
+            client_id,
+            params,
+            maps: BTreeMap::new(),
+            current: None,
+            session: None,
+            first: None,
+            last: None,
+            acked: None,
+            reference: None,
+            latest_kept: None,
+            converged: true,
+            next_point_id: u64::from(client_id) << 40,
+            stats: HandlerStats::default(),
+            refiner: Refiner::default(),
+            frame_points: Vec::new(),
+            ba: BundleAdjuster::new(),
+            ba_problem: BaProblem::new(),
+        }
+    }
+
+    /// Client id.
+    pub fn client_id(&self) -> u32 {
+        self.client_id
+    }
+
+    /// Parameters.
+    pub fn params(&self) -> &HandlerParams {
+        &self.params
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> HandlerStats {
+        self.stats
+    }
+
+    /// All server maps of this client (one per VO session that reached two keyframes).
+    pub fn maps(&self) -> &BTreeMap<MapId, ServerMap> {
+        &self.maps
+    }
+
+    /// The server map of the current session.
+    pub fn current_map(&self) -> Option<&ServerMap> {
+        self.current.and_then(|m| self.maps.get(&m))
+    }
+
+    /// Current scale ratio `λ` (1 before a map exists).
+    pub fn lambda(&self) -> f64 {
+        self.last.map_or(1.0, |l| l.lambda)
+    }
+
+    /// Whether local BA and culling are done since the last kept keyframe.
+    pub fn is_converged(&self) -> bool {
+        self.converged
+    }
+
+    /// Pose feedback for the client: server pose of its last keyframe and `λ` (seed
+    /// §3.4.1), with the acknowledgement of the last keyframe applied.
+    pub fn feedback(&self) -> Option<ServerFeedback> {
+        let (acked_keyframe_id, acked_session_id) = self.acked?;
+        let pose = match (self.current, self.last) {
+            (Some(m), Some(l)) => Some((m, self.last_server_pose(&l), l.lambda)),
+            _ => None,
+        };
+        Some(ServerFeedback {
+            client_id: self.client_id,
+            acked_keyframe_id,
+            acked_session_id,
+            pose,
+        })
+    }
+
+    /// Server pose of the last keyframe: from the map when it was kept (BA may have moved
+    /// it), else the pose it got when handled.
+    fn last_server_pose(&self, l: &Last) -> Isometry3<f64> {
+        l.server_kf
+            .and_then(|k| self.current_map().and_then(|m| m.pose(k)))
+            .unwrap_or(l.t_sk)
+    }
+
+    /// Handles one keyframe of this client (seed §3.4.1). Invalid input is refused with an
+    /// error and leaves the handler unchanged; a keyframe of an older session, or whose id
+    /// is not above the last one of its session, is a [`KeyframeStatus::Duplicate`].
+    pub fn handle(&mut self, kf: ServerKeyframe) -> Result<HandleReport, CoreError> {
+        kf.validate()?;
+        if kf.client_id != self.client_id {
+            return Err(CoreError::InvalidArgument(format!(
+                "keyframe of client {} given to the handler of client {}",
+                kf.client_id, self.client_id
+            )));
+        }
+        self.stats.received += 1;
+        let last_id = self
+            .last
+            .map(|l| l.client_kf_id)
+            .or(self.first.as_ref().map(|f| f.id));
+        let duplicate = match self.session {
+            Some(s) if kf.session_id < s => true,
+            Some(s) if kf.session_id == s => last_id.is_some_and(|l| kf.id <= l),
+            _ => false,
+        };
+        if duplicate {
+            self.stats.duplicates += 1;
+            return Ok(self.report(kf.id, KeyframeStatus::Duplicate));
+        }
+        self.acked = Some((kf.id, kf.session_id));
+        if self.session != Some(kf.session_id) {
+            // New session: a new server map once it has two keyframes.
+            self.session = Some(kf.session_id);
+            self.current = None;
+            self.last = None;
+            self.reference = None;
+            self.latest_kept = None;
+            self.converged = true;
+            let id = kf.id;
+            self.first = Some(kf);
+            return Ok(self.report(id, KeyframeStatus::First));
+        }
+        if self.current.is_none() {
+            let Some(first) = self.first.take() else {
+                // Unreachable by construction (a session starts with `first`); start over.
+                let id = kf.id;
+                self.first = Some(kf);
+                return Ok(self.report(id, KeyframeStatus::First));
+            };
+            return Ok(self.create_map(first, kf));
+        }
+        self.track(kf)
+    }
+
+    fn report(&self, client_kf_id: KfId, status: KeyframeStatus) -> HandleReport {
+        HandleReport {
+            client_kf_id,
+            status,
+            map_id: self.current,
+            t_sk: None,
+            t_sk_predicted: None,
+            lambda_measured: None,
+            lambda: self.lambda(),
+            inliers: 0,
+            new_points: 0,
+            kept: Vec::new(),
+        }
+    }
+
+    /// The session's first server map from its first two keyframes: the server frame is
+    /// the client map frame at that moment (so `λ = 1`); points from the client's own
+    /// correspondences and from descriptor matches (epipolar, depth, reprojection and
+    /// parallax checks).
+    fn create_map(&mut self, first: ServerKeyframe, second: ServerKeyframe) -> HandleReport {
+        let id = server_map_id(self.client_id, self.stats.maps as u32);
+        self.stats.maps += 1;
+        let session = second.session_id;
+        let mut map = ServerMap::new(id, self.client_id, session, self.next_point_id);
+        let none1 = vec![None; first.features.len()];
+        let none2 = vec![None; second.features.len()];
+        let k1 = map.insert(&first, &first.t_ck, &none1);
+        let k2 = map.insert(&second, &second.t_ck, &none2);
+        let mut created = map.triangulate_client_tracks(k1, &first.client_points);
+        created += map.triangulate_client_tracks(k2, &second.client_points);
+        created += create_points_with_neighbours(&mut map.map, k2, 1);
+        map.map.update_covisibility(k1);
+        map.map.update_covisibility(k2);
+        self.next_point_id = map.map.next_point_id();
+        let kept: Vec<KeptKeyframe> = [(k1, first.id), (k2, second.id)]
+            .iter()
+            .filter_map(|(k, c)| map.kept_summary(*k, *c))
+            .collect();
+        self.maps.insert(id, map);
+        self.current = Some(id);
+        self.last = Some(Last {
+            client_kf_id: second.id,
+            t_ck: second.t_ck,
+            t_sk: second.t_ck,
+            lambda: 1.0,
+            server_kf: Some(k2),
+        });
+        self.reference = Some(k2);
+        self.latest_kept = Some(k2);
+        self.converged = false;
+        self.stats.kept += 2;
+        HandleReport {
+            client_kf_id: second.id,
+            status: KeyframeStatus::MapCreated,
+            map_id: Some(id),
+            t_sk: Some(second.t_ck),
+            t_sk_predicted: None,
+            lambda_measured: None,
+            lambda: 1.0,
+            inliers: 0,
+            new_points: created,
+            kept,
+        }
+    }
+
+    /// Next keyframe `k` of a session with a map: predict, refine, measure and smooth the
+    /// scale ratio, keep or discard.
+    fn track(&mut self, kf: ServerKeyframe) -> Result<HandleReport, CoreError> {
+        let (Some(map_id), Some(last)) = (self.current, self.last) else {
+            return Err(CoreError::InvalidArgument(
+                "no server map to track in".into(),
+            ));
+        };
+        let t_sj = self.last_server_pose(&last);
+        let Some(map) = self.maps.get_mut(&map_id) else {
+            return Err(CoreError::InvalidArgument(format!(
+                "server map {map_id} missing"
+            )));
+        };
+        // Eq. 3.1, 3.4.
+        let pred = predict_server_pose(&last.t_ck, &t_sj, last.lambda, &kf.t_ck);
+        let refined = self.refiner.refine(
+            map,
+            &kf,
+            &pred,
+            self.reference,
+            &self.params,
+            &mut self.frame_points,
+        )?;
+        let t_sk = refined.t_sk;
+        // Eq. 3.2-3.3.
+        let depth = self
+            .reference
+            .and_then(|r| map.map.median_depth(r))
+            .unwrap_or(1.0);
+        let measured = if refined.inliers >= self.params.min_inliers_for_scale {
+            let min_client = self.params.min_translation_for_scale * depth / last.lambda.max(1e-9);
+            measured_scale_ratio(&t_sj, &t_sk, &last.t_ck, &kf.t_ck, min_client)
+        } else {
+            None
+        };
+        let lambda = smooth_scale_ratio(last.lambda, measured, self.params.alpha);
+        // The client's point ids now name these server points.
+        for (i, s) in self.frame_points.iter().enumerate() {
+            if let (Some(s), Some(Some(c))) = (s, kf.client_points.get(i)) {
+                map.associate(*c, *s);
+            }
+        }
+        // Reference keyframe: the one sharing most of the matched points.
+        let mut counts: HashMap<KfId, u32> = HashMap::new();
+        for p in self.frame_points.iter().flatten() {
+            if let Some(mp) = map.map.points.get(p) {
+                for (k, _) in &mp.observations {
+                    *counts.entry(*k).or_insert(0) += 1;
+                }
+            }
+        }
+        let reference = counts
+            .into_iter()
+            .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
+            .map(|(k, _)| k);
+        let ref_points = reference.map_or(0, |r| {
+            let min_obs = if map.map.keyframes.len() <= 2 { 2 } else { 3 };
+            map.map.tracked_points(r, min_obs)
+        });
+        let keep = refined.inliers < self.params.keep_min_points
+            || (refined.inliers as f64) < self.params.keep_ref_ratio * ref_points as f64;
+        let mut report = HandleReport {
+            client_kf_id: kf.id,
+            status: KeyframeStatus::Discarded,
+            map_id: Some(map_id),
+            t_sk: Some(t_sk),
+            t_sk_predicted: Some(pred),
+            lambda_measured: measured,
+            lambda,
+            inliers: refined.inliers,
+            new_points: 0,
+            kept: Vec::new(),
+        };
+        let mut server_kf = None;
+        if keep {
+            let id = map.insert(&kf, &t_sk, &self.frame_points);
+            let mut created = map.triangulate_client_tracks(id, &kf.client_points);
+            created += create_points_with_neighbours(
+                &mut map.map,
+                id,
+                self.params.triangulation_neighbours,
+            );
+            cull_recent_points(&mut map.map, id);
+            self.next_point_id = map.map.next_point_id();
+            report.status = KeyframeStatus::Kept;
+            report.new_points = created;
+            report.kept.extend(map.kept_summary(id, kf.id));
+            self.reference = Some(id);
+            self.latest_kept = Some(id);
+            self.converged = false;
+            self.stats.kept += 1;
+            server_kf = Some(id);
+        } else {
+            self.stats.discarded += 1;
+            if reference.is_some() {
+                self.reference = reference;
+            }
+        }
+        self.last = Some(Last {
+            client_kf_id: kf.id,
+            t_ck: kf.t_ck,
+            t_sk,
+            lambda,
+            server_kf,
+        });
+        Ok(report)
+    }
+
+    /// One idle step (seed §3.4.1, "when idle and not locally converged"): local BA around
+    /// the latest kept keyframe (the tracker's sparse BA), then culling of redundant
+    /// keyframes around it. Returns `None` when already converged.
+    pub fn idle_step(&mut self) -> Option<IdleReport> {
+        if self.converged {
+            return None;
+        }
+        self.converged = true;
+        let k = self.latest_kept?;
+        let map = self.maps.get_mut(&self.current?)?;
+        let ba = local_bundle_adjustment(
+            &mut map.map,
+            k,
+            &mut self.ba,
+            &mut self.ba_problem,
+            self.params.ba_neighbours,
+        );
+        let mut protected = vec![k];
+        protected.extend(self.reference);
+        protected.extend(self.last.and_then(|l| l.server_kf));
+        let culled = cull_redundant_keyframes(&mut map.map, k, &protected, &self.params.culling);
+        self.stats.culled += culled.len() as u64;
+        Some(IdleReport { ba, culled })
+    }
+
+    /// Server id of client keyframe `kf_id` of this client.
+    pub fn server_kf_id(&self, kf_id: KfId) -> KfId {
+        server_kf_id(self.client_id, kf_id)
+    }
+}
+
+#[cfg(test)]
+#[path = "handler_tests.rs"]
+mod tests;

@@ -1,0 +1,156 @@
+//! Handler tests on a constructed scene (no rendering): exact projections of a textured
+//! plane, the client's point ids, and client poses whose scale drifts.
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use super::*;
+use crate::camera::PinholeRadtan;
+use crate::features::{KeyPoint, OrbFeatures};
+
+const CLIENT: u32 = 3;
+
+fn camera() -> PinholeRadtan {
+    PinholeRadtan::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0)
+}
+
+/// World points on the plane z = 5 (a 40 x 30 grid), each with its own descriptor.
+fn scene() -> Vec<(Vector3<f64>, [u8; 32])> {
+    let mut out = Vec::new();
+    let mut h = 0x9e37_79b9_7f4a_7c15u64;
+    for i in 0..40 {
+        for j in 0..30 {
+            let mut d = [0u8; 32];
+            for b in d.iter_mut() {
+                h ^= h << 13;
+                h ^= h >> 7;
+                h ^= h << 17;
+                *b = h as u8;
+            }
+            let p = Vector3::new(-6.0 + 0.3 * i as f64, -3.0 + 0.2 * j as f64, 5.0);
+            out.push((p, d));
+        }
+    }
+    out
+}
+
+/// Keyframe `id` seen from the true pose `t_wk` (camera → world); its client pose is
+/// `t_ck`; every visible point carries its index as client point id.
+fn keyframe(id: u64, session: u32, t_wk: &Isometry3<f64>, t_ck: &Isometry3<f64>) -> ServerKeyframe {
+    let cam = camera();
+    let mut features = OrbFeatures::default();
+    let mut client_points = Vec::new();
+    for (i, (p, d)) in scene().iter().enumerate() {
+        let p_k = t_wk.inverse() * Point3::from(*p);
+        let Some(uv) = cam.project(&p_k.coords) else {
+            continue;
+        };
+        if !cam.contains(&uv) {
+            continue;
+        }
+        features.keypoints.push(KeyPoint {
+            x: uv.x as f32,
+            y: uv.y as f32,
+            angle: 0.0,
+            response: 1.0,
+            size: 31.0,
+            octave: 0,
+        });
+        features.descriptors.push(*d);
+        client_points.push(Some(i as u64));
+    }
+    ServerKeyframe {
+        client_id: CLIENT,
+        session_id: session,
+        id,
+        t_ns: id as i64 * 50_000_000,
+        t_ck: *t_ck,
+        camera: cam,
+        readout_ns: 0,
+        features,
+        client_points,
+    }
+}
+
+fn true_pose(k: usize) -> Isometry3<f64> {
+    Isometry3::translation(0.25 * k as f64, 0.02 * k as f64, 0.0)
+}
+
+/// From keyframe 3 on, the client's translations shrink to 80% (scale drift): the handler
+/// measures λ~ = 1 / 0.8 (eq. 3.2), smooths λ by eq. 3.3 with α = 0.2, and its refined
+/// poses stay on the true trajectory (the server map keeps the scale of its creation).
+#[test]
+fn scale_ratio_is_measured_and_smoothed_and_poses_follow_the_truth() {
+    let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let drift = 0.8;
+    let mut lambda = 1.0;
+    for k in 0..10 {
+        let t_wk = true_pose(k);
+        let t_ck = if k < 3 {
+            t_wk
+        } else {
+            let base = true_pose(2).translation.vector;
+            Isometry3::from_parts(
+                (base + drift * (t_wk.translation.vector - base)).into(),
+                t_wk.rotation,
+            )
+        };
+        let r = h.handle(keyframe(k as u64, 1, &t_wk, &t_ck)).unwrap();
+        match k {
+            0 => assert_eq!(r.status, KeyframeStatus::First),
+            1 => {
+                assert_eq!(r.status, KeyframeStatus::MapCreated);
+                assert!(r.new_points > 200, "{} points", r.new_points);
+                assert_eq!(r.kept.len(), 2);
+            }
+            2 => {
+                // No drift yet: the measured ratio is 1.
+                let m = r.lambda_measured.unwrap();
+                assert!((m - 1.0).abs() < 1e-3, "{m}");
+                lambda += 0.2 * (m - lambda);
+                assert!((r.lambda - lambda).abs() < 1e-12);
+            }
+            _ => {
+                let m = r.lambda_measured.unwrap();
+                // Every client step from keyframe 2 on is 80% of the true one.
+                let expected = 1.0 / drift;
+                assert!((m - expected).abs() < 5e-3, "keyframe {k}: λ~ {m}");
+                lambda += 0.2 * (m - lambda);
+                assert!((r.lambda - lambda).abs() < 1e-12, "eq. 3.3");
+                let t = r.t_sk.unwrap();
+                assert!(
+                    (t.translation.vector - t_wk.translation.vector).norm() < 2e-3,
+                    "keyframe {k}: refined pose off the truth"
+                );
+                assert!(r.inliers > 100);
+            }
+        }
+        h.idle_step();
+    }
+    assert!(lambda > 1.0 && lambda < 1.0 / drift);
+    let fb = h.feedback().unwrap();
+    assert_eq!(fb.acked_keyframe_id, 9);
+    assert!((fb.pose.unwrap().2 - lambda).abs() < 1e-12);
+}
+
+#[test]
+fn invalid_foreign_and_duplicate_keyframes() {
+    let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let kf0 = keyframe(0, 1, &true_pose(0), &true_pose(0));
+    let mut bad = kf0.clone();
+    bad.client_points.pop();
+    assert!(h.handle(bad).is_err());
+    let mut foreign = kf0.clone();
+    foreign.client_id = CLIENT + 1;
+    assert!(h.handle(foreign).is_err());
+    let mut nan = kf0.clone();
+    nan.t_ck.translation.vector.x = f64::NAN;
+    assert!(h.handle(nan).is_err());
+    assert_eq!(h.stats().received, 0);
+    assert!(h.feedback().is_none());
+    assert_eq!(h.handle(kf0.clone()).unwrap().status, KeyframeStatus::First);
+    assert_eq!(h.handle(kf0).unwrap().status, KeyframeStatus::Duplicate);
+    let kf1 = keyframe(1, 1, &true_pose(1), &true_pose(1));
+    assert_eq!(h.handle(kf1).unwrap().status, KeyframeStatus::MapCreated);
+    let fb = h.feedback().unwrap();
+    assert_eq!((fb.acked_keyframe_id, fb.acked_session_id), (1, 1));
+    assert_eq!(fb.pose.unwrap().0, server_map_id(CLIENT, 0));
+}

@@ -1,0 +1,246 @@
+//! Refinement of a predicted server keyframe pose against the local server map (seed
+//! §3.4.1, after eq. 3.4): the client's own point ids give direct matches, the points of
+//! the local keyframes (the reference keyframe, its best covisible keyframes, and keyframes
+//! near the predicted pose, so that a revisited area is found again) are matched by
+//! projection, then the pose-only optimiser (Huber, inlier rounds) refines the pose.
+use std::collections::HashSet;
+
+use nalgebra::{Isometry3, Vector2, Vector3};
+
+use super::handler::HandlerParams;
+use super::server_map::ServerMap;
+use super::types::ServerKeyframe;
+use crate::features::FeatureGrid;
+use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptimizer};
+use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
+use crate::vo::{KfId, PointId};
+use crate::CoreError;
+
+/// Reusable buffers of the refinement (grown once, then reused).
+#[derive(Debug, Default)]
+pub(crate) struct Refiner {
+    grid: Option<((u32, u32), FeatureGrid)>,
+    optimizer: PoseOptimizer,
+    local: Vec<KfId>,
+    near: Vec<(f64, KfId)>,
+    cands: Vec<ProjCandidate>,
+    seen: HashSet<PointId>,
+    found: Vec<Option<(usize, u32)>>,
+    taken: Vec<bool>,
+    obs: Vec<PoseObservation>,
+    obs_kp: Vec<usize>,
+    inliers: Vec<bool>,
+}
+
+/// Outcome of [`Refiner::refine`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Refined {
+    /// Refined `T_sk` (the prediction when too few inliers).
+    pub t_sk: Isometry3<f64>,
+    /// Inlier points (also left in `frame_points`).
+    pub inliers: usize,
+}
+
+impl Refiner {
+    /// Refines `pred` (`T_sk`) of `kf`; `frame_points` receives the inlier server point of
+    /// each keypoint.
+    pub fn refine(
+        &mut self,
+        map: &ServerMap,
+        kf: &ServerKeyframe,
+        pred: &Isometry3<f64>,
+        reference: Option<KfId>,
+        params: &HandlerParams,
+        frame_points: &mut Vec<Option<PointId>>,
+    ) -> Result<Refined, CoreError> {
+        let n = kf.features.len();
+        frame_points.clear();
+        frame_points.resize(n, None);
+        // Direct matches from the client's point ids.
+        for (i, c) in kf.client_points.iter().enumerate() {
+            if let Some(s) = c.and_then(|c| map.server_point(c)) {
+                frame_points[i] = Some(s);
+            }
+        }
+        let size = (kf.camera.width, kf.camera.height);
+        if self.grid.as_ref().is_none_or(|(s, _)| *s != size) {
+            let g = FeatureGrid::new(size.0 as usize, size.1 as usize, 16.0)?;
+            self.grid = Some((size, g));
+        }
+        let Some((_, grid)) = self.grid.as_mut() else {
+            return Err(CoreError::InvalidArgument("no feature grid".into()));
+        };
+        grid.build(&kf.features.keypoints);
+        self.gather_local_map(map, pred, reference, params, frame_points);
+        let mut t_sk = *pred;
+        let wide = ProjSearchParams {
+            radius: params.search_radius,
+            ratio: 0.8,
+            ..ProjSearchParams::motion_model()
+        };
+        self.search(kf, &t_sk, &wide, frame_points);
+        let mut inliers = self.optimize(map, kf, &mut t_sk, params, frame_points)?;
+        if inliers >= params.min_refine_inliers {
+            self.search(kf, &t_sk, &ProjSearchParams::local_map(), frame_points);
+            inliers = self.optimize(map, kf, &mut t_sk, params, frame_points)?;
+        }
+        if inliers < params.min_refine_inliers {
+            frame_points.iter_mut().for_each(|p| *p = None);
+            return Ok(Refined {
+                t_sk: *pred,
+                inliers: 0,
+            });
+        }
+        Ok(Refined { t_sk, inliers })
+    }
+
+    /// Candidates: points of the reference keyframe, its best covisible keyframes and the
+    /// keyframes near the predicted pose, without those already matched.
+    fn gather_local_map(
+        &mut self,
+        map: &ServerMap,
+        pred: &Isometry3<f64>,
+        reference: Option<KfId>,
+        params: &HandlerParams,
+        frame_points: &[Option<PointId>],
+    ) {
+        let m = &map.map;
+        self.local.clear();
+        if let Some(r) = reference.filter(|r| m.keyframes.contains_key(r)) {
+            self.local.push(r);
+            self.local.extend(m.covisible(r, params.local_keyframes, 1));
+        }
+        // Keyframes near the prediction, looking the same way.
+        let depth = reference
+            .and_then(|r| m.median_depth(r))
+            .unwrap_or(1.0)
+            .max(1e-6);
+        let radius = params.spatial_radius * depth;
+        let center = pred.translation.vector;
+        let axis = pred.rotation * Vector3::z();
+        self.near.clear();
+        for (id, k) in &m.keyframes {
+            let t_wc = k.t_cw.inverse();
+            let d = (t_wc.translation.vector - center).norm();
+            if d <= radius && (t_wc.rotation * Vector3::z()).dot(&axis) >= params.spatial_min_cos {
+                self.near.push((d, *id));
+            }
+        }
+        self.near
+            .sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        for (_, id) in self.near.iter().take(params.spatial_keyframes) {
+            if !self.local.contains(id) {
+                self.local.push(*id);
+            }
+        }
+        self.seen.clear();
+        self.seen.extend(frame_points.iter().flatten().copied());
+        self.cands.clear();
+        for k in &self.local {
+            let Some(kf) = m.keyframes.get(k) else {
+                continue;
+            };
+            for (i, p) in kf.points.iter().enumerate() {
+                let Some(p) = p else { continue };
+                if !self.seen.insert(*p) {
+                    continue;
+                }
+                if let Some(mp) = m.points.get(p) {
+                    self.cands.push(ProjCandidate {
+                        p_w: mp.p_w,
+                        descriptor: mp.descriptor,
+                        octave: kf.features.keypoints.get(i).map_or(0, |kp| kp.octave),
+                        tag: *p,
+                    });
+                }
+            }
+        }
+    }
+
+    /// Projection search of the candidates not yet matched; fills free `frame_points`.
+    fn search(
+        &mut self,
+        kf: &ServerKeyframe,
+        t_sk: &Isometry3<f64>,
+        p: &ProjSearchParams,
+        frame_points: &mut [Option<PointId>],
+    ) {
+        let Some((_, grid)) = self.grid.as_ref() else {
+            return;
+        };
+        self.taken.clear();
+        self.taken.extend(frame_points.iter().map(|x| x.is_some()));
+        // Points already matched are not looked for twice.
+        self.seen.clear();
+        self.seen.extend(frame_points.iter().flatten().copied());
+        let seen = &self.seen;
+        self.cands.retain(|c| !seen.contains(&c.tag));
+        search_by_projection(
+            &self.cands,
+            &t_sk.inverse(),
+            &kf.camera,
+            &kf.features,
+            grid,
+            p,
+            &self.taken,
+            &mut self.found,
+        );
+        for (k, f) in self.found.iter().enumerate() {
+            if let Some((ci, _)) = f {
+                frame_points[k] = Some(self.cands[*ci].tag);
+            }
+        }
+    }
+
+    /// Pose-only optimisation over the matches; outliers are unmatched. Returns the inliers
+    /// (0 and `t_sk` unchanged with fewer than 6 matches).
+    fn optimize(
+        &mut self,
+        map: &ServerMap,
+        kf: &ServerKeyframe,
+        t_sk: &mut Isometry3<f64>,
+        params: &HandlerParams,
+        frame_points: &mut [Option<PointId>],
+    ) -> Result<usize, CoreError> {
+        self.obs.clear();
+        self.obs_kp.clear();
+        for (k, p) in frame_points.iter().enumerate() {
+            let Some(mp) = p.and_then(|p| map.map.points.get(&p)) else {
+                continue;
+            };
+            let Some(kp) = kf.features.keypoints.get(k) else {
+                continue;
+            };
+            self.obs.push(PoseObservation {
+                point_w: mp.p_w,
+                pixel: Vector2::new(kp.x as f64, kp.y as f64),
+                inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
+                dt: 0.0,
+            });
+            self.obs_kp.push(k);
+        }
+        if self.obs.len() < 6 {
+            return Ok(0);
+        }
+        self.inliers.clear();
+        self.inliers.resize(self.obs.len(), true);
+        // A failed optimisation (degenerate geometry) leaves the prediction.
+        let Ok(res) = self.optimizer.optimize(
+            &kf.camera,
+            &t_sk.inverse(),
+            &self.obs,
+            None,
+            &params.pose_opt,
+            &mut self.inliers,
+        ) else {
+            return Ok(0);
+        };
+        for (j, &k) in self.obs_kp.iter().enumerate() {
+            if !self.inliers[j] {
+                frame_points[k] = None;
+            }
+        }
+        *t_sk = res.t_cw.inverse();
+        Ok(res.n_inliers)
+    }
+}

@@ -1,0 +1,229 @@
+//! A server map (seed §3.4.1): the VO map structure ([`ClientMap`]: keyframes, points,
+//! observations, covisibility) in the server frame `s`, plus the association of the client's
+//! map-point ids with server points, which gives correspondences between keyframes without
+//! descriptor matching.
+use std::collections::BTreeMap;
+
+use nalgebra::{Isometry3, Vector2};
+
+use super::types::{server_kf_id, KeptKeyframe, KeptPoint, MapId, ServerKeyframe};
+use crate::optim::inv_sigma2_for_octave;
+use crate::twoview::triangulate::{
+    check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
+};
+use crate::vo::{ClientMap, Keyframe, KfId, PointId};
+
+/// Observations of one client point waiting for a second kept keyframe with parallax.
+const MAX_PENDING_PER_POINT: usize = 4;
+
+/// One server map: keyframes posed in the server frame (`Keyframe::t_cw` = `T_sk⁻¹`).
+#[derive(Debug, Clone)]
+pub struct ServerMap {
+    /// Map id.
+    pub id: MapId,
+    /// Client whose keyframes built it.
+    pub client_id: u32,
+    /// VO session it was started for.
+    pub session_id: u32,
+    /// Keyframes, points, observations and covisibility.
+    pub map: ClientMap,
+    /// Client map-point id → server point id.
+    client_to_server: BTreeMap<PointId, PointId>,
+    /// Client map-point id → kept-keyframe observations not yet triangulated.
+    pending: BTreeMap<PointId, Vec<(KfId, u32)>>,
+}
+
+impl ServerMap {
+    /// An empty map; point ids start at `first_point_id`.
+    pub fn new(id: MapId, client_id: u32, session_id: u32, first_point_id: PointId) -> Self {
+        Self {
+            id,
+            client_id,
+            session_id,
+            map: ClientMap::new(session_id, first_point_id),
+            client_to_server: BTreeMap::new(),
+            pending: BTreeMap::new(),
+        }
+    }
+
+    /// The server point associated with client point `c`, if it still exists.
+    pub fn server_point(&self, c: PointId) -> Option<PointId> {
+        self.client_to_server
+            .get(&c)
+            .copied()
+            .filter(|s| self.map.points.contains_key(s))
+    }
+
+    /// Associates client point `c` with server point `s` unless `c` already has a live one.
+    pub fn associate(&mut self, c: PointId, s: PointId) {
+        if self.server_point(c).is_none() {
+            self.client_to_server.insert(c, s);
+            self.pending.remove(&c);
+        }
+    }
+
+    /// Server pose `T_sk` (camera → server map) of server keyframe `k`.
+    pub fn pose(&self, k: KfId) -> Option<Isometry3<f64>> {
+        self.map.keyframes.get(&k).map(|kf| kf.t_cw.inverse())
+    }
+
+    /// Server keyframe poses `(t_ns, T_sk)`, oldest first.
+    pub fn trajectory(&self) -> Vec<(i64, Isometry3<f64>)> {
+        self.map
+            .keyframes
+            .values()
+            .map(|kf| (kf.t_ns, kf.t_cw.inverse()))
+            .collect()
+    }
+
+    /// Inserts `kf` at server pose `t_sk` with the given server points per keypoint;
+    /// returns its server id.
+    pub(crate) fn insert(
+        &mut self,
+        kf: &ServerKeyframe,
+        t_sk: &Isometry3<f64>,
+        points: &[Option<PointId>],
+    ) -> KfId {
+        let id = server_kf_id(kf.client_id, kf.id);
+        self.map.insert_keyframe(Keyframe {
+            id,
+            t_ns: kf.t_ns,
+            t_cw: t_sk.inverse(),
+            camera: kf.camera,
+            readout_ns: kf.readout_ns,
+            features: kf.features.clone(),
+            points: points.to_vec(),
+        });
+        for p in points.iter().flatten() {
+            self.map.update_point(*p);
+        }
+        id
+    }
+
+    /// Creates points from the client's own correspondences: a keypoint of server keyframe
+    /// `k` without a server point whose client point was seen by an earlier kept keyframe is
+    /// triangulated with that observation (checked: positive depth, reprojection χ² 5.991,
+    /// parallax); otherwise it waits for a later keyframe. Returns the points created.
+    pub(crate) fn triangulate_client_tracks(
+        &mut self,
+        k: KfId,
+        client_points: &[Option<PointId>],
+    ) -> usize {
+        let check = TriangulationCheck::default();
+        let mut created = 0;
+        for (i, c) in client_points.iter().enumerate() {
+            let Some(c) = *c else { continue };
+            let free = self
+                .map
+                .keyframes
+                .get(&k)
+                .and_then(|kf| kf.points.get(i))
+                .is_some_and(|p| p.is_none());
+            if !free {
+                continue;
+            }
+            if self.server_point(c).is_some() {
+                // Associated, but the refinement rejected or missed the match: leave it.
+                continue;
+            }
+            let candidates = self.pending.get(&c).cloned().unwrap_or_default();
+            let mut made = None;
+            for (k0, i0) in candidates {
+                if let Some(p) = self.triangulate_pair(k, i as u32, k0, i0, &check) {
+                    made = Some(p);
+                    break;
+                }
+            }
+            if let Some(p) = made {
+                self.client_to_server.insert(c, p);
+                self.pending.remove(&c);
+                created += 1;
+            } else {
+                let list = self.pending.entry(c).or_default();
+                if list.len() >= MAX_PENDING_PER_POINT {
+                    list.remove(0);
+                }
+                list.push((k, i as u32));
+            }
+        }
+        created
+    }
+
+    /// Triangulates keypoint `i` of `k` with keypoint `i0` of `k0` (both free) and adds the
+    /// point if it passes the checks.
+    fn triangulate_pair(
+        &mut self,
+        k: KfId,
+        i: u32,
+        k0: KfId,
+        i0: u32,
+        check: &TriangulationCheck,
+    ) -> Option<PointId> {
+        let kf = self.map.keyframes.get(&k)?;
+        let kf0 = self.map.keyframes.get(&k0)?;
+        if k0 == k || kf0.points.get(i0 as usize)?.is_some() {
+            return None;
+        }
+        let kp = *kf.features.keypoints.get(i as usize)?;
+        let kp0 = *kf0.features.keypoints.get(i0 as usize)?;
+        let px = Vector2::new(kp.x as f64, kp.y as f64);
+        let px0 = Vector2::new(kp0.x as f64, kp0.y as f64);
+        let b = kf.camera.unproject(&px);
+        let b0 = kf0.camera.unproject(&px0);
+        let p_w = triangulate_dlt(
+            &projection_matrix(&kf.t_cw),
+            &b,
+            &projection_matrix(&kf0.t_cw),
+            &b0,
+        )?;
+        let views = [
+            CheckView {
+                t_cw: kf.t_cw,
+                pixel: px,
+                inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
+            },
+            CheckView {
+                t_cw: kf0.t_cw,
+                pixel: px0,
+                inv_sigma2: inv_sigma2_for_octave(kp0.octave as u32, 1.2),
+            },
+        ];
+        check_point(&p_w, &views, &kf.camera, check).ok()?;
+        Some(self.map.add_point(p_w, k, &[(k0, i0), (k, i)]))
+    }
+
+    /// The loop closer's summary of server keyframe `k` ([`KeptKeyframe`]).
+    pub fn kept_summary(&self, k: KfId, client_kf_id: KfId) -> Option<KeptKeyframe> {
+        let kf = self.map.keyframes.get(&k)?;
+        let points = kf
+            .points
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| {
+                let mp = self.map.points.get(&(*p)?)?;
+                Some(KeptPoint {
+                    keypoint: i as u32,
+                    point: mp.id,
+                    p_k: (kf.t_cw * nalgebra::Point3::from(mp.p_w)).coords,
+                })
+            })
+            .collect();
+        let covisible = self
+            .map
+            .covisible(k, usize::MAX, 1)
+            .into_iter()
+            .map(|n| (n, self.map.covis_weight(k, n)))
+            .collect();
+        Some(KeptKeyframe {
+            map_id: self.id,
+            kf_id: k,
+            client_kf_id,
+            t_ns: kf.t_ns,
+            t_sk: kf.t_cw.inverse(),
+            camera: kf.camera,
+            features: kf.features.clone(),
+            points,
+            covisible,
+        })
+    }
+}

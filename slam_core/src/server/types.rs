@@ -1,0 +1,213 @@
+//! Plain data of the server keyframe handler (seed §3.4.1): the keyframe as the server
+//! receives it, what a handled keyframe produced, the summary handed to loop closing and the
+//! pose feedback to the client.
+use nalgebra::{Isometry3, Vector3};
+
+use crate::camera::PinholeRadtan;
+use crate::features::OrbFeatures;
+use crate::vo::{Keyframe, KfId, PointId};
+use crate::CoreError;
+
+/// Server map id: `client_id << 32 | n`, `n` counting the client's server maps from 0.
+pub type MapId = u64;
+
+/// Client keyframe ids must stay below this bound (server ids put the client in the bits
+/// above, see [`server_kf_id`]).
+pub const MAX_CLIENT_KF_ID: KfId = (1 << 40) - 1;
+
+/// Server keyframe id of client `client_id`'s keyframe `kf_id`: `client_id << 40 | kf_id`,
+/// unique across clients so that maps of several clients can later be merged.
+pub fn server_kf_id(client_id: u32, kf_id: KfId) -> KfId {
+    (u64::from(client_id) << 40) | (kf_id & MAX_CLIENT_KF_ID)
+}
+
+/// Server map id of client `client_id`'s `n`-th server map.
+pub fn server_map_id(client_id: u32, n: u32) -> MapId {
+    (u64::from(client_id) << 32) | u64::from(n)
+}
+
+/// A keyframe as the client sends it (seed §3.3, keyframe message).
+#[derive(Debug, Clone)]
+pub struct ServerKeyframe {
+    /// Client (agent) id.
+    pub client_id: u32,
+    /// VO session of the client that made the keyframe.
+    pub session_id: u32,
+    /// Keyframe id, unique per client across sessions (≤ [`MAX_CLIENT_KF_ID`]).
+    pub id: KfId,
+    /// Frame time (mid-row), ns.
+    pub t_ns: i64,
+    /// Pose in the client map, `T_ck` (`p_c = R_ck p_k + t_ck`): the inverse of the VO's
+    /// [`Keyframe::t_cw`]. Absolute, so a lost message does not corrupt later ones.
+    pub t_ck: Isometry3<f64>,
+    /// Camera model.
+    pub camera: PinholeRadtan,
+    /// Rolling-shutter readout time, ns (0 = global shutter).
+    pub readout_ns: i64,
+    /// Keypoints and 32-byte descriptors.
+    pub features: OrbFeatures,
+    /// Client map-point id seen by each keypoint, if any.
+    pub client_points: Vec<Option<PointId>>,
+}
+
+impl ServerKeyframe {
+    /// The message the client sends for its VO keyframe `kf` of session `session_id`.
+    pub fn from_vo(client_id: u32, session_id: u32, kf: &Keyframe) -> Self {
+        Self {
+            client_id,
+            session_id,
+            id: kf.id,
+            t_ns: kf.t_ns,
+            t_ck: kf.t_cw.inverse(),
+            camera: kf.camera,
+            readout_ns: kf.readout_ns,
+            features: kf.features.clone(),
+            client_points: kf.points.clone(),
+        }
+    }
+
+    /// Checks what the handler relies on: one descriptor and one client point slot per
+    /// keypoint, a finite pose, an id in range, finite keypoints.
+    pub fn validate(&self) -> Result<(), CoreError> {
+        let n = self.features.keypoints.len();
+        if self.features.descriptors.len() != n || self.client_points.len() != n {
+            return Err(CoreError::InvalidArgument(format!(
+                "keyframe {}: {} keypoints, {} descriptors, {} point slots",
+                self.id,
+                n,
+                self.features.descriptors.len(),
+                self.client_points.len()
+            )));
+        }
+        if self.id > MAX_CLIENT_KF_ID {
+            return Err(CoreError::InvalidArgument(format!(
+                "keyframe id {} above {MAX_CLIENT_KF_ID}",
+                self.id
+            )));
+        }
+        let t = self.t_ck.translation.vector;
+        let q = self.t_ck.rotation.coords;
+        if !t.iter().chain(q.iter()).all(|v| v.is_finite()) {
+            return Err(CoreError::InvalidArgument(format!(
+                "keyframe {}: non-finite pose",
+                self.id
+            )));
+        }
+        if !self
+            .features
+            .keypoints
+            .iter()
+            .all(|k| k.x.is_finite() && k.y.is_finite())
+        {
+            return Err(CoreError::InvalidArgument(format!(
+                "keyframe {}: non-finite keypoint",
+                self.id
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// What happened to a keyframe given to [`super::KeyframeHandler::handle`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KeyframeStatus {
+    /// First keyframe of a (new) session: remembered, no map yet.
+    First,
+    /// Second keyframe of a session: the session's server map was built from the two.
+    MapCreated,
+    /// Refined and kept in the server map.
+    Kept,
+    /// Refined but redundant: its pose and the scale ratio were updated, the map not.
+    Discarded,
+    /// Already handled (id not above the last one of its session): ignored.
+    Duplicate,
+}
+
+/// A point of a kept keyframe, for place recognition and loop closing.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeptPoint {
+    /// Keypoint index.
+    pub keypoint: u32,
+    /// Server map point id.
+    pub point: PointId,
+    /// Point in the keyframe's camera frame.
+    pub p_k: Vector3<f64>,
+}
+
+/// What loop closing needs of a kept keyframe (seed §3.4.2): its descriptors, its points in
+/// its own frame and its covisible neighbours.
+#[derive(Debug, Clone)]
+pub struct KeptKeyframe {
+    /// Server map it belongs to.
+    pub map_id: MapId,
+    /// Server keyframe id ([`server_kf_id`]).
+    pub kf_id: KfId,
+    /// Client keyframe id.
+    pub client_kf_id: KfId,
+    /// Frame time, ns.
+    pub t_ns: i64,
+    /// Server pose `T_sk` (camera → server map).
+    pub t_sk: Isometry3<f64>,
+    /// Camera model.
+    pub camera: PinholeRadtan,
+    /// Keypoints and descriptors.
+    pub features: OrbFeatures,
+    /// Its map points, in its frame.
+    pub points: Vec<KeptPoint>,
+    /// Covisible keyframes with their weights (shared points), best first.
+    pub covisible: Vec<(KfId, u32)>,
+}
+
+/// Result of handling one keyframe.
+#[derive(Debug, Clone)]
+pub struct HandleReport {
+    /// Client keyframe id.
+    pub client_kf_id: KfId,
+    /// What happened.
+    pub status: KeyframeStatus,
+    /// Server map of the keyframe (`None` before a map exists).
+    pub map_id: Option<MapId>,
+    /// Server pose `T_sk` (camera → server map), when there is a map.
+    pub t_sk: Option<Isometry3<f64>>,
+    /// Prediction of eq. 3.4 before refinement.
+    pub t_sk_predicted: Option<Isometry3<f64>>,
+    /// Measured scale ratio (eq. 3.2), when measurable.
+    pub lambda_measured: Option<f64>,
+    /// Smoothed scale ratio after this keyframe (eq. 3.3).
+    pub lambda: f64,
+    /// Server points matched and kept as inliers by the refinement.
+    pub inliers: usize,
+    /// Points created with this keyframe (kept keyframes and map creation).
+    pub new_points: usize,
+    /// Summaries for loop closing of the keyframes inserted (one when kept, two when the
+    /// map was created, none otherwise).
+    pub kept: Vec<KeptKeyframe>,
+}
+
+/// Pose feedback to the client (seed §3.4.1): the server pose of its last keyframe and the
+/// scale ratio, plus the acknowledgement of the last keyframe applied.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ServerFeedback {
+    /// Client the feedback is for.
+    pub client_id: u32,
+    /// Last keyframe applied (client id).
+    pub acked_keyframe_id: KfId,
+    /// Its session.
+    pub acked_session_id: u32,
+    /// Server map of the client's keyframes, with the server pose of the last keyframe
+    /// `T_sk` and the scale ratio `λ`; `None` while the session has only one keyframe.
+    pub pose: Option<(MapId, Isometry3<f64>, f64)>,
+}
+
+/// Client side of the feedback (eq. 3.1, 3.4): the server-map pose of a frame with client
+/// pose `t_cf`, given the client pose `t_cj` of the fed-back keyframe `j` (the client
+/// remembers the poses it sent), its server pose `t_sj` and `λ`. The client map is not
+/// transformed.
+pub fn frame_pose_in_server_map(
+    t_cj: &Isometry3<f64>,
+    t_sj: &Isometry3<f64>,
+    lambda: f64,
+    t_cf: &Isometry3<f64>,
+) -> Isometry3<f64> {
+    super::scale::predict_server_pose(t_cj, t_sj, lambda, t_cf)
+}

@@ -1,0 +1,194 @@
+//! Redundant keyframe culling (seed §3.3 local mapping and §3.4.1 server handler; ORB-SLAM's
+//! KeyFrameCulling): a keyframe whose map points are more than 90% seen by at least three
+//! other keyframes, at the same or a finer scale, adds nothing and is removed. Usable by the
+//! client's local mapping and by the server's keyframe handler.
+use super::map::{ClientMap, KfId};
+
+/// Parameters of [`redundant_fraction`] and [`cull_redundant_keyframes`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KfCullingParams {
+    /// A keyframe is redundant when more than this fraction of its points is seen by
+    /// `min_observers` other keyframes (seed: 0.9).
+    pub redundancy: f64,
+    /// Other keyframes that must see a point (seed: 3).
+    pub min_observers: usize,
+    /// "Same or finer scale": the other observation's octave is at most this many levels
+    /// above the keyframe's own (ORB-SLAM: 1).
+    pub octave_slack: u8,
+    /// Keyframes of the neighbourhood examined around the latest keyframe (best covisible).
+    pub neighbours: usize,
+    /// Points with fewer observations are erased with a culled keyframe.
+    pub min_point_observations: usize,
+}
+
+impl Default for KfCullingParams {
+    fn default() -> Self {
+        Self {
+            redundancy: 0.9,
+            min_observers: 3,
+            octave_slack: 1,
+            neighbours: 20,
+            min_point_observations: 2,
+        }
+    }
+}
+
+/// Fraction of keyframe `k`'s map points seen by at least `min_observers` other keyframes
+/// at the same or a finer scale (0 when `k` is unknown or has no point).
+pub fn redundant_fraction(map: &ClientMap, k: KfId, params: &KfCullingParams) -> f64 {
+    let Some(kf) = map.keyframes.get(&k) else {
+        return 0.0;
+    };
+    let (mut total, mut redundant) = (0usize, 0usize);
+    for (i, p) in kf.points.iter().enumerate() {
+        let Some(mp) = p.and_then(|p| map.points.get(&p)) else {
+            continue;
+        };
+        total += 1;
+        if mp.observations.len() <= params.min_observers {
+            continue;
+        }
+        let octave = kf.features.keypoints.get(i).map_or(0, |kp| kp.octave);
+        let max_octave = octave.saturating_add(params.octave_slack);
+        let observers = mp
+            .observations
+            .iter()
+            .filter(|(o, j)| {
+                *o != k
+                    && map
+                        .keyframes
+                        .get(o)
+                        .and_then(|okf| okf.features.keypoints.get(*j as usize))
+                        .is_some_and(|kp| kp.octave <= max_octave)
+            })
+            .count();
+        if observers >= params.min_observers {
+            redundant += 1;
+        }
+    }
+    if total == 0 {
+        0.0
+    } else {
+        redundant as f64 / total as f64
+    }
+}
+
+/// Removes the redundant keyframes among the best covisible neighbours of `latest`
+/// (examined in ascending id order, each decision seeing the removals before it, so the
+/// result is deterministic). Never removes `latest`, the first keyframe of the map, or a
+/// keyframe in `protected`. Returns the removed ids.
+pub fn cull_redundant_keyframes(
+    map: &mut ClientMap,
+    latest: KfId,
+    protected: &[KfId],
+    params: &KfCullingParams,
+) -> Vec<KfId> {
+    let first = map.keyframes.keys().next().copied();
+    let mut candidates = map.covisible(latest, params.neighbours, 1);
+    candidates.sort_unstable();
+    let mut removed = Vec::new();
+    for k in candidates {
+        if k == latest || Some(k) == first || protected.contains(&k) {
+            continue;
+        }
+        if redundant_fraction(map, k, params) > params.redundancy {
+            let neighbours = map.covisible(k, usize::MAX, 1);
+            if map
+                .remove_keyframe(k, params.min_point_observations)
+                .is_some()
+            {
+                for n in neighbours {
+                    map.update_covisibility(n);
+                }
+                removed.push(k);
+            }
+        }
+    }
+    removed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::PinholeRadtan;
+    use crate::features::{KeyPoint, OrbFeatures};
+    use crate::vo::map::Keyframe;
+    use nalgebra::{Isometry3, Vector3};
+
+    fn kf(id: KfId, n: usize, octave: u8) -> Keyframe {
+        let kp = KeyPoint {
+            x: 10.0,
+            y: 10.0,
+            angle: 0.0,
+            response: 1.0,
+            size: 31.0,
+            octave,
+        };
+        Keyframe {
+            id,
+            t_ns: id as i64,
+            t_cw: Isometry3::translation(-(id as f64) * 0.1, 0.0, 0.0),
+            camera: PinholeRadtan::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0),
+            readout_ns: 0,
+            features: OrbFeatures {
+                keypoints: vec![kp; n],
+                descriptors: vec![[0; 32]; n],
+            },
+            points: vec![None; n],
+        }
+    }
+
+    /// Five keyframes see the same 20 points. One removal at a time: keyframes 1 and 2 go,
+    /// then the points of keyframe 3 are seen by only two others and it stays; the first and
+    /// the latest always stay, protected keyframes too.
+    #[test]
+    fn culls_redundant_but_never_first_or_latest() {
+        let build = || {
+            let mut m = ClientMap::new(1, 0);
+            for id in 0..5 {
+                m.insert_keyframe(kf(id, 20, 0));
+            }
+            for i in 0..20u32 {
+                let obs: Vec<(KfId, u32)> = (0..5).map(|k| (k, i)).collect();
+                m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
+            }
+            for k in 0..5 {
+                m.update_covisibility(k);
+            }
+            m
+        };
+        let p = KfCullingParams::default();
+        let mut m = build();
+        assert_eq!(redundant_fraction(&m, 2, &p), 1.0);
+        assert_eq!(cull_redundant_keyframes(&mut m, 4, &[], &p), vec![1, 2]);
+        assert_eq!(
+            m.keyframes.keys().copied().collect::<Vec<_>>(),
+            vec![0, 3, 4]
+        );
+        assert_eq!(m.points.len(), 20);
+        let mut m = build();
+        assert_eq!(cull_redundant_keyframes(&mut m, 4, &[1, 2], &p), vec![3]);
+    }
+
+    #[test]
+    fn coarser_observations_do_not_count() {
+        let mut m = ClientMap::new(1, 0);
+        m.insert_keyframe(kf(0, 10, 0));
+        m.insert_keyframe(kf(1, 10, 0));
+        for id in 2..5 {
+            m.insert_keyframe(kf(id, 10, 3));
+        }
+        for i in 0..10u32 {
+            let obs: Vec<(KfId, u32)> = (0..5).map(|k| (k, i)).collect();
+            m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
+        }
+        for k in 0..5 {
+            m.update_covisibility(k);
+        }
+        let p = KfCullingParams::default();
+        // Keyframe 1 (octave 0): others at octave 3 are coarser; only keyframe 0 counts.
+        assert_eq!(redundant_fraction(&m, 1, &p), 0.0);
+        // Keyframe 3 (octave 3): all four others are at the same or a finer scale.
+        assert_eq!(redundant_fraction(&m, 3, &p), 1.0);
+    }
+}
