@@ -391,6 +391,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             pose_pub.send_copy(pose)?;
             status.add("poses_published", 1);
             status.set_value("last_frame_seq", h.meta.seq as f64);
+            if let Some(v) = vo.as_ref() {
+                status.set_value("vo_relocalizations", v.relocalizations() as f64);
+                status.set_value("keyframes_culled", v.keyframes_culled() as f64);
+            }
             let _ = file.write_every(&status, Duration::from_millis(200));
         }
         if idle && node.wait(Duration::from_micros(100)).is_err() {

@@ -70,7 +70,10 @@ mod tests {
     #[test]
     fn seed_rule() {
         let r = KeyframeRule::default();
-        assert!(!r.needs_keyframe(15, 1000, 5, true), "needs more than 15 points");
+        assert!(
+            !r.needs_keyframe(15, 1000, 5, true),
+            "needs more than 15 points"
+        );
         assert!(r.needs_keyframe(100, 120, 1, true), "fewer than 200 points");
         assert!(
             r.needs_keyframe(400, 500, 1, true),

@@ -46,6 +46,8 @@ pub struct VoParams {
     pub local_mapping_thread: bool,
     /// Neighbour keyframes of local mapping (triangulation and local BA).
     pub mapping_neighbours: usize,
+    /// Keyframes tried per frame when relocalising.
+    pub reloc_candidates: usize,
 }
 
 impl VoParams {
@@ -72,6 +74,7 @@ impl Default for VoParams {
             init_feature_factor: 2,
             local_mapping_thread: true,
             mapping_neighbours: 10,
+            reloc_candidates: 8,
         }
     }
 }
@@ -169,6 +172,13 @@ pub struct VoTracker {
     shared: Arc<Mutex<ClientMap>>,
     /// The local-mapping thread (`None`: local mapping runs inline at keyframe creation).
     mapping: Option<local_mapper::LocalMappingThread>,
+    /// Keyframes culled by inline local mapping.
+    culled_inline: usize,
+    /// Relocalisation: where the round over the map's keyframes continues.
+    reloc_cursor: Option<usize>,
+    /// Successful relocalisations.
+    relocalized: usize,
+    pnp: crate::pnp::PnpSolver,
     /// Buffers of inline local mapping.
     state: VoState,
     session_id: u32,
@@ -221,6 +231,10 @@ impl VoTracker {
             map: ClientMap::new(1, 0),
             shared: Arc::clone(&shared),
             mapping,
+            culled_inline: 0,
+            reloc_cursor: None,
+            relocalized: 0,
+            pnp: crate::pnp::PnpSolver::new(),
             state: VoState::NotInitialized,
             session_id: 1,
             next_kf_id: 0,
@@ -347,6 +361,16 @@ impl VoTracker {
             .collect()
     }
 
+    /// Keyframes culled as redundant by local mapping so far.
+    pub fn keyframes_culled(&self) -> usize {
+        self.culled_inline + self.mapping.as_ref().map_or(0, |m| m.culled())
+    }
+
+    /// Successful relocalisations so far.
+    pub fn relocalizations(&self) -> usize {
+        self.relocalized
+    }
+
     /// Reads the client map (locks it; the local-mapping thread waits meanwhile).
     pub fn with_map<R>(&self, f: impl FnOnce(&ClientMap) -> R) -> R {
         f(&lock(&self.shared))
@@ -358,6 +382,7 @@ impl VoTracker {
     }
 
     fn start_new_session(&mut self, out: &mut VoOutput) {
+        self.reloc_cursor = None;
         // The old map's keyframes go to the server before it is dropped.
         let ids: Vec<KfId> = self.map.keyframes.keys().copied().collect();
         for k in ids {
@@ -427,6 +452,7 @@ pub fn se3_log(t: &Isometry3<f64>) -> nalgebra::Vector6<f64> {
 
 mod init;
 mod local_mapper;
+mod reloc;
 mod track;
 
 use local_mapper::lock;

@@ -2,8 +2,9 @@
 //! mapping"). The tracking thread inserts a keyframe (and triangulates with its reference
 //! keyframe itself, seed change 3) and hands its id over a crossbeam channel; this thread
 //! then triangulates with the other neighbours, culls recent points, runs the local bundle
-//! adjustment on a snapshot of the local map (the map is not locked while it is solved)
-//! and writes the result back.
+//! adjustment on a snapshot of the local map (the map is not locked while it is solved),
+//! writes the result back and culls redundant keyframes (`vo::kf_culling`; culled
+//! keyframes are dropped, not sent to the server, as the seed's trash list).
 //!
 //! The map is shared as `Arc<Mutex<ClientMap>>`; each step holds the lock only for its own
 //! reads and writes. While keyframes wait in the channel, only the newest one gets a BA
@@ -16,6 +17,7 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, Sender};
 
 use crate::optim::ba::{BaParams, BaProblem, BundleAdjuster};
+use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
 use crate::vo::local_mapping::{
     apply_local_ba, create_points_with_neighbours, cull_recent_points, prepare_local_ba,
 };
@@ -38,14 +40,15 @@ pub(crate) struct LocalMappingParams {
 }
 
 /// The local-mapping steps for keyframe `k`, inline (single-threaded mode): triangulation
-/// with neighbours, culling of recent points, local BA.
+/// with neighbours, culling of recent points, local BA, culling of redundant keyframes.
+/// Returns the keyframes culled.
 pub(crate) fn map_keyframe_inline(
     map: &mut ClientMap,
     k: KfId,
     p: &LocalMappingParams,
     ba: &mut BundleAdjuster,
     problem: &mut BaProblem,
-) {
+) -> usize {
     create_points_with_neighbours(map, k, p.neighbours);
     cull_recent_points(map, k);
     if p.local_ba {
@@ -55,12 +58,14 @@ pub(crate) fn map_keyframe_inline(
             }
         }
     }
+    cull_redundant_keyframes(map, k, &[], &KfCullingParams::default()).len()
 }
 
 /// Handle of the local-mapping thread.
 pub(crate) struct LocalMappingThread {
     tx: Option<Sender<KfId>>,
     pending: Arc<AtomicUsize>,
+    culled: Arc<AtomicUsize>,
     handle: Option<JoinHandle<()>>,
 }
 
@@ -69,16 +74,23 @@ impl LocalMappingThread {
     pub fn spawn(map: Arc<Mutex<ClientMap>>, p: LocalMappingParams) -> Result<Self, CoreError> {
         let (tx, rx) = crossbeam_channel::unbounded();
         let pending = Arc::new(AtomicUsize::new(0));
-        let pending_t = Arc::clone(&pending);
+        let culled = Arc::new(AtomicUsize::new(0));
+        let (pending_t, culled_t) = (Arc::clone(&pending), Arc::clone(&culled));
         let handle = std::thread::Builder::new()
             .name("local-mapping".into())
-            .spawn(move || run(&map, &rx, &pending_t, &p))
+            .spawn(move || run(&map, &rx, &pending_t, &culled_t, &p))
             .map_err(|e| CoreError::InvalidArgument(format!("local-mapping thread: {e}")))?;
         Ok(Self {
             tx: Some(tx),
             pending,
+            culled,
             handle: Some(handle),
         })
+    }
+
+    /// Keyframes culled as redundant so far.
+    pub fn culled(&self) -> usize {
+        self.culled.load(Ordering::Relaxed)
     }
 
     /// Queues keyframe `k`.
@@ -122,6 +134,7 @@ fn run(
     map: &Mutex<ClientMap>,
     rx: &Receiver<KfId>,
     pending: &AtomicUsize,
+    culled: &AtomicUsize,
     p: &LocalMappingParams,
 ) {
     let mut ba = BundleAdjuster::new();
@@ -141,9 +154,15 @@ fn run(
                 None
             }
         };
-        if let Some(job) = job {
-            if ba.optimize(&mut problem, &BaParams::local()).is_ok() {
-                apply_local_ba(&mut lock(map), &job, &problem, ba.inliers());
+        let solved = job.filter(|_| ba.optimize(&mut problem, &BaParams::local()).is_ok());
+        {
+            let mut m = lock(map);
+            if let Some(job) = solved {
+                apply_local_ba(&mut m, &job, &problem, ba.inliers());
+            }
+            if m.keyframes.contains_key(&k) {
+                let n = cull_redundant_keyframes(&mut m, k, &[], &KfCullingParams::default());
+                culled.fetch_add(n.len(), Ordering::Relaxed);
             }
         }
         pending.fetch_sub(1, Ordering::SeqCst);

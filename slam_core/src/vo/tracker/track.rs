@@ -79,6 +79,17 @@ impl VoTracker {
                 out.times.pose_opt += p1.elapsed().as_secs_f32() * 1e3;
             }
         }
+        // 3. Relocalisation against the keyframes of the client map.
+        let mut relocalized = false;
+        if !ok {
+            let r0 = Instant::now();
+            if let Some((pose, _)) = self.relocalize(frame, feats) {
+                ok = true;
+                relocalized = true;
+                t_cw = pose;
+            }
+            out.times.matching += r0.elapsed().as_secs_f32() * 1e3;
+        }
         if !ok {
             self.failures += 1;
             self.state = VoState::Lost;
@@ -87,7 +98,8 @@ impl VoTracker {
             }
             return Ok(());
         }
-        // 3. Local map: points of the reference keyframe's neighbourhood.
+        self.reloc_cursor = None;
+        // 4. Local map: points of the reference keyframe's neighbourhood.
         let l0 = Instant::now();
         self.gather_local_map_candidates();
         out.times.local_map += l0.elapsed().as_secs_f32() * 1e3;
@@ -113,8 +125,10 @@ impl VoTracker {
         }
         self.failures = 0;
         self.state = VoState::Tracking;
-        // Motion model update.
-        if let Some(last) = &self.last {
+        // Motion model update (none across a relocalisation: the last frame is far away).
+        if relocalized {
+            self.velocity = None;
+        } else if let Some(last) = &self.last {
             let dt = (frame.t_ns - last.t_ns) as f64 * 1e-9;
             if dt > 0.0 {
                 self.velocity = Some((t_cw * last.t_cw.inverse(), dt));
@@ -123,7 +137,7 @@ impl VoTracker {
         out.t_cw = Some(t_cw);
         out.tracked = tracked;
         self.update_reference_keyframe();
-        // 4. Keyframe?
+        // 5. Keyframe?
         self.frames_since_kf += 1;
         let ref_tracked = self.ref_kf.map_or(0, |k| {
             let min_obs = if self.map.keyframes.len() <= 2 { 2 } else { 3 };
@@ -270,7 +284,7 @@ impl VoTracker {
     }
 
     /// Pose-only optimisation over the frame's matched points; outliers are unmatched.
-    fn optimize(
+    pub(super) fn optimize(
         &mut self,
         frame: &VoFrame<'_>,
         feats: &OrbFeatures,
@@ -368,7 +382,7 @@ impl VoTracker {
             Some(m) => m.submit(id),
             None => {
                 let p = self.params.local_mapping();
-                super::local_mapper::map_keyframe_inline(
+                self.culled_inline += super::local_mapper::map_keyframe_inline(
                     &mut self.map,
                     id,
                     &p,
