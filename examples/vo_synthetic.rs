@@ -22,6 +22,13 @@ fn main() -> anyhow::Result<()> {
         p.readout_ms = Some(0.0);
     }
     let gyro = args.iter().any(|a| a == "--gyro");
+    // Gyro only for the first N frames (then the motion model), for diagnosis.
+    let gyro_frames: usize = args
+        .iter()
+        .position(|a| a == "--gyro-frames")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
     let world = SimWorld::new(p)?;
     let cam = world.calib().model;
     let readout = world.calib().readout_ns;
@@ -43,7 +50,7 @@ fn main() -> anyhow::Result<()> {
             image,
             t_ns: t,
             readout_ns: readout,
-            angular_velocity: gyro.then(|| {
+            angular_velocity: (gyro || k < gyro_frames).then(|| {
                 // A perfect gyro: ω from the ground truth, R_wc(t+h) = R_wc(t) Exp(ω h).
                 let h = 1_000_000;
                 let a = world.pose_cam_at(t - h).rotation;
