@@ -8,7 +8,7 @@ use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
 use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptParams, Velocity};
 use crate::vo::local_mapping::create_points_with_neighbours;
-use crate::vo::map::{Keyframe, KfId, PointId};
+use crate::vo::map::{Keyframe, KfId};
 use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
 use crate::CoreError;
 
@@ -201,18 +201,20 @@ impl VoTracker {
     fn gather_local_map_candidates(&mut self) {
         self.cands.clear();
         let Some(r) = self.ref_kf else { return };
-        let mut kfs = vec![r];
-        kfs.extend(self.map.covisible(r, self.params.local_keyframes, 1));
-        let already: std::collections::HashSet<PointId> =
-            self.frame_points.iter().flatten().copied().collect();
-        let mut seen = std::collections::HashSet::new();
-        for k in kfs {
-            let Some(kf) = self.map.keyframes.get(&k) else {
+        self.local_kfs.clear();
+        self.local_kfs.push(r);
+        self.local_kfs
+            .extend(self.map.covisible(r, self.params.local_keyframes, 1));
+        // Reused sets (cleared, capacity kept): no allocation per frame once grown.
+        self.seen.clear();
+        self.seen.extend(self.frame_points.iter().flatten().copied());
+        for k in &self.local_kfs {
+            let Some(kf) = self.map.keyframes.get(k) else {
                 continue;
             };
             for (i, p) in kf.points.iter().enumerate() {
                 let Some(p) = p else { continue };
-                if already.contains(p) || !seen.insert(*p) {
+                if !self.seen.insert(*p) {
                     continue;
                 }
                 if let Some(mp) = self.map.points.get(p) {
@@ -337,19 +339,20 @@ impl VoTracker {
 
     /// The keyframe sharing most points with the current frame.
     fn update_reference_keyframe(&mut self) {
-        let mut counts: std::collections::HashMap<KfId, u32> = std::collections::HashMap::new();
+        self.kf_counts.clear();
         for p in self.frame_points.iter().flatten() {
             if let Some(mp) = self.map.points.get(p) {
                 for (k, _) in &mp.observations {
-                    *counts.entry(*k).or_insert(0) += 1;
+                    *self.kf_counts.entry(*k).or_insert(0) += 1;
                 }
             }
         }
-        if let Some((k, _)) = counts
-            .into_iter()
-            .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
+        if let Some((k, _)) = self
+            .kf_counts
+            .iter()
+            .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
         {
-            self.ref_kf = Some(k);
+            self.ref_kf = Some(*k);
         }
     }
 
