@@ -99,7 +99,7 @@ fn relocalises_at_a_known_place() {
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let dt = world.frame_time_ns(1) - world.frame_time_ns(0);
     let mut t = 0;
-    let mut step = |vo: &mut VoTracker, img: &[u8], t: i64| {
+    let step = |vo: &mut VoTracker, img: &[u8], t: i64| {
         let image = GrayImage::from_packed(img, cam.width as usize, cam.height as usize).unwrap();
         vo.process(&VoFrame {
             image,

@@ -39,12 +39,10 @@ impl VoTracker {
             min_inliers: MIN_MATCHES,
             ..PnpParams::for_camera(&self.camera)
         };
-        let (mut pts, mut xn, mut w, mut idx): (
-            Vec<Vector3<f64>>,
-            Vec<Vector2<f64>>,
-            Vec<f64>,
-            Vec<(usize, PointId)>,
-        ) = Default::default();
+        let mut pts: Vec<Vector3<f64>> = Vec::new();
+        let mut xn: Vec<Vector2<f64>> = Vec::new();
+        let mut w: Vec<f64> = Vec::new();
+        let mut idx: Vec<(usize, PointId)> = Vec::new();
         for k in candidates {
             let Some(kf) = self.map.keyframes.get(&k) else {
                 continue;
