@@ -66,6 +66,14 @@ struct RunArgs {
     /// Extra argument for every tracker, `{c}` = client index (repeatable).
     #[arg(long = "tracker-arg", allow_hyphen_values = true)]
     tracker_args: Vec<String>,
+    /// SIGKILL a service at a time after start-up, e.g. `tracker:0@3.5` or `mapper@10`
+    /// (repeatable). The service is restarted like after any crash.
+    #[arg(long = "kill", value_name = "SERVICE@SECONDS")]
+    kills: Vec<launcher::faults::KillSpec>,
+    /// SIGKILL a random running service every PERIOD seconds on average (exponential
+    /// gaps), reproducible from SEED, e.g. `7:2.0`.
+    #[arg(long, value_name = "SEED:PERIOD")]
+    chaos: Option<launcher::faults::ChaosSpec>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -107,6 +115,8 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     cfg.max_frames = args.max_frames;
     cfg.max_duration = args.max_seconds.map(std::time::Duration::from_secs_f64);
     cfg.tracker_args = args.tracker_args;
+    cfg.kills = args.kills;
+    cfg.chaos = args.chaos;
     cfg.progress = !args.quiet;
     let rep = launcher::run(&cfg)?;
     demo::print_summary(&rep, &cfg.out);

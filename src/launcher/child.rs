@@ -53,6 +53,8 @@ pub struct Supervised {
     pub crashed_at: Option<Instant>,
     /// Recovery times (crash seen → ready again), seconds.
     pub recoveries_s: Vec<f64>,
+    /// When the current process printed its readiness line.
+    pub ready_at: Option<Instant>,
     /// True for services that end by themselves at the end of their input.
     pub ends_by_itself: bool,
 }
@@ -83,6 +85,7 @@ impl Supervised {
             spawned_at: Instant::now(),
             crashed_at: None,
             recoveries_s: Vec::new(),
+            ready_at: None,
             ends_by_itself,
         }
     }
@@ -146,6 +149,7 @@ impl Supervised {
             .is_some_and(|rx| rx.try_recv().is_ok())
         {
             self.phase = Phase::Running;
+            self.ready_at = Some(Instant::now());
             if let Some(t) = self.crashed_at.take() {
                 self.recoveries_s.push(t.elapsed().as_secs_f64());
             }

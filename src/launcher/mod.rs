@@ -4,6 +4,7 @@
 //! after cleaning their stale iceoryx2 resources, records poses and latencies, stops
 //! everything cleanly at the end of the data or on Ctrl-C, and writes `OUT/report.json`.
 pub mod child;
+pub mod faults;
 pub mod recorder;
 pub mod report;
 
@@ -43,6 +44,10 @@ pub struct RunConfig {
     pub max_duration: Option<Duration>,
     /// Most restarts of one service before it is given up.
     pub max_restarts: u32,
+    /// Kill schedule (`--kill SERVICE@SECONDS`).
+    pub kills: Vec<faults::KillSpec>,
+    /// Chaos (`--chaos SEED:PERIOD`).
+    pub chaos: Option<faults::ChaosSpec>,
 }
 
 impl RunConfig {
@@ -59,6 +64,8 @@ impl RunConfig {
             tracker_args: Vec::new(),
             max_duration: None,
             max_restarts: 20,
+            kills: Vec::new(),
+            chaos: None,
         }
     }
 }
@@ -227,6 +234,8 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     wait_ready(&mut services[consumers..], Duration::from_secs(30))?;
     tracing::info!("all {} services ready", services.len());
 
+    let mut injector = faults::FaultInjector::new(cfg.kills.clone(), cfg.chaos);
+    let ready_at = Instant::now();
     let progress = report::Progress::new(cfg.progress, &datasets, cfg.max_frames);
     let mut interrupted = false;
     let mut timed_out = false;
@@ -234,6 +243,9 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         recorder.drain()?;
         progress.update(&recorder);
         supervise(&mut services, &exe, cfg, &mut launcher_errors)?;
+        if !injector.is_empty() {
+            injector.step(&mut services, ready_at.elapsed().as_secs_f64());
+        }
         let clients_done = (0..cfg.datasets.len()).all(|c| {
             let finished = |svc: &str| {
                 services
@@ -279,7 +291,15 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         recorder.drain()?;
     }
     progress.finish();
-    let rep = report::RunReport::collect(
+    injector.note_recoveries(&services);
+    for s in &injector.skipped {
+        launcher_errors.push(ErrorRecord {
+            service: "launcher".into(),
+            kind: "kill_skipped".into(),
+            detail: s.clone(),
+        });
+    }
+    let mut rep = report::RunReport::collect(
         cfg,
         &datasets,
         &services,
@@ -289,6 +309,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         interrupted,
         timed_out,
     )?;
+    rep.faults = injector.events;
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
 }

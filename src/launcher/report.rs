@@ -161,6 +161,8 @@ pub struct RunReport {
     pub errors: Vec<ErrorRecord>,
     /// Error counts per `service/kind`, including those not listed in `errors`.
     pub error_counts: BTreeMap<String, u64>,
+    /// Kills injected (`--kill`, `--chaos`): service, time, recovery time.
+    pub faults: Vec<super::faults::FaultEvent>,
 }
 
 fn load_status(path: &Path) -> Status {

@@ -207,7 +207,8 @@ impl VoTracker {
             .extend(self.map.covisible(r, self.params.local_keyframes, 1));
         // Reused sets (cleared, capacity kept): no allocation per frame once grown.
         self.seen.clear();
-        self.seen.extend(self.frame_points.iter().flatten().copied());
+        self.seen
+            .extend(self.frame_points.iter().flatten().copied());
         for k in &self.local_kfs {
             let Some(kf) = self.map.keyframes.get(k) else {
                 continue;
