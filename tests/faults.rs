@@ -167,3 +167,47 @@ fn stale_state_of_a_killed_run_does_not_stop_the_next() {
     );
     assert_eq!(report(out2.path())["clients"][0]["frames_received"], 60);
 }
+
+/// `--kill` SIGKILLs the real child processes on schedule; each service is restarted, the
+/// report's `faults` section lists every kill with its recovery time, the run completes
+/// and no keyframe is lost between tracker and mapper.
+#[test]
+fn kill_schedule_kills_and_every_service_recovers() {
+    let tmp = tempdir();
+    let ds = synthetic(&tmp.path().join("seq"), "loop", 240, None);
+    let out = tmp.path().join("out");
+    let kills = [
+        "loop_closer@0.8",
+        "mapper@1.6",
+        "tracker:0@2.4",
+        "imu_ingest:0@3.2",
+        "camera_ingest:0@4.0",
+    ];
+    let mut extra = vec!["--rate", "1.0"];
+    for k in &kills {
+        extra.push("--kill");
+        extra.push(k);
+    }
+    let o = run_pipeline(&[&ds[0]], &out, "killsched", &extra);
+    assert!(o.status.success(), "run failed");
+    let rep = report(&out);
+    let faults = rep["faults"].as_array().expect("faults section");
+    assert_eq!(faults.len(), kills.len(), "every kill done: {faults:?}");
+    for (f, k) in faults.iter().zip(kills) {
+        let name = k.split('@').next().unwrap();
+        assert_eq!(f["service"], name);
+        let r = f["recovery_s"].as_f64();
+        assert!(
+            r.is_some_and(|r| r > 0.0 && r < 10.0),
+            "{name} recovered: {f}"
+        );
+        assert!(
+            rep["services"][name]["restarts"].as_u64().unwrap() >= 1,
+            "{name} restarted"
+        );
+    }
+    let c = &rep["clients"][0];
+    assert_eq!(c["keyframes_sent"], c["keyframes_acked"], "{c}");
+    assert_eq!(c["keyframes_sent"], c["keyframes_applied"], "{c}");
+    assert!(c["keyframes_sent"].as_u64().unwrap() > 0);
+}
