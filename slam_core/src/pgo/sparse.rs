@@ -1,13 +1,17 @@
 //! Block-sparse symmetric normal equations `(H + λI) x = b` with square blocks of a fixed
 //! size (1, 3, 4, 6 or 7 unknowns per vertex), stored as the upper block triangle and solved
-//! with faer's sparse LLᵀ: AMD ordering and symbolic analysis once per problem
+//! with faer's supernodal sparse LLᵀ: AMD ordering of the block graph and symbolic analysis
+//! once per problem
 //! ([`BlockSystem::setup`]), numeric factorisation per Levenberg-Marquardt step, no
 //! allocation per step. Same faer 0.24 calls as `optim::ba::linear`.
 
 use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::perm::PermRef;
+use faer::sparse::linalg::amd;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering,
 };
+use faer::sparse::linalg::SupernodalThreshold;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Conj, Mat, Par, Side};
 
@@ -134,13 +138,43 @@ impl BlockSystem {
         }
         self.values.clear();
         self.values.resize(self.row_idx.len(), 0.0);
+        // Fill-reducing ordering on the block graph (n nodes instead of n*bs), expanded
+        // block-wise: cheaper than AMD on the scalar pattern and keeps blocks contiguous.
+        let blk_row: Vec<usize> = self.blk_row.iter().map(|&r| r as usize).collect();
+        let blk_pattern =
+            SymbolicSparseColMatRef::new_checked(n, n, &self.blk_start, None, &blk_row);
+        let mut bperm = vec![0usize; n];
+        let mut bperm_inv = vec![0usize; n];
+        let mut amd_mem = MemBuffer::try_new(amd::order_scratch::<usize>(n, blk_row.len()))
+            .map_err(|_| CoreError::Degenerate("pgo: out of memory".into()))?;
+        amd::order(
+            &mut bperm,
+            &mut bperm_inv,
+            blk_pattern,
+            amd::Control::default(),
+            MemStack::new(&mut amd_mem),
+        )
+        .map_err(|e| CoreError::Degenerate(format!("pgo: AMD ordering failed: {e:?}")))?;
+        let mut perm = vec![0usize; dim];
+        let mut perm_inv = vec![0usize; dim];
+        for (k, &b) in bperm.iter().enumerate() {
+            for a in 0..bs {
+                perm[bs * k + a] = bs * b + a;
+                perm_inv[bs * b + a] = bs * k + a;
+            }
+        }
         let pattern =
             SymbolicSparseColMatRef::new_checked(dim, dim, &self.col_ptr, None, &self.row_idx);
         let symbolic = factorize_symbolic_cholesky(
             pattern,
             Side::Upper,
-            SymmetricOrdering::Amd,
-            CholeskySymbolicParams::default(),
+            SymmetricOrdering::Custom(PermRef::new_checked(&perm, &perm_inv, dim)),
+            CholeskySymbolicParams {
+                // Supernodal always: measured 2-3x faster than faer's automatic choice
+                // (simplicial) on parking-garage, and equal or better on sphere2500/torus3D.
+                supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SUPERNODAL,
+                ..Default::default()
+            },
         )
         .map_err(|e| CoreError::Degenerate(format!("pgo: symbolic analysis failed: {e:?}")))?;
         self.l_values.clear();
