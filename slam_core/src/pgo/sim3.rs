@@ -203,8 +203,8 @@ pub fn sim3_ad(xi: &Vector7) -> Matrix7 {
 }
 
 /// Inverse right Jacobian of Sim(3), `Log(Exp(ξ) Exp(δ)) ≈ ξ + Jr(ξ)⁻¹ δ`, by its Bernoulli
-/// series `Jr⁻¹ = Σ Bₙ⁺ adⁿ / n!` = `I + ½ad + ad²/12 - ad⁴/720 + ad⁶/30240 - ad⁸/1209600
-/// + ad¹⁰/47900160`. Converges for `|σ ± iθ| < 2π`; the truncation error is below 1e-9 for
+/// series `Jr⁻¹ = Σ Bₙ⁺ adⁿ / n!`, i.e.
+/// `I + ½ad + ad²/12 - ad⁴/720 + ad⁶/30240 - ad⁸/1209600 + ad¹⁰/47900160`. Converges for `|σ ± iθ| < 2π`; the truncation error is below 1e-9 for
 /// residuals with `|σ| + θ < 1`, which holds near every optimum (the cost itself is always
 /// evaluated exactly, so larger residuals only slow the first iterations down).
 pub fn sim3_jr_inv(xi: &Vector7) -> Matrix7 {

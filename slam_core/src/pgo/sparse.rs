@@ -324,9 +324,9 @@ mod tests {
         sys.solve(0.1).unwrap();
         let dim = n * bs;
         for c in 0..2 {
-            for r in 0..dim {
+            for (r, row) in dense.iter().enumerate() {
                 let hx: f64 = (0..dim)
-                    .map(|q| (dense[r][q] + if q == r { 0.1 } else { 0.0 }) * sys.x[c * dim + q])
+                    .map(|q| (row[q] + if q == r { 0.1 } else { 0.0 }) * sys.x[c * dim + q])
                     .sum();
                 assert!((hx - sys.rhs[c * dim + r]).abs() < 1e-12, "row {r} col {c}");
             }

@@ -67,16 +67,16 @@ pub fn solve_scales(graph: &mut Sim3Graph, fixed: &[bool]) -> Result<(), CoreErr
         .map_err(|e| CoreError::Degenerate(format!("stepwise scales: QR failed: {e:?}")))?;
     let mut b = Mat::<f64>::from_fn(m, 1, |r, _| rhs[r]);
     qr.solve_lstsq_in_place_with_conj(Conj::No, b.as_mut());
-    for v in 0..n {
-        if let Some(x) = var[v] {
+    for (vertex, x) in graph.vertices.iter_mut().zip(&var) {
+        if let Some(x) = *x {
             let s = b[(x, 0)];
             if !(s.is_finite() && s > 0.0) {
                 return Err(CoreError::Degenerate(format!(
                     "stepwise scales: vertex {} got scale {s}",
-                    graph.vertices[v].id
+                    vertex.id
                 )));
             }
-            graph.vertices[v].pose.s = s;
+            vertex.pose.s = s;
         }
     }
     Ok(())
