@@ -103,6 +103,8 @@ struct PgoJson {
     initial_cost: f64,
     final_cost: f64,
     solve_time_s: f64,
+    /// Edges whose non-positive-definite information was replaced by GTSAM's effective one.
+    repaired_information: usize,
     stages: Vec<StageJson>,
 }
 
@@ -164,6 +166,7 @@ pub fn run(args: &PgoArgs) -> anyhow::Result<()> {
         initial_cost: report.initial_cost,
         final_cost: report.final_cost,
         solve_time_s: report.solve_time_s,
+        repaired_information: report.repaired_information,
         stages: report
             .stages
             .iter()
@@ -184,6 +187,13 @@ pub fn run(args: &PgoArgs) -> anyhow::Result<()> {
             "{} ({} graph, {} vertices, {} edges), method {}, init {:?}",
             out.graph, kind, nv, ne, out.method, args.init
         );
+        if out.repaired_information > 0 {
+            println!(
+                "  {} edges have an information matrix that is not positive definite: \
+                 using GTSAM's effective information (R^T R of Eigen's partial LLT)",
+                out.repaired_information
+            );
+        }
         for s in &out.stages {
             println!(
                 "  {:<28} {:>4} iterations  E {:.9e} -> {:.9e}  {:.4} s{}",

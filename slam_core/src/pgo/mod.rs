@@ -50,6 +50,7 @@
 mod chordal;
 mod g2o;
 mod graph;
+mod information;
 mod lm;
 mod se3;
 mod sim3;
@@ -63,6 +64,7 @@ use nalgebra::{Isometry3, Matrix6, Vector3, Vector6};
 pub use chordal::{chordal_init, project_to_so3};
 pub use g2o::{parse_g2o, swap_blocks_6, write_g2o_se3, write_g2o_sim3, write_tum};
 pub use graph::{AnyGraph, Edge, GraphPose, PoseGraph, Se3Graph, Sim3Graph, Vertex};
+pub use information::gtsam_effective_information;
 pub use lm::{graph_cost, LiePose, LmParams, LmSummary, Prior};
 pub use se3::{se3_adjoint, se3_exp, se3_jr_inv, se3_log, so3_jr_inv, so3_v_inv};
 pub use sim3::{sim3_ad, sim3_jr_inv, sim3_w, Matrix7, Sim3, Vector7};
@@ -133,6 +135,9 @@ pub struct PgoReport {
     pub solve_time_s: f64,
     /// Per-stage details.
     pub stages: Vec<StageReport>,
+    /// Edges whose information was not positive definite and was replaced by GTSAM's
+    /// effective `RᵀR` ([`gtsam_effective_information`]) for the optimisation.
+    pub repaired_information: usize,
 }
 
 /// GTSAM's prior of `gtsam_baseline.py` on the smallest-id vertex at its current value:
@@ -198,6 +203,7 @@ fn lm_stage<P: LiePose<D>, const D: usize>(
 
 fn finish(initial_cost: f64, stages: Vec<StageReport>, t0: Instant) -> PgoReport {
     PgoReport {
+        repaired_information: 0,
         iterations: stages.iter().map(|s| s.iterations).sum(),
         initial_cost,
         final_cost: stages.last().map_or(initial_cost, |s| s.final_cost),
@@ -208,8 +214,42 @@ fn finish(initial_cost: f64, stages: Vec<StageReport>, t0: Instant) -> PgoReport
 
 /// Optimises an SE(3) graph in place: optional chordal initialisation, then LM minimising
 /// GTSAM's `E` (with GTSAM's prior when the graph has no `FIX`, see the module docs).
+/// Edges with an information matrix that is not positive definite use GTSAM's effective
+/// information instead ([`gtsam_effective_information`], counted in the report); the
+/// caller's graph keeps its edges, only the poses change.
 pub fn optimize_se3(graph: &mut Se3Graph, params: &PgoParams) -> Result<PgoReport, CoreError> {
     graph.validate()?;
+    let (repaired, mut work) = repaired_copy(graph);
+    let mut report = match work.as_mut() {
+        Some(w) => optimize_se3_inner(w, params)?,
+        None => optimize_se3_inner(graph, params)?,
+    };
+    if let Some(w) = work {
+        for (v, p) in graph.vertices.iter_mut().zip(&w.vertices) {
+            v.pose = p.pose;
+        }
+    }
+    report.repaired_information = repaired;
+    Ok(report)
+}
+
+/// A copy of `graph` with GTSAM's effective information on the edges whose information is
+/// not positive definite (`None` when there are none), and their count.
+fn repaired_copy<P: LiePose<D>, const D: usize>(
+    graph: &PoseGraph<P>,
+) -> (usize, Option<PoseGraph<P>>) {
+    let mut work: Option<PoseGraph<P>> = None;
+    let mut count = 0;
+    for (k, e) in graph.edges.iter().enumerate() {
+        if let Some(info) = gtsam_effective_information(&e.info) {
+            count += 1;
+            work.get_or_insert_with(|| graph.clone()).edges[k].info = info;
+        }
+    }
+    (count, work)
+}
+
+fn optimize_se3_inner(graph: &mut Se3Graph, params: &PgoParams) -> Result<PgoReport, CoreError> {
     let t0 = Instant::now();
     let fixed = fixed_mask(graph);
     let prior = if graph.fixed.is_empty() {
