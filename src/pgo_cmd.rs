@@ -212,3 +212,67 @@ pub fn run(args: &PgoArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(graph: PathBuf, out: PathBuf, method: Method, init: Init) -> PgoArgs {
+        PgoArgs {
+            graph,
+            method,
+            init,
+            out: Some(out),
+            max_iterations: 100,
+            json: true,
+        }
+    }
+
+    #[test]
+    fn sim3_file_to_tum() {
+        let dir = tempfile::tempdir().unwrap();
+        let graph = dir.path().join("g.g2o");
+        // Three keyframes 1 m apart by odometry; the loop edge says 2->0 is 1.5 m back, so
+        // the scales must change. Identity information (28 upper entries).
+        let info = "1 0 0 0 0 0 0 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1";
+        let text = format!(
+            "VERTEX_SIM3:QUAT 10 0 0 0 0 0 0 1 1\nVERTEX_SIM3:QUAT 11 1 0 0 0 0 0 1 1\n\
+             VERTEX_SIM3:QUAT 12 2 0 0 0 0 0 1 1\n\
+             EDGE_SIM3:QUAT 10 11 1 0 0 0 0 0 1 1 {info}\n\
+             EDGE_SIM3:QUAT 11 12 1 0 0 0 0 0 1 1 {info}\n\
+             EDGE_SIM3:QUAT 12 10 -1.5 0 0 0 0 0 1 1 {info}\nFIX 10\n"
+        );
+        std::fs::write(&graph, text).unwrap();
+        for method in [Method::Stepwise, Method::Direct, Method::StepwiseDirect] {
+            let out = dir.path().join("out.tum");
+            run(&args(graph.clone(), out.clone(), method, Init::Odometry)).unwrap();
+            let tum = std::fs::read_to_string(&out).unwrap();
+            let lines: Vec<&str> = tum.lines().collect();
+            assert_eq!(lines.len(), 3);
+            assert!(lines[0].starts_with("10 "));
+            assert_eq!(lines[2].split_whitespace().count(), 8);
+        }
+        let out = dir.path().join("x.tum");
+        let err = run(&args(graph, out, Method::Direct, Init::Chordal)).unwrap_err();
+        assert!(format!("{err:#}").contains("SE(3)"));
+    }
+
+    #[test]
+    fn malformed_file_names_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let graph = dir.path().join("bad.g2o");
+        std::fs::write(
+            &graph,
+            "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 0 1 2\n",
+        )
+        .unwrap();
+        let err = run(&args(
+            graph,
+            dir.path().join("o"),
+            Method::Direct,
+            Init::Odometry,
+        ))
+        .unwrap_err();
+        assert!(format!("{err:#}").contains("line 2"), "{err:#}");
+    }
+}
