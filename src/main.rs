@@ -1,4 +1,4 @@
-//! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `sim`, `eval`, `bench`;
+//! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `sim`, `eval`, `pgo`, `bench`;
 //! `service` (hidden) is how the launcher starts each service as its own process.
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -9,6 +9,7 @@ mod bench;
 mod demo;
 mod eval;
 mod launcher;
+mod pgo_cmd;
 mod plot;
 mod sim_cmd;
 
@@ -30,6 +31,8 @@ enum Command {
     Sim(sim_cmd::SimArgs),
     /// Trajectory error (ATE, RPE) of an estimate against ground truth, as evo computes it.
     Eval(eval::EvalArgs),
+    /// Pose graph optimisation of a g2o-like file (Sim(3): stepwise / direct; SE(3): LM).
+    Pgo(pgo_cmd::PgoArgs),
     /// Benchmarks (IPC hand-off, ...).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -140,6 +143,7 @@ fn main() -> ExitCode {
                 Command::Run(a) => run_cmd(a),
                 Command::Sim(a) => sim_cmd::run(&a),
                 Command::Eval(a) => eval::run(&a).map(|r| eval::print(&r, a.json)),
+                Command::Pgo(a) => pgo_cmd::run(&a),
                 Command::Bench(b) => bench::run(b),
                 Command::Service(_) => Ok(()),
             };

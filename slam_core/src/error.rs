@@ -12,4 +12,12 @@ pub enum CoreError {
     /// An argument is outside its valid domain.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
+    /// A text input (e.g. a g2o pose-graph file) has a malformed line (1-based number).
+    #[error("line {line}: {msg}")]
+    Parse {
+        /// 1-based line number.
+        line: usize,
+        /// What is wrong with it.
+        msg: String,
+    },
 }

@@ -8,6 +8,7 @@ pub mod geometry;
 pub mod imu;
 pub mod metrics;
 pub mod optim;
+pub mod pgo;
 pub mod pnp;
 pub mod ransac;
 pub mod rolling_shutter;
