@@ -39,14 +39,25 @@ fn check_client(r: &serde_json::Value, out: &Path, c: usize) -> (f64, f64, f64) 
     let sent = u(&cl["keyframes_sent"]);
     assert!(sent >= 10, "client {c} sent {sent} keyframes");
     assert_eq!(u(&cl["keyframes_applied"]), sent, "every keyframe applied");
-    assert_eq!(u(&cl["keyframes_acked"]), sent, "every keyframe acknowledged");
+    assert_eq!(
+        u(&cl["keyframes_acked"]),
+        sent,
+        "every keyframe acknowledged"
+    );
     assert!(u(&cl["keyframes_received"]) >= sent);
     let kept = u(&cl["keyframes_kept"]);
     let in_map = u(&cl["server_keyframes"]);
-    assert!(kept >= 5 && in_map >= 5 && in_map <= kept, "kept {kept}, in map {in_map}");
+    assert!(
+        kept >= 5 && in_map >= 5 && in_map <= kept,
+        "kept {kept}, in map {in_map}"
+    );
     assert!(cl["keyframe_bytes_per_s"].as_f64().unwrap_or(0.0) > 0.0);
     let counters = &r["services"]["mapper"]["counters"];
-    assert_eq!(u(&counters[format!("c{c}.maps")]), 1, "one server map per client");
+    assert_eq!(
+        u(&counters[format!("c{c}.maps")]),
+        1,
+        "one server map per client"
+    );
     let server_kfs = tum_times(&out.join(format!("keyframes_server_c{c}.txt")));
     assert_eq!(server_kfs.len() as u64, in_map);
     // Per-frame poses in the server map, from the feedback.
@@ -69,10 +80,19 @@ fn server_keyframes_beat_client_keyframes_and_frames_get_server_poses() {
     let dir = tempdir();
     let ds = synthetic(&dir.path().join("data"), "loop", 400, None);
     let out = dir.path().join("out");
-    let o = run_pipeline(&[&ds[0]], &out, "mapper_loop", &["--tracker-arg=--window=10"]);
+    let o = run_pipeline(
+        &[&ds[0]],
+        &out,
+        "mapper_loop",
+        &["--tracker-arg=--window=10"],
+    );
     assert!(o.status.success(), "shoal run failed");
     let r = report(&out);
-    assert_eq!(r["error_counts"].as_object().map_or(0, |m| m.len()), 0, "{r:#}");
+    assert_eq!(
+        r["error_counts"].as_object().map_or(0, |m| m.len()),
+        0,
+        "{r:#}"
+    );
     assert_eq!(u(&r["mapper"]["maps"]), 1);
     assert!(u(&r["mapper"]["points"]) > 200);
     let (client_kf, server_kf, server_frames) = check_client(&r, &out, 0);
@@ -169,7 +189,12 @@ fn second_lap_grows_the_server_map_little() {
     let dir = tempdir();
     let ds = synthetic(&dir.path().join("data"), "loop", 1280, None);
     let out = dir.path().join("out");
-    let o = run_pipeline(&[&ds[0]], &out, "mapper_laps", &["--tracker-arg=--window=10"]);
+    let o = run_pipeline(
+        &[&ds[0]],
+        &out,
+        "mapper_laps",
+        &["--tracker-arg=--window=10"],
+    );
     assert!(o.status.success(), "shoal run failed");
     let r = report(&out);
     let (ck, sk, sf) = check_client(&r, &out, 0);
@@ -197,6 +222,10 @@ fn second_lap_grows_the_server_map_little() {
         100.0 * growth
     );
     assert!(client_lap2 as f64 > 0.8 * client_lap1 as f64);
-    assert!(growth < 0.2, "server map grew {:.1}% on lap 2", 100.0 * growth);
+    assert!(
+        growth < 0.2,
+        "server map grew {:.1}% on lap 2",
+        100.0 * growth
+    );
     assert!(sk < ck);
 }

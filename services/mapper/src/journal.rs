@@ -31,8 +31,8 @@ pub enum Entry {
     Keyframe {
         /// Client index.
         client: u32,
-        /// Message header.
-        header: KeyframeHeader,
+        /// Message header (boxed: it is large beside the idle marker).
+        header: Box<KeyframeHeader>,
         /// Keypoint records.
         records: Vec<KeypointRecord>,
     },
@@ -171,7 +171,7 @@ fn decode_keyframe(p: &[u8]) -> Option<Entry> {
         flags: d.u32()?,
         reserved: d.u32()?,
     };
-    let header = KeyframeHeader {
+    let header = Box::new(KeyframeHeader {
         meta,
         keyframe_id: d.u64()?,
         t_ns: d.i64()?,
@@ -187,7 +187,7 @@ fn decode_keyframe(p: &[u8]) -> Option<Entry> {
         height: d.u32()?,
         n_keypoints: d.u32()?,
         reserved: d.u32()?,
-    };
+    });
     let n = d.u32()? as usize;
     if n > d.0.len() / 64 {
         return None;
@@ -385,7 +385,7 @@ mod tests {
         r.descriptor[5] = 0xab;
         Entry::Keyframe {
             client: 1,
-            header,
+            header: Box::new(header),
             records: vec![r, KeypointRecord::default()],
         }
     }

@@ -187,7 +187,7 @@ impl Mapper {
                     if let Some(j) = self.journal.as_mut() {
                         j.append(&Entry::Keyframe {
                             client: c,
-                            header: *h,
+                            header: Box::new(*h),
                             records: records.to_vec(),
                         })
                         .context("writing the journal")?;
@@ -444,8 +444,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         .filter_map(|(c, cl)| cl.worker.as_mut().map(|w| (c, w)))
     {
         if w.is_finished() && !w.join() {
-            m.status
-                .error("handler", format!("the handler thread of client {c} panicked"));
+            m.status.error(
+                "handler",
+                format!("the handler thread of client {c} panicked"),
+            );
         }
     }
     m.status.finished = true;

@@ -159,7 +159,8 @@ fn serve(
             }
             Err(RecvTimeoutError::Disconnected) => break,
         };
-        let (kf_session, kf_id, t_ns, t_ck) = (job.kf.session_id, job.kf.id, job.kf.t_ns, job.kf.t_ck);
+        let (kf_session, kf_id, t_ns, t_ck) =
+            (job.kf.session_id, job.kf.id, job.kf.t_ns, job.kf.t_ck);
         let t0 = Instant::now();
         let result = h.handle(job.kf).map_err(|e| e.to_string());
         let handle_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -233,7 +234,10 @@ fn write_files(
         };
         let _ = write_tum(&out.join(name), &m.trajectory());
     }
-    let _ = write_tum(&out.join(format!("keyframes_client_c{client}.txt")), client_kfs);
+    let _ = write_tum(
+        &out.join(format!("keyframes_client_c{client}.txt")),
+        client_kfs,
+    );
 }
 
 /// Writes a TUM trajectory (`t tx ty tz qx qy qz qw`, t in seconds) atomically.

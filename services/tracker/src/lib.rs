@@ -92,9 +92,8 @@ impl ServerRef {
     fn from_feedback(f: &shm_schema::Feedback, outbox: &outbox::Outbox) -> Option<Self> {
         let t_cj = outbox.sent_pose(f.acked_session_id, f.acked_keyframe_id)?;
         let p = &f.server_pose;
-        if !p.t.iter().chain(p.q.iter()).all(|v| v.is_finite())
-            || !(f.scale_ratio.is_finite() && f.scale_ratio > 0.0)
-        {
+        let finite = p.t.iter().chain(p.q.iter()).all(|v| v.is_finite());
+        if !(finite && f.scale_ratio.is_finite() && f.scale_ratio > 0.0) {
             return None;
         }
         let q = nalgebra::Quaternion::new(p.q[3], p.q[0], p.q[1], p.q[2]);
