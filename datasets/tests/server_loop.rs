@@ -73,6 +73,7 @@ fn run_vo(world: &SimWorld) -> Vec<ServerKeyframe> {
                 image,
                 t_ns: world.frame_time_ns(k),
                 readout_ns: world.readout_ns(),
+                angular_velocity: None,
             })
             .expect("vo step");
         // Keyframes evicted by a session change belong to the old session.
