@@ -76,7 +76,7 @@ fn check_client(r: &serde_json::Value, out: &Path, c: usize) -> (f64, f64, f64) 
 }
 
 #[test]
-fn server_keyframes_beat_client_keyframes_and_frames_get_server_poses() {
+fn server_map_pose_feedback_and_journal_replay_on_loop() {
     let dir = tempdir();
     let ds = synthetic(&dir.path().join("data"), "loop", 400, None);
     let out = dir.path().join("out");
