@@ -109,6 +109,12 @@ fn foreign_live_nodes(prefix: &str) -> anyhow::Result<Vec<String>> {
     Ok(names)
 }
 
+/// The mapper's journal in the output folder (replayed by a restarted mapper).
+pub const MAPPER_JOURNAL: &str = "mapper_journal.bin";
+
+/// How long the mapper may take at the end to finish its handlers' queues.
+const MAPPER_STOP_TIMEOUT: Duration = Duration::from_secs(60);
+
 fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
     let n = cfg.datasets.len() as u32;
     let out = &cfg.out;
@@ -121,7 +127,9 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
                 s("--clients"),
                 n.to_string(),
                 s("--journal"),
-                out.join("mapper_journal.txt").display().to_string(),
+                out.join(MAPPER_JOURNAL).display().to_string(),
+                s("--out"),
+                out.display().to_string(),
             ],
             out,
             false,
@@ -177,7 +185,19 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     // Fresh status files: a status left by an earlier run in the same folder must not be
     // taken for a crash of this one.
     let _ = std::fs::remove_dir_all(cfg.out.join("status"));
-    let _ = std::fs::remove_file(cfg.out.join("mapper_journal.txt"));
+    let _ = std::fs::remove_file(cfg.out.join(MAPPER_JOURNAL));
+    // Server outputs of an earlier run in the same folder.
+    if let Ok(rd) = std::fs::read_dir(&cfg.out) {
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            if ["keyframes_server_c", "keyframes_client_c", "map_growth_c"]
+                .iter()
+                .any(|p| name.starts_with(p))
+            {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
     let mut launcher_errors: Vec<ErrorRecord> = Vec::new();
     let mut datasets = Vec::new();
     for path in &cfg.datasets {
@@ -285,7 +305,12 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     ] {
         for sv in services.iter_mut().filter(|s| s.name.starts_with(prefix)) {
             if sv.child.is_some() {
-                sv.stop(Duration::from_secs(5));
+                let timeout = if sv.name == "mapper" {
+                    MAPPER_STOP_TIMEOUT
+                } else {
+                    Duration::from_secs(5)
+                };
+                sv.stop(timeout);
             }
         }
         recorder.drain()?;

@@ -43,6 +43,23 @@ pub struct ClientReport {
     pub keyframes_acked: u64,
     /// Keyframes the mapper applied (journaled).
     pub keyframes_applied: u64,
+    /// Keyframe messages the mapper received (re-sends included).
+    pub keyframes_received: u64,
+    /// Keyframes the client's handler inserted in a server map (before culling).
+    pub keyframes_kept: u64,
+    /// Keyframes in the client's server maps at the end (after culling).
+    pub server_keyframes: u64,
+    /// Keyframe message bytes the mapper received per second of data.
+    pub keyframe_bytes_per_s: f64,
+    /// Frames published with a pose in the server map (from the mapper's feedback).
+    pub frames_server_pose: u64,
+    /// ATE of the client VO's keyframes as the mapper received them (`keyframes_client_c{i}.txt`).
+    pub ate_client_keyframes: Option<AteReport>,
+    /// ATE of the server keyframes of the client's current server map
+    /// (`keyframes_server_c{i}.txt`).
+    pub ate_server_keyframes: Option<AteReport>,
+    /// ATE of the per-frame poses in the server map (`trajectory_server_c{i}.txt`).
+    pub ate_server_frames: Option<AteReport>,
     /// Trajectory file written, if any.
     pub trajectory: Option<String>,
     /// Accuracy of the trajectory against the dataset's ground truth, if both exist.
@@ -74,22 +91,43 @@ fn evaluate_client(
     traj: &[(i64, shm_schema::Pose)],
     plot: &Path,
 ) -> Option<AteReport> {
-    let gt = ds.ground_truth.as_ref()?;
     let to_iso = |p: &shm_schema::Pose| {
         let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
             p.q[3], p.q[0], p.q[1], p.q[2],
         ));
         nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(p.t[0], p.t[1], p.t[2]), q)
     };
-    let gt_t: Vec<i64> = gt.iter().map(|g| g.t_ns).collect();
-    let gt_p: Vec<_> = gt.iter().map(|g| g.pose).collect();
     let est_t: Vec<i64> = traj.iter().map(|(t, _)| *t).collect();
     let est_p: Vec<_> = traj.iter().map(|(_, p)| to_iso(p)).collect();
+    evaluate_poses(ds, &est_t, &est_p, plot)
+}
+
+/// Evaluates the TUM trajectory file `path` like [`evaluate_client`].
+fn evaluate_file(ds: &datasets::Dataset, path: &Path, plot: &Path) -> Option<AteReport> {
+    let traj = datasets::trajectory::read_tum(path).ok()?;
+    let est_t: Vec<i64> = traj.poses.iter().map(|p| p.t_ns).collect();
+    let est_p: Vec<_> = traj.poses.iter().map(|p| p.pose).collect();
+    evaluate_poses(ds, &est_t, &est_p, plot)
+}
+
+/// Evaluates poses (camera → map) against the ground truth of `ds` (Sim(3)) and plots them.
+fn evaluate_poses(
+    ds: &datasets::Dataset,
+    est_t: &[i64],
+    est_p: &[nalgebra::Isometry3<f64>],
+    plot: &Path,
+) -> Option<AteReport> {
+    let gt = ds.ground_truth.as_ref()?;
+    if est_t.len() < 3 {
+        return None;
+    }
+    let gt_t: Vec<i64> = gt.iter().map(|g| g.t_ns).collect();
+    let gt_p: Vec<_> = gt.iter().map(|g| g.pose).collect();
     let params = slam_core::metrics::EvalParams {
         alignment: slam_core::metrics::Alignment::Sim3,
         ..Default::default()
     };
-    let r = slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &params).ok()?;
+    let r = slam_core::metrics::evaluate(&gt_t, &gt_p, est_t, est_p, &params).ok()?;
     let aligned: Vec<_> = r
         .pairs
         .iter()
@@ -121,6 +159,17 @@ pub struct ServiceReport {
     pub recovery_s: Vec<f64>,
     /// The service's own counters.
     pub counters: BTreeMap<String, u64>,
+}
+
+/// Server map figures at the end of the run (all clients).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct MapperReport {
+    /// Server maps.
+    pub maps: u64,
+    /// Keyframes in them.
+    pub keyframes: u64,
+    /// Points in them.
+    pub points: u64,
 }
 
 /// Latency figures of the run.
@@ -155,6 +204,8 @@ pub struct RunReport {
     pub clients: Vec<ClientReport>,
     /// Latencies, ms.
     pub latency_ms: LatencyReport,
+    /// The server maps.
+    pub mapper: MapperReport,
     /// Per service.
     pub services: BTreeMap<String, ServiceReport>,
     /// Errors (bad input, schema mismatches, crashes given up), at most 200 per service.
@@ -241,6 +292,28 @@ impl RunReport {
                 )?;
             }
             let m = |k: &str| mapper.map_or(0, |s| s.get(&format!("c{c}.{k}")));
+            let out = &cfg.out;
+            let ate_file = |name: &str| {
+                evaluate_file(
+                    ds,
+                    &out.join(format!("{name}_c{c}.txt")),
+                    &out.join(format!("{name}_c{c}.png")),
+                )
+            };
+            let mut server_traj = rec.server_trajectory.clone();
+            server_traj.sort_by_key(|p| p.0);
+            server_traj.dedup_by_key(|p| p.0);
+            let ate_server_frames = evaluate_client(
+                ds,
+                &server_traj,
+                &out.join(format!("trajectory_server_c{c}.png")),
+            );
+            let frames = &ds.frames[..(total as usize).min(ds.frames.len())];
+            let data_s = match (frames.first(), frames.last()) {
+                (Some(a), Some(b)) if b.t_ns > a.t_ns => (b.t_ns - a.t_ns) as f64 * 1e-9,
+                _ => 0.0,
+            };
+            let kf_bytes = m("keyframe_bytes") as f64;
             rep.clients.push(ClientReport {
                 dataset: ds.root.display().to_string(),
                 frames_total: total,
@@ -258,10 +331,24 @@ impl RunReport {
                 keyframes_sent: get(&trk, "keyframes_sent"),
                 keyframes_acked: get(&trk, "keyframes_acked_seen"),
                 keyframes_applied: m("keyframes_applied"),
+                keyframes_received: m("keyframes_received"),
+                keyframes_kept: m("keyframes_kept"),
+                server_keyframes: m("server_keyframes"),
+                keyframe_bytes_per_s: if data_s > 0.0 { kf_bytes / data_s } else { 0.0 },
+                frames_server_pose: rec.tracked_server,
+                ate_client_keyframes: ate_file("keyframes_client"),
+                ate_server_keyframes: ate_file("keyframes_server"),
+                ate_server_frames,
                 trajectory,
                 ate,
             });
         }
+        let g = |k: &str| mapper.map_or(0, |s| s.get(k));
+        rep.mapper = MapperReport {
+            maps: g("maps"),
+            keyframes: g("keyframes"),
+            points: g("points"),
+        };
         rep.latency_ms = LatencyReport {
             publish_to_pose: recorder.publish_to_pose.percentiles(),
             publish_to_receive: recorder.publish_to_receive.percentiles(),

@@ -1,25 +1,40 @@
-//! Mapper service: owns the server maps (one process for all clients).
+//! Mapper service: owns the server maps of all clients (seed §3.4.1).
 //!
-//! **Status: plumbing.** Keyframe handlers, server maps, scale-ratio tracking and pose
-//! feedback (seed §3.4.1) come with the mapper issue. Until then this service does the
-//! message work for real: it takes every client's keyframe messages from shared memory,
-//! checks their schema version, journals what it applied (append-only, one line per
-//! keyframe, in the run's output folder), acknowledges each applied keyframe on the
-//! client's feedback service (the tracker's re-send logic relies on these acks), forwards
-//! it to the loop closer, and keeps counters per client in its status file. A restarted
-//! mapper re-reads its journal, so keyframes applied before the crash stay applied and are
-//! not counted twice.
+//! The main thread takes every client's keyframe messages from shared memory, checks their
+//! schema version, converts them ([`convert`]), journals them whole ([`journal`]) and only
+//! then acknowledges them on the client's feedback service (the tracker keeps a keyframe
+//! until it is acknowledged). Duplicates (re-sends) are acknowledged again but not re-applied.
+//! Each client has its own [`slam_core::server::KeyframeHandler`] on its own thread
+//! ([`worker`]), created when its first keyframe arrives. For every handled keyframe the
+//! main thread publishes pose feedback (server pose of the keyframe, scale ratio, server map
+//! id) and forwards the keyframes the handler kept to the loop closer.
+//!
+//! A restarted mapper replays its journal through fresh handlers before it takes new
+//! keyframes, following the journaled idle-step schedule, so it rebuilds the same maps.
+//! Outputs: `OUT/keyframes_server_c{i}.txt` (and `keyframes_client_c{i}.txt`), written
+//! periodically and at the end; figures in the status file (`maps`, `keyframes`, `points`,
+//! per client `c{i}.keyframes_received`, `c{i}.keyframes_kept`, ...).
 #![deny(missing_docs)]
 
-use std::collections::HashSet;
-use std::io::{BufRead, Write};
-use std::path::PathBuf;
-use std::time::Duration;
+pub mod convert;
+pub mod journal;
+pub mod worker;
 
+use std::collections::{BTreeMap, HashSet};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use crossbeam_channel::Receiver;
+use iceoryx2::port::publisher::Publisher;
 use shm_schema::time::monotonic_ns;
-use shm_schema::topics;
-use shm_schema::{Feedback, MsgMeta};
+use shm_schema::topics::{self, Ipc};
+use shm_schema::{Feedback, KeyframeHeader, KeypointRecord, MsgMeta};
 use shoal_runtime::{Status, StatusFile};
+use slam_core::server::{HandlerParams, KeyframeStatus};
+
+use journal::{Entry, Journal};
+use worker::{Job, MapFigures, Outcome, Worker};
 
 /// Parameters of the mapper service.
 #[derive(Debug, Clone, clap::Parser)]
@@ -31,12 +46,18 @@ pub struct Params {
     /// Status file (JSON).
     #[arg(long)]
     pub status: Option<PathBuf>,
-    /// Append-only journal of applied keyframes.
+    /// Append-only journal of applied keyframes (replayed on start).
     #[arg(long)]
     pub journal: Option<PathBuf>,
+    /// Output folder for the server keyframe trajectories (default: the journal's folder).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
     #[arg(long)]
     pub ipc_prefix: Option<String>,
+    /// At the end, wait at most this long (s) for the handlers to finish their queues.
+    #[arg(long, default_value_t = 50.0)]
+    pub drain_seconds: f64,
 }
 
 /// The service's name in reports.
@@ -47,114 +68,389 @@ pub fn main_with(params: Params) -> i32 {
     shoal_runtime::exit_code(SERVICE_NAME, run(&params))
 }
 
-/// A journal line: `client session keyframe_id t_ns n_keypoints`.
-fn parse_journal_line(line: &str) -> Option<(u32, u32, u64)> {
-    let mut it = line.split_whitespace();
-    Some((
-        it.next()?.parse().ok()?,
-        it.next()?.parse().ok()?,
-        it.next()?.parse().ok()?,
-    ))
+type KfKey = (u32, u64);
+
+/// Per-client state of the main thread.
+struct Client {
+    worker: Option<Worker>,
+    /// Applied (journaled) keyframes: (session, id).
+    applied: HashSet<KfKey>,
+    /// Messages of applied keyframes waiting for their outcome (to forward kept ones).
+    waiting: BTreeMap<KfKey, (KeyframeHeader, Vec<KeypointRecord>)>,
+    fb_seq: u64,
+    figures: MapFigures,
 }
 
-/// Serves keyframes until SIGINT/SIGTERM.
-pub fn run(params: &Params) -> anyhow::Result<Status> {
-    let mut file = StatusFile::new(params.status.clone());
-    let mut status = shoal_runtime::resume_status(&file, SERVICE_NAME);
-    // Rebuild what was applied from the journal (a torn last line is ignored and reported).
-    let mut applied: HashSet<(u32, u32, u64)> = HashSet::new();
-    if let Some(path) = &params.journal {
-        if let Ok(f) = std::fs::File::open(path) {
-            for (i, line) in std::io::BufReader::new(f).lines().enumerate() {
-                match line.ok().as_deref().and_then(parse_journal_line) {
-                    Some(k) => {
-                        applied.insert(k);
+/// The main thread's state apart from the iceoryx2 ports.
+struct Mapper {
+    clients: Vec<Client>,
+    journal: Option<Journal>,
+    out: Option<PathBuf>,
+    results_tx: crossbeam_channel::Sender<Outcome>,
+    status: Status,
+}
+
+impl Mapper {
+    /// Queues a keyframe for its client's handler, starting the handler on first use.
+    fn queue(&mut self, c: u32, job: Job) -> anyhow::Result<()> {
+        let cl = &mut self.clients[c as usize];
+        if cl.worker.is_none() {
+            cl.worker = Some(
+                Worker::spawn(
+                    c,
+                    HandlerParams::default(),
+                    self.out.clone(),
+                    self.results_tx.clone(),
+                )
+                .context("starting a handler thread")?,
+            );
+            self.status.add("handlers_started", 1);
+        }
+        if !cl.worker.as_ref().is_some_and(|w| w.send(job)) {
+            anyhow::bail!("the handler thread of client {c} is gone");
+        }
+        Ok(())
+    }
+
+    /// Rebuilds the maps from the journal's entries (before any new keyframe is taken).
+    fn replay(&mut self, entries: Vec<Entry>) -> anyhow::Result<usize> {
+        let idle: HashSet<(u32, u32, u64)> = entries
+            .iter()
+            .filter_map(|e| match e {
+                Entry::Idle {
+                    client,
+                    session,
+                    kf_id,
+                } => Some((*client, *session, *kf_id)),
+                _ => None,
+            })
+            .collect();
+        let mut n = 0;
+        for e in entries {
+            let Entry::Keyframe {
+                client,
+                header,
+                records,
+            } = e
+            else {
+                continue;
+            };
+            if client as usize >= self.clients.len() {
+                self.status.error(
+                    "journal",
+                    format!("keyframe of client {client} in the journal, serving fewer"),
+                );
+                continue;
+            }
+            let key = (header.meta.session_id, header.keyframe_id);
+            match convert::server_keyframe(client, &header, &records) {
+                Ok(kf) => {
+                    self.clients[client as usize].applied.insert(key);
+                    let job = Job {
+                        kf,
+                        idle: Some(idle.contains(&(client, key.0, key.1))),
+                        replay: true,
+                    };
+                    self.queue(client, job)?;
+                    n += 1;
+                }
+                Err(e) => self.status.error("journal", e),
+            }
+        }
+        Ok(n)
+    }
+
+    /// One keyframe message of client `c`: journal, queue, acknowledge.
+    fn receive(
+        &mut self,
+        c: u32,
+        h: &KeyframeHeader,
+        records: &[KeypointRecord],
+        fb: &Publisher<Ipc, Feedback, ()>,
+    ) -> anyhow::Result<()> {
+        let s = &mut self.status;
+        s.add(&format!("c{c}.keyframes_received"), 1);
+        s.add(
+            &format!("c{c}.keyframe_bytes"),
+            (std::mem::size_of::<KeyframeHeader>() + std::mem::size_of_val(records)) as u64,
+        );
+        let key = (h.meta.session_id, h.keyframe_id);
+        if self.clients[c as usize].applied.contains(&key) {
+            s.add(&format!("c{c}.keyframes_duplicate"), 1);
+        } else {
+            match convert::server_keyframe(c, h, records) {
+                Err(e) => {
+                    // Acknowledged (a re-send would not be better) but not applied.
+                    s.error("bad_keyframe", format!("client {c}: {e}"));
+                }
+                Ok(kf) => {
+                    if let Some(j) = self.journal.as_mut() {
+                        j.append(&Entry::Keyframe {
+                            client: c,
+                            header: Box::new(*h),
+                            records: records.to_vec(),
+                        })
+                        .context("writing the journal")?;
                     }
-                    None => status.error(
-                        "journal",
-                        format!(
-                            "{}:{}: unreadable journal line skipped",
-                            path.display(),
-                            i + 1
-                        ),
-                    ),
+                    let cl = &mut self.clients[c as usize];
+                    cl.applied.insert(key);
+                    cl.waiting.insert(key, (*h, records.to_vec()));
+                    s.add(&format!("c{c}.keyframes_applied"), 1);
+                    self.queue(
+                        c,
+                        Job {
+                            kf,
+                            idle: None,
+                            replay: false,
+                        },
+                    )?;
                 }
             }
         }
+        let cl = &mut self.clients[c as usize];
+        let ack = Feedback {
+            meta: MsgMeta::new(c, h.meta.session_id, cl.fb_seq, monotonic_ns()),
+            acked_keyframe_id: h.keyframe_id,
+            acked_session_id: h.meta.session_id,
+            has_pose: 0,
+            scale_ratio: 1.0,
+            ..Feedback::default()
+        };
+        fb.send_copy(ack)?;
+        cl.fb_seq += 1;
+        self.status.add(&format!("c{c}.keyframes_acked"), 1);
+        Ok(())
     }
-    status.set_value("journal_keyframes_on_start", applied.len() as f64);
-    let mut journal = match &params.journal {
-        Some(p) => Some(
-            std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(p)?,
-        ),
-        None => None,
+
+    /// A handler's outcome: journal the idle step, forward kept keyframes, publish feedback,
+    /// update the figures.
+    fn outcome(
+        &mut self,
+        o: Outcome,
+        fb: &Publisher<Ipc, Feedback, ()>,
+        loop_pub: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+    ) -> anyhow::Result<()> {
+        let c = o.client;
+        let key = (o.session, o.kf_id);
+        if o.idled && !o.replay {
+            if let Some(j) = self.journal.as_mut() {
+                j.append(&Entry::Idle {
+                    client: c,
+                    session: o.session,
+                    kf_id: o.kf_id,
+                })
+                .context("writing the journal")?;
+            }
+        }
+        let s = &mut self.status;
+        let cl = &mut self.clients[c as usize];
+        match &o.result {
+            Err(e) => {
+                s.error("handler", format!("client {c} keyframe {}: {e}", o.kf_id));
+                cl.waiting.remove(&key);
+            }
+            Ok(r) => {
+                let name = match r.status {
+                    KeyframeStatus::First => "first",
+                    KeyframeStatus::MapCreated => "map_created",
+                    KeyframeStatus::Kept => "kept",
+                    KeyframeStatus::Discarded => "discarded",
+                    KeyframeStatus::Duplicate => "duplicate",
+                };
+                s.add(&format!("c{c}.handled_{name}"), 1);
+                if o.replay {
+                    s.add(&format!("c{c}.keyframes_replayed"), 1);
+                }
+                for k in &r.kept {
+                    if let Some((h, recs)) = cl.waiting.remove(&(o.session, k.client_kf_id)) {
+                        let out = loop_pub.loan_slice_uninit(recs.len())?;
+                        let mut out = out.write_from_slice(&recs);
+                        *out.user_header_mut() = h;
+                        out.send()?;
+                        s.add(&format!("c{c}.keyframes_forwarded"), 1);
+                    }
+                }
+                let keep_first = r.status == KeyframeStatus::First;
+                cl.waiting
+                    .retain(|k, _| *k > key || (keep_first && *k == key));
+            }
+        }
+        s.add(&format!("c{c}.handle_us"), (o.handle_ms * 1e3) as u64);
+        s.add(&format!("c{c}.idle_us"), (o.idle_ms * 1e3) as u64);
+        if let Some((map_id, t_sk, lambda)) = o.feedback.and_then(|f| f.pose) {
+            if let Some(f) = o.feedback {
+                let msg = Feedback {
+                    meta: MsgMeta::new(c, f.acked_session_id, cl.fb_seq, monotonic_ns()),
+                    acked_keyframe_id: f.acked_keyframe_id,
+                    acked_session_id: f.acked_session_id,
+                    has_pose: 1,
+                    server_pose: convert::wire_from_iso(&t_sk),
+                    scale_ratio: lambda,
+                    server_map_id: map_id,
+                };
+                fb.send_copy(msg)?;
+                cl.fb_seq += 1;
+                s.add(&format!("c{c}.pose_feedback_sent"), 1);
+            }
+        }
+        cl.figures = o.figures;
+        let f = &o.figures;
+        let set = |s: &mut Status, k: String, v: u64| {
+            s.counters.insert(k, v);
+        };
+        set(s, format!("c{c}.keyframes_kept"), f.stats.kept);
+        set(s, format!("c{c}.keyframes_discarded"), f.stats.discarded);
+        set(s, format!("c{c}.keyframes_culled"), f.stats.culled);
+        set(s, format!("c{c}.maps"), f.maps as u64);
+        set(s, format!("c{c}.server_keyframes"), f.keyframes as u64);
+        set(s, format!("c{c}.server_points"), f.points as u64);
+        s.set_value(&format!("c{c}.lambda"), f.lambda);
+        let total = |g: fn(&MapFigures) -> usize| -> u64 {
+            self.clients.iter().map(|c| g(&c.figures) as u64).sum()
+        };
+        let (maps, kfs, pts) = (
+            total(|f| f.maps),
+            total(|f| f.keyframes),
+            total(|f| f.points),
+        );
+        set(&mut self.status, "maps".into(), maps);
+        set(&mut self.status, "keyframes".into(), kfs);
+        set(&mut self.status, "points".into(), pts);
+        Ok(())
+    }
+}
+
+fn drain_outcomes(
+    m: &mut Mapper,
+    rx: &Receiver<Outcome>,
+    fbs: &[Publisher<Ipc, Feedback, ()>],
+    loop_pub: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+) -> anyhow::Result<usize> {
+    let mut n = 0;
+    while let Ok(o) = rx.try_recv() {
+        let c = o.client as usize;
+        m.outcome(o, &fbs[c], loop_pub)?;
+        n += 1;
+    }
+    Ok(n)
+}
+
+/// Serves keyframes until SIGINT/SIGTERM, then lets the handlers finish their queues.
+pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let mut file = StatusFile::new(params.status.clone());
+    let status = shoal_runtime::resume_status(&file, SERVICE_NAME);
+    let out = params.out.clone().or_else(|| {
+        params
+            .journal
+            .as_ref()
+            .and_then(|j| j.parent().map(|p| p.to_path_buf()))
+    });
+    let (results_tx, results_rx) = crossbeam_channel::unbounded();
+    let mut m = Mapper {
+        clients: (0..params.clients)
+            .map(|_| Client {
+                worker: None,
+                applied: HashSet::new(),
+                waiting: BTreeMap::new(),
+                fb_seq: 0,
+                figures: MapFigures::default(),
+            })
+            .collect(),
+        journal: None,
+        out,
+        results_tx,
+        status,
     };
+    // Rebuild the maps from the journal before taking new keyframes.
+    if let Some(path) = &params.journal {
+        let (j, contents) = Journal::open(path)
+            .with_context(|| format!("opening the journal {}", path.display()))?;
+        if let Some(p) = contents.problem {
+            m.status
+                .error("journal", format!("{}: {p}", path.display()));
+        }
+        let n = m.replay(contents.entries)?;
+        m.status.set_value("journal_keyframes_on_start", n as f64);
+        m.journal = Some(j);
+    }
     let prefix = params
         .ipc_prefix
         .clone()
         .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
     let node = topics::create_node("mapper", &prefix)?;
-    let mut clients = Vec::new();
+    let mut subs = Vec::new();
+    let mut fbs = Vec::new();
     for c in 0..params.clients {
-        let sub = topics::keyframe_subscriber(&topics::keyframes_service(&node, c)?)?;
-        let fb = topics::publisher(&topics::feedback_service(&node, c)?)?;
-        clients.push((c, sub, fb, 0u64));
+        subs.push(topics::keyframe_subscriber(&topics::keyframes_service(
+            &node, c,
+        )?)?);
+        fbs.push(topics::publisher(&topics::feedback_service(&node, c)?)?);
     }
     let loop_pub = topics::keyframe_publisher(&topics::loop_keyframes_service(&node)?)?;
     shoal_runtime::signal_ready();
 
     loop {
         let mut idle = true;
-        for (c, sub, fb, fb_seq) in clients.iter_mut() {
+        for (c, sub) in subs.iter().enumerate() {
             while let Some(kf) = sub.receive()? {
                 idle = false;
                 let h = *kf.user_header();
                 if let Err(e) = h.meta.check() {
-                    status.error("schema_version", format!("keyframe of client {c}: {e}"));
+                    m.status
+                        .error("schema_version", format!("keyframe of client {c}: {e}"));
                     continue;
                 }
-                let key = (*c, h.meta.session_id, h.keyframe_id);
-                status.add(&format!("c{c}.keyframes_received"), 1);
-                if applied.insert(key) {
-                    if let Some(j) = journal.as_mut() {
-                        writeln!(
-                            j,
-                            "{} {} {} {} {}",
-                            c, h.meta.session_id, h.keyframe_id, h.t_ns, h.n_keypoints
-                        )?;
-                        j.flush()?;
-                    }
-                    status.add(&format!("c{c}.keyframes_applied"), 1);
-                    let records = kf.payload();
-                    let mut out = loop_pub.loan_slice_uninit(records.len())?;
-                    *out.user_header_mut() = h;
-                    out.write_from_slice(records).send()?;
-                } else {
-                    status.add(&format!("c{c}.keyframes_duplicate"), 1);
-                }
-                let ack = Feedback {
-                    meta: MsgMeta::new(*c, h.meta.session_id, *fb_seq, monotonic_ns()),
-                    acked_keyframe_id: h.keyframe_id,
-                    acked_session_id: h.meta.session_id,
-                    has_pose: 0,
-                    scale_ratio: 1.0,
-                    ..Feedback::default()
-                };
-                fb.send_copy(ack)?;
-                *fb_seq += 1;
-                status.add(&format!("c{c}.keyframes_acked"), 1);
+                m.receive(c as u32, &h, kf.payload(), &fbs[c])?;
             }
         }
-        let _ = file.write_every(&status, Duration::from_millis(200));
+        if drain_outcomes(&mut m, &results_rx, &fbs, &loop_pub)? > 0 {
+            idle = false;
+        }
+        let _ = file.write_every(&m.status, Duration::from_millis(200));
         if idle && node.wait(Duration::from_millis(1)).is_err() {
             break;
         }
     }
-    status.finished = true;
-    file.write(&status)?;
-    Ok(status)
+    // Stop: the handlers finish what they have queued and write their files.
+    let queued: usize = m
+        .clients
+        .iter()
+        .filter_map(|c| c.worker.as_ref())
+        .map(|w| w.queued())
+        .sum();
+    m.status.set_value("queued_at_stop", queued as f64);
+    for w in m.clients.iter_mut().filter_map(|c| c.worker.as_mut()) {
+        w.close();
+    }
+    let deadline = Instant::now() + Duration::from_secs_f64(params.drain_seconds.max(0.0));
+    loop {
+        drain_outcomes(&mut m, &results_rx, &fbs, &loop_pub)?;
+        let running = m
+            .clients
+            .iter()
+            .filter_map(|c| c.worker.as_ref())
+            .any(|w| !w.is_finished());
+        if !running || Instant::now() > deadline {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    drain_outcomes(&mut m, &results_rx, &fbs, &loop_pub)?;
+    for (c, w) in m
+        .clients
+        .iter_mut()
+        .enumerate()
+        .filter_map(|(c, cl)| cl.worker.as_mut().map(|w| (c, w)))
+    {
+        if w.is_finished() && !w.join() {
+            m.status.error(
+                "handler",
+                format!("the handler thread of client {c} panicked"),
+            );
+        }
+    }
+    m.status.finished = true;
+    file.write(&m.status)?;
+    Ok(m.status)
 }

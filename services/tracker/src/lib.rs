@@ -77,6 +77,54 @@ fn run_vo(
     })?)
 }
 
+/// The last usable pose feedback: keyframe `j`'s client pose as sent, its server pose and
+/// the scale ratio (seed eq. 3.1, 3.4), for frames of the same VO session.
+struct ServerRef {
+    session: u32,
+    t_cj: nalgebra::Isometry3<f64>,
+    t_sj: nalgebra::Isometry3<f64>,
+    lambda: f64,
+}
+
+impl ServerRef {
+    /// From a feedback message with a pose, if the keyframe is one this tracker sent and
+    /// the values are valid.
+    fn from_feedback(f: &shm_schema::Feedback, outbox: &outbox::Outbox) -> Option<Self> {
+        let t_cj = outbox.sent_pose(f.acked_session_id, f.acked_keyframe_id)?;
+        let p = &f.server_pose;
+        let finite = p.t.iter().chain(p.q.iter()).all(|v| v.is_finite());
+        if !(finite && f.scale_ratio.is_finite() && f.scale_ratio > 0.0) {
+            return None;
+        }
+        let q = nalgebra::Quaternion::new(p.q[3], p.q[0], p.q[1], p.q[2]);
+        if q.norm() < 1e-6 {
+            return None;
+        }
+        let t_sj = nalgebra::Isometry3::from_parts(
+            nalgebra::Translation3::new(p.t[0], p.t[1], p.t[2]),
+            nalgebra::UnitQuaternion::from_quaternion(q),
+        );
+        Some(Self {
+            session: f.acked_session_id,
+            t_cj,
+            t_sj,
+            lambda: f.scale_ratio,
+        })
+    }
+
+    /// The server-map pose (wire, camera → server map) of a frame with client pose `t_cf`.
+    fn frame_pose(&self, t_cf: &nalgebra::Isometry3<f64>) -> Pose {
+        let t =
+            slam_core::server::frame_pose_in_server_map(&self.t_cj, &self.t_sj, self.lambda, t_cf);
+        let q = t.rotation.quaternion();
+        let v = t.translation.vector;
+        Pose {
+            t: [v.x, v.y, v.z],
+            q: [q.i, q.j, q.k, q.w],
+        }
+    }
+}
+
 /// Parameters of the tracker service.
 #[derive(Debug, Clone, clap::Parser)]
 #[command(name = "tracker", about = "Client tracker service")]
@@ -171,6 +219,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let session_id = session_base | 1;
     let kf_pub = topics::keyframe_publisher(&topics::keyframes_service(&node, c)?)?;
     let mut outbox = outbox::Outbox::new(c);
+    let mut server_ref: Option<ServerRef> = None;
     let mut vo: Option<VoTracker> = None;
     shoal_runtime::signal_ready();
 
@@ -198,6 +247,18 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             if f.meta.check().is_ok() {
                 status.add("feedback_received", 1);
                 outbox.ack(f.acked_session_id, f.acked_keyframe_id);
+                if f.has_pose != 0 {
+                    match ServerRef::from_feedback(&f, &outbox) {
+                        Some(r) => {
+                            outbox.forget_sent_before(f.acked_session_id, f.acked_keyframe_id);
+                            server_ref = Some(r);
+                            status.add("pose_feedback_used", 1);
+                        }
+                        None => status.add("pose_feedback_unusable", 1),
+                    }
+                }
+            } else {
+                status.error("schema_version", format!("feedback of client {c}"));
             }
         }
         outbox.resend_stale(&kf_pub, 2_000_000_000)?;
@@ -285,6 +346,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             let mut stage_ms = [0f32; stage::COUNT];
             let mut state = TrackState::NotInitialized;
             let mut pose_out = Pose::IDENTITY;
+            let mut t_cf: Option<nalgebra::Isometry3<f64>> = None;
             let mut tracked = 0;
             let mut is_kf = 0;
             let mut vo_session = session_id;
@@ -325,6 +387,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                             };
                             if let (TrackState::Tracking, Some(t)) = (state, o.t_cw) {
                                 pose_out = outbox::wire_pose(&t);
+                                t_cf = Some(t.inverse());
                             }
                             tracked = o.tracked as u32;
                             is_kf = o.keyframe.is_some() as u32;
@@ -372,6 +435,16 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             if state == TrackState::Tracking {
                 status.add("frames_tracked", 1);
             }
+            // Pose in the server map from the last feedback (eq. 3.1, 3.4), same VO session.
+            let server_pose = t_cf.and_then(|t| {
+                server_ref
+                    .as_ref()
+                    .filter(|r| r.session == vo_session)
+                    .map(|r| r.frame_pose(&t))
+            });
+            if server_pose.is_some() {
+                status.add("frames_server_pose", 1);
+            }
             let out = monotonic_ns();
             stage_ms[stage::TOTAL] = (out - recv) as f32 * 1e-6;
             let pose = TrackedPose {
@@ -379,9 +452,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 t_ns: h.t_mid_ns,
                 dataset_index: h.dataset_index,
                 pose: pose_out,
-                server_pose: Pose::IDENTITY,
+                server_pose: server_pose.unwrap_or(Pose::IDENTITY),
                 state: state as u32,
-                has_server_pose: 0,
+                has_server_pose: server_pose.is_some() as u32,
                 tracked_points: tracked,
                 is_keyframe: is_kf,
                 frame_publish_mono_ns: h.meta.publish_mono_ns,
@@ -407,6 +480,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     status.add("keyframes_sent", outbox.sent);
     status.add("keyframes_resent", outbox.resent);
     status.add("keyframes_acked_seen", outbox.acked);
+    status.set_value("sent_poses_kept", outbox.sent_poses_kept() as f64);
     status.set_value("keyframes_unacked", outbox.pending() as f64);
     status.finished = ended;
     file.write(&status)?;

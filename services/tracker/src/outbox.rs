@@ -29,6 +29,9 @@ pub struct Outbox {
     client: u32,
     next_seq: u64,
     pending: BTreeMap<(u32, u64), Pending>,
+    /// Client poses `T_ck` of the keyframes sent, as sent, by (session, id): pose feedback
+    /// refers to one of them (kept after the acknowledgement until newer feedback came).
+    sent_poses: BTreeMap<(u32, u64), nalgebra::Isometry3<f64>>,
     /// Keyframe messages sent (first sends).
     pub sent: u64,
     /// Re-sends.
@@ -55,6 +58,7 @@ impl Outbox {
             client,
             next_seq: 0,
             pending: BTreeMap::new(),
+            sent_poses: BTreeMap::new(),
             sent: 0,
             resent: 0,
             acked: 0,
@@ -105,6 +109,7 @@ impl Outbox {
             reserved: 0,
         };
         self.next_seq += 1;
+        self.sent_poses.insert((session, kf.id), kf.t_cw.inverse());
         self.pending.insert(
             (session, kf.id),
             Pending {
@@ -137,6 +142,23 @@ impl Outbox {
             }
         }
         Ok(())
+    }
+
+    /// The client pose `T_ck` of keyframe `id` of `session` as it was sent (the client map
+    /// may have refined it since; the server's feedback refers to the pose sent).
+    pub fn sent_pose(&self, session: u32, id: u64) -> Option<nalgebra::Isometry3<f64>> {
+        self.sent_poses.get(&(session, id)).copied()
+    }
+
+    /// Forgets the sent poses of keyframes before `id` of `session` (feedback comes in
+    /// handling order, so they will not be referred to again).
+    pub fn forget_sent_before(&mut self, session: u32, id: u64) {
+        self.sent_poses = self.sent_poses.split_off(&(session, id));
+    }
+
+    /// Sent poses remembered.
+    pub fn sent_poses_kept(&self) -> usize {
+        self.sent_poses.len()
     }
 
     /// The mapper applied keyframe `id` of `session`.

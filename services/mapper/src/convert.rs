@@ -1,0 +1,163 @@
+//! Wire ↔ algorithm conversions: a keyframe message (header + keypoint records) into a
+//! [`ServerKeyframe`], and poses between the wire [`Pose`] and nalgebra.
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use shm_schema::{KeyframeHeader, KeypointRecord, Pose, NO_MAP_POINT};
+use slam_core::camera::PinholeRadtan;
+use slam_core::features::{KeyPoint, OrbFeatures, PATCH_SIZE};
+use slam_core::server::ServerKeyframe;
+
+/// Scale between pyramid levels of the client's ORB extractor (only used to restore the
+/// keypoint size, which the message does not carry).
+const LEVEL_SCALE: f32 = 1.2;
+
+/// A wire pose `T_ab` as an isometry; `None` when not finite or the quaternion is ~0.
+pub fn iso_from_wire(p: &Pose) -> Option<Isometry3<f64>> {
+    if !p.t.iter().chain(p.q.iter()).all(|v| v.is_finite()) {
+        return None;
+    }
+    let q = Quaternion::new(p.q[3], p.q[0], p.q[1], p.q[2]);
+    if q.norm() < 1e-6 {
+        return None;
+    }
+    Some(Isometry3::from_parts(
+        Translation3::new(p.t[0], p.t[1], p.t[2]),
+        UnitQuaternion::from_quaternion(q),
+    ))
+}
+
+/// An isometry `T_ab` as a wire pose.
+pub fn wire_from_iso(t: &Isometry3<f64>) -> Pose {
+    let q = t.rotation.quaternion();
+    let v = t.translation.vector;
+    Pose {
+        t: [v.x, v.y, v.z],
+        q: [q.i, q.j, q.k, q.w],
+    }
+}
+
+/// The camera of a keyframe message.
+pub fn camera_of(h: &KeyframeHeader) -> PinholeRadtan {
+    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
+    let [k1, k2, p1, p2, k3] = h.intrinsics.distortion;
+    PinholeRadtan {
+        width: h.width,
+        height: h.height,
+        fx,
+        fy,
+        cx,
+        cy,
+        k1,
+        k2,
+        p1,
+        p2,
+        k3,
+    }
+}
+
+/// Converts a keyframe message of client `client` into what the handler takes. Errors
+/// (with a reason) on an unusable message: keypoint count not matching the header, a
+/// non-finite pose, bad intrinsics. The rolling-shutter readout time is not on the wire
+/// (the server map does not use it) and is set to 0.
+pub fn server_keyframe(
+    client: u32,
+    h: &KeyframeHeader,
+    records: &[KeypointRecord],
+) -> Result<ServerKeyframe, String> {
+    if h.n_keypoints as usize != records.len() {
+        return Err(format!(
+            "keyframe {}: header says {} keypoints, payload holds {}",
+            h.keyframe_id,
+            h.n_keypoints,
+            records.len()
+        ));
+    }
+    let t_ck = iso_from_wire(&h.pose_ck)
+        .ok_or_else(|| format!("keyframe {}: invalid pose", h.keyframe_id))?;
+    let camera = camera_of(h);
+    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
+    if !(fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite()) || h.width == 0 {
+        return Err(format!("keyframe {}: invalid intrinsics", h.keyframe_id));
+    }
+    let mut features = OrbFeatures::with_capacity(records.len());
+    let mut client_points = Vec::with_capacity(records.len());
+    for r in records {
+        let octave = r.octave.min(u8::MAX as u32) as u8;
+        features.keypoints.push(KeyPoint {
+            x: r.u,
+            y: r.v,
+            angle: r.angle,
+            response: r.response,
+            size: PATCH_SIZE * LEVEL_SCALE.powi(octave as i32),
+            octave,
+        });
+        features.descriptors.push(r.descriptor);
+        client_points.push((r.map_point_id != NO_MAP_POINT).then_some(r.map_point_id));
+    }
+    let kf = ServerKeyframe {
+        client_id: client,
+        session_id: h.meta.session_id,
+        id: h.keyframe_id,
+        t_ns: h.t_ns,
+        t_ck,
+        camera,
+        readout_ns: 0,
+        features,
+        client_points,
+    };
+    kf.validate().map_err(|e| e.to_string())?;
+    Ok(kf)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pose_round_trip_and_bad_pose() {
+        let t = Isometry3::from_parts(
+            Translation3::new(1.0, -2.0, 0.5),
+            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.7),
+        );
+        let back = iso_from_wire(&wire_from_iso(&t)).expect("valid");
+        assert!((back.translation.vector - t.translation.vector).norm() < 1e-12);
+        assert!(back.rotation.angle_to(&t.rotation) < 1e-12);
+        let mut bad = wire_from_iso(&t);
+        bad.t[0] = f64::NAN;
+        assert!(iso_from_wire(&bad).is_none());
+        bad = Pose {
+            t: [0.0; 3],
+            q: [0.0; 4],
+        };
+        assert!(iso_from_wire(&bad).is_none());
+    }
+
+    #[test]
+    fn message_to_server_keyframe() {
+        let mut h = KeyframeHeader {
+            keyframe_id: 7,
+            n_keypoints: 2,
+            width: 640,
+            height: 480,
+            pose_ck: Pose::IDENTITY,
+            ..KeyframeHeader::default()
+        };
+        h.intrinsics.pinhole = [400.0, 400.0, 320.0, 240.0];
+        let recs = [
+            KeypointRecord {
+                u: 10.0,
+                v: 20.0,
+                octave: 2,
+                map_point_id: 42,
+                ..KeypointRecord::default()
+            },
+            KeypointRecord::default(),
+        ];
+        let kf = server_keyframe(3, &h, &recs).expect("valid");
+        assert_eq!(kf.client_id, 3);
+        assert_eq!(kf.client_points, vec![Some(42), None]);
+        assert_eq!(kf.features.keypoints[0].octave, 2);
+        assert!(server_keyframe(3, &h, &recs[..1]).is_err());
+        h.intrinsics.pinhole[0] = 0.0;
+        assert!(server_keyframe(3, &h, &recs).is_err());
+    }
+}
