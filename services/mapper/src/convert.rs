@@ -37,21 +37,7 @@ pub fn wire_from_iso(t: &Isometry3<f64>) -> Pose {
 
 /// The camera of a keyframe message.
 pub fn camera_of(h: &KeyframeHeader) -> PinholeRadtan {
-    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
-    let [k1, k2, p1, p2, k3] = h.intrinsics.distortion;
-    PinholeRadtan {
-        width: h.width,
-        height: h.height,
-        fx,
-        fy,
-        cx,
-        cy,
-        k1,
-        k2,
-        p1,
-        p2,
-        k3,
-    }
+    shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height)
 }
 
 /// Converts a keyframe message of client `client` into what the handler takes. Errors

@@ -33,21 +33,7 @@ use slam_core::features::GrayImage;
 use slam_core::vo::{VoFrame, VoOutput, VoParams, VoState, VoTracker};
 
 fn new_vo(params: &Params, h: &shm_schema::FrameHeader) -> anyhow::Result<VoTracker> {
-    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
-    let [k1, k2, p1, p2, k3] = h.intrinsics.distortion;
-    let camera = slam_core::camera::PinholeRadtan {
-        width: h.width,
-        height: h.height,
-        fx,
-        fy,
-        cx,
-        cy,
-        k1,
-        k2,
-        p1,
-        p2,
-        k3,
-    };
+    let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
     let mut vp = VoParams {
         rolling_shutter: !params.no_rs,
         window: params.window.max(2),

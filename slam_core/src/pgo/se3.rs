@@ -6,9 +6,9 @@
 //! Poses are `T_wk` (`x_w = R x_k + t`); a graph residual is `Log(Z⁻¹ X_i⁻¹ X_j)` and
 //! vertices are perturbed on the right, `X ← X Exp(δ)`.
 
-use nalgebra::{Isometry3, Matrix3, Matrix6, Translation3, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Vector3, Vector6};
 
-use crate::geometry::{quat_log, skew, so3_exp};
+use crate::geometry::{quat_log, skew};
 
 /// Below this angle (rad) the Jacobian coefficients use Taylor series.
 const SMALL: f64 = 0.05;
@@ -45,24 +45,8 @@ pub fn se3_log(x: &Isometry3<f64>) -> Vector6<f64> {
 
 /// SE(3) exponential of `[ω; v]`: rotation `Exp(ω)`, translation `V(ω) v`.
 pub fn se3_exp(xi: &Vector6<f64>) -> Isometry3<f64> {
-    let w = Vector3::new(xi[0], xi[1], xi[2]);
-    let v = Vector3::new(xi[3], xi[4], xi[5]);
-    let theta2 = w.norm_squared();
-    let (b, c) = if theta2 < 1e-10 {
-        (0.5 - theta2 / 24.0, 1.0 / 6.0 - theta2 / 120.0)
-    } else {
-        let theta = theta2.sqrt();
-        (
-            (1.0 - theta.cos()) / theta2,
-            (theta - theta.sin()) / (theta2 * theta),
-        )
-    };
-    let k = skew(&w);
-    let vm = Matrix3::identity() + k * b + k * k * c;
-    Isometry3::from_parts(
-        Translation3::from(vm * v),
-        UnitQuaternion::from_rotation_matrix(&so3_exp(&w)),
-    )
+    // The VO's exponential orders the twist translation first.
+    crate::optim::se3::se3_exp(&Vector6::new(xi[3], xi[4], xi[5], xi[0], xi[1], xi[2]))
 }
 
 /// Adjoint of `x` in `[ω; v]` order: `[[R, 0], [[t]× R, R]]`, so that
