@@ -92,7 +92,8 @@ impl Vocabulary {
         if !(2..=255).contains(&k) || !(1..=8).contains(&depth) {
             return Err(bad(format!("k = {k}, depth = {depth} out of range")));
         }
-        let expected = (n_nodes as u64) * NODE_BYTES as u64 + 4 * n_words as u64 + 8 + HEADER as u64;
+        let expected =
+            (n_nodes as u64) * NODE_BYTES as u64 + 4 * n_words as u64 + 8 + HEADER as u64;
         if expected != bytes.len() as u64 {
             return Err(bad(format!(
                 "{} bytes, header announces {n_nodes} nodes and {n_words} words ({expected} bytes)",
@@ -141,7 +142,10 @@ impl Vocabulary {
             next += usize::from(n_children);
         }
         if next != n_nodes {
-            return Err(bad(format!("{} nodes have no parent", n_nodes.saturating_sub(next))));
+            return Err(bad(format!(
+                "{} nodes have no parent",
+                n_nodes.saturating_sub(next)
+            )));
         }
         let w_at = HEADER + n_nodes * NODE_BYTES;
         let weights: Vec<f32> = (0..n_words)

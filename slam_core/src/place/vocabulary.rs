@@ -292,7 +292,13 @@ impl Vocabulary {
         let n = f64::from(n_images.max(1));
         voc.weights = n_images_with
             .iter()
-            .map(|&c| if c == 0 { n.ln() as f32 } else { (n / f64::from(c)).ln() as f32 })
+            .map(|&c| {
+                if c == 0 {
+                    n.ln() as f32
+                } else {
+                    (n / f64::from(c)).ln() as f32
+                }
+            })
             .collect();
         Ok(voc)
     }
