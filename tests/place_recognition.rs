@@ -114,6 +114,29 @@ fn lap_two_finds_lap_one_at_the_same_place() {
             "far place {far_score:.3} vs same place {best_score:.3}"
         );
     }
+    // Query time with ~1000 keyframes: the lap's vectors repeated under new ids (realistic
+    // posting-list lengths for a map revisiting the same room); the real ones still win.
+    let bq = bow_of(queries[0]);
+    for rep in 1..18u64 {
+        for (k, b) in &kfs {
+            db.add(rep * 100_000 + *k as u64, b);
+        }
+    }
+    let t = Instant::now();
+    let q = queries[0];
+    let res = db.query(
+        &bq,
+        0.0,
+        |id| (id % 100_000) as usize >= q.saturating_sub(NEIGHBOUR_FRAMES),
+        5,
+    );
+    let query_ms = t.elapsed().as_secs_f64() * 1e3;
+    println!(
+        "query over {} keyframes: {query_ms:.3} ms (best {:?})",
+        db.len(),
+        res[0]
+    );
+    assert_eq!(res[0].0 % 100_000, 120, "a copy of the same-place keyframe");
     println!(
         "transform: {:.3} ms per frame (~1000 descriptors), {n_transform} frames",
         transform_s * 1e3 / n_transform as f64

@@ -28,6 +28,9 @@ impl Lcg {
     }
 }
 
+/// A true centre and its noisy members.
+type Cluster = (Descriptor, Vec<Descriptor>);
+
 /// `n_clusters` random centres, `per` members each (up to 12 flipped bits), spread over
 /// `n_images` images. Returns the images and, per cluster, its centre and members.
 fn clustered(
@@ -35,7 +38,7 @@ fn clustered(
     per: usize,
     n_images: usize,
     seed: u64,
-) -> (Vec<Vec<Descriptor>>, Vec<(Descriptor, Vec<Descriptor>)>) {
+) -> (Vec<Vec<Descriptor>>, Vec<Cluster>) {
     let mut rng = Lcg(seed);
     let mut images = vec![Vec::new(); n_images];
     let mut clusters = Vec::new();
