@@ -12,6 +12,7 @@ mod launcher;
 mod pgo_cmd;
 mod plot;
 mod sim_cmd;
+mod vocab_cmd;
 
 /// shoal: zero-copy, multi-process collaborative SLAM on one host.
 #[derive(Parser)]
@@ -33,6 +34,9 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Pose graph optimisation of a g2o-like file (Sim(3): stepwise / direct; SE(3): LM).
     Pgo(pgo_cmd::PgoArgs),
+    /// Bag-of-words vocabulary of the loop closer (`vocab train`).
+    #[command(subcommand)]
+    Vocab(vocab_cmd::VocabCommand),
     /// Benchmarks (IPC hand-off, ...).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -144,6 +148,7 @@ fn main() -> ExitCode {
                 Command::Sim(a) => sim_cmd::run(&a),
                 Command::Eval(a) => eval::run(&a).map(|r| eval::print(&r, a.json)),
                 Command::Pgo(a) => pgo_cmd::run(&a),
+                Command::Vocab(v) => vocab_cmd::run(&v),
                 Command::Bench(b) => bench::run(b),
                 Command::Service(_) => Ok(()),
             };

@@ -20,4 +20,15 @@ pub enum CoreError {
         /// What is wrong with it.
         msg: String,
     },
+    /// A binary input (e.g. a vocabulary file) is malformed.
+    #[error("malformed data: {0}")]
+    Format(String),
+    /// Reading or writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The underlying error.
+        source: std::io::Error,
+    },
 }

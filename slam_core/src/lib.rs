@@ -9,6 +9,7 @@ pub mod imu;
 pub mod metrics;
 pub mod optim;
 pub mod pgo;
+pub mod place;
 pub mod pnp;
 pub mod ransac;
 pub mod rolling_shutter;
