@@ -34,6 +34,7 @@ fn main() -> anyhow::Result<()> {
     let readout = world.calib().readout_ns;
     let params = VoParams {
         rolling_shutter: rs,
+        local_mapping_thread: !args.iter().any(|a| a == "--inline"),
         ..VoParams::default()
     };
     let mut vo = VoTracker::new(params, cam)?;
