@@ -121,6 +121,9 @@ impl Worker {
     }
 }
 
+/// Most keyframes handled in a row without an idle step.
+const MAX_WITHOUT_IDLE: usize = 4;
+
 fn figures(h: &KeyframeHandler) -> MapFigures {
     MapFigures {
         stats: h.stats(),
@@ -146,6 +149,8 @@ fn serve(
     let mut session = None;
     let mut dirty = false;
     let mut last_write = Instant::now();
+    // Keyframes handled since the last idle step (local BA + culling).
+    let mut since_idle = 0usize;
     loop {
         let job = match rx.recv_timeout(Duration::from_millis(200)) {
             Ok(j) => j,
@@ -174,7 +179,15 @@ fn serve(
                 dirty = true;
             }
         }
-        let idled = result.is_ok() && job.idle.unwrap_or_else(|| rx.is_empty());
+        // Idle when the queue is empty, and at least every MAX_WITHOUT_IDLE keyframes even
+        // in a burst (a client that sends its whole window at the end of its stream would
+        // otherwise get no local BA at all while its map grows). The journal records the
+        // decision, so a replay takes the same schedule.
+        let idled = result.is_ok()
+            && job
+                .idle
+                .unwrap_or_else(|| rx.is_empty() || since_idle + 1 >= MAX_WITHOUT_IDLE);
+        since_idle = if idled { 0 } else { since_idle + 1 };
         let t1 = Instant::now();
         if idled {
             while h.idle_step().is_some() {}
