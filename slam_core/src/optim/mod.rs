@@ -14,6 +14,7 @@ pub mod ba;
 pub mod pose_only;
 pub mod robust;
 pub mod se3;
+pub(crate) mod sparse_llt;
 
 pub use pose_only::{PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, Velocity};
 pub use robust::RobustKernel;

@@ -12,8 +12,8 @@ use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering,
 };
 use faer::sparse::linalg::SupernodalThreshold;
-use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
-use faer::{Conj, Mat, Par, Side};
+use faer::sparse::SymbolicSparseColMatRef;
+use faer::{Mat, Par, Side};
 
 use crate::CoreError;
 
@@ -255,24 +255,19 @@ impl BlockSystem {
             return Err(CoreError::Degenerate("pgo: solve before setup".into()));
         };
         let stack = MemStack::new(mem);
-        let par = Par::Seq;
-        let pattern =
-            SymbolicSparseColMatRef::new_checked(dim, dim, &self.col_ptr, None, &self.row_idx);
-        let a = SparseColMatRef::new(pattern, &self.values);
-        let l = symbolic
-            .factorize_numeric_llt(
-                &mut self.l_values,
-                a,
-                Side::Upper,
-                Default::default(),
-                par,
-                stack,
-                Default::default(),
-            )
-            .map_err(|_| {
-                CoreError::Degenerate("pgo: normal equations not positive definite".into())
-            })?;
-        l.solve_in_place_with_conj(Conj::No, self.rhs_mat.as_mut(), par, stack);
+        crate::optim::sparse_llt::factor_solve_upper(
+            symbolic,
+            dim,
+            &self.col_ptr,
+            &self.row_idx,
+            &self.values,
+            &mut self.l_values,
+            self.rhs_mat.as_mut(),
+            stack,
+        )
+        .map_err(|()| {
+            CoreError::Degenerate("pgo: normal equations not positive definite".into())
+        })?;
         for c in 0..self.nrhs {
             for r in 0..dim {
                 self.x[c * dim + r] = self.rhs_mat[(r, c)];

@@ -9,8 +9,8 @@ use faer::linalg::cholesky::llt;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering,
 };
-use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
-use faer::{Conj, Mat, Par, Side};
+use faer::sparse::SymbolicSparseColMatRef;
+use faer::{Mat, Par, Side};
 use nalgebra::{Matrix6, Vector6};
 
 use crate::CoreError;
@@ -248,24 +248,19 @@ impl ReducedSystem {
                     "ba: no symbolic factorisation".into(),
                 ));
             };
-            let dim = 6 * n;
-            let pattern =
-                SymbolicSparseColMatRef::new_checked(dim, dim, &self.col_ptr, None, &self.row_idx);
-            let a = SparseColMatRef::new(pattern, &self.values);
-            let l = symbolic
-                .factorize_numeric_llt(
-                    &mut self.l_values,
-                    a,
-                    Side::Upper,
-                    Default::default(),
-                    par,
-                    stack,
-                    Default::default(),
-                )
-                .map_err(|_| {
-                    CoreError::Degenerate("ba: reduced system not positive definite".into())
-                })?;
-            l.solve_in_place_with_conj(Conj::No, self.rhs_mat.as_mut(), par, stack);
+            crate::optim::sparse_llt::factor_solve_upper(
+                symbolic,
+                6 * n,
+                &self.col_ptr,
+                &self.row_idx,
+                &self.values,
+                &mut self.l_values,
+                self.rhs_mat.as_mut(),
+                stack,
+            )
+            .map_err(|()| {
+                CoreError::Degenerate("ba: reduced system not positive definite".into())
+            })?;
         } else {
             for j in 0..n {
                 for k in self.blk_start[j]..self.blk_start[j + 1] {
