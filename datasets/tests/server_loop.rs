@@ -15,6 +15,7 @@ use slam_core::features::{GrayImage, KeyPoint, OrbFeatures};
 use slam_core::metrics::{evaluate, Alignment, EvalParams};
 use slam_core::server::{
     frame_pose_in_server_map, HandlerParams, KeyframeHandler, KeyframeStatus, ServerKeyframe,
+    ServerMaps,
 };
 use slam_core::vo::{VoFrame, VoParams, VoTracker};
 
@@ -126,6 +127,7 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
     let client_lap1 = kfs.iter().filter(|k| k.t_ns < lap2_start).count();
     let client_lap2 = kfs.len() - client_lap1;
     let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
     let mut server_at_lap1_end = None;
     let mut handled = Vec::new();
     let mut statuses = [0usize; 5];
@@ -133,10 +135,10 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
     let start = Instant::now();
     for kf in kfs {
         if kf.t_ns >= lap2_start && server_at_lap1_end.is_none() {
-            server_at_lap1_end = h.current_map().map(|m| m.map.keyframes.len());
+            server_at_lap1_end = h.current_map(&maps).map(|m| m.map.keyframes.len());
         }
         let t_ns = kf.t_ns;
-        let r = h.handle(kf.clone()).expect("handle");
+        let r = h.handle(&mut maps, kf.clone()).expect("handle");
         if std::env::var_os("SHOAL_SERVER_DEBUG").is_some() {
             let e = r
                 .t_sk
@@ -151,10 +153,10 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
             handled.push((t_ns, t));
         }
         lambdas.push(r.lambda);
-        h.idle_step();
+        h.idle_step(&mut maps);
     }
     let per_kf_ms = start.elapsed().as_secs_f64() * 1e3 / kfs.len() as f64;
-    let map = h.current_map().expect("a server map");
+    let map = h.current_map(&maps).expect("a server map");
     let server_final = map.map.keyframes.len();
     let server_lap1 = server_at_lap1_end.expect("keyframes on both laps");
     let client_traj: Vec<(i64, Isometry3<f64>)> = kfs.iter().map(|k| (k.t_ns, k.t_ck)).collect();
@@ -208,14 +210,18 @@ fn replay_is_deterministic() {
     let n = run.keyframes.len().min(60);
     let replay = || {
         let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+        let mut maps = ServerMaps::new();
         for kf in &run.keyframes[..n] {
-            h.handle(kf.clone()).expect("handle");
-            h.idle_step();
+            h.handle(&mut maps, kf.clone()).expect("handle");
+            h.idle_step(&mut maps);
         }
-        h
+        (h, maps)
     };
-    let (a, b) = (replay(), replay());
-    let (ma, mb) = (a.current_map().expect("map"), b.current_map().expect("map"));
+    let ((a, am), (b, bm)) = (replay(), replay());
+    let (ma, mb) = (
+        a.current_map(&am).expect("map"),
+        b.current_map(&bm).expect("map"),
+    );
     assert_eq!(ma.trajectory(), mb.trajectory());
     assert_eq!(ma.map.points.len(), mb.map.points.len());
     for (id, p) in &ma.map.points {
@@ -224,7 +230,7 @@ fn replay_is_deterministic() {
         assert_eq!(p.observations, q.observations);
     }
     assert_eq!(a.stats(), b.stats());
-    assert_eq!(a.feedback(), b.feedback());
+    assert_eq!(a.feedback(&am), b.feedback(&bm));
 }
 
 #[test]
@@ -232,6 +238,7 @@ fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
     let run = run();
     let kfs = &run.keyframes[..run.keyframes.len().min(50)];
     let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
     let mut last_fb = None;
     for (i, kf) in kfs.iter().enumerate() {
         let mut kf = kf.clone();
@@ -240,7 +247,7 @@ fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
             kf.session_id += 1;
         }
         let t_ck = kf.t_ck;
-        let r = h.handle(kf).expect("handle");
+        let r = h.handle(&mut maps, kf).expect("handle");
         // The client's composition of the previous feedback is the handler's prediction.
         if let (Some((t_cj, fb)), Some(pred)) = (last_fb, r.t_sk_predicted) {
             let (_, t_sj, lambda) = fb;
@@ -256,18 +263,18 @@ fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
             )),
         }
         // Feedback after the idle step (local BA may move the last keyframe).
-        h.idle_step();
-        let fb = h.feedback().expect("feedback");
+        h.idle_step(&mut maps);
+        let fb = h.feedback(&maps).expect("feedback");
         assert_eq!(fb.acked_keyframe_id, r.client_kf_id);
         last_fb = fb.pose.map(|p| (t_ck, p));
     }
-    assert_eq!(h.maps().len(), 2);
-    let ids: Vec<u64> = h.maps().keys().copied().collect();
-    let second = &h.maps()[&ids[1]];
+    assert_eq!(maps.len(), 2);
+    let ids: Vec<u64> = maps.keys().copied().collect();
+    let second = &maps[&ids[1]];
     assert_eq!(second.session_id, kfs[25].session_id + 1);
     assert!(second.map.keyframes.len() >= 2);
     // A keyframe of the old session now is stale.
-    let r = h.handle(kfs[10].clone()).expect("handle");
+    let r = h.handle(&mut maps, kfs[10].clone()).expect("handle");
     assert_eq!(r.status, KeyframeStatus::Duplicate);
 }
 

@@ -398,6 +398,201 @@ pub struct Feedback {
     pub server_map_id: u64,
 }
 
+/// Most covisible neighbours listed in a [`LoopKeyframeHeader`].
+pub const MAX_LOOP_COVISIBLE: usize = 32;
+
+/// Header of a loop keyframe message (mapper → loop closer): a keyframe the mapper kept in
+/// a server map, with what place recognition and loop geometry need (seed §3.4.1-3.4.2);
+/// the payload is a slice of [`LoopKeypointRecord`]s.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::LoopKeyframeHeader")]
+#[repr(C)]
+pub struct LoopKeyframeHeader {
+    /// Identity (client, session of the keyframe; `meta.seq` counts loop keyframe messages
+    /// of the mapper).
+    pub meta: MsgMeta,
+    /// Server map the keyframe is in.
+    pub map_id: u64,
+    /// Server keyframe id (unique across clients).
+    pub kf_id: u64,
+    /// Client keyframe id.
+    pub client_kf_id: u64,
+    /// Frame time, ns.
+    pub t_ns: i64,
+    /// Server pose `T_sk` (camera → server map) when it was kept.
+    pub pose_sk: Pose,
+    /// Intrinsics of the camera.
+    pub intrinsics: Intrinsics,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Number of keypoint records in the payload.
+    pub n_keypoints: u32,
+    /// Valid entries of `covisible_ids` / `covisible_weights`.
+    pub n_covisible: u32,
+    /// Covisible server keyframes, best first.
+    pub covisible_ids: [u64; MAX_LOOP_COVISIBLE],
+    /// Their weights (shared points).
+    pub covisible_weights: [u32; MAX_LOOP_COVISIBLE],
+}
+
+impl Default for LoopKeyframeHeader {
+    fn default() -> Self {
+        Self {
+            meta: MsgMeta::default(),
+            map_id: 0,
+            kf_id: 0,
+            client_kf_id: 0,
+            t_ns: 0,
+            pose_sk: Pose::IDENTITY,
+            intrinsics: Intrinsics::default(),
+            width: 0,
+            height: 0,
+            n_keypoints: 0,
+            n_covisible: 0,
+            covisible_ids: [0; MAX_LOOP_COVISIBLE],
+            covisible_weights: [0; MAX_LOOP_COVISIBLE],
+        }
+    }
+}
+
+/// One keypoint of a loop keyframe message (88 bytes).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::LoopKeypointRecord")]
+#[repr(C)]
+pub struct LoopKeypointRecord {
+    /// Pixel u (distorted image), level-0 coordinates.
+    pub u: f32,
+    /// Pixel v.
+    pub v: f32,
+    /// Orientation, degrees.
+    pub angle: f32,
+    /// FAST response.
+    pub response: f32,
+    /// Pyramid level.
+    pub octave: u32,
+    /// 1 when the keypoint has a server map point (`point_id`, `p_k` valid).
+    pub has_point: u32,
+    /// Server map-point id.
+    pub point_id: u64,
+    /// The point in the keyframe's camera frame.
+    pub p_k: [f64; 3],
+    /// 256-bit rBRIEF descriptor.
+    pub descriptor: [u8; 32],
+}
+
+impl Default for LoopKeypointRecord {
+    fn default() -> Self {
+        Self {
+            u: 0.0,
+            v: 0.0,
+            angle: 0.0,
+            response: 0.0,
+            octave: 0,
+            has_point: 0,
+            point_id: 0,
+            p_k: [0.0; 3],
+            descriptor: [0; 32],
+        }
+    }
+}
+
+/// [`CorrectionHeader::kind`]: merge map `from_map` into `into_map` by `sim3`.
+pub const CORRECTION_MERGE: u32 = 1;
+/// [`CorrectionHeader::kind`]: per-keyframe pose-graph corrections of map `into_map`.
+pub const CORRECTION_POSE_GRAPH: u32 = 2;
+/// [`CorrectionRecord::kind`]: keyframe `a` moves by the similarity `delta`.
+pub const RECORD_KEYFRAME_DELTA: u32 = 1;
+/// [`CorrectionRecord::kind`]: point `a` is the same 3-D point as `b` (fuse `a` into `b`).
+pub const RECORD_POINT_PAIR: u32 = 2;
+
+/// Header of a correction (loop closer → mapper, seed §3.4.2-3.4.3); the payload is a slice
+/// of [`CorrectionRecord`]s. The loop closer computes, the mapper (owner of the maps)
+/// applies.
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::CorrectionHeader")]
+#[repr(C)]
+pub struct CorrectionHeader {
+    /// Identity (`client_id` of the query keyframe; `meta.seq` counts corrections).
+    pub meta: MsgMeta,
+    /// Correction id (unique per loop closer run).
+    pub correction_id: u64,
+    /// [`CORRECTION_MERGE`] or [`CORRECTION_POSE_GRAPH`].
+    pub kind: u32,
+    /// Number of records in the payload.
+    pub n_records: u32,
+    /// Server keyframe id of the query (current) keyframe of the loop.
+    pub query_kf: u64,
+    /// Server keyframe id of the matched keyframe.
+    pub matched_kf: u64,
+    /// Merge: the map that is moved. Pose graph: the corrected map.
+    pub from_map: u64,
+    /// Merge: the map it joins. Pose graph: the corrected map.
+    pub into_map: u64,
+    /// Merge: `S_into_from` (rotation and translation; `x_into = s R x_from + t`). Pose
+    /// graph: the correction for keyframes without a record (newer than the loop closer
+    /// knew).
+    pub sim3: Pose,
+    /// Scale of `sim3`.
+    pub scale: f64,
+    /// Inlier matches of the loop.
+    pub inliers: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+}
+
+impl Default for CorrectionHeader {
+    fn default() -> Self {
+        Self {
+            meta: MsgMeta::default(),
+            correction_id: 0,
+            kind: 0,
+            n_records: 0,
+            query_kf: 0,
+            matched_kf: 0,
+            from_map: 0,
+            into_map: 0,
+            sim3: Pose::IDENTITY,
+            scale: 1.0,
+            inliers: 0,
+            reserved: 0,
+        }
+    }
+}
+
+/// One record of a correction (88 bytes).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::CorrectionRecord")]
+#[repr(C)]
+pub struct CorrectionRecord {
+    /// [`RECORD_KEYFRAME_DELTA`] or [`RECORD_POINT_PAIR`].
+    pub kind: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+    /// Keyframe id, or the point to fuse.
+    pub a: u64,
+    /// The point to fuse into (point pairs), else 0.
+    pub b: u64,
+    /// Keyframe deltas: `Δ_k` (rotation, translation), map → map.
+    pub delta: Pose,
+    /// Scale of `delta`.
+    pub scale: f64,
+}
+
+impl Default for CorrectionRecord {
+    fn default() -> Self {
+        Self {
+            kind: 0,
+            reserved: 0,
+            a: 0,
+            b: 0,
+            delta: Pose::IDENTITY,
+            scale: 1.0,
+        }
+    }
+}
+
 const _: () = {
     use core::mem::{align_of, size_of};
     assert!(size_of::<MsgMeta>() == 40 && align_of::<MsgMeta>() == 8);
@@ -410,6 +605,10 @@ const _: () = {
     assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16);
     assert!(size_of::<KeypointRecord>() == 64 && align_of::<KeypointRecord>() == 8);
     assert!(size_of::<Feedback>() == 40 + 16 + 56 + 16);
+    assert!(size_of::<LoopKeypointRecord>() == 88 && align_of::<LoopKeypointRecord>() == 8);
+    assert!(size_of::<LoopKeyframeHeader>() == 40 + 32 + 56 + 72 + 16 + 8 * 32 + 4 * 32);
+    assert!(size_of::<CorrectionHeader>() == 40 + 16 + 32 + 56 + 16);
+    assert!(size_of::<CorrectionRecord>() == 24 + 56 + 8);
 };
 
 #[cfg(test)]

@@ -9,7 +9,10 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 
-use crate::{Feedback, TrackedPose};
+use crate::{
+    CorrectionHeader, CorrectionRecord, Feedback, LoopKeyframeHeader, LoopKeypointRecord,
+    TrackedPose,
+};
 use crate::{FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeypointRecord, SCHEMA_VERSION};
 
 /// The iceoryx2 service flavour used between processes.
@@ -32,6 +35,10 @@ pub const IMU_BUFFER: usize = 1024;
 pub const POSE_BUFFER: usize = 256;
 /// Keyframe messages buffered at the mapper, per client.
 pub const KEYFRAME_BUFFER: usize = 64;
+/// Buffer of the loop corrections topic.
+pub const CORRECTION_BUFFER: usize = 16;
+/// Most records of one correction message (keyframe deltas + point pairs).
+pub const MAX_CORRECTION_RECORDS: usize = 16384;
 /// Largest number of keypoints in one keyframe message.
 pub const MAX_KEYPOINTS: usize = 4096;
 
@@ -250,10 +257,77 @@ pub fn keyframes_service(
 }
 
 /// Keyframes the mapper kept, forwarded to the loop closer (host-wide, all clients).
+/// Safe overflow: a dead loop closer never blocks the mapper.
 pub fn loop_keyframes_service(
     node: &Node<Ipc>,
-) -> Result<PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
-    keyframe_topic(node, &host_topic("loop_keyframes"))
+) -> Result<PubSubFactory<Ipc, [LoopKeypointRecord], LoopKeyframeHeader>, TopicError> {
+    slice_topic(node, &host_topic("loop_keyframes"), KEYFRAME_BUFFER)
+}
+
+/// Loop corrections, loop closer → mapper (host-wide).
+pub fn corrections_service(
+    node: &Node<Ipc>,
+) -> Result<PubSubFactory<Ipc, [CorrectionRecord], CorrectionHeader>, TopicError> {
+    slice_topic(node, &host_topic("corrections"), CORRECTION_BUFFER)
+}
+
+fn slice_topic<T, H>(
+    node: &Node<Ipc>,
+    name: &str,
+    buffer: usize,
+) -> Result<PubSubFactory<Ipc, [T], H>, TopicError>
+where
+    T: core::fmt::Debug + ZeroCopySend + 'static,
+    H: core::fmt::Debug + ZeroCopySend + Default + 'static,
+{
+    node.service_builder(&service_name(name)?)
+        .publish_subscribe::<[T]>()
+        .user_header::<H>()
+        .enable_safe_overflow(true)
+        .subscriber_max_buffer_size(buffer)
+        .subscriber_max_borrowed_samples(4)
+        .history_size(0)
+        .max_publishers(2)
+        .max_subscribers(8)
+        .max_nodes(16)
+        .open_or_create()
+        .map_err(|e| err(name, e))
+}
+
+/// A publisher of a slice topic with a static allocation of `max_len` elements that never
+/// blocks.
+pub fn slice_publisher<T, H>(
+    service: &PubSubFactory<Ipc, [T], H>,
+    max_len: usize,
+) -> Result<Publisher<Ipc, [T], H>, TopicError>
+where
+    T: core::fmt::Debug + ZeroCopySend + 'static,
+    H: core::fmt::Debug + ZeroCopySend + 'static,
+{
+    service
+        .publisher_builder()
+        .initial_max_slice_len(max_len)
+        .allocation_strategy(AllocationStrategy::Static)
+        .backpressure_strategy(BackpressureStrategy::DiscardData)
+        .max_loaned_samples(2)
+        .create()
+        .map_err(|e| err(service.name().as_str(), e))
+}
+
+/// A subscriber of a slice topic with a buffer of `buffer` samples.
+pub fn slice_subscriber<T, H>(
+    service: &PubSubFactory<Ipc, [T], H>,
+    buffer: usize,
+) -> Result<Subscriber<Ipc, [T], H>, TopicError>
+where
+    T: core::fmt::Debug + ZeroCopySend + 'static,
+    H: core::fmt::Debug + ZeroCopySend + 'static,
+{
+    service
+        .subscriber_builder()
+        .buffer_size(buffer)
+        .create()
+        .map_err(|e| err(service.name().as_str(), e))
 }
 
 fn keyframe_topic(

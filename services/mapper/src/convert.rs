@@ -1,10 +1,19 @@
 //! Wire ↔ algorithm conversions: a keyframe message (header + keypoint records) into a
-//! [`ServerKeyframe`], and poses between the wire [`Pose`] and nalgebra.
+//! [`ServerKeyframe`], a kept keyframe into a loop keyframe message, a correction message
+//! into a [`Correction`], and poses between the wire [`Pose`] and nalgebra.
+use std::collections::BTreeMap;
+
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-use shm_schema::{KeyframeHeader, KeypointRecord, Pose, NO_MAP_POINT};
+use shm_schema::{
+    CorrectionHeader, CorrectionRecord, Intrinsics, KeyframeHeader, KeypointRecord,
+    LoopKeyframeHeader, LoopKeypointRecord, MsgMeta, Pose, CORRECTION_MERGE, CORRECTION_POSE_GRAPH,
+    MAX_LOOP_COVISIBLE, NO_MAP_POINT, RECORD_KEYFRAME_DELTA, RECORD_POINT_PAIR,
+};
 use slam_core::camera::PinholeRadtan;
 use slam_core::features::{KeyPoint, OrbFeatures, PATCH_SIZE};
-use slam_core::server::ServerKeyframe;
+use slam_core::pgo::Sim3;
+use slam_core::server::{KeptKeyframe, MapId, ServerKeyframe};
+use slam_core::vo::{KfId, PointId};
 
 /// Scale between pyramid levels of the client's ORB extractor (only used to restore the
 /// keypoint size, which the message does not carry).
@@ -146,4 +155,170 @@ mod tests {
         h.intrinsics.pinhole[0] = 0.0;
         assert!(server_keyframe(3, &h, &recs).is_err());
     }
+}
+
+/// A wire similarity (pose + scale) as a [`Sim3`]; `None` when not finite or not positive.
+pub fn sim3_from_wire(p: &Pose, scale: f64) -> Option<Sim3> {
+    if !(scale.is_finite() && scale > 0.0) {
+        return None;
+    }
+    iso_from_wire(p).map(|t| Sim3::from_isometry(&t, scale))
+}
+
+/// A [`Sim3`] as a wire pose and scale.
+pub fn wire_from_sim3(s: &Sim3) -> (Pose, f64) {
+    (wire_from_iso(&s.to_isometry()), s.s)
+}
+
+/// A loop correction as the mapper applies it.
+#[derive(Debug, Clone)]
+pub enum Correction {
+    /// Merge map `from` into map `into` by `S_into_from`, fusing `pairs`.
+    Merge {
+        /// Correction id.
+        id: u64,
+        /// The map that is moved.
+        from: MapId,
+        /// The map it joins.
+        into: MapId,
+        /// `x_into = s R x_from + t`.
+        s_into_from: Sim3,
+        /// Point pairs (point of `from`, same point of `into`).
+        pairs: Vec<(PointId, PointId)>,
+    },
+    /// Pose-graph corrections of map `map`.
+    PoseGraph {
+        /// Correction id.
+        id: u64,
+        /// The corrected map.
+        map: MapId,
+        /// Per keyframe `Δ_k`.
+        deltas: BTreeMap<KfId, Sim3>,
+        /// `Δ` for keyframes without an entry.
+        fallback: Sim3,
+        /// Point pairs to fuse (loop side, matched side).
+        pairs: Vec<(PointId, PointId)>,
+    },
+}
+
+impl Correction {
+    /// Correction id.
+    pub fn id(&self) -> u64 {
+        match self {
+            Correction::Merge { id, .. } | Correction::PoseGraph { id, .. } => *id,
+        }
+    }
+}
+
+/// Decodes a correction message; errors (with a reason) on an unusable one.
+pub fn correction(
+    h: &CorrectionHeader,
+    records: &[CorrectionRecord],
+) -> Result<Correction, String> {
+    if h.n_records as usize != records.len() {
+        return Err(format!(
+            "correction {}: header says {} records, payload holds {}",
+            h.correction_id,
+            h.n_records,
+            records.len()
+        ));
+    }
+    let s = sim3_from_wire(&h.sim3, h.scale).ok_or_else(|| {
+        format!(
+            "correction {}: invalid similarity (scale {})",
+            h.correction_id, h.scale
+        )
+    })?;
+    let mut pairs = Vec::new();
+    let mut deltas = BTreeMap::new();
+    for (i, r) in records.iter().enumerate() {
+        match r.kind {
+            RECORD_POINT_PAIR => pairs.push((r.a, r.b)),
+            RECORD_KEYFRAME_DELTA => {
+                let d = sim3_from_wire(&r.delta, r.scale).ok_or_else(|| {
+                    format!(
+                        "correction {}: record {i}: invalid keyframe delta",
+                        h.correction_id
+                    )
+                })?;
+                deltas.insert(r.a, d);
+            }
+            k => {
+                return Err(format!(
+                    "correction {}: record {i}: unknown kind {k}",
+                    h.correction_id
+                ))
+            }
+        }
+    }
+    match h.kind {
+        CORRECTION_MERGE => Ok(Correction::Merge {
+            id: h.correction_id,
+            from: h.from_map,
+            into: h.into_map,
+            s_into_from: s,
+            pairs,
+        }),
+        CORRECTION_POSE_GRAPH => Ok(Correction::PoseGraph {
+            id: h.correction_id,
+            map: h.into_map,
+            deltas,
+            fallback: s,
+            pairs,
+        }),
+        k => Err(format!("correction {}: unknown kind {k}", h.correction_id)),
+    }
+}
+
+/// The loop closer's message for a kept keyframe (seed §3.4.2: descriptors, points in the
+/// keyframe's frame, covisible neighbours); `intrinsics`/`width`/`height` are those of the
+/// client's keyframe message.
+pub fn loop_keyframe(
+    kept: &KeptKeyframe,
+    meta: MsgMeta,
+    intrinsics: &Intrinsics,
+    width: u32,
+    height: u32,
+) -> (LoopKeyframeHeader, Vec<LoopKeypointRecord>) {
+    let f = &kept.features;
+    let mut records: Vec<LoopKeypointRecord> = f
+        .keypoints
+        .iter()
+        .zip(&f.descriptors)
+        .map(|(k, d)| LoopKeypointRecord {
+            u: k.x,
+            v: k.y,
+            angle: k.angle,
+            response: k.response,
+            octave: k.octave as u32,
+            descriptor: *d,
+            ..LoopKeypointRecord::default()
+        })
+        .collect();
+    for p in &kept.points {
+        if let Some(r) = records.get_mut(p.keypoint as usize) {
+            r.has_point = 1;
+            r.point_id = p.point;
+            r.p_k = [p.p_k.x, p.p_k.y, p.p_k.z];
+        }
+    }
+    let mut h = LoopKeyframeHeader {
+        meta,
+        map_id: kept.map_id,
+        kf_id: kept.kf_id,
+        client_kf_id: kept.client_kf_id,
+        t_ns: kept.t_ns,
+        pose_sk: wire_from_iso(&kept.t_sk),
+        intrinsics: *intrinsics,
+        width,
+        height,
+        n_keypoints: records.len() as u32,
+        ..LoopKeyframeHeader::default()
+    };
+    for (i, (k, w)) in kept.covisible.iter().take(MAX_LOOP_COVISIBLE).enumerate() {
+        h.covisible_ids[i] = *k;
+        h.covisible_weights[i] = *w;
+        h.n_covisible = i as u32 + 1;
+    }
+    (h, records)
 }

@@ -11,7 +11,9 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use shm_schema::{Intrinsics, KeyframeHeader, KeypointRecord, MsgMeta, Pose};
+use shm_schema::{
+    CorrectionHeader, CorrectionRecord, Intrinsics, KeyframeHeader, KeypointRecord, MsgMeta, Pose,
+};
 
 /// Start of every entry ("SHJL").
 const MAGIC: u32 = 0x4C4A_4853;
@@ -19,6 +21,8 @@ const MAGIC: u32 = 0x4C4A_4853;
 const KIND_KEYFRAME: u8 = 1;
 /// Entry kind: an idle marker.
 const KIND_IDLE: u8 = 2;
+/// Entry kind: a loop correction as received from the loop closer.
+const KIND_CORRECTION: u8 = 3;
 /// Bytes before the payload.
 const HEAD: usize = 12;
 /// Largest payload accepted when reading (a corrupt length must not allocate gigabytes).
@@ -45,6 +49,14 @@ pub enum Entry {
         session: u32,
         /// Client keyframe id.
         kf_id: u64,
+    },
+    /// A loop correction (merge or pose graph) as received, applied after the entries
+    /// before it.
+    Correction {
+        /// Message header.
+        header: Box<CorrectionHeader>,
+        /// Records.
+        records: Vec<CorrectionRecord>,
     },
 }
 
@@ -212,6 +224,94 @@ fn decode_keyframe(p: &[u8]) -> Option<Entry> {
     })
 }
 
+fn encode_pose(e: &mut Enc, p: &Pose) {
+    e.f64s(&p.t);
+    e.f64s(&p.q);
+}
+
+fn decode_pose(d: &mut Dec) -> Option<Pose> {
+    Some(Pose {
+        t: d.f64s::<3>()?,
+        q: d.f64s::<4>()?,
+    })
+}
+
+fn encode_correction(h: &CorrectionHeader, records: &[CorrectionRecord]) -> Vec<u8> {
+    let mut e = Enc(Vec::with_capacity(256 + 88 * records.len()));
+    let m = &h.meta;
+    for v in [m.magic, m.schema_version, m.client_id, m.session_id] {
+        e.u32(v);
+    }
+    e.u64(m.seq);
+    e.i64(m.publish_mono_ns);
+    e.u32(m.flags);
+    e.u32(m.reserved);
+    e.u64(h.correction_id);
+    e.u32(h.kind);
+    e.u32(h.n_records);
+    for v in [h.query_kf, h.matched_kf, h.from_map, h.into_map] {
+        e.u64(v);
+    }
+    encode_pose(&mut e, &h.sim3);
+    e.f64s(&[h.scale]);
+    e.u32(h.inliers);
+    e.u32(h.reserved);
+    e.u32(records.len() as u32);
+    for r in records {
+        e.u32(r.kind);
+        e.u32(r.reserved);
+        e.u64(r.a);
+        e.u64(r.b);
+        encode_pose(&mut e, &r.delta);
+        e.f64s(&[r.scale]);
+    }
+    e.0
+}
+
+fn decode_correction(p: &[u8]) -> Option<Entry> {
+    let mut d = Dec(p);
+    let meta = MsgMeta {
+        magic: d.u32()?,
+        schema_version: d.u32()?,
+        client_id: d.u32()?,
+        session_id: d.u32()?,
+        seq: d.u64()?,
+        publish_mono_ns: d.i64()?,
+        flags: d.u32()?,
+        reserved: d.u32()?,
+    };
+    let header = Box::new(CorrectionHeader {
+        meta,
+        correction_id: d.u64()?,
+        kind: d.u32()?,
+        n_records: d.u32()?,
+        query_kf: d.u64()?,
+        matched_kf: d.u64()?,
+        from_map: d.u64()?,
+        into_map: d.u64()?,
+        sim3: decode_pose(&mut d)?,
+        scale: d.f64s::<1>()?[0],
+        inliers: d.u32()?,
+        reserved: d.u32()?,
+    });
+    let n = d.u32()? as usize;
+    if n > d.0.len() / 88 + 1 {
+        return None;
+    }
+    let mut records = Vec::with_capacity(n);
+    for _ in 0..n {
+        records.push(CorrectionRecord {
+            kind: d.u32()?,
+            reserved: d.u32()?,
+            a: d.u64()?,
+            b: d.u64()?,
+            delta: decode_pose(&mut d)?,
+            scale: d.f64s::<1>()?[0],
+        });
+    }
+    Some(Entry::Correction { header, records })
+}
+
 fn encode(entry: &Entry) -> (u8, Vec<u8>) {
     match entry {
         Entry::Keyframe {
@@ -230,12 +330,16 @@ fn encode(entry: &Entry) -> (u8, Vec<u8>) {
             e.u64(*kf_id);
             (KIND_IDLE, e.0)
         }
+        Entry::Correction { header, records } => {
+            (KIND_CORRECTION, encode_correction(header, records))
+        }
     }
 }
 
 fn decode(kind: u8, p: &[u8]) -> Option<Entry> {
     match kind {
         KIND_KEYFRAME => decode_keyframe(p),
+        KIND_CORRECTION => decode_correction(p),
         KIND_IDLE => {
             let mut d = Dec(p);
             Some(Entry::Idle {

@@ -7,7 +7,13 @@
 //! Each client has its own [`slam_core::server::KeyframeHandler`] on its own thread
 //! ([`worker`]), created when its first keyframe arrives. For every handled keyframe the
 //! main thread publishes pose feedback (server pose of the keyframe, scale ratio, server map
-//! id) and forwards the keyframes the handler kept to the loop closer.
+//! id) and forwards the keyframes the handler kept to the loop closer (with their points in
+//! their own frame and their covisible neighbours).
+//!
+//! Corrections from the loop closer (seed §3.4.2-3.4.3: map merges, pose-graph corrections)
+//! are journaled and then applied by the worker hosting the map; a merge of maps hosted by
+//! two workers first hands one worker's group over to the other, so merged clients share
+//! one map. The mapper owns the maps; the loop closer only computes.
 //!
 //! A restarted mapper replays its journal through fresh handlers before it takes new
 //! keyframes, following the journaled idle-step schedule, so it rebuilds the same maps.
@@ -29,12 +35,18 @@ use crossbeam_channel::Receiver;
 use iceoryx2::port::publisher::Publisher;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
-use shm_schema::{Feedback, KeyframeHeader, KeypointRecord, MsgMeta};
+use shm_schema::{
+    CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeypointRecord,
+    LoopKeyframeHeader, LoopKeypointRecord, MsgMeta,
+};
 use shoal_runtime::{Status, StatusFile};
-use slam_core::server::{HandlerParams, KeyframeStatus};
+use slam_core::server::{HandlerParams, KeyframeStatus, MapId};
 
+use convert::Correction;
 use journal::{Entry, Journal};
-use worker::{Job, MapFigures, Outcome, Worker};
+use worker::{CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker};
+
+type LoopPublisher = Publisher<Ipc, [LoopKeypointRecord], LoopKeyframeHeader>;
 
 /// Parameters of the mapper service.
 #[derive(Debug, Clone, clap::Parser)]
@@ -72,7 +84,8 @@ type KfKey = (u32, u64);
 
 /// Per-client state of the main thread.
 struct Client {
-    worker: Option<Worker>,
+    /// Index of the worker hosting the client's handler (and the maps it created).
+    worker: Option<usize>,
     /// Applied (journaled) keyframes: (session, id).
     applied: HashSet<KfKey>,
     /// Messages of applied keyframes waiting for their outcome (to forward kept ones).
@@ -84,31 +97,226 @@ struct Client {
 /// The main thread's state apart from the iceoryx2 ports.
 struct Mapper {
     clients: Vec<Client>,
+    workers: Vec<Worker>,
+    /// Latest size of every server map.
+    map_sizes: BTreeMap<MapId, MapSize>,
+    loop_seq: u64,
     journal: Option<Journal>,
     out: Option<PathBuf>,
-    results_tx: crossbeam_channel::Sender<Outcome>,
+    results_tx: crossbeam_channel::Sender<Report>,
     status: Status,
 }
 
 impl Mapper {
     /// Queues a keyframe for its client's handler, starting the handler on first use.
     fn queue(&mut self, c: u32, job: Job) -> anyhow::Result<()> {
-        let cl = &mut self.clients[c as usize];
-        if cl.worker.is_none() {
-            cl.worker = Some(
-                Worker::spawn(
-                    c,
-                    HandlerParams::default(),
-                    self.out.clone(),
-                    self.results_tx.clone(),
-                )
-                .context("starting a handler thread")?,
-            );
-            self.status.add("handlers_started", 1);
-        }
-        if !cl.worker.as_ref().is_some_and(|w| w.send(job)) {
+        let w = match self.clients[c as usize].worker {
+            Some(w) => w,
+            None => {
+                self.workers.push(
+                    Worker::spawn(
+                        c,
+                        HandlerParams::default(),
+                        self.out.clone(),
+                        self.results_tx.clone(),
+                    )
+                    .context("starting a handler thread")?,
+                );
+                self.status.add("handlers_started", 1);
+                let w = self.workers.len() - 1;
+                self.clients[c as usize].worker = Some(w);
+                w
+            }
+        };
+        if !self.workers[w].send(job) {
             anyhow::bail!("the handler thread of client {c} is gone");
         }
+        Ok(())
+    }
+
+    /// The worker hosting map `m`: the one hosting the client that created it (groups only
+    /// ever join, so a map stays with its creator's handler).
+    fn host_of(&self, m: MapId) -> Option<usize> {
+        self.clients.get((m >> 32) as usize)?.worker
+    }
+
+    /// Sends a correction to the worker hosting its map(s); for a merge of maps hosted by
+    /// two workers, the `from` worker first hands its whole group over to the `into` one.
+    fn dispatch(&mut self, corr: Correction, replay: bool) -> anyhow::Result<()> {
+        let (w, from) = match &corr {
+            Correction::Merge { from, into, .. } => {
+                let (Some(wf), Some(wi)) = (self.host_of(*from), self.host_of(*into)) else {
+                    self.status.add("corrections_refused", 1);
+                    self.status.error(
+                        "correction",
+                        format!(
+                            "correction {}: merge of map {from:#x} into {into:#x}: a map has no handler",
+                            corr.id()
+                        ),
+                    );
+                    return Ok(());
+                };
+                if wf != wi {
+                    let (tx, rx) = crossbeam_channel::bounded(1);
+                    if !self.workers[wf].send(Job::HandOver { to: tx })
+                        || !self.workers[wi].send(Job::TakeOver { from: rx })
+                    {
+                        anyhow::bail!("a handler thread is gone");
+                    }
+                    self.workers[wf].close();
+                    for cl in &mut self.clients {
+                        if cl.worker == Some(wf) {
+                            cl.worker = Some(wi);
+                        }
+                    }
+                    self.status.add("handler_groups_joined", 1);
+                }
+                (wi, Some(*from))
+            }
+            Correction::PoseGraph { map, .. } => {
+                let Some(w) = self.host_of(*map) else {
+                    self.status.add("corrections_refused", 1);
+                    self.status.error(
+                        "correction",
+                        format!("correction {}: map {map:#x} has no handler", corr.id()),
+                    );
+                    return Ok(());
+                };
+                (w, None)
+            }
+        };
+        if let Some(f) = from {
+            self.map_sizes.remove(&f);
+        }
+        if !self.workers[w].send(Job::Correction {
+            correction: corr,
+            replay,
+        }) {
+            anyhow::bail!("a handler thread is gone");
+        }
+        Ok(())
+    }
+
+    /// A correction message from the loop closer: decode, journal, dispatch.
+    fn receive_correction(
+        &mut self,
+        h: &CorrectionHeader,
+        records: &[CorrectionRecord],
+    ) -> anyhow::Result<()> {
+        self.status.add("corrections_received", 1);
+        let corr = match convert::correction(h, records) {
+            Ok(c) => c,
+            Err(e) => {
+                self.status.add("corrections_refused", 1);
+                self.status.error("bad_correction", e);
+                return Ok(());
+            }
+        };
+        if let Some(j) = self.journal.as_mut() {
+            j.append(&Entry::Correction {
+                header: Box::new(*h),
+                records: records.to_vec(),
+            })
+            .context("writing the journal")?;
+        }
+        self.dispatch(corr, false)
+    }
+
+    /// A worker applied (or refused) a correction: publish the moved poses, update figures.
+    fn correction_outcome(
+        &mut self,
+        o: CorrectionOutcome,
+        fbs: &[Publisher<Ipc, Feedback, ()>],
+    ) -> anyhow::Result<()> {
+        match &o.result {
+            Ok(summary) => {
+                self.status
+                    .add(&format!("corrections_applied_{}", o.kind), 1);
+                if o.replay {
+                    self.status.add("corrections_replayed", 1);
+                }
+                self.status
+                    .add("correction_apply_us", (o.apply_ms * 1e3) as u64);
+                eprintln!(
+                    "mapper: correction {}: {summary} ({:.1} ms)",
+                    o.id, o.apply_ms
+                );
+            }
+            Err(e) => {
+                self.status.add("corrections_refused", 1);
+                self.status
+                    .error("correction", format!("correction {}: {e}", o.id));
+            }
+        }
+        for f in &o.feedback {
+            if let Some(fb) = fbs.get(f.client_id as usize) {
+                self.send_feedback(f, fb)?;
+            }
+        }
+        for (c, fig) in &o.figures {
+            self.set_figures(*c, *fig);
+        }
+        self.set_map_sizes(&o.maps);
+        Ok(())
+    }
+
+    fn set_map_sizes(&mut self, maps: &[MapSize]) {
+        for m in maps {
+            self.map_sizes.insert(m.id, *m);
+        }
+        let (n, kfs, pts) = self.map_sizes.values().fold((0, 0, 0), |a, m| {
+            (a.0 + 1, a.1 + m.keyframes as u64, a.2 + m.points as u64)
+        });
+        let c = &mut self.status.counters;
+        c.insert("maps".into(), n);
+        c.insert("keyframes".into(), kfs);
+        c.insert("points".into(), pts);
+    }
+
+    fn set_figures(&mut self, c: u32, f: MapFigures) {
+        let s = &mut self.status;
+        let mut set = |k: String, v: u64| {
+            s.counters.insert(k, v);
+        };
+        set(format!("c{c}.keyframes_kept"), f.stats.kept);
+        set(format!("c{c}.keyframes_discarded"), f.stats.discarded);
+        set(format!("c{c}.keyframes_culled"), f.stats.culled);
+        set(format!("c{c}.maps"), f.stats.maps);
+        set(format!("c{c}.server_keyframes"), f.keyframes as u64);
+        if let Some(m) = f.map_id {
+            set(format!("c{c}.map_id"), m);
+        }
+        s.set_value(&format!("c{c}.lambda"), f.lambda);
+        if let Some(cl) = self.clients.get_mut(c as usize) {
+            cl.figures = f;
+        }
+    }
+
+    /// Publishes pose feedback (server pose of the last keyframe, λ, map id) to a client.
+    fn send_feedback(
+        &mut self,
+        f: &slam_core::server::ServerFeedback,
+        fb: &Publisher<Ipc, Feedback, ()>,
+    ) -> anyhow::Result<()> {
+        let Some((map_id, t_sk, lambda)) = f.pose else {
+            return Ok(());
+        };
+        let c = f.client_id;
+        let Some(cl) = self.clients.get_mut(c as usize) else {
+            return Ok(());
+        };
+        let msg = Feedback {
+            meta: MsgMeta::new(c, f.acked_session_id, cl.fb_seq, monotonic_ns()),
+            acked_keyframe_id: f.acked_keyframe_id,
+            acked_session_id: f.acked_session_id,
+            has_pose: 1,
+            server_pose: convert::wire_from_iso(&t_sk),
+            scale_ratio: lambda,
+            server_map_id: map_id,
+        };
+        fb.send_copy(msg)?;
+        cl.fb_seq += 1;
+        self.status.add(&format!("c{c}.pose_feedback_sent"), 1);
         Ok(())
     }
 
@@ -127,13 +335,20 @@ impl Mapper {
             .collect();
         let mut n = 0;
         for e in entries {
-            let Entry::Keyframe {
-                client,
-                header,
-                records,
-            } = e
-            else {
-                continue;
+            let (client, header, records) = match e {
+                Entry::Keyframe {
+                    client,
+                    header,
+                    records,
+                } => (client, header, records),
+                Entry::Correction { header, records } => {
+                    match convert::correction(&header, &records) {
+                        Ok(c) => self.dispatch(c, true)?,
+                        Err(e) => self.status.error("journal", e),
+                    }
+                    continue;
+                }
+                Entry::Idle { .. } => continue,
             };
             if client as usize >= self.clients.len() {
                 self.status.error(
@@ -146,7 +361,7 @@ impl Mapper {
             match convert::server_keyframe(client, &header, &records) {
                 Ok(kf) => {
                     self.clients[client as usize].applied.insert(key);
-                    let job = Job {
+                    let job = Job::Keyframe {
                         kf,
                         idle: Some(idle.contains(&(client, key.0, key.1))),
                         replay: true,
@@ -198,7 +413,7 @@ impl Mapper {
                     s.add(&format!("c{c}.keyframes_applied"), 1);
                     self.queue(
                         c,
-                        Job {
+                        Job::Keyframe {
                             kf,
                             idle: None,
                             replay: false,
@@ -228,7 +443,7 @@ impl Mapper {
         &mut self,
         o: Outcome,
         fb: &Publisher<Ipc, Feedback, ()>,
-        loop_pub: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+        loop_pub: &LoopPublisher,
     ) -> anyhow::Result<()> {
         let c = o.client;
         let key = (o.session, o.kf_id);
@@ -262,11 +477,15 @@ impl Mapper {
                     s.add(&format!("c{c}.keyframes_replayed"), 1);
                 }
                 for k in &r.kept {
-                    if let Some((h, recs)) = cl.waiting.remove(&(o.session, k.client_kf_id)) {
+                    if let Some((h, _)) = cl.waiting.remove(&(o.session, k.client_kf_id)) {
+                        let meta = MsgMeta::new(c, o.session, self.loop_seq, monotonic_ns());
+                        let (lh, recs) =
+                            convert::loop_keyframe(k, meta, &h.intrinsics, h.width, h.height);
                         let out = loop_pub.loan_slice_uninit(recs.len())?;
                         let mut out = out.write_from_slice(&recs);
-                        *out.user_header_mut() = h;
+                        *out.user_header_mut() = lh;
                         out.send()?;
+                        self.loop_seq += 1;
                         s.add(&format!("c{c}.keyframes_forwarded"), 1);
                     }
                 }
@@ -277,59 +496,30 @@ impl Mapper {
         }
         s.add(&format!("c{c}.handle_us"), (o.handle_ms * 1e3) as u64);
         s.add(&format!("c{c}.idle_us"), (o.idle_ms * 1e3) as u64);
-        if let Some((map_id, t_sk, lambda)) = o.feedback.and_then(|f| f.pose) {
-            if let Some(f) = o.feedback {
-                let msg = Feedback {
-                    meta: MsgMeta::new(c, f.acked_session_id, cl.fb_seq, monotonic_ns()),
-                    acked_keyframe_id: f.acked_keyframe_id,
-                    acked_session_id: f.acked_session_id,
-                    has_pose: 1,
-                    server_pose: convert::wire_from_iso(&t_sk),
-                    scale_ratio: lambda,
-                    server_map_id: map_id,
-                };
-                fb.send_copy(msg)?;
-                cl.fb_seq += 1;
-                s.add(&format!("c{c}.pose_feedback_sent"), 1);
-            }
+        if let Some(f) = &o.feedback {
+            self.send_feedback(f, fb)?;
         }
-        cl.figures = o.figures;
-        let f = &o.figures;
-        let set = |s: &mut Status, k: String, v: u64| {
-            s.counters.insert(k, v);
-        };
-        set(s, format!("c{c}.keyframes_kept"), f.stats.kept);
-        set(s, format!("c{c}.keyframes_discarded"), f.stats.discarded);
-        set(s, format!("c{c}.keyframes_culled"), f.stats.culled);
-        set(s, format!("c{c}.maps"), f.maps as u64);
-        set(s, format!("c{c}.server_keyframes"), f.keyframes as u64);
-        set(s, format!("c{c}.server_points"), f.points as u64);
-        s.set_value(&format!("c{c}.lambda"), f.lambda);
-        let total = |g: fn(&MapFigures) -> usize| -> u64 {
-            self.clients.iter().map(|c| g(&c.figures) as u64).sum()
-        };
-        let (maps, kfs, pts) = (
-            total(|f| f.maps),
-            total(|f| f.keyframes),
-            total(|f| f.points),
-        );
-        set(&mut self.status, "maps".into(), maps);
-        set(&mut self.status, "keyframes".into(), kfs);
-        set(&mut self.status, "points".into(), pts);
+        self.set_figures(c, o.figures);
+        self.set_map_sizes(&o.maps);
         Ok(())
     }
 }
 
 fn drain_outcomes(
     m: &mut Mapper,
-    rx: &Receiver<Outcome>,
+    rx: &Receiver<Report>,
     fbs: &[Publisher<Ipc, Feedback, ()>],
-    loop_pub: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+    loop_pub: &LoopPublisher,
 ) -> anyhow::Result<usize> {
     let mut n = 0;
-    while let Ok(o) = rx.try_recv() {
-        let c = o.client as usize;
-        m.outcome(o, &fbs[c], loop_pub)?;
+    while let Ok(r) = rx.try_recv() {
+        match r {
+            Report::Keyframe(o) => {
+                let c = o.client as usize;
+                m.outcome(*o, &fbs[c], loop_pub)?;
+            }
+            Report::Correction(o) => m.correction_outcome(*o, fbs)?,
+        }
         n += 1;
     }
     Ok(n)
@@ -347,6 +537,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     });
     let (results_tx, results_rx) = crossbeam_channel::unbounded();
     let mut m = Mapper {
+        workers: Vec::new(),
+        map_sizes: BTreeMap::new(),
+        loop_seq: 0,
         clients: (0..params.clients)
             .map(|_| Client {
                 worker: None,
@@ -387,7 +580,14 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         )?)?);
         fbs.push(topics::publisher(&topics::feedback_service(&node, c)?)?);
     }
-    let loop_pub = topics::keyframe_publisher(&topics::loop_keyframes_service(&node)?)?;
+    let loop_pub = topics::slice_publisher(
+        &topics::loop_keyframes_service(&node)?,
+        topics::MAX_KEYPOINTS,
+    )?;
+    let corr_sub = topics::slice_subscriber(
+        &topics::corrections_service(&node)?,
+        topics::CORRECTION_BUFFER,
+    )?;
     shoal_runtime::signal_ready();
 
     loop {
@@ -404,6 +604,15 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 m.receive(c as u32, &h, kf.payload(), &fbs[c])?;
             }
         }
+        while let Some(c) = corr_sub.receive()? {
+            idle = false;
+            let h = *c.user_header();
+            if let Err(e) = h.meta.check() {
+                m.status.error("schema_version", format!("correction: {e}"));
+                continue;
+            }
+            m.receive_correction(&h, c.payload())?;
+        }
         if drain_outcomes(&mut m, &results_rx, &fbs, &loop_pub)? > 0 {
             idle = false;
         }
@@ -413,41 +622,25 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         }
     }
     // Stop: the handlers finish what they have queued and write their files.
-    let queued: usize = m
-        .clients
-        .iter()
-        .filter_map(|c| c.worker.as_ref())
-        .map(|w| w.queued())
-        .sum();
+    let queued: usize = m.workers.iter().map(|w| w.queued()).sum();
     m.status.set_value("queued_at_stop", queued as f64);
-    for w in m.clients.iter_mut().filter_map(|c| c.worker.as_mut()) {
+    for w in m.workers.iter_mut() {
         w.close();
     }
     let deadline = Instant::now() + Duration::from_secs_f64(params.drain_seconds.max(0.0));
     loop {
         drain_outcomes(&mut m, &results_rx, &fbs, &loop_pub)?;
-        let running = m
-            .clients
-            .iter()
-            .filter_map(|c| c.worker.as_ref())
-            .any(|w| !w.is_finished());
+        let running = m.workers.iter().any(|w| !w.is_finished());
         if !running || Instant::now() > deadline {
             break;
         }
         std::thread::sleep(Duration::from_millis(5));
     }
     drain_outcomes(&mut m, &results_rx, &fbs, &loop_pub)?;
-    for (c, w) in m
-        .clients
-        .iter_mut()
-        .enumerate()
-        .filter_map(|(c, cl)| cl.worker.as_mut().map(|w| (c, w)))
-    {
+    for (i, w) in m.workers.iter_mut().enumerate() {
         if w.is_finished() && !w.join() {
-            m.status.error(
-                "handler",
-                format!("the handler thread of client {c} panicked"),
-            );
+            m.status
+                .error("handler", format!("handler thread {i} panicked"));
         }
     }
     m.status.finished = true;

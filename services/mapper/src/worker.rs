@@ -1,8 +1,17 @@
-//! One keyframe handler per client on its own thread: keyframes come in on a crossbeam
-//! channel, outcomes (handle report, feedback, map figures) go back to the main thread,
-//! which owns the iceoryx2 ports. When the queue is empty after a keyframe the handler runs
-//! its idle step (local BA + culling) until converged; the outcome says whether it did, so
-//! the main thread can journal it and a replay can follow the same schedule.
+//! Keyframe handler threads. A worker thread hosts a *group*: the server maps it owns and
+//! the handlers of the clients whose keyframes go into them. Each client starts in a group
+//! of its own, so clients are handled in parallel; when the loop closer merges maps hosted
+//! by two groups, the one group hands everything over to the other (the handlers of merged
+//! clients then share one map and run on one thread, in the order the main thread queued
+//! their keyframes). Keyframes and corrections come in on a crossbeam channel; reports
+//! (handle results, feedback, map figures) go back to the main thread, which owns the
+//! iceoryx2 ports.
+//!
+//! After a keyframe the handler runs its idle step (local BA + culling) when its queue is
+//! empty or after [`MAX_WITHOUT_IDLE`] keyframes; the report says whether it did, so the
+//! main thread can journal it and a replay can follow the same schedule. After a
+//! correction the global BA runs at once (in replays too), so it needs no journal entry.
+use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
@@ -11,23 +20,59 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 use nalgebra::Isometry3;
 use slam_core::server::{
-    HandleReport, HandlerParams, HandlerStats, KeyframeHandler, KeyframeStatus, ServerFeedback,
-    ServerKeyframe,
+    apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeyframeHandler,
+    KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
 };
+
+use crate::convert::Correction;
 
 /// How often a busy handler rewrites its trajectory files.
 const WRITE_EVERY: Duration = Duration::from_secs(2);
 
-/// A keyframe for a handler.
+/// Most keyframes handled in a row without an idle step.
+pub const MAX_WITHOUT_IDLE: usize = 4;
+
+/// Work for a worker thread.
 #[derive(Debug)]
-pub struct Job {
-    /// The keyframe.
-    pub kf: ServerKeyframe,
-    /// Run the idle step after it: `Some` to follow a journaled schedule (replay), `None`
-    /// to decide live (when the queue is empty).
-    pub idle: Option<bool>,
-    /// True when replayed from the journal (not to be acknowledged or forwarded again).
-    pub replay: bool,
+pub enum Job {
+    /// A keyframe for its client's handler (created on first use).
+    Keyframe {
+        /// The keyframe.
+        kf: ServerKeyframe,
+        /// Run the idle step after it: `Some` to follow a journaled schedule (replay),
+        /// `None` to decide live.
+        idle: Option<bool>,
+        /// True when replayed from the journal (not to be acknowledged or forwarded again).
+        replay: bool,
+    },
+    /// A loop correction on maps of this group.
+    Correction {
+        /// The correction.
+        correction: Correction,
+        /// True when replayed from the journal.
+        replay: bool,
+    },
+    /// Hand all maps and handlers over (on `to`) and end.
+    HandOver {
+        /// Where the group goes.
+        to: Sender<Group>,
+    },
+    /// Wait for a group handed over by another worker and host it too.
+    TakeOver {
+        /// Where it comes from.
+        from: Receiver<Group>,
+    },
+}
+
+/// Size of one server map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct MapSize {
+    /// Map id.
+    pub id: MapId,
+    /// Keyframes.
+    pub keyframes: usize,
+    /// Points.
+    pub points: usize,
 }
 
 /// Map figures of one client's handler.
@@ -35,12 +80,10 @@ pub struct Job {
 pub struct MapFigures {
     /// Handler counters.
     pub stats: HandlerStats,
-    /// Server maps of the client.
-    pub maps: usize,
-    /// Keyframes in them.
+    /// Current server map of the client.
+    pub map_id: Option<MapId>,
+    /// The client's own keyframes in it.
     pub keyframes: usize,
-    /// Points in them.
-    pub points: usize,
     /// Current scale ratio.
     pub lambda: f64,
 }
@@ -62,15 +105,47 @@ pub struct Outcome {
     pub replay: bool,
     /// Pose feedback after it (and after the idle step).
     pub feedback: Option<ServerFeedback>,
-    /// Map figures after it.
+    /// Map figures of the client after it.
     pub figures: MapFigures,
+    /// Sizes of all maps of the worker's group.
+    pub maps: Vec<MapSize>,
     /// Time in `handle`, ms.
     pub handle_ms: f64,
     /// Time in the idle step, ms.
     pub idle_ms: f64,
 }
 
-/// A running handler thread.
+/// What a worker did with a correction.
+#[derive(Debug)]
+pub struct CorrectionOutcome {
+    /// Correction id.
+    pub id: u64,
+    /// `merge` or `pose_graph`.
+    pub kind: &'static str,
+    /// A one-line summary, or why it was refused.
+    pub result: Result<String, String>,
+    /// Replayed from the journal.
+    pub replay: bool,
+    /// Feedback of every client of the group (their server poses moved).
+    pub feedback: Vec<ServerFeedback>,
+    /// Figures of every client of the group.
+    pub figures: Vec<(u32, MapFigures)>,
+    /// Sizes of all maps of the group.
+    pub maps: Vec<MapSize>,
+    /// Time to apply it (merge or corrections, fusion, global BA), ms.
+    pub apply_ms: f64,
+}
+
+/// A report of a worker to the main thread.
+#[derive(Debug)]
+pub enum Report {
+    /// A keyframe was handled.
+    Keyframe(Box<Outcome>),
+    /// A correction was applied (or refused).
+    Correction(Box<CorrectionOutcome>),
+}
+
+/// A running worker thread.
 #[derive(Debug)]
 pub struct Worker {
     tx: Option<Sender<Job>>,
@@ -78,29 +153,30 @@ pub struct Worker {
 }
 
 impl Worker {
-    /// Starts the handler thread of `client`; its trajectory files go to `out` (if any).
+    /// Starts a worker thread (named after the client it is first started for); its
+    /// trajectory files go to `out` (if any).
     pub fn spawn(
-        client: u32,
+        first_client: u32,
         params: HandlerParams,
         out: Option<PathBuf>,
-        results: Sender<Outcome>,
+        results: Sender<Report>,
     ) -> std::io::Result<Self> {
         let (tx, rx) = crossbeam_channel::unbounded();
         let thread = std::thread::Builder::new()
-            .name(format!("handler_c{client}"))
-            .spawn(move || serve(client, params, out, rx, results))?;
+            .name(format!("handlers_c{first_client}"))
+            .spawn(move || serve(params, out, rx, results))?;
         Ok(Self {
             tx: Some(tx),
             thread: Some(thread),
         })
     }
 
-    /// Queues a keyframe; false when the thread is gone.
+    /// Queues a job; false when the thread is gone.
     pub fn send(&self, job: Job) -> bool {
         self.tx.as_ref().is_some_and(|tx| tx.send(job).is_ok())
     }
 
-    /// Keyframes waiting.
+    /// Jobs waiting.
     pub fn queued(&self) -> usize {
         self.tx.as_ref().map_or(0, |tx| tx.len())
     }
@@ -121,42 +197,122 @@ impl Worker {
     }
 }
 
-/// Most keyframes handled in a row without an idle step.
-const MAX_WITHOUT_IDLE: usize = 4;
+/// Per-client state inside a group.
+#[derive(Debug)]
+struct ClientState {
+    h: KeyframeHandler,
+    /// Client poses of the keyframes of the current session, as received.
+    client_kfs: Vec<(i64, Isometry3<f64>)>,
+    /// (keyframe time, keyframes and points in the current map) after each keyframe.
+    growth: Vec<(i64, usize, usize)>,
+    session: Option<u32>,
+    /// Keyframes handled since the last idle step.
+    since_idle: usize,
+}
 
-fn figures(h: &KeyframeHandler) -> MapFigures {
-    MapFigures {
-        stats: h.stats(),
-        maps: h.maps().len(),
-        keyframes: h.maps().values().map(|m| m.map.keyframes.len()).sum(),
-        points: h.maps().values().map(|m| m.map.points.len()).sum(),
-        lambda: h.lambda(),
+/// The maps and handlers a worker hosts.
+#[derive(Debug, Default)]
+pub struct Group {
+    maps: ServerMaps,
+    clients: BTreeMap<u32, ClientState>,
+}
+
+impl Group {
+    fn sizes(&self) -> Vec<MapSize> {
+        self.maps
+            .values()
+            .map(|m| MapSize {
+                id: m.id,
+                keyframes: m.map.keyframes.len(),
+                points: m.map.points.len(),
+            })
+            .collect()
+    }
+
+    fn figures(&self, c: u32) -> MapFigures {
+        let Some(cs) = self.clients.get(&c) else {
+            return MapFigures::default();
+        };
+        let map = cs.h.current_map(&self.maps);
+        MapFigures {
+            stats: cs.h.stats(),
+            map_id: map.map(|m| m.id),
+            keyframes: map.map_or(0, |m| {
+                m.map
+                    .keyframes
+                    .keys()
+                    .filter(|k| *k >> 40 == u64::from(c))
+                    .count()
+            }),
+            lambda: cs.h.lambda(),
+        }
+    }
+
+    /// Applies a correction; the summary or why it was refused.
+    fn apply(&mut self, c: &Correction) -> Result<String, String> {
+        match c {
+            Correction::Merge {
+                from,
+                into,
+                s_into_from,
+                pairs,
+                ..
+            } => {
+                let r = merge_maps(&mut self.maps, *from, *into, s_into_from, pairs)
+                    .map_err(|e| e.to_string())?;
+                let mut first = true;
+                for cs in self.clients.values_mut() {
+                    if cs.h.apply_merge(*from, *into, s_into_from, first) {
+                        first = false;
+                    }
+                }
+                Ok(format!(
+                    "map {from:#x} merged into {into:#x} (scale {:.4}): {} keyframes moved, {} points fused",
+                    s_into_from.s, r.keyframes_moved, r.points_fused
+                ))
+            }
+            Correction::PoseGraph {
+                map,
+                deltas,
+                fallback,
+                pairs,
+                ..
+            } => {
+                let Some(m) = self.maps.get_mut(map) else {
+                    return Err(format!("pose-graph correction of unknown map {map:#x}"));
+                };
+                let r = apply_pose_corrections(&mut m.map, deltas, fallback);
+                let fused = slam_core::server::correction::fuse_points(m, pairs);
+                let mut first = true;
+                for cs in self.clients.values_mut() {
+                    let delta =
+                        cs.h.last_keyframe()
+                            .and_then(|(_, k)| k)
+                            .and_then(|k| deltas.get(&k))
+                            .unwrap_or(fallback);
+                    if cs.h.apply_correction(*map, delta, first) {
+                        first = false;
+                    }
+                }
+                Ok(format!(
+                    "map {map:#x}: {} keyframes corrected, {} by the fallback, {} points moved, {fused} fused",
+                    r.keyframes_corrected, r.keyframes_fallback, r.points_moved
+                ))
+            }
+        }
     }
 }
 
-fn serve(
-    client: u32,
-    params: HandlerParams,
-    out: Option<PathBuf>,
-    rx: Receiver<Job>,
-    results: Sender<Outcome>,
-) {
-    let mut h = KeyframeHandler::new(client, params);
-    // Client poses of the keyframes of the current session, as received.
-    let mut client_kfs: Vec<(i64, Isometry3<f64>)> = Vec::new();
-    // (keyframe time, keyframes and points in the current map) after each keyframe.
-    let mut growth: Vec<(i64, usize, usize)> = Vec::new();
-    let mut session = None;
+fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results: Sender<Report>) {
+    let mut g = Group::default();
     let mut dirty = false;
     let mut last_write = Instant::now();
-    // Keyframes handled since the last idle step (local BA + culling).
-    let mut since_idle = 0usize;
     loop {
         let job = match rx.recv_timeout(Duration::from_millis(200)) {
             Ok(j) => j,
             Err(RecvTimeoutError::Timeout) => {
                 if dirty && last_write.elapsed() > WRITE_EVERY {
-                    write_files(out.as_deref(), client, &h, &client_kfs, &growth);
+                    write_files(out.as_deref(), &g);
                     dirty = false;
                     last_write = Instant::now();
                 }
@@ -164,93 +320,164 @@ fn serve(
             }
             Err(RecvTimeoutError::Disconnected) => break,
         };
-        let (kf_session, kf_id, t_ns, t_ck) =
-            (job.kf.session_id, job.kf.id, job.kf.t_ns, job.kf.t_ck);
-        let t0 = Instant::now();
-        let result = h.handle(job.kf).map_err(|e| e.to_string());
-        let handle_ms = t0.elapsed().as_secs_f64() * 1e3;
-        if let Ok(r) = &result {
-            if r.status != KeyframeStatus::Duplicate {
-                if session != Some(kf_session) {
-                    client_kfs.clear();
-                    session = Some(kf_session);
-                }
-                client_kfs.push((t_ns, t_ck));
-                dirty = true;
+        let report = match job {
+            Job::HandOver { to } => {
+                write_files(out.as_deref(), &g);
+                let _ = to.send(std::mem::take(&mut g));
+                return;
             }
-        }
-        // Idle when the queue is empty, and at least every MAX_WITHOUT_IDLE keyframes even
-        // in a burst (a client that sends its whole window at the end of its stream would
-        // otherwise get no local BA at all while its map grows). The journal records the
-        // decision, so a replay takes the same schedule.
-        let idled = result.is_ok()
-            && job
-                .idle
-                .unwrap_or_else(|| rx.is_empty() || since_idle + 1 >= MAX_WITHOUT_IDLE);
-        since_idle = if idled { 0 } else { since_idle + 1 };
-        let t1 = Instant::now();
-        if idled {
-            while h.idle_step().is_some() {}
-        }
-        let idle_ms = t1.elapsed().as_secs_f64() * 1e3;
-        if let Some(m) = h.current_map() {
-            growth.push((t_ns, m.map.keyframes.len(), m.map.points.len()));
-        }
-        let outcome = Outcome {
-            client,
-            session: kf_session,
-            kf_id,
-            result,
-            idled,
-            replay: job.replay,
-            feedback: h.feedback(),
-            figures: figures(&h),
-            handle_ms,
-            idle_ms,
+            Job::TakeOver { from } => {
+                if let Ok(other) = from.recv() {
+                    g.maps.extend(other.maps);
+                    g.clients.extend(other.clients);
+                }
+                continue;
+            }
+            Job::Correction { correction, replay } => {
+                let t0 = Instant::now();
+                let result = g.apply(&correction);
+                // The global BA the correction asked for, at once (live and in replays).
+                if result.is_ok() {
+                    for cs in g.clients.values_mut() {
+                        while cs.h.idle_step(&mut g.maps).is_some() {}
+                    }
+                }
+                dirty = true;
+                let clients: Vec<u32> = g.clients.keys().copied().collect();
+                Report::Correction(Box::new(CorrectionOutcome {
+                    id: correction.id(),
+                    kind: match correction {
+                        Correction::Merge { .. } => "merge",
+                        Correction::PoseGraph { .. } => "pose_graph",
+                    },
+                    result,
+                    replay,
+                    feedback: g
+                        .clients
+                        .values()
+                        .filter_map(|cs| cs.h.feedback(&g.maps))
+                        .collect(),
+                    figures: clients.iter().map(|c| (*c, g.figures(*c))).collect(),
+                    maps: g.sizes(),
+                    apply_ms: t0.elapsed().as_secs_f64() * 1e3,
+                }))
+            }
+            Job::Keyframe { kf, idle, replay } => {
+                dirty = true;
+                Report::Keyframe(Box::new(handle(&mut g, &params, kf, idle, replay, &rx)))
+            }
         };
-        if results.send(outcome).is_err() {
+        if results.send(report).is_err() {
             break;
         }
         if dirty && last_write.elapsed() > WRITE_EVERY {
-            write_files(out.as_deref(), client, &h, &client_kfs, &growth);
+            write_files(out.as_deref(), &g);
             dirty = false;
             last_write = Instant::now();
         }
     }
-    write_files(out.as_deref(), client, &h, &client_kfs, &growth);
+    write_files(out.as_deref(), &g);
 }
 
-/// `OUT/keyframes_server_c{c}.txt`: the server keyframe poses `T_sk` of the client's
-/// current server map (earlier maps of older sessions in `..._m{n}.txt`);
-/// `OUT/keyframes_client_c{c}.txt`: the client poses `T_ck` of every keyframe of the current
-/// session as received (the client VO's keyframes, for comparison);
-/// `OUT/map_growth_c{c}.txt`: map size after each keyframe.
-fn write_files(
-    out: Option<&Path>,
-    client: u32,
-    h: &KeyframeHandler,
-    client_kfs: &[(i64, Isometry3<f64>)],
-    growth: &[(i64, usize, usize)],
-) {
+fn handle(
+    g: &mut Group,
+    params: &HandlerParams,
+    kf: ServerKeyframe,
+    idle: Option<bool>,
+    replay: bool,
+    rx: &Receiver<Job>,
+) -> Outcome {
+    let client = kf.client_id;
+    let cs = g.clients.entry(client).or_insert_with(|| ClientState {
+        h: KeyframeHandler::new(client, params.clone()),
+        client_kfs: Vec::new(),
+        growth: Vec::new(),
+        session: None,
+        since_idle: 0,
+    });
+    let (kf_session, kf_id, t_ns, t_ck) = (kf.session_id, kf.id, kf.t_ns, kf.t_ck);
+    let t0 = Instant::now();
+    let result = cs.h.handle(&mut g.maps, kf).map_err(|e| e.to_string());
+    let handle_ms = t0.elapsed().as_secs_f64() * 1e3;
+    if let Ok(r) = &result {
+        if r.status != KeyframeStatus::Duplicate {
+            if cs.session != Some(kf_session) {
+                cs.client_kfs.clear();
+                cs.session = Some(kf_session);
+            }
+            cs.client_kfs.push((t_ns, t_ck));
+        }
+    }
+    // Idle when the queue is empty, and at least every MAX_WITHOUT_IDLE keyframes even
+    // in a burst (a client that sends its whole window at the end of its stream would
+    // otherwise get no local BA at all while its map grows). The journal records the
+    // decision, so a replay takes the same schedule.
+    let idled = result.is_ok()
+        && idle.unwrap_or_else(|| rx.is_empty() || cs.since_idle + 1 >= MAX_WITHOUT_IDLE);
+    cs.since_idle = if idled { 0 } else { cs.since_idle + 1 };
+    let t1 = Instant::now();
+    if idled {
+        while cs.h.idle_step(&mut g.maps).is_some() {}
+    }
+    let idle_ms = t1.elapsed().as_secs_f64() * 1e3;
+    if let Some(m) = cs.h.current_map(&g.maps) {
+        cs.growth
+            .push((t_ns, m.map.keyframes.len(), m.map.points.len()));
+    }
+    let feedback = cs.h.feedback(&g.maps);
+    Outcome {
+        client,
+        session: kf_session,
+        kf_id,
+        result,
+        idled,
+        replay,
+        feedback,
+        figures: g.figures(client),
+        maps: g.sizes(),
+        handle_ms,
+        idle_ms,
+    }
+}
+
+/// Per client `c` of the group: `OUT/keyframes_server_c{c}.txt`, the server poses `T_sk` of
+/// the client's keyframes in its current server map (after a merge that map also holds
+/// other clients' keyframes, in the same frame); its earlier maps (older sessions, not
+/// merged) in `..._m{n}.txt`; `OUT/keyframes_client_c{c}.txt`, the client poses `T_ck` of
+/// every keyframe of the current session as received (the client VO's keyframes, for
+/// comparison); `OUT/map_growth_c{c}.txt`, the size of its map after each keyframe.
+fn write_files(out: Option<&Path>, g: &Group) {
     let Some(out) = out else { return };
-    let mut text = String::from("# t_ns keyframes points (client's current server map)\n");
-    for (t, k, p) in growth {
-        text.push_str(&format!("{t} {k} {p}\n"));
+    for (c, cs) in &g.clients {
+        let mut text = String::from("# t_ns keyframes points (client's current server map)\n");
+        for (t, k, p) in &cs.growth {
+            text.push_str(&format!("{t} {k} {p}\n"));
+        }
+        let _ = std::fs::write(out.join(format!("map_growth_c{c}.txt")), text);
+        let current = cs.h.current_map_id();
+        for (id, m) in &g.maps {
+            let mine = |k: &u64| *k >> 40 == u64::from(*c);
+            let name = if Some(*id) == current {
+                format!("keyframes_server_c{c}.txt")
+            } else if *id >> 32 == u64::from(*c) && m.map.keyframes.keys().any(mine) {
+                format!("keyframes_server_c{c}_m{}.txt", id & 0xffff_ffff)
+            } else {
+                continue;
+            };
+            let traj: Vec<(i64, Isometry3<f64>)> = m
+                .map
+                .keyframes
+                .iter()
+                .filter(|(k, _)| mine(k))
+                .map(|(_, kf)| (kf.t_ns, kf.t_cw.inverse()))
+                .collect();
+            let _ = write_tum(&out.join(name), &traj);
+        }
+        let _ = write_tum(
+            &out.join(format!("keyframes_client_c{c}.txt")),
+            &cs.client_kfs,
+        );
     }
-    let _ = std::fs::write(out.join(format!("map_growth_c{client}.txt")), text);
-    let current = h.current_map().map(|m| m.id);
-    for (id, m) in h.maps() {
-        let name = if Some(*id) == current {
-            format!("keyframes_server_c{client}.txt")
-        } else {
-            format!("keyframes_server_c{client}_m{}.txt", id & 0xffff_ffff)
-        };
-        let _ = write_tum(&out.join(name), &m.trajectory());
-    }
-    let _ = write_tum(
-        &out.join(format!("keyframes_client_c{client}.txt")),
-        client_kfs,
-    );
 }
 
 /// Writes a TUM trajectory (`t tx ty tz qx qy qz qw`, t in seconds) atomically.

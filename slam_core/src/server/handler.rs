@@ -5,7 +5,9 @@
 //!
 //! Plain data, no threads: the mapper service owns one handler per client and calls
 //! [`KeyframeHandler::handle`] per keyframe and [`KeyframeHandler::idle_step`] when its
-//! queue is empty. Everything is deterministic: the same sequence of `handle` and
+//! queue is empty. The maps are not inside the handler: they are a [`ServerMaps`] store the
+//! caller passes in, so that after a merge (seed §3.4.2) the handlers of several clients
+//! continue in one shared map. Everything is deterministic: the same sequence of `handle` and
 //! `idle_step` calls on a fresh handler gives the same maps bit for bit (so a mapper can
 //! rebuild from a journal; calling `idle_step` once after each `handle` is a schedule that
 //! a journal of keyframes alone reproduces).
@@ -13,6 +15,7 @@ use std::collections::{BTreeMap, HashMap};
 
 use nalgebra::Isometry3;
 
+use super::correction::{scale_ratio_after_loop, transform_pose};
 use super::refine::Refiner;
 use super::scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
 use super::server_map::ServerMap;
@@ -22,18 +25,25 @@ use super::types::{
 };
 use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
 use crate::optim::PoseOptParams;
+use crate::pgo::Sim3;
 use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
 use crate::vo::local_mapping::{
-    create_points_with_neighbours, cull_recent_points, local_bundle_adjustment,
+    create_points_with_neighbours, cull_recent_points, global_bundle_adjustment,
+    local_bundle_adjustment,
 };
 use crate::vo::{KfId, PointId};
 use crate::CoreError;
+
+/// The server maps a handler works in, by id (shared by the handlers of merged clients).
+pub type ServerMaps = BTreeMap<MapId, ServerMap>;
 
 /// Parameters of the handler; defaults follow the seed where it gives a value.
 #[derive(Debug, Clone)]
 pub struct HandlerParams {
     /// Scale-ratio smoothing factor α of eq. 3.3 (seed: 0.2).
     pub alpha: f64,
+    /// Scale-ratio update factor β after a loop, eq. 3.6 (seed: 0.9).
+    pub beta: f64,
     /// Keep a keyframe seeing fewer than this fraction of its reference keyframe's points
     /// (seed: 0.9).
     pub keep_ref_ratio: f64,
@@ -71,6 +81,7 @@ impl Default for HandlerParams {
     fn default() -> Self {
         Self {
             alpha: 0.2,
+            beta: 0.9,
             keep_ref_ratio: 0.9,
             keep_min_points: 50,
             local_keyframes: 10,
@@ -113,6 +124,8 @@ pub struct IdleReport {
     pub ba: Option<BaReport>,
     /// Keyframes culled as redundant.
     pub culled: Vec<KfId>,
+    /// Global BA (after a loop correction) instead of local BA.
+    pub global: bool,
 }
 
 /// The last keyframe handled in the current session (keyframe `j` of eq. 3.1-3.4).
@@ -131,7 +144,6 @@ struct Last {
 pub struct KeyframeHandler {
     client_id: u32,
     params: HandlerParams,
-    maps: BTreeMap<MapId, ServerMap>,
     current: Option<MapId>,
     session: Option<u32>,
     first: Option<ServerKeyframe>,
@@ -140,6 +152,7 @@ pub struct KeyframeHandler {
     reference: Option<KfId>,
     latest_kept: Option<KfId>,
     converged: bool,
+    global_ba: bool,
     next_point_id: PointId,
     stats: HandlerStats,
     refiner: Refiner,
@@ -154,7 +167,6 @@ impl KeyframeHandler {
         Self {
             client_id,
             params,
-            maps: BTreeMap::new(),
             current: None,
             session: None,
             first: None,
@@ -163,6 +175,7 @@ impl KeyframeHandler {
             reference: None,
             latest_kept: None,
             converged: true,
+            global_ba: false,
             next_point_id: u64::from(client_id) << 40,
             stats: HandlerStats::default(),
             refiner: Refiner::default(),
@@ -187,14 +200,14 @@ impl KeyframeHandler {
         self.stats
     }
 
-    /// All server maps of this client (one per VO session that reached two keyframes).
-    pub fn maps(&self) -> &BTreeMap<MapId, ServerMap> {
-        &self.maps
+    /// Id of the server map of the current session.
+    pub fn current_map_id(&self) -> Option<MapId> {
+        self.current
     }
 
-    /// The server map of the current session.
-    pub fn current_map(&self) -> Option<&ServerMap> {
-        self.current.and_then(|m| self.maps.get(&m))
+    /// The server map of the current session in `maps`.
+    pub fn current_map<'a>(&self, maps: &'a ServerMaps) -> Option<&'a ServerMap> {
+        self.current.and_then(|m| maps.get(&m))
     }
 
     /// Current scale ratio `λ` (1 before a map exists).
@@ -209,10 +222,10 @@ impl KeyframeHandler {
 
     /// Pose feedback for the client: server pose of its last keyframe and `λ` (seed
     /// §3.4.1), with the acknowledgement of the last keyframe applied.
-    pub fn feedback(&self) -> Option<ServerFeedback> {
+    pub fn feedback(&self, maps: &ServerMaps) -> Option<ServerFeedback> {
         let (acked_keyframe_id, acked_session_id) = self.acked?;
         let pose = match (self.current, self.last) {
-            (Some(m), Some(l)) => Some((m, self.last_server_pose(&l), l.lambda)),
+            (Some(m), Some(l)) => Some((m, self.last_server_pose(maps, &l), l.lambda)),
             _ => None,
         };
         Some(ServerFeedback {
@@ -225,16 +238,20 @@ impl KeyframeHandler {
 
     /// Server pose of the last keyframe: from the map when it was kept (BA may have moved
     /// it), else the pose it got when handled.
-    fn last_server_pose(&self, l: &Last) -> Isometry3<f64> {
+    fn last_server_pose(&self, maps: &ServerMaps, l: &Last) -> Isometry3<f64> {
         l.server_kf
-            .and_then(|k| self.current_map().and_then(|m| m.pose(k)))
+            .and_then(|k| self.current_map(maps).and_then(|m| m.pose(k)))
             .unwrap_or(l.t_sk)
     }
 
     /// Handles one keyframe of this client (seed §3.4.1). Invalid input is refused with an
     /// error and leaves the handler unchanged; a keyframe of an older session, or whose id
     /// is not above the last one of its session, is a [`KeyframeStatus::Duplicate`].
-    pub fn handle(&mut self, kf: ServerKeyframe) -> Result<HandleReport, CoreError> {
+    pub fn handle(
+        &mut self,
+        maps: &mut ServerMaps,
+        kf: ServerKeyframe,
+    ) -> Result<HandleReport, CoreError> {
         kf.validate()?;
         if kf.client_id != self.client_id {
             return Err(CoreError::InvalidArgument(format!(
@@ -276,9 +293,9 @@ impl KeyframeHandler {
                 self.first = Some(kf);
                 return Ok(self.report(id, KeyframeStatus::First));
             };
-            return Ok(self.create_map(first, kf));
+            return Ok(self.create_map(maps, first, kf));
         }
-        self.track(kf)
+        self.track(maps, kf)
     }
 
     fn report(&self, client_kf_id: KfId, status: KeyframeStatus) -> HandleReport {
@@ -300,17 +317,30 @@ impl KeyframeHandler {
     /// the client map frame at that moment (so `λ = 1`); points from the client's own
     /// correspondences and from descriptor matches (epipolar, depth, reprojection and
     /// parallax checks).
-    fn create_map(&mut self, first: ServerKeyframe, second: ServerKeyframe) -> HandleReport {
+    fn create_map(
+        &mut self,
+        maps: &mut ServerMaps,
+        first: ServerKeyframe,
+        second: ServerKeyframe,
+    ) -> HandleReport {
         let id = server_map_id(self.client_id, self.stats.maps as u32);
         self.stats.maps += 1;
         let session = second.session_id;
-        let mut map = ServerMap::new(id, self.client_id, session, self.next_point_id);
+        let owner = (self.client_id, session);
+        // Point ids of this client's range may also have been used by other handlers in a
+        // map merged with one of ours: start after every counter of the store.
+        let first_point = maps
+            .values()
+            .map(|m| m.map.next_point_id())
+            .filter(|p| p >> 40 == self.next_point_id >> 40)
+            .fold(self.next_point_id, u64::max);
+        let mut map = ServerMap::new(id, self.client_id, session, first_point);
         let none1 = vec![None; first.features.len()];
         let none2 = vec![None; second.features.len()];
         let k1 = map.insert(&first, &first.t_ck, &none1);
         let k2 = map.insert(&second, &second.t_ck, &none2);
-        let mut created = map.triangulate_client_tracks(k1, &first.client_points);
-        created += map.triangulate_client_tracks(k2, &second.client_points);
+        let mut created = map.triangulate_client_tracks(owner, k1, &first.client_points);
+        created += map.triangulate_client_tracks(owner, k2, &second.client_points);
         created += create_points_with_neighbours(&mut map.map, k2, 1);
         map.map.update_covisibility(k1);
         map.map.update_covisibility(k2);
@@ -319,7 +349,7 @@ impl KeyframeHandler {
             .iter()
             .filter_map(|(k, c)| map.kept_summary(*k, *c))
             .collect();
-        self.maps.insert(id, map);
+        maps.insert(id, map);
         self.current = Some(id);
         self.last = Some(Last {
             client_kf_id: second.id,
@@ -348,14 +378,19 @@ impl KeyframeHandler {
 
     /// Next keyframe `k` of a session with a map: predict, refine, measure and smooth the
     /// scale ratio, keep or discard.
-    fn track(&mut self, kf: ServerKeyframe) -> Result<HandleReport, CoreError> {
+    fn track(
+        &mut self,
+        maps: &mut ServerMaps,
+        kf: ServerKeyframe,
+    ) -> Result<HandleReport, CoreError> {
         let (Some(map_id), Some(last)) = (self.current, self.last) else {
             return Err(CoreError::InvalidArgument(
                 "no server map to track in".into(),
             ));
         };
-        let t_sj = self.last_server_pose(&last);
-        let Some(map) = self.maps.get_mut(&map_id) else {
+        let t_sj = self.last_server_pose(maps, &last);
+        let owner = (kf.client_id, kf.session_id);
+        let Some(map) = maps.get_mut(&map_id) else {
             return Err(CoreError::InvalidArgument(format!(
                 "server map {map_id} missing"
             )));
@@ -386,7 +421,7 @@ impl KeyframeHandler {
         // The client's point ids now name these server points.
         for (i, s) in self.frame_points.iter().enumerate() {
             if let (Some(s), Some(Some(c))) = (s, kf.client_points.get(i)) {
-                map.associate(*c, *s);
+                map.associate(owner, *c, *s);
             }
         }
         // Reference keyframe: the one sharing most of the matched points.
@@ -423,7 +458,7 @@ impl KeyframeHandler {
         let mut server_kf = None;
         if keep {
             let id = map.insert(&kf, &t_sk, &self.frame_points);
-            let mut created = map.triangulate_client_tracks(id, &kf.client_points);
+            let mut created = map.triangulate_client_tracks(owner, id, &kf.client_points);
             created += create_points_with_neighbours(
                 &mut map.map,
                 id,
@@ -458,13 +493,23 @@ impl KeyframeHandler {
     /// One idle step (seed §3.4.1, "when idle and not locally converged"): local BA around
     /// the latest kept keyframe (the tracker's sparse BA), then culling of redundant
     /// keyframes around it. Returns `None` when already converged.
-    pub fn idle_step(&mut self) -> Option<IdleReport> {
+    pub fn idle_step(&mut self, maps: &mut ServerMaps) -> Option<IdleReport> {
         if self.converged {
             return None;
         }
         self.converged = true;
         let k = self.latest_kept?;
-        let map = self.maps.get_mut(&self.current?)?;
+        let map = maps.get_mut(&self.current?)?;
+        if std::mem::take(&mut self.global_ba) {
+            // Seed §3.4.2: global BA after a loop correction (the seed runs it on its own
+            // thread; here it is the handler's next idle step, so keyframes wait for it).
+            let ba = global_bundle_adjustment(&mut map.map, &mut self.ba, &mut self.ba_problem);
+            return Some(IdleReport {
+                ba,
+                culled: Vec::new(),
+                global: true,
+            });
+        }
         let ba = local_bundle_adjustment(
             &mut map.map,
             k,
@@ -477,7 +522,64 @@ impl KeyframeHandler {
         protected.extend(self.last.and_then(|l| l.server_kf));
         let culled = cull_redundant_keyframes(&mut map.map, k, &protected, &self.params.culling);
         self.stats.culled += culled.len() as u64;
-        Some(IdleReport { ba, culled })
+        Some(IdleReport {
+            ba,
+            culled,
+            global: false,
+        })
+    }
+
+    /// Map `from` was merged into map `into` by the similarity `s_into_from`
+    /// ([`super::correction::merge_maps`], done by the caller on the store): if this
+    /// client's current map was `from`, it continues in `into`; the pose of its last
+    /// keyframe follows the map and its scale ratio is updated by eq. 3.6. A global BA is
+    /// due at the next idle step. Returns whether this handler was affected.
+    /// `global_ba` asks for the global BA (one handler of a map is enough).
+    pub fn apply_merge(
+        &mut self,
+        from: MapId,
+        into: MapId,
+        s_into_from: &Sim3,
+        global_ba: bool,
+    ) -> bool {
+        if self.current != Some(from) {
+            return false;
+        }
+        self.current = Some(into);
+        self.after_correction(s_into_from, global_ba);
+        true
+    }
+
+    /// The current map was corrected by a pose graph optimisation (done by the caller with
+    /// [`super::correction::apply_pose_corrections`]); `delta_last` is the correction that
+    /// moved this client's newest keyframe. The pose of the last keyframe follows it, `λ`
+    /// is updated by eq. 3.6 and a global BA is due at the next idle step.
+    /// `global_ba` asks for the global BA (one handler of a map is enough).
+    pub fn apply_correction(&mut self, map: MapId, delta_last: &Sim3, global_ba: bool) -> bool {
+        if self.current != Some(map) {
+            return false;
+        }
+        self.after_correction(delta_last, global_ba);
+        true
+    }
+
+    /// Newest keyframe of this client handled in its current map: `(client keyframe id,
+    /// server keyframe id when it was kept)`.
+    pub fn last_keyframe(&self) -> Option<(KfId, Option<KfId>)> {
+        self.last.map(|l| (l.client_kf_id, l.server_kf))
+    }
+
+    fn after_correction(&mut self, s: &Sim3, global_ba: bool) {
+        if let Some(l) = self.last.as_mut() {
+            if l.server_kf.is_none() {
+                l.t_sk = transform_pose(s, &l.t_sk);
+            }
+            l.lambda = scale_ratio_after_loop(l.lambda, s.s, self.params.beta);
+        }
+        if global_ba {
+            self.global_ba = true;
+            self.converged = false;
+        }
     }
 
     /// Server id of client keyframe `kf_id` of this client.

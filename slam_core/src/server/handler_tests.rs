@@ -80,6 +80,7 @@ fn true_pose(k: usize) -> Isometry3<f64> {
 #[test]
 fn scale_ratio_is_measured_and_smoothed_and_poses_follow_the_truth() {
     let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
     let drift = 0.8;
     let mut lambda = 1.0;
     for k in 0..10 {
@@ -93,7 +94,9 @@ fn scale_ratio_is_measured_and_smoothed_and_poses_follow_the_truth() {
                 t_wk.rotation,
             )
         };
-        let r = h.handle(keyframe(k as u64, 1, &t_wk, &t_ck)).unwrap();
+        let r = h
+            .handle(&mut maps, keyframe(k as u64, 1, &t_wk, &t_ck))
+            .unwrap();
         match k {
             0 => assert_eq!(r.status, KeyframeStatus::First),
             1 => {
@@ -123,10 +126,10 @@ fn scale_ratio_is_measured_and_smoothed_and_poses_follow_the_truth() {
                 assert!(r.inliers > 100);
             }
         }
-        h.idle_step();
+        h.idle_step(&mut maps);
     }
     assert!(lambda > 1.0 && lambda < 1.0 / drift);
-    let fb = h.feedback().unwrap();
+    let fb = h.feedback(&maps).unwrap();
     assert_eq!(fb.acked_keyframe_id, 9);
     assert!((fb.pose.unwrap().2 - lambda).abs() < 1e-12);
 }
@@ -134,23 +137,33 @@ fn scale_ratio_is_measured_and_smoothed_and_poses_follow_the_truth() {
 #[test]
 fn invalid_foreign_and_duplicate_keyframes() {
     let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
     let kf0 = keyframe(0, 1, &true_pose(0), &true_pose(0));
     let mut bad = kf0.clone();
     bad.client_points.pop();
-    assert!(h.handle(bad).is_err());
+    assert!(h.handle(&mut maps, bad).is_err());
     let mut foreign = kf0.clone();
     foreign.client_id = CLIENT + 1;
-    assert!(h.handle(foreign).is_err());
+    assert!(h.handle(&mut maps, foreign).is_err());
     let mut nan = kf0.clone();
     nan.t_ck.translation.vector.x = f64::NAN;
-    assert!(h.handle(nan).is_err());
+    assert!(h.handle(&mut maps, nan).is_err());
     assert_eq!(h.stats().received, 0);
-    assert!(h.feedback().is_none());
-    assert_eq!(h.handle(kf0.clone()).unwrap().status, KeyframeStatus::First);
-    assert_eq!(h.handle(kf0).unwrap().status, KeyframeStatus::Duplicate);
+    assert!(h.feedback(&maps).is_none());
+    assert_eq!(
+        h.handle(&mut maps, kf0.clone()).unwrap().status,
+        KeyframeStatus::First
+    );
+    assert_eq!(
+        h.handle(&mut maps, kf0).unwrap().status,
+        KeyframeStatus::Duplicate
+    );
     let kf1 = keyframe(1, 1, &true_pose(1), &true_pose(1));
-    assert_eq!(h.handle(kf1).unwrap().status, KeyframeStatus::MapCreated);
-    let fb = h.feedback().unwrap();
+    assert_eq!(
+        h.handle(&mut maps, kf1).unwrap().status,
+        KeyframeStatus::MapCreated
+    );
+    let fb = h.feedback(&maps).unwrap();
     assert_eq!((fb.acked_keyframe_id, fb.acked_session_id), (1, 1));
     assert_eq!(fb.pose.unwrap().0, server_map_id(CLIENT, 0));
 }

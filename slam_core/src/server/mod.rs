@@ -11,15 +11,20 @@
 //! Frames: a client keyframe pose is `T_ck` (camera → client map `c`), a server pose is
 //! `T_sk` (camera → server map `s`); `λ` is server length over client length.
 
+pub mod correction;
 pub mod handler;
 mod refine;
 pub mod scale;
 pub mod server_map;
 pub mod types;
 
-pub use handler::{HandlerParams, HandlerStats, IdleReport, KeyframeHandler};
+pub use correction::{
+    apply_pose_corrections, merge_maps, scale_ratio_after_loop, transform_map, transform_pose,
+    CorrectionReport, MergeReport,
+};
+pub use handler::{HandlerParams, HandlerStats, IdleReport, KeyframeHandler, ServerMaps};
 pub use scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
-pub use server_map::ServerMap;
+pub use server_map::{Owner, ServerMap};
 pub use types::{
     frame_pose_in_server_map, server_kf_id, server_map_id, HandleReport, KeptKeyframe, KeptPoint,
     KeyframeStatus, MapId, ServerFeedback, ServerKeyframe,

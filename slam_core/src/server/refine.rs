@@ -58,7 +58,7 @@ impl Refiner {
         frame_points.resize(n, None);
         // Direct matches from the client's point ids.
         for (i, c) in kf.client_points.iter().enumerate() {
-            if let Some(s) = c.and_then(|c| map.server_point(c)) {
+            if let Some(s) = c.and_then(|c| map.server_point((kf.client_id, kf.session_id), c)) {
                 frame_points[i] = Some(s);
             }
         }

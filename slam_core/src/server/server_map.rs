@@ -27,9 +27,19 @@ pub struct ServerMap {
     pub session_id: u32,
     /// Keyframes, points, observations and covisibility.
     pub map: ClientMap,
-    /// Client map-point id → server point id.
+    /// Per owner (client, VO session): client map-point id → server point id, and client
+    /// map-point id → kept-keyframe observations not yet triangulated. A merged map holds
+    /// the associations of every session that was merged into it.
+    assoc: BTreeMap<Owner, Associations>,
+}
+
+/// A VO session of a client: `(client_id, session_id)`. Client map-point ids are only
+/// unique within one.
+pub type Owner = (u32, u32);
+
+#[derive(Debug, Clone, Default)]
+struct Associations {
     client_to_server: BTreeMap<PointId, PointId>,
-    /// Client map-point id → kept-keyframe observations not yet triangulated.
     pending: BTreeMap<PointId, Vec<(KfId, u32)>>,
 }
 
@@ -41,24 +51,60 @@ impl ServerMap {
             client_id,
             session_id,
             map: ClientMap::new(session_id, first_point_id),
-            client_to_server: BTreeMap::new(),
-            pending: BTreeMap::new(),
+            assoc: BTreeMap::new(),
         }
     }
 
-    /// The server point associated with client point `c`, if it still exists.
-    pub fn server_point(&self, c: PointId) -> Option<PointId> {
-        self.client_to_server
+    /// The server point associated with client point `c` of `owner`, if it still exists.
+    pub fn server_point(&self, owner: Owner, c: PointId) -> Option<PointId> {
+        self.assoc
+            .get(&owner)?
+            .client_to_server
             .get(&c)
             .copied()
             .filter(|s| self.map.points.contains_key(s))
     }
 
-    /// Associates client point `c` with server point `s` unless `c` already has a live one.
-    pub fn associate(&mut self, c: PointId, s: PointId) {
-        if self.server_point(c).is_none() {
-            self.client_to_server.insert(c, s);
-            self.pending.remove(&c);
+    /// Associates client point `c` of `owner` with server point `s` unless `c` already has
+    /// a live one.
+    pub fn associate(&mut self, owner: Owner, c: PointId, s: PointId) {
+        if self.server_point(owner, c).is_none() {
+            let a = self.assoc.entry(owner).or_default();
+            a.client_to_server.insert(c, s);
+            a.pending.remove(&c);
+        }
+    }
+
+    /// Sessions whose client points are associated with this map's points.
+    pub fn owners(&self) -> impl Iterator<Item = Owner> + '_ {
+        self.assoc.keys().copied()
+    }
+
+    /// Moves everything of `other` into this map (keyframes, points, covisibility and the
+    /// client-point associations of its owners); `other`'s geometry must already be in this
+    /// map's frame and its ids must not collide with this map's (server ids are unique per
+    /// client, see [`server_kf_id`]). Returns the number of keyframes moved.
+    pub(crate) fn absorb(&mut self, other: ServerMap) -> usize {
+        let n = other.map.keyframes.len();
+        self.map.absorb(other.map);
+        for (owner, a) in other.assoc {
+            let mine = self.assoc.entry(owner).or_default();
+            mine.client_to_server.extend(a.client_to_server);
+            for (c, list) in a.pending {
+                mine.pending.entry(c).or_default().extend(list);
+            }
+        }
+        n
+    }
+
+    /// Replaces point `from` by point `to` in the associations (after a fusion).
+    pub(crate) fn redirect_point(&mut self, from: PointId, to: PointId) {
+        for a in self.assoc.values_mut() {
+            for s in a.client_to_server.values_mut() {
+                if *s == from {
+                    *s = to;
+                }
+            }
         }
     }
 
@@ -106,6 +152,7 @@ impl ServerMap {
     /// parallax); otherwise it waits for a later keyframe. Returns the points created.
     pub(crate) fn triangulate_client_tracks(
         &mut self,
+        owner: Owner,
         k: KfId,
         client_points: &[Option<PointId>],
     ) -> usize {
@@ -122,11 +169,16 @@ impl ServerMap {
             if !free {
                 continue;
             }
-            if self.server_point(c).is_some() {
+            if self.server_point(owner, c).is_some() {
                 // Associated, but the refinement rejected or missed the match: leave it.
                 continue;
             }
-            let candidates = self.pending.get(&c).cloned().unwrap_or_default();
+            let candidates = self
+                .assoc
+                .get(&owner)
+                .and_then(|a| a.pending.get(&c))
+                .cloned()
+                .unwrap_or_default();
             let mut made = None;
             for (k0, i0) in candidates {
                 if let Some(p) = self.triangulate_pair(k, i as u32, k0, i0, &check) {
@@ -134,12 +186,13 @@ impl ServerMap {
                     break;
                 }
             }
+            let a = self.assoc.entry(owner).or_default();
             if let Some(p) = made {
-                self.client_to_server.insert(c, p);
-                self.pending.remove(&c);
+                a.client_to_server.insert(c, p);
+                a.pending.remove(&c);
                 created += 1;
             } else {
-                let list = self.pending.entry(c).or_default();
+                let list = a.pending.entry(c).or_default();
                 if list.len() >= MAX_PENDING_PER_POINT {
                     list.remove(0);
                 }

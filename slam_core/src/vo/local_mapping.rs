@@ -174,11 +174,39 @@ pub fn prepare_local_ba(
     problem: &mut crate::optim::ba::BaProblem,
     n_neighbours: usize,
 ) -> Option<LocalBaJob> {
-    use std::collections::HashMap;
-    let first = *map.keyframes.keys().next()?;
     map.keyframes.get(&k)?;
     let mut local: Vec<KfId> = vec![k];
     local.extend(map.covisible(k, n_neighbours, 1));
+    prepare_ba(map, local, problem)
+}
+
+/// Global bundle adjustment of a whole map (seed §3.4.2, after a loop correction): every
+/// keyframe is free except the oldest (the gauge), every point is free. Outlier
+/// observations are removed afterwards. `None` when there is too little to adjust.
+pub fn global_bundle_adjustment(
+    map: &mut ClientMap,
+    ba: &mut crate::optim::ba::BundleAdjuster,
+    problem: &mut crate::optim::ba::BaProblem,
+) -> Option<crate::optim::ba::BaReport> {
+    let all: Vec<KfId> = map.keyframes.keys().copied().collect();
+    let job = prepare_ba(map, all, problem)?;
+    let report = ba
+        .optimize(problem, &crate::optim::ba::BaParams::local())
+        .ok()?;
+    apply_local_ba(map, &job, problem, ba.inliers());
+    Some(report)
+}
+
+/// Builds a BA problem in which the keyframes `local` are free (except the map's oldest
+/// keyframe, the gauge), the points they see are free, and the other keyframes that see
+/// those points are fixed.
+fn prepare_ba(
+    map: &ClientMap,
+    local: Vec<KfId>,
+    problem: &mut crate::optim::ba::BaProblem,
+) -> Option<LocalBaJob> {
+    use std::collections::HashMap;
+    let first = *map.keyframes.keys().next()?;
     let mut kf_index: HashMap<KfId, usize> = HashMap::new();
     let mut pt_index: HashMap<u64, usize> = HashMap::new();
     let mut job = LocalBaJob::default();

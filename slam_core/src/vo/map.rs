@@ -194,6 +194,54 @@ impl ClientMap {
         }
     }
 
+    /// Moves all keyframes, points and covisibility edges of `other` into this map (a map
+    /// merge; `other` must already be expressed in this map's frame and its ids must not
+    /// collide with this map's). The point-id counter continues after both maps' counters.
+    pub fn absorb(&mut self, other: ClientMap) {
+        self.keyframes.extend(other.keyframes);
+        self.points.extend(other.points);
+        for (k, nb) in other.covis {
+            self.covis.entry(k).or_default().extend(nb);
+        }
+        self.next_point_id = self.next_point_id.max(other.next_point_id);
+    }
+
+    /// Fuses point `from` into point `into` (the same 3-D point found twice, e.g. on both
+    /// sides of a loop): every observation of `from` moves to `into` unless its keyframe
+    /// already observes `into`; `from` is erased. Returns the keyframes whose observations
+    /// changed (their covisibility is updated), or `None` when either point is missing.
+    pub fn fuse_point(&mut self, from: PointId, into: PointId) -> Option<Vec<KfId>> {
+        if from == into || !self.points.contains_key(&into) {
+            return None;
+        }
+        let gone = self.points.remove(&from)?;
+        let mut touched = Vec::with_capacity(gone.observations.len());
+        for (k, i) in gone.observations {
+            let Some(kf) = self.keyframes.get_mut(&k) else {
+                continue;
+            };
+            let sees_into = kf.points.contains(&Some(into));
+            if let Some(slot) = kf.points.get_mut(i as usize) {
+                if *slot == Some(from) {
+                    *slot = if sees_into { None } else { Some(into) };
+                }
+            }
+            if !sees_into {
+                if let Some(mp) = self.points.get_mut(&into) {
+                    if !mp.observations.iter().any(|o| o.0 == k) {
+                        mp.observations.push((k, i));
+                    }
+                }
+            }
+            touched.push(k);
+        }
+        for k in &touched {
+            self.update_covisibility(*k);
+        }
+        self.update_point(into);
+        Some(touched)
+    }
+
     /// Removes keyframe `k` from the map (window or culling): its observations go, points
     /// left with fewer than `min_obs` observations are erased. Returns the keyframe.
     pub fn remove_keyframe(&mut self, k: KfId, min_obs: usize) -> Option<Keyframe> {
