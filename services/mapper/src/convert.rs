@@ -3,10 +3,9 @@
 //! into a [`Correction`], and poses between the wire [`Pose`] and nalgebra.
 use std::collections::BTreeMap;
 
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use shm_schema::{
     CorrectionHeader, CorrectionRecord, Intrinsics, KeyframeHeader, KeypointRecord,
-    LoopKeyframeHeader, LoopKeypointRecord, MsgMeta, Pose, CORRECTION_MERGE, CORRECTION_POSE_GRAPH,
+    LoopKeyframeHeader, LoopKeypointRecord, MsgMeta, CORRECTION_MERGE, CORRECTION_POSE_GRAPH,
     MAX_LOOP_COVISIBLE, NO_MAP_POINT, RECORD_KEYFRAME_DELTA, RECORD_POINT_PAIR,
 };
 use slam_core::camera::PinholeRadtan;
@@ -19,30 +18,7 @@ use slam_core::vo::{KfId, PointId};
 /// keypoint size, which the message does not carry).
 const LEVEL_SCALE: f32 = 1.2;
 
-/// A wire pose `T_ab` as an isometry; `None` when not finite or the quaternion is ~0.
-pub fn iso_from_wire(p: &Pose) -> Option<Isometry3<f64>> {
-    if !p.t.iter().chain(p.q.iter()).all(|v| v.is_finite()) {
-        return None;
-    }
-    let q = Quaternion::new(p.q[3], p.q[0], p.q[1], p.q[2]);
-    if q.norm() < 1e-6 {
-        return None;
-    }
-    Some(Isometry3::from_parts(
-        Translation3::new(p.t[0], p.t[1], p.t[2]),
-        UnitQuaternion::from_quaternion(q),
-    ))
-}
-
-/// An isometry `T_ab` as a wire pose.
-pub fn wire_from_iso(t: &Isometry3<f64>) -> Pose {
-    let q = t.rotation.quaternion();
-    let v = t.translation.vector;
-    Pose {
-        t: [v.x, v.y, v.z],
-        q: [q.i, q.j, q.k, q.w],
-    }
-}
+pub use shoal_runtime::wire::{iso_from_wire, sim3_from_wire, wire_from_iso, wire_from_sim3};
 
 /// The camera of a keyframe message.
 pub fn camera_of(h: &KeyframeHeader) -> PinholeRadtan {
@@ -155,19 +131,6 @@ mod tests {
         h.intrinsics.pinhole[0] = 0.0;
         assert!(server_keyframe(3, &h, &recs).is_err());
     }
-}
-
-/// A wire similarity (pose + scale) as a [`Sim3`]; `None` when not finite or not positive.
-pub fn sim3_from_wire(p: &Pose, scale: f64) -> Option<Sim3> {
-    if !(scale.is_finite() && scale > 0.0) {
-        return None;
-    }
-    iso_from_wire(p).map(|t| Sim3::from_isometry(&t, scale))
-}
-
-/// A [`Sim3`] as a wire pose and scale.
-pub fn wire_from_sim3(s: &Sim3) -> (Pose, f64) {
-    (wire_from_iso(&s.to_isometry()), s.s)
 }
 
 /// A loop correction as the mapper applies it.

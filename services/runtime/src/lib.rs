@@ -3,6 +3,8 @@
 //! resume), error records, the readiness line and the exit codes.
 #![deny(missing_docs)]
 
+pub mod wire;
+
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -52,6 +52,7 @@ mod g2o;
 mod graph;
 mod information;
 mod lm;
+mod loop_graph;
 mod se3;
 mod sim3;
 mod sparse;
@@ -66,6 +67,9 @@ pub use g2o::{parse_g2o, swap_blocks_6, write_g2o_se3, write_g2o_sim3, write_tum
 pub use graph::{AnyGraph, Edge, GraphPose, PoseGraph, Se3Graph, Sim3Graph, Vertex};
 pub use information::gtsam_effective_information;
 pub use lm::{graph_cost, LiePose, LmParams, LmSummary, Prior};
+pub use loop_graph::{
+    correct_loop, GraphKeyframe, LoopConstraint, LoopCorrection, LoopGraphParams,
+};
 pub use se3::{se3_adjoint, se3_exp, se3_jr_inv, se3_log, so3_jr_inv, so3_v_inv};
 pub use sim3::{sim3_ad, sim3_jr_inv, sim3_w, Matrix7, Sim3, Vector7};
 pub use stepwise::{solve_scales, STEP2_ACTIVE};

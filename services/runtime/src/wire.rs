@@ -1,0 +1,42 @@
+//! Wire ↔ nalgebra conversions of poses and similarities, shared by the services.
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use shm_schema::Pose;
+use slam_core::pgo::Sim3;
+
+/// A wire pose `T_ab` as an isometry; `None` when not finite or the quaternion is ~0.
+pub fn iso_from_wire(p: &Pose) -> Option<Isometry3<f64>> {
+    if !p.t.iter().chain(p.q.iter()).all(|v| v.is_finite()) {
+        return None;
+    }
+    let q = Quaternion::new(p.q[3], p.q[0], p.q[1], p.q[2]);
+    if q.norm() < 1e-6 {
+        return None;
+    }
+    Some(Isometry3::from_parts(
+        Translation3::new(p.t[0], p.t[1], p.t[2]),
+        UnitQuaternion::from_quaternion(q),
+    ))
+}
+
+/// An isometry `T_ab` as a wire pose.
+pub fn wire_from_iso(t: &Isometry3<f64>) -> Pose {
+    let q = t.rotation.quaternion();
+    let v = t.translation.vector;
+    Pose {
+        t: [v.x, v.y, v.z],
+        q: [q.i, q.j, q.k, q.w],
+    }
+}
+
+/// A wire similarity (pose + scale) as a [`Sim3`]; `None` when not finite or not positive.
+pub fn sim3_from_wire(p: &Pose, scale: f64) -> Option<Sim3> {
+    if !(scale.is_finite() && scale > 0.0) {
+        return None;
+    }
+    iso_from_wire(p).map(|t| Sim3::from_isometry(&t, scale))
+}
+
+/// A [`Sim3`] as a wire pose and scale.
+pub fn wire_from_sim3(s: &Sim3) -> (Pose, f64) {
+    (wire_from_iso(&s.to_isometry()), s.s)
+}
