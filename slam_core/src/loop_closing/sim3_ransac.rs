@@ -70,7 +70,7 @@ impl Default for Sim3Params {
             guided_radius_px: 10.0,
             guided_max_distance: TH_LOW,
             min_inliers: 40,
-            seed: 0x5eed_1c,
+            seed: 0x005e_ed1c,
         }
     }
 }
