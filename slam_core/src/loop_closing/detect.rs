@@ -65,6 +65,27 @@ impl Default for LoopDetectorParams {
     }
 }
 
+/// What the last [`LoopDetector::add`] query did (for status reports and tests).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct QueryStats {
+    /// The queried keyframe.
+    pub query: KfId,
+    /// Its map.
+    pub map_id: MapId,
+    /// Not queried: the map had a loop less than
+    /// [`LoopDetectorParams::min_keyframes_after_loop`] keyframes ago.
+    pub cooldown: bool,
+    /// The seed's threshold (lowest score against the known covisible neighbours);
+    /// `None` when no neighbour is known (no query).
+    pub min_score: Option<f32>,
+    /// Candidates after the accumulated-score filter.
+    pub candidates: usize,
+    /// Candidates consistent over [`LoopDetectorParams::consistency`] queries.
+    pub consistent: usize,
+    /// Consistent candidates verified geometrically (stops at the first success).
+    pub verified: usize,
+}
+
 /// A keyframe known to the detector.
 #[derive(Debug, Clone)]
 struct Stored {
@@ -108,6 +129,7 @@ pub struct LoopDetector {
     kfs: HashMap<KfId, Stored>,
     maps: HashMap<MapId, MapState>,
     params: LoopDetectorParams,
+    last: QueryStats,
 }
 
 /// Inserts `(id, w)` into a best-first covisibility list (replacing an older weight).
@@ -127,7 +149,13 @@ impl LoopDetector {
             kfs: HashMap::new(),
             maps: HashMap::new(),
             params,
+            last: QueryStats::default(),
         }
+    }
+
+    /// What the last [`LoopDetector::add`] query did.
+    pub fn last_query(&self) -> &QueryStats {
+        &self.last
     }
 
     /// The parameters.
@@ -211,14 +239,20 @@ impl LoopDetector {
         fv: &FeatureVector,
     ) -> Option<LoopMatch> {
         let p = self.params;
+        self.last = QueryStats {
+            query: kf.kf_id,
+            map_id: kf.map_id,
+            ..QueryStats::default()
+        };
         let state = self.maps.entry(kf.map_id).or_default();
         if state
             .since_loop
             .is_some_and(|n| n < p.min_keyframes_after_loop)
         {
+            self.last.cooldown = true;
             return None;
         }
-        // Neighbours: the keyframe's list plus stored keyframes listing it.
+        // Neighbours: the keyframe's own covisibility list.
         let mut neighbours: HashSet<KfId> = kf.covisible.iter().map(|e| e.0).collect();
         neighbours.remove(&kf.kf_id);
         let strong = kf
@@ -238,6 +272,7 @@ impl LoopDetector {
             state.groups.clear();
             return None;
         };
+        self.last.min_score = Some(min_score);
         let cands = self.db.query(
             bow,
             min_score,
@@ -246,9 +281,12 @@ impl LoopDetector {
         );
         let cands = self.filter_by_group_score(&cands);
         let enough = self.update_consistency(kf.map_id, &cands);
+        self.last.candidates = cands.len();
+        self.last.consistent = enough.len();
         let mut considered = 0;
         for (m_id, _) in enough {
             considered += 1;
+            self.last.verified = considered;
             if let Some(mut found) = self.verify(kf, fv, m_id) {
                 found.candidates_considered = considered;
                 return Some(found);

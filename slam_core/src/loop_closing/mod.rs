@@ -26,7 +26,7 @@ mod tests;
 #[cfg(test)]
 mod tests_detect;
 
-pub use detect::{LoopDetector, LoopDetectorParams};
+pub use detect::{LoopDetector, LoopDetectorParams, QueryStats};
 pub use matching::{match_kept_points, neighbourhood_points, NeighbourhoodPoint, PointMatch};
 pub use refine::{refine_sim3, RefineParams, Sim3Correspondence};
 pub use sim3_ransac::{compute_sim3, Sim3Params, Sim3Result};
