@@ -1,0 +1,506 @@
+//! Loop and merge candidate detection over all server maps (seed §3.4.2): keyframe
+//! database query with the covisibility threshold, ORB-SLAM-style consistency groups over
+//! consecutive keyframes of the querying map, then Sim(3) verification.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+
+use nalgebra::{Isometry3, Translation3};
+
+use super::matching::neighbourhood_points;
+use super::sim3_ransac::{compute_sim3, Sim3Params};
+use super::LoopMatch;
+use crate::pgo::Sim3;
+use crate::place::{min_score_among, BowVector, FeatureVector, KeyframeDatabase, Vocabulary};
+use crate::server::{KeptKeyframe, MapId};
+use crate::vo::KfId;
+
+/// Parameters of [`LoopDetector`] (seed §3.4.2; defaults from ORB-SLAM's loop closing).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoopDetectorParams {
+    /// Consecutive keyframes of a map whose candidates must be consistent (share a
+    /// keyframe between their covisibility groups) before a candidate is verified: the
+    /// seed's 3. The first keyframe with a candidate counts as 1 (ORB-SLAM's
+    /// `mnCovisibilityConsistencyTh = 3` starts at 0, i.e. needs 4 keyframes).
+    pub consistency: usize,
+    /// Neighbours sharing at least this many points set the score threshold (ORB-SLAM's
+    /// covisibility graph edges: 15). All covisible keyframes are excluded from the
+    /// candidates whatever their weight. If no neighbour reaches it, all known neighbours
+    /// set the threshold.
+    pub min_covisibility_weight: u32,
+    /// Database results considered per query (best first).
+    pub max_candidates: usize,
+    /// A candidate is kept when the accumulated score of its covisibility group (its own
+    /// score plus those of its best `group_neighbours` neighbours that are candidates too)
+    /// reaches this fraction of the best group's (ORB-SLAM: 0.75).
+    pub accumulated_score_ratio: f32,
+    /// Neighbours of a candidate in its accumulated score (ORB-SLAM: 10).
+    pub group_neighbours: usize,
+    /// After a loop of a map, this many of its keyframes are not queried (ORB-SLAM: 10):
+    /// the correction has yet to reach the map.
+    pub min_keyframes_after_loop: usize,
+    /// Covisible neighbours of the matched keyframe whose points are projected in guided
+    /// matching (best first).
+    pub neighbourhood_size: usize,
+    /// Vocabulary level of the [`FeatureVector`] nodes (1 = children of the root) that
+    /// group descriptor matching; `None` = brute force over the points.
+    pub feature_level: Option<usize>,
+    /// Geometric verification.
+    pub sim3: Sim3Params,
+}
+
+impl Default for LoopDetectorParams {
+    fn default() -> Self {
+        Self {
+            consistency: 3,
+            min_covisibility_weight: 15,
+            max_candidates: 30,
+            accumulated_score_ratio: 0.75,
+            group_neighbours: 10,
+            min_keyframes_after_loop: 10,
+            neighbourhood_size: 20,
+            feature_level: Some(2),
+            sim3: Sim3Params::default(),
+        }
+    }
+}
+
+/// What the last [`LoopDetector::add`] query did (for status reports and tests).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct QueryStats {
+    /// The queried keyframe.
+    pub query: KfId,
+    /// Its map.
+    pub map_id: MapId,
+    /// Not queried: the map had a loop less than
+    /// [`LoopDetectorParams::min_keyframes_after_loop`] keyframes ago.
+    pub cooldown: bool,
+    /// The seed's threshold (lowest score against the known covisible neighbours);
+    /// `None` when no neighbour is known (no query).
+    pub min_score: Option<f32>,
+    /// Candidates after the accumulated-score filter.
+    pub candidates: usize,
+    /// Candidates consistent over [`LoopDetectorParams::consistency`] queries.
+    pub consistent: usize,
+    /// Consistent candidates verified geometrically (stops at the first success).
+    pub verified: usize,
+}
+
+/// A keyframe known to the detector.
+#[derive(Debug, Clone)]
+struct Stored {
+    /// The keyframe; its `t_sk` and `map_id` follow corrections and merges.
+    kf: KeptKeyframe,
+    bow: BowVector,
+    fv: FeatureVector,
+    /// Covisible keyframes (symmetric: later keyframes listing this one are added), best
+    /// first.
+    covis: Vec<(KfId, u32)>,
+}
+
+/// A consistency group: a candidate and its covisible keyframes (sorted ids), and the
+/// number of consecutive queries it has been consistent over.
+#[derive(Debug, Clone)]
+struct Group {
+    members: Vec<KfId>,
+    count: usize,
+}
+
+/// Detection state of one querying map.
+#[derive(Debug, Clone, Default)]
+struct MapState {
+    groups: Vec<Group>,
+    /// Keyframes added since the map's last loop (`None`: no loop yet).
+    since_loop: Option<usize>,
+}
+
+/// The loop detector of seed §3.4.2 over the keyframes of all server maps.
+///
+/// Each [`add`](LoopDetector::add)ed keyframe is queried against the database (candidates
+/// from its own map are loops, from other maps merges), then inserted. It keeps the
+/// keyframes with a current pose estimate per keyframe: call
+/// [`update_pose`](LoopDetector::update_pose), [`set_map`](LoopDetector::set_map) and
+/// [`rename_map`](LoopDetector::rename_map) when the mapper corrects or merges maps, and
+/// [`remove`](LoopDetector::remove) for culled keyframes.
+#[derive(Debug, Clone)]
+pub struct LoopDetector {
+    vocabulary: Arc<Vocabulary>,
+    db: KeyframeDatabase,
+    kfs: HashMap<KfId, Stored>,
+    maps: HashMap<MapId, MapState>,
+    params: LoopDetectorParams,
+    last: QueryStats,
+}
+
+/// Inserts `(id, w)` into a best-first covisibility list (replacing an older weight).
+fn upsert_covis(list: &mut Vec<(KfId, u32)>, id: KfId, w: u32) {
+    list.retain(|e| e.0 != id);
+    let at = list.partition_point(|e| e.1 >= w);
+    list.insert(at, (id, w));
+}
+
+impl LoopDetector {
+    /// An empty detector over `vocabulary`.
+    pub fn new(vocabulary: Arc<Vocabulary>, params: LoopDetectorParams) -> Self {
+        let db = KeyframeDatabase::new(vocabulary.n_words());
+        Self {
+            vocabulary,
+            db,
+            kfs: HashMap::new(),
+            maps: HashMap::new(),
+            params,
+            last: QueryStats::default(),
+        }
+    }
+
+    /// What the last [`LoopDetector::add`] query did.
+    pub fn last_query(&self) -> &QueryStats {
+        &self.last
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &LoopDetectorParams {
+        &self.params
+    }
+
+    /// Number of keyframes stored.
+    pub fn len(&self) -> usize {
+        self.kfs.len()
+    }
+
+    /// Whether no keyframe is stored.
+    pub fn is_empty(&self) -> bool {
+        self.kfs.is_empty()
+    }
+
+    /// The stored keyframe `kf_id` (with its current pose and map).
+    pub fn keyframe(&self, kf_id: KfId) -> Option<&KeptKeyframe> {
+        self.kfs.get(&kf_id).map(|s| &s.kf)
+    }
+
+    /// The covisible keyframes of `kf_id` known to the detector (symmetric), best first.
+    pub fn covisible(&self, kf_id: KfId) -> Option<&[(KfId, u32)]> {
+        self.kfs.get(&kf_id).map(|s| s.covis.as_slice())
+    }
+
+    /// Detects a loop or merge for `kf` (seed §3.4.2), then stores it in the database (in
+    /// all cases; a keyframe with a known id replaces the stored one).
+    ///
+    /// Threshold: the lowest BoW score between `kf` and its covisible neighbours the
+    /// detector knows (no known neighbour: no detection). Candidates: database keyframes
+    /// at or above it that are neither `kf` nor its neighbours, from any map, filtered by
+    /// the accumulated score of their covisibility groups. A candidate whose group has
+    /// been consistent over [`LoopDetectorParams::consistency`] consecutive keyframes of
+    /// `kf`'s map is verified by [`compute_sim3`], best score first; the first verified
+    /// one is returned.
+    pub fn add(&mut self, kf: KeptKeyframe) -> Option<LoopMatch> {
+        let id = kf.kf_id;
+        if self.kfs.contains_key(&id) {
+            self.remove(id);
+        }
+        let (bow, fv) = match self.params.feature_level {
+            Some(level) => self
+                .vocabulary
+                .transform_with_features(&kf.features.descriptors, level),
+            None => (
+                self.vocabulary.transform(&kf.features.descriptors),
+                FeatureVector::default(),
+            ),
+        };
+        let found = self.detect(&kf, &bow, &fv);
+        // Store: symmetric covisibility with the known neighbours.
+        let mut covis = Vec::with_capacity(kf.covisible.len());
+        for &(n, w) in &kf.covisible {
+            if n == id {
+                continue;
+            }
+            if let Some(s) = self.kfs.get_mut(&n) {
+                upsert_covis(&mut s.covis, id, w);
+            }
+            upsert_covis(&mut covis, n, w);
+        }
+        self.db.add(id, &bow);
+        let state = self.maps.entry(kf.map_id).or_default();
+        if found.is_some() {
+            state.groups.clear();
+            state.since_loop = Some(0);
+        } else if let Some(n) = state.since_loop.as_mut() {
+            *n += 1;
+        }
+        self.kfs.insert(id, Stored { kf, bow, fv, covis });
+        found
+    }
+
+    /// The detection of [`LoopDetector::add`], before `kf` is stored.
+    fn detect(
+        &mut self,
+        kf: &KeptKeyframe,
+        bow: &BowVector,
+        fv: &FeatureVector,
+    ) -> Option<LoopMatch> {
+        let p = self.params;
+        self.last = QueryStats {
+            query: kf.kf_id,
+            map_id: kf.map_id,
+            ..QueryStats::default()
+        };
+        let state = self.maps.entry(kf.map_id).or_default();
+        if state
+            .since_loop
+            .is_some_and(|n| n < p.min_keyframes_after_loop)
+        {
+            self.last.cooldown = true;
+            return None;
+        }
+        // Neighbours: the keyframe's own covisibility list.
+        let mut neighbours: HashSet<KfId> = kf.covisible.iter().map(|e| e.0).collect();
+        neighbours.remove(&kf.kf_id);
+        let strong = kf
+            .covisible
+            .iter()
+            .filter(|e| e.1 >= p.min_covisibility_weight)
+            .filter_map(|e| self.kfs.get(&e.0).map(|s| &s.bow));
+        let min_score = min_score_among(bow, strong).or_else(|| {
+            min_score_among(
+                bow,
+                neighbours
+                    .iter()
+                    .filter_map(|n| self.kfs.get(n).map(|s| &s.bow)),
+            )
+        });
+        let Some(min_score) = min_score else {
+            state.groups.clear();
+            return None;
+        };
+        self.last.min_score = Some(min_score);
+        let cands = self.db.query(
+            bow,
+            min_score,
+            |c| c == kf.kf_id || neighbours.contains(&c),
+            p.max_candidates,
+        );
+        let cands = self.filter_by_group_score(&cands);
+        let enough = self.update_consistency(kf.map_id, &cands);
+        self.last.candidates = cands.len();
+        self.last.consistent = enough.len();
+        let mut considered = 0;
+        for (m_id, _) in enough {
+            considered += 1;
+            self.last.verified = considered;
+            if let Some(mut found) = self.verify(kf, fv, m_id) {
+                found.candidates_considered = considered;
+                return Some(found);
+            }
+        }
+        None
+    }
+
+    /// Keeps the candidates whose covisibility group's accumulated score reaches
+    /// `accumulated_score_ratio` of the best group's (ORB-SLAM's `DetectLoopCandidates`).
+    fn filter_by_group_score(&self, cands: &[(KfId, f32)]) -> Vec<(KfId, f32)> {
+        let score_of: HashMap<KfId, f32> = cands.iter().copied().collect();
+        let acc: Vec<f32> = cands
+            .iter()
+            .map(|&(c, s)| {
+                let group = self.kfs.get(&c).map_or(&[][..], |st| st.covis.as_slice());
+                s + group
+                    .iter()
+                    .take(self.params.group_neighbours)
+                    .filter_map(|(n, _)| score_of.get(n))
+                    .sum::<f32>()
+            })
+            .collect();
+        let best = acc.iter().copied().fold(0.0f32, f32::max);
+        cands
+            .iter()
+            .zip(&acc)
+            .filter(|(_, &a)| a >= self.params.accumulated_score_ratio * best)
+            .map(|(c, _)| *c)
+            .collect()
+    }
+
+    /// ORB-SLAM's consistency groups for `map`: each candidate's group (itself and its
+    /// covisible keyframes) continues every previous group it shares a keyframe with;
+    /// returns the candidates consistent over `consistency` consecutive queries, in the
+    /// given (best-first) order.
+    fn update_consistency(&mut self, map: MapId, cands: &[(KfId, f32)]) -> Vec<(KfId, f32)> {
+        let threshold = self.params.consistency.max(1);
+        let prev = self
+            .maps
+            .get_mut(&map)
+            .map(|s| std::mem::take(&mut s.groups))
+            .unwrap_or_default();
+        let mut continued = vec![false; prev.len()];
+        let mut current: Vec<Group> = Vec::new();
+        let mut enough = Vec::new();
+        for &(c, s) in cands {
+            let mut members: Vec<KfId> = self
+                .kfs
+                .get(&c)
+                .map(|st| st.covis.iter().map(|e| e.0).collect())
+                .unwrap_or_default();
+            members.push(c);
+            members.sort_unstable();
+            members.dedup();
+            let mut consistent_somewhere = false;
+            let mut enough_here = false;
+            for (g, prev_group) in prev.iter().enumerate() {
+                let shares = members
+                    .iter()
+                    .any(|m| prev_group.members.binary_search(m).is_ok());
+                if !shares {
+                    continue;
+                }
+                consistent_somewhere = true;
+                let count = prev_group.count + 1;
+                if !continued[g] {
+                    current.push(Group {
+                        members: members.clone(),
+                        count,
+                    });
+                    continued[g] = true;
+                }
+                if count >= threshold && !enough_here {
+                    enough.push((c, s));
+                    enough_here = true;
+                }
+            }
+            if !consistent_somewhere {
+                if threshold <= 1 {
+                    enough.push((c, s));
+                }
+                current.push(Group { members, count: 1 });
+            }
+        }
+        if let Some(st) = self.maps.get_mut(&map) {
+            st.groups = current;
+        }
+        enough
+    }
+
+    /// Geometric verification of candidate `m_id` for `q`, with `m`'s neighbourhood.
+    fn verify(&self, q: &KeptKeyframe, fv_q: &FeatureVector, m_id: KfId) -> Option<LoopMatch> {
+        let m = self.kfs.get(&m_id)?;
+        let t_ms = m.kf.t_sk.inverse();
+        let mut used = vec![m_id];
+        let neighbours: Vec<(&KeptKeyframe, Isometry3<f64>)> = m
+            .covis
+            .iter()
+            .filter_map(|(n, _)| self.kfs.get(n))
+            .filter(|n| n.kf.map_id == m.kf.map_id)
+            .take(self.params.neighbourhood_size)
+            .map(|n| {
+                used.push(n.kf.kf_id);
+                (&n.kf, t_ms * n.kf.t_sk)
+            })
+            .collect();
+        let points = neighbourhood_points(&m.kf, neighbours);
+        let guides = self.params.feature_level.map(|_| (fv_q, &m.fv));
+        let r = compute_sim3(q, &m.kf, guides, &points, &self.params.sim3)?;
+        Some(LoopMatch {
+            query: q.kf_id,
+            query_map: q.map_id,
+            matched: m_id,
+            matched_map: m.kf.map_id,
+            s_qm: r.s_qm,
+            point_pairs: r.point_pairs,
+            extra_observations: r.extra_observations,
+            inliers: r.inliers,
+            candidates_considered: 0,
+            matched_neighbourhood: used,
+        })
+    }
+
+    /// Forgets keyframe `kf_id` (culled by the mapper); returns whether it was stored.
+    pub fn remove(&mut self, kf_id: KfId) -> bool {
+        let Some(s) = self.kfs.remove(&kf_id) else {
+            return false;
+        };
+        self.db.remove(kf_id);
+        for (n, _) in &s.covis {
+            if let Some(ns) = self.kfs.get_mut(n) {
+                ns.covis.retain(|e| e.0 != kf_id);
+            }
+        }
+        true
+    }
+
+    /// Replaces the covisible keyframes of `kf_id` (symmetrically); returns whether it is
+    /// stored.
+    pub fn update_covisibility(&mut self, kf_id: KfId, covisible: &[(KfId, u32)]) -> bool {
+        let Some(old) = self.kfs.get(&kf_id).map(|s| s.covis.clone()) else {
+            return false;
+        };
+        for (n, _) in &old {
+            if let Some(ns) = self.kfs.get_mut(n) {
+                ns.covis.retain(|e| e.0 != kf_id);
+            }
+        }
+        let mut list = Vec::with_capacity(covisible.len());
+        for &(n, w) in covisible {
+            if n == kf_id {
+                continue;
+            }
+            if let Some(ns) = self.kfs.get_mut(&n) {
+                upsert_covis(&mut ns.covis, kf_id, w);
+            }
+            upsert_covis(&mut list, n, w);
+        }
+        if let Some(s) = self.kfs.get_mut(&kf_id) {
+            s.covis = list;
+        }
+        true
+    }
+
+    /// Sets the current server pose `T_sk` of `kf_id` (after a correction); returns whether
+    /// it is stored.
+    pub fn update_pose(&mut self, kf_id: KfId, t_sk: Isometry3<f64>) -> bool {
+        match self.kfs.get_mut(&kf_id) {
+            Some(s) => {
+                s.kf.t_sk = t_sk;
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Moves `kf_id` to map `map_id` (pose unchanged); returns whether it is stored.
+    pub fn set_map(&mut self, kf_id: KfId, map_id: MapId) -> bool {
+        match self.kfs.get_mut(&kf_id) {
+            Some(s) => {
+                s.kf.map_id = map_id;
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Merges map `from` into map `into` (seed §3.4.2: c's map transformed by `S~` and
+    /// merged into m's map): every keyframe of `from` gets map `into` and the pose
+    /// `S_into_from ∘ T_sk` (rotation `R_s R_k`, centre `s R_s c_k + t_s`), and its points
+    /// in its own frame are scaled by `s` (the camera frame of `into` has `into`'s scale).
+    /// The consistency state of `from` is dropped. Returns the number of keyframes moved;
+    /// 0 (nothing changed) when `s_into_from` is not a finite similarity with `s > 0`.
+    pub fn rename_map(&mut self, from: MapId, into: MapId, s_into_from: &Sim3) -> usize {
+        let s = s_into_from;
+        let ok = s.s.is_finite()
+            && s.s > 0.0
+            && s.t.iter().chain(s.r.coords.iter()).all(|v| v.is_finite());
+        if !ok || from == into {
+            return 0;
+        }
+        let mut moved = 0;
+        for st in self.kfs.values_mut().filter(|st| st.kf.map_id == from) {
+            let kf = &mut st.kf;
+            let centre = s.transform_point(&kf.t_sk.translation.vector);
+            kf.t_sk = Isometry3::from_parts(Translation3::from(centre), s.r * kf.t_sk.rotation);
+            for p in &mut kf.points {
+                p.p_k *= s.s;
+            }
+            kf.map_id = into;
+            moved += 1;
+        }
+        self.maps.remove(&from);
+        moved
+    }
+}

@@ -1,0 +1,346 @@
+//! Geometric verification of a loop candidate (seed §3.4.2): Sim(3) from matched 3D points
+//! with Umeyama inside RANSAC, two-way reprojection inliers, LM refinement and guided
+//! matching of the candidate's neighbourhood.
+
+use std::collections::HashSet;
+
+use nalgebra::{UnitQuaternion, Vector2, Vector3};
+
+use super::matching::{guided_matches, match_kept_points, NeighbourhoodPoint};
+use super::refine::{refine_sim3, RefineParams, Sim3Correspondence};
+use crate::camera::PinholeRadtan;
+use crate::features::TH_LOW;
+use crate::geometry::umeyama;
+use crate::optim::inv_sigma2_for_octave;
+use crate::pgo::Sim3;
+use crate::place::FeatureVector;
+use crate::ransac::{adaptive_iterations, sample_distinct, SplitMix64};
+use crate::server::KeptKeyframe;
+use crate::vo::PointId;
+
+/// Parameters of [`compute_sim3`]; defaults follow ORB-SLAM's loop closing (seed §3.4.2).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sim3Params {
+    /// Largest Hamming distance of a descriptor match ([`TH_LOW`] = 50).
+    pub max_distance: u32,
+    /// Nearest / second-nearest ratio of a descriptor match (ORB-SLAM's `SearchByBoW`:
+    /// 0.75).
+    pub ratio: f32,
+    /// Candidates with fewer descriptor matches are skipped (ORB-SLAM: 20).
+    pub min_matches: usize,
+    /// χ² threshold (2 dof, 99%) of a reprojection inlier, at the keypoint's octave
+    /// (`e² / σ² <= 9.21`, `σ = scale_factor^octave` pixels), tested in both images.
+    pub chi2: f64,
+    /// ORB pyramid scale factor (σ of a keypoint at octave `o` is `scale_factor^o`).
+    pub scale_factor: f64,
+    /// RANSAC confidence of drawing one all-inlier 3-point sample.
+    pub confidence: f64,
+    /// Largest number of RANSAC iterations (ORB-SLAM: 300).
+    pub max_iterations: usize,
+    /// RANSAC inliers needed to go on (ORB-SLAM: 20).
+    pub min_ransac_inliers: usize,
+    /// LM refinement of the similarity.
+    pub refine: RefineParams,
+    /// Inliers needed after refinement (ORB-SLAM: 20).
+    pub min_refined_inliers: usize,
+    /// Guided matching radius at octave 0, pixels (ORB-SLAM: 10), times
+    /// `scale_factor^octave` of the projected point's keypoint.
+    pub guided_radius_px: f32,
+    /// Largest Hamming distance of a guided match (ORB-SLAM: [`TH_LOW`]).
+    pub guided_max_distance: u32,
+    /// Total matches (refined inliers + guided matches) to accept the loop (ORB-SLAM: 40).
+    pub min_inliers: usize,
+    /// Seed of the RANSAC sampler (runs are reproducible).
+    pub seed: u64,
+}
+
+impl Default for Sim3Params {
+    fn default() -> Self {
+        Self {
+            max_distance: TH_LOW,
+            ratio: 0.75,
+            min_matches: 20,
+            chi2: 9.21,
+            scale_factor: 1.2,
+            confidence: 0.99,
+            max_iterations: 300,
+            min_ransac_inliers: 20,
+            refine: RefineParams::default(),
+            min_refined_inliers: 20,
+            guided_radius_px: 10.0,
+            guided_max_distance: TH_LOW,
+            min_inliers: 40,
+            seed: 0x005e_ed1c,
+        }
+    }
+}
+
+/// A verified similarity between two keyframes ([`compute_sim3`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sim3Result {
+    /// `p_q = s_qm.transform_point(p_m)`: matched keyframe's camera frame → query's.
+    pub s_qm: Sim3,
+    /// Inlier pairs of server points (query side, matched side): refined descriptor
+    /// matches, then guided matches of query keypoints that have a point.
+    pub point_pairs: Vec<(PointId, PointId)>,
+    /// Guided matches of query keypoints without a point: (keypoint, matched-side point).
+    pub extra_observations: Vec<(u32, PointId)>,
+    /// Putative descriptor matches between the two keyframes' points.
+    pub matches: usize,
+    /// Inliers of the best RANSAC hypothesis.
+    pub ransac_inliers: usize,
+    /// Inliers after refinement (two-way χ² test).
+    pub refined_inliers: usize,
+    /// `refined_inliers` + guided matches: the support compared with
+    /// [`Sim3Params::min_inliers`].
+    pub inliers: usize,
+}
+
+/// Both reprojections of `c` under `s` (and its inverse) pass the χ² test.
+#[inline]
+fn is_inlier(
+    s: &Sim3,
+    s_inv: &Sim3,
+    c: &Sim3Correspondence,
+    chi2: f64,
+    cam_q: &PinholeRadtan,
+    cam_m: &PinholeRadtan,
+) -> bool {
+    let ok = |cam: &PinholeRadtan, p: Vector3<f64>, uv: &Vector2<f64>, w: f64| {
+        cam.project(&p)
+            .is_some_and(|x| (x - uv).norm_squared() * w <= chi2)
+    };
+    ok(cam_q, s.transform_point(&c.p_m), &c.uv_q, c.inv_sigma2_q)
+        && ok(
+            cam_m,
+            s_inv.transform_point(&c.p_q),
+            &c.uv_m,
+            c.inv_sigma2_m,
+        )
+}
+
+/// Marks the inliers of `s` in `mask`; returns their number.
+fn classify(
+    s: &Sim3,
+    corrs: &[Sim3Correspondence],
+    chi2: f64,
+    cam_q: &PinholeRadtan,
+    cam_m: &PinholeRadtan,
+    mask: &mut [bool],
+) -> usize {
+    let s_inv = s.inverse();
+    let mut n = 0;
+    for (c, m) in corrs.iter().zip(mask.iter_mut()) {
+        *m = is_inlier(s, &s_inv, c, chi2, cam_q, cam_m);
+        n += usize::from(*m);
+    }
+    n
+}
+
+/// A finite similarity with a positive scale.
+fn valid(s: &Sim3) -> bool {
+    s.s.is_finite()
+        && s.s > 0.0
+        && s.t.iter().all(|v| v.is_finite())
+        && s.r.coords.iter().all(|v| v.is_finite())
+}
+
+/// Umeyama similarity `p_q ≈ S p_m` of the correspondences `idx` (stack only for 3).
+fn umeyama_sim3(corrs: &[Sim3Correspondence], idx: impl Iterator<Item = usize>) -> Option<Sim3> {
+    let (src, dst): (Vec<_>, Vec<_>) = idx.map(|i| (corrs[i].p_m, corrs[i].p_q)).unzip();
+    let sim = umeyama(&src, &dst, true).ok()?;
+    let s = Sim3::new(
+        UnitQuaternion::from_rotation_matrix(&sim.rotation),
+        sim.translation,
+        sim.scale,
+    );
+    valid(&s).then_some(s)
+}
+
+/// The RANSAC loop: best hypothesis and its inlier count.
+fn ransac(
+    corrs: &[Sim3Correspondence],
+    cam_q: &PinholeRadtan,
+    cam_m: &PinholeRadtan,
+    p: &Sim3Params,
+) -> Option<(Sim3, usize)> {
+    let n = corrs.len();
+    let mut rng = SplitMix64::new(p.seed);
+    let mut sample = [0usize; 3];
+    let mut best: Option<(Sim3, usize)> = None;
+    let mut needed = p.max_iterations.max(1);
+    let mut it = 0;
+    while it < needed {
+        it += 1;
+        if !sample_distinct(&mut rng, n, &mut sample) {
+            return None;
+        }
+        let src = sample.map(|i| corrs[i].p_m);
+        let dst = sample.map(|i| corrs[i].p_q);
+        let Ok(sim) = umeyama(&src, &dst, true) else {
+            continue;
+        };
+        let s = Sim3::new(
+            UnitQuaternion::from_rotation_matrix(&sim.rotation),
+            sim.translation,
+            sim.scale,
+        );
+        if !valid(&s) {
+            continue;
+        }
+        let s_inv = s.inverse();
+        let count = corrs
+            .iter()
+            .filter(|c| is_inlier(&s, &s_inv, c, p.chi2, cam_q, cam_m))
+            .count();
+        if best.is_none_or(|b| count > b.1) {
+            best = Some((s, count));
+            needed =
+                adaptive_iterations(count as f64 / n as f64, 3, p.confidence, p.max_iterations);
+        }
+    }
+    best
+}
+
+/// Geometric verification of loop candidate `m` for query `q` (seed §3.4.2).
+///
+/// 1. Descriptor matches between the two keyframes' points ([`match_kept_points`]; guided
+///    by vocabulary node when `guides = Some((fv_q, fv_m))`, brute force otherwise).
+/// 2. RANSAC over 3-point samples with [`umeyama`] (with scale), inliers when both
+///    reprojections (`S p_m` into `q`, `S⁻¹ p_q` into `m`) pass `χ² <= chi2` at the
+///    keypoints' octaves.
+/// 3. Refinement ([`refine_sim3`]) on the RANSAC inliers, re-classification of all
+///    matches, a second refinement on the new inliers.
+/// 4. Guided matching: the points of `neighbourhood` (the points of `m` and its covisible
+///    neighbours in `m`'s frame, see
+///    [`neighbourhood_points`](super::neighbourhood_points)) not yet matched are projected
+///    into `q` and matched by descriptor within a radius.
+///
+/// Returns `None` when any stage falls short of its threshold or on degenerate input
+/// (fewer than 3 matches, non-finite points, zero scale).
+pub fn compute_sim3(
+    q: &KeptKeyframe,
+    m: &KeptKeyframe,
+    guides: Option<(&FeatureVector, &FeatureVector)>,
+    neighbourhood: &[NeighbourhoodPoint],
+    params: &Sim3Params,
+) -> Option<Sim3Result> {
+    let matches = match_kept_points(q, m, guides, params.max_distance, params.ratio);
+    let n_matches = matches.len();
+    if n_matches < params.min_matches.max(3) {
+        return None;
+    }
+    let (cam_q, cam_m) = (&q.camera, &m.camera);
+    let mut corrs = Vec::with_capacity(n_matches);
+    let mut ids = Vec::with_capacity(n_matches);
+    for pm in &matches {
+        let (Some(pq), Some(pmm)) = (q.points.get(pm.q as usize), m.points.get(pm.m as usize))
+        else {
+            continue;
+        };
+        let (Some(kq), Some(km)) = (
+            q.features.keypoints.get(pq.keypoint as usize),
+            m.features.keypoints.get(pmm.keypoint as usize),
+        ) else {
+            continue;
+        };
+        let c = Sim3Correspondence {
+            p_q: pq.p_k,
+            p_m: pmm.p_k,
+            uv_q: Vector2::new(f64::from(kq.x), f64::from(kq.y)),
+            uv_m: Vector2::new(f64::from(km.x), f64::from(km.y)),
+            inv_sigma2_q: inv_sigma2_for_octave(u32::from(kq.octave), params.scale_factor),
+            inv_sigma2_m: inv_sigma2_for_octave(u32::from(km.octave), params.scale_factor),
+        };
+        let finite = c
+            .p_q
+            .iter()
+            .chain(c.p_m.iter())
+            .chain(c.uv_q.iter())
+            .chain(c.uv_m.iter());
+        if finite.copied().all(f64::is_finite) {
+            corrs.push(c);
+            ids.push((pq.point, pmm.point, pq.keypoint));
+        }
+    }
+    if corrs.len() < params.min_matches.max(3) {
+        return None;
+    }
+    let (s_ransac, ransac_inliers) = ransac(&corrs, cam_q, cam_m, params)?;
+    if ransac_inliers < params.min_ransac_inliers.max(3) {
+        return None;
+    }
+    let mut mask = vec![false; corrs.len()];
+    classify(&s_ransac, &corrs, params.chi2, cam_q, cam_m, &mut mask);
+    // Least squares on all RANSAC inliers as the refinement's start, if it is no worse.
+    let mut s = s_ransac;
+    if let Some(s_all) = umeyama_sim3(
+        &corrs,
+        mask.iter().enumerate().filter(|m| *m.1).map(|m| m.0),
+    ) {
+        let mut tmp = vec![false; corrs.len()];
+        if classify(&s_all, &corrs, params.chi2, cam_q, cam_m, &mut tmp) >= ransac_inliers {
+            s = s_all;
+            mask = tmp;
+        }
+    }
+    for _ in 0..2 {
+        let (refined, _) = refine_sim3(&s, &corrs, &mask, cam_q, cam_m, &params.refine)?;
+        s = refined;
+        classify(&s, &corrs, params.chi2, cam_q, cam_m, &mut mask);
+    }
+    let refined_inliers = mask.iter().filter(|&&m| m).count();
+    if refined_inliers < params.min_refined_inliers.max(3) {
+        return None;
+    }
+
+    let mut point_pairs = Vec::with_capacity(refined_inliers + neighbourhood.len() / 4);
+    let mut skip: HashSet<PointId> = q.points.iter().map(|p| p.point).collect();
+    let mut q_taken = vec![false; q.features.keypoints.len()];
+    for (&(pq, pm, kq), _) in ids.iter().zip(&mask).filter(|(_, &m)| m) {
+        point_pairs.push((pq, pm));
+        skip.insert(pm);
+        if let Some(t) = q_taken.get_mut(kq as usize) {
+            *t = true;
+        }
+    }
+    let guided = guided_matches(
+        q,
+        &s,
+        neighbourhood,
+        &skip,
+        &q_taken,
+        params.guided_radius_px,
+        params.guided_max_distance,
+        params.scale_factor as f32,
+    );
+    let mut q_point_of_kp = vec![None; q.features.keypoints.len()];
+    for p in &q.points {
+        if let Some(slot) = q_point_of_kp.get_mut(p.keypoint as usize) {
+            *slot = Some(p.point);
+        }
+    }
+    let mut extra_observations = Vec::new();
+    for g in &guided {
+        let Some(np) = neighbourhood.get(g.point as usize) else {
+            continue;
+        };
+        match q_point_of_kp.get(g.q_keypoint as usize).copied().flatten() {
+            Some(pq) => point_pairs.push((pq, np.point)),
+            None => extra_observations.push((g.q_keypoint, np.point)),
+        }
+    }
+    let inliers = refined_inliers + guided.len();
+    if inliers < params.min_inliers {
+        return None;
+    }
+    Some(Sim3Result {
+        s_qm: s,
+        point_pairs,
+        extra_observations,
+        matches: n_matches,
+        ransac_inliers,
+        refined_inliers,
+        inliers,
+    })
+}
