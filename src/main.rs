@@ -73,6 +73,12 @@ struct RunArgs {
     /// Extra argument for every tracker, `{c}` = client index (repeatable).
     #[arg(long = "tracker-arg", allow_hyphen_values = true)]
     tracker_args: Vec<String>,
+    /// Extra argument for the mapper (repeatable).
+    #[arg(long = "mapper-arg", allow_hyphen_values = true)]
+    mapper_args: Vec<String>,
+    /// Extra argument for the loop closer (repeatable), e.g. `--loop-closer-arg=--detect-only`.
+    #[arg(long = "loop-closer-arg", allow_hyphen_values = true)]
+    loop_closer_args: Vec<String>,
     /// SIGKILL a service at a time after start-up, e.g. `tracker:0@3.5` or `mapper@10`
     /// (repeatable). The service is restarted like after any crash.
     #[arg(long = "kill", value_name = "SERVICE@SECONDS")]
@@ -122,6 +128,8 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     cfg.max_frames = args.max_frames;
     cfg.max_duration = args.max_seconds.map(std::time::Duration::from_secs_f64);
     cfg.tracker_args = args.tracker_args;
+    cfg.mapper_args = args.mapper_args;
+    cfg.loop_closer_args = args.loop_closer_args;
     cfg.kills = args.kills;
     cfg.chaos = args.chaos;
     cfg.progress = !args.quiet;

@@ -40,6 +40,10 @@ pub struct RunConfig {
     pub max_frames: Option<usize>,
     /// Extra arguments for every tracker (e.g. `--frame-log`), `{c}` replaced by the client.
     pub tracker_args: Vec<String>,
+    /// Extra arguments for the mapper.
+    pub mapper_args: Vec<String>,
+    /// Extra arguments for the loop closer.
+    pub loop_closer_args: Vec<String>,
     /// Give up (stop everything, report) after this long.
     pub max_duration: Option<Duration>,
     /// Most restarts of one service before it is given up.
@@ -62,6 +66,8 @@ impl RunConfig {
             progress: true,
             max_frames: None,
             tracker_args: Vec::new(),
+            mapper_args: Vec::new(),
+            loop_closer_args: Vec::new(),
             max_duration: None,
             max_restarts: 20,
             kills: Vec::new(),
@@ -122,7 +128,7 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
     let mut list = vec![
         Supervised::new(
             "mapper",
-            vec![
+            [
                 s("mapper"),
                 s("--clients"),
                 n.to_string(),
@@ -130,11 +136,21 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
                 out.join(MAPPER_JOURNAL).display().to_string(),
                 s("--out"),
                 out.display().to_string(),
-            ],
+            ]
+            .into_iter()
+            .chain(cfg.mapper_args.iter().cloned())
+            .collect(),
             out,
             false,
         ),
-        Supervised::new("loop_closer", vec![s("loop-closer")], out, false),
+        Supervised::new(
+            "loop_closer",
+            std::iter::once(s("loop-closer"))
+                .chain(cfg.loop_closer_args.iter().cloned())
+                .collect(),
+            out,
+            false,
+        ),
     ];
     for (c, ds) in cfg.datasets.iter().enumerate() {
         let mut targs = vec![s("tracker"), s("--client"), c.to_string()];

@@ -1,16 +1,70 @@
-//! Loop closer service: place recognition, Sim(3) loops, map merging and pose-graph
-//! optimisation over all clients' server maps.
+//! Loop closer service (seed §3.4.2-3.4.3): place recognition over the keyframes of every
+//! server map, Sim(3) verification, and the corrections that follow (merge of two maps, or
+//! pose graph optimisation within one), which it sends to the mapper.
 //!
-//! **Status: plumbing.** The algorithms (seed §3.4.2-3.4.3) come with the loop-closer issue.
-//! Until then this service subscribes to the keyframes the mapper forwards, checks their
-//! schema version and counts them per client in its status file; it sends no corrections.
+//! Where things live: a loop keyframe message enters in [`run`] and becomes a
+//! [`KeptKeyframe`] ([`keyframe_from_wire`]); detection and the Sim(3) are
+//! [`slam_core::loop_closing::LoopDetector::add`]; the pose graph is
+//! [`slam_core::pgo::correct_loop`]; the correction leaves as a [`CorrectionHeader`]
+//! message ([`Closer::merge`], [`Closer::pose_graph`]).
+//!
+//! Ownership (DESIGN.md): this service owns the keyframe database and the pose graph; it
+//! never touches a map. The mapper owns the maps and applies the corrections. The loop
+//! closer keeps its own copy of keyframe poses and moves them with its own corrections.
 #![deny(missing_docs)]
 
+use std::collections::HashMap;
 use std::path::PathBuf;
-use std::time::Duration;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
-use shm_schema::topics;
+use anyhow::Context;
+use iceoryx2::port::publisher::Publisher;
+use nalgebra::Vector3;
+use shm_schema::time::monotonic_ns;
+use shm_schema::topics::{self, Ipc};
+use shm_schema::{
+    CorrectionHeader, CorrectionRecord, LoopKeyframeHeader, LoopKeypointRecord, MsgMeta,
+    CORRECTION_MERGE, CORRECTION_POSE_GRAPH, MAX_LOOP_COVISIBLE, RECORD_KEYFRAME_DELTA,
+    RECORD_POINT_PAIR,
+};
+use shoal_runtime::wire::{iso_from_wire, wire_from_sim3};
 use shoal_runtime::{Status, StatusFile};
+use slam_core::features::{KeyPoint, OrbFeatures, PATCH_SIZE};
+use slam_core::loop_closing::{LoopDetector, LoopDetectorParams, LoopMatch};
+use slam_core::pgo::{
+    correct_loop, GraphKeyframe, LoopConstraint, LoopGraphParams, PgoMethod, Sim3,
+};
+use slam_core::place::Vocabulary;
+use slam_core::server::{KeptKeyframe, KeptPoint, MapId};
+
+/// The vocabulary shipped with the project (`assets/orb_vocab.bin`), built in.
+static SHIPPED_VOCABULARY: &[u8] = include_bytes!("../../../assets/orb_vocab.bin");
+
+/// Scale between pyramid levels of the client's ORB extractor (restores keypoint sizes).
+const LEVEL_SCALE: f32 = 1.2;
+
+/// Pose graph method on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Method {
+    /// Scales by linear least squares, then scales + translations (seed eq. 3.10-3.12).
+    Stepwise,
+    /// Levenberg-Marquardt on all Sim(3) parameters.
+    Direct,
+    /// Stepwise, then direct from its result.
+    #[value(name = "stepwise+direct")]
+    StepwiseDirect,
+}
+
+impl From<Method> for PgoMethod {
+    fn from(m: Method) -> Self {
+        match m {
+            Method::Stepwise => PgoMethod::Stepwise,
+            Method::Direct => PgoMethod::Direct,
+            Method::StepwiseDirect => PgoMethod::StepwiseDirect,
+        }
+    }
+}
 
 /// Parameters of the loop closer service.
 #[derive(Debug, Clone, clap::Parser)]
@@ -22,6 +76,15 @@ pub struct Params {
     /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
     #[arg(long)]
     pub ipc_prefix: Option<String>,
+    /// Vocabulary file (default: the shipped `assets/orb_vocab.bin`, built in).
+    #[arg(long)]
+    pub vocabulary: Option<PathBuf>,
+    /// Pose graph optimisation of loops within one map.
+    #[arg(long, value_enum, default_value_t = Method::StepwiseDirect)]
+    pub method: Method,
+    /// Detect and report loops but send no correction.
+    #[arg(long)]
+    pub detect_only: bool,
 }
 
 /// The service's name in reports.
@@ -32,26 +95,348 @@ pub fn main_with(params: Params) -> i32 {
     shoal_runtime::exit_code(SERVICE_NAME, run(&params))
 }
 
-/// Receives keyframes until SIGINT/SIGTERM.
+/// Converts a loop keyframe message into the detector's input. Errors (with a reason) on an
+/// unusable message: record count not matching the header, a non-finite pose or point, bad
+/// intrinsics.
+pub fn keyframe_from_wire(
+    h: &LoopKeyframeHeader,
+    records: &[LoopKeypointRecord],
+) -> Result<KeptKeyframe, String> {
+    if h.n_keypoints as usize != records.len() {
+        return Err(format!(
+            "loop keyframe {:#x}: header says {} keypoints, payload holds {}",
+            h.kf_id,
+            h.n_keypoints,
+            records.len()
+        ));
+    }
+    let t_sk = iso_from_wire(&h.pose_sk)
+        .ok_or_else(|| format!("loop keyframe {:#x}: invalid pose", h.kf_id))?;
+    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
+    if !(fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite()) || h.width == 0 {
+        return Err(format!("loop keyframe {:#x}: invalid intrinsics", h.kf_id));
+    }
+    let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+    let mut features = OrbFeatures::with_capacity(records.len());
+    let mut points = Vec::new();
+    for (i, r) in records.iter().enumerate() {
+        let octave = r.octave.min(u8::MAX as u32) as u8;
+        features.keypoints.push(KeyPoint {
+            x: r.u,
+            y: r.v,
+            angle: r.angle,
+            response: r.response,
+            size: PATCH_SIZE * LEVEL_SCALE.powi(octave as i32),
+            octave,
+        });
+        features.descriptors.push(r.descriptor);
+        if r.has_point != 0 {
+            let p_k = Vector3::new(r.p_k[0], r.p_k[1], r.p_k[2]);
+            if !p_k.iter().all(|v| v.is_finite()) {
+                return Err(format!(
+                    "loop keyframe {:#x}: keypoint {i}: non-finite point",
+                    h.kf_id
+                ));
+            }
+            points.push(KeptPoint {
+                keypoint: i as u32,
+                point: r.point_id,
+                p_k,
+            });
+        }
+    }
+    let n = (h.n_covisible as usize).min(MAX_LOOP_COVISIBLE);
+    let covisible = h.covisible_ids[..n]
+        .iter()
+        .copied()
+        .zip(h.covisible_weights[..n].iter().copied())
+        .collect();
+    Ok(KeptKeyframe {
+        map_id: h.map_id,
+        kf_id: h.kf_id,
+        client_kf_id: h.client_kf_id,
+        t_ns: h.t_ns,
+        t_sk,
+        camera,
+        features,
+        points,
+        covisible,
+    })
+}
+
+/// The loop closer's state: the detector (keyframe database and stored keyframes), the
+/// loop constraints per map, and the correction counter.
+pub struct Closer {
+    detector: LoopDetector,
+    loops: HashMap<MapId, Vec<LoopConstraint>>,
+    graph: LoopGraphParams,
+    next_id: u64,
+}
+
+/// A correction ready to send.
+#[derive(Debug, Clone)]
+pub struct Outgoing {
+    /// Header.
+    pub header: CorrectionHeader,
+    /// Records.
+    pub records: Vec<CorrectionRecord>,
+    /// One-line summary for the log.
+    pub summary: String,
+}
+
+impl Closer {
+    /// A loop closer over `vocabulary` with pose-graph `method`.
+    pub fn new(vocabulary: Vocabulary, method: PgoMethod) -> Self {
+        Self {
+            detector: LoopDetector::new(Arc::new(vocabulary), LoopDetectorParams::default()),
+            loops: HashMap::new(),
+            graph: LoopGraphParams {
+                method,
+                ..LoopGraphParams::default()
+            },
+            next_id: 1,
+        }
+    }
+
+    /// Keyframes stored.
+    pub fn keyframes(&self) -> usize {
+        self.detector.len()
+    }
+
+    /// Adds a keyframe: a verified loop gives the correction to send.
+    pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
+        let client = (kf.kf_id >> 40) as u32;
+        let Some(m) = self.detector.add(kf) else {
+            return Ok(None);
+        };
+        if m.query_map != m.matched_map {
+            Ok(Some(self.merge(client, &m)?))
+        } else {
+            Ok(Some(self.pose_graph(client, &m)?))
+        }
+    }
+
+    fn header(&mut self, client: u32, kind: u32, m: &LoopMatch, s: &Sim3) -> CorrectionHeader {
+        let (sim3, scale) = wire_from_sim3(s);
+        let id = self.next_id;
+        self.next_id += 1;
+        CorrectionHeader {
+            meta: MsgMeta::new(client, 0, id, monotonic_ns()),
+            correction_id: id,
+            kind,
+            query_kf: m.query,
+            matched_kf: m.matched,
+            from_map: m.query_map,
+            into_map: m.matched_map,
+            sim3,
+            scale,
+            inliers: m.inliers as u32,
+            ..CorrectionHeader::default()
+        }
+    }
+
+    fn pairs(m: &LoopMatch) -> Vec<CorrectionRecord> {
+        m.point_pairs
+            .iter()
+            .map(|(a, b)| CorrectionRecord {
+                kind: RECORD_POINT_PAIR,
+                a: *a,
+                b: *b,
+                ..CorrectionRecord::default()
+            })
+            .collect()
+    }
+
+    /// The query's map joins the matched keyframe's map (seed §3.4.2): with `T_Qq`, `T_Mm`
+    /// the two keyframes' poses in their maps and `S_qm` the loop similarity,
+    /// `S_MQ = T_Mm S_qm⁻¹ T_Qq⁻¹` takes the query map into the matched one.
+    pub fn merge(&mut self, client: u32, m: &LoopMatch) -> Result<Outgoing, String> {
+        let (Some(q), Some(mk)) = (
+            self.detector.keyframe(m.query),
+            self.detector.keyframe(m.matched),
+        ) else {
+            return Err(format!(
+                "loop {:#x}-{:#x}: keyframe not stored",
+                m.query, m.matched
+            ));
+        };
+        let t_qq = Sim3::from_isometry(&q.t_sk, 1.0);
+        let t_mm = Sim3::from_isometry(&mk.t_sk, 1.0);
+        let s_mq = t_mm.compose(&m.s_qm.inverse()).compose(&t_qq.inverse());
+        let mut header = self.header(client, CORRECTION_MERGE, m, &s_mq);
+        let records = Self::pairs(m);
+        header.n_records = records.len() as u32;
+        self.detector.rename_map(m.query_map, m.matched_map, &s_mq);
+        let mut moved = self.loops.remove(&m.query_map).unwrap_or_default();
+        moved.push(LoopConstraint {
+            query: m.query,
+            matched: m.matched,
+            s_qm: m.s_qm,
+        });
+        self.loops.entry(m.matched_map).or_default().extend(moved);
+        Ok(Outgoing {
+            summary: format!(
+                "merge: keyframe {:#x} (map {:#x}) matches {:#x} (map {:#x}), {} inliers, scale {:.4}",
+                m.query, m.query_map, m.matched, m.matched_map, m.inliers, s_mq.s
+            ),
+            header,
+            records,
+        })
+    }
+
+    /// A loop within one map: the pose graph of the map's keyframes (as this service knows
+    /// them) with every loop found in it, the matched keyframe fixed (seed §3.4.3).
+    pub fn pose_graph(&mut self, client: u32, m: &LoopMatch) -> Result<Outgoing, String> {
+        let map = m.query_map;
+        let list = self.loops.entry(map).or_default();
+        list.push(LoopConstraint {
+            query: m.query,
+            matched: m.matched,
+            s_qm: m.s_qm,
+        });
+        let loops = list.clone();
+        let kfs: Vec<GraphKeyframe> = self
+            .detector
+            .keyframes_of_map(map)
+            .map(|k| GraphKeyframe {
+                id: k.kf_id,
+                t_wk: k.t_sk,
+                covisible: self
+                    .detector
+                    .covisible(k.kf_id)
+                    .map(<[_]>::to_vec)
+                    .unwrap_or_default(),
+            })
+            .collect();
+        let t0 = Instant::now();
+        let c = correct_loop(&kfs, &loops, m.matched, &self.graph).map_err(|e| e.to_string())?;
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        let fallback = c.deltas.get(&m.query).copied().unwrap_or_default();
+        let mut header = self.header(client, CORRECTION_POSE_GRAPH, m, &fallback);
+        let mut records: Vec<CorrectionRecord> = c
+            .deltas
+            .iter()
+            .map(|(k, d)| {
+                let (delta, scale) = wire_from_sim3(d);
+                CorrectionRecord {
+                    kind: RECORD_KEYFRAME_DELTA,
+                    a: *k,
+                    delta,
+                    scale,
+                    ..CorrectionRecord::default()
+                }
+            })
+            .collect();
+        records.extend(Self::pairs(m));
+        header.n_records = records.len() as u32;
+        for (k, d) in &c.deltas {
+            self.detector.apply_correction(*k, d);
+        }
+        Ok(Outgoing {
+            summary: format!(
+                "loop: keyframe {:#x} matches {:#x} in map {map:#x}, {} inliers, scale {:.4}; pose graph of {} keyframes, {} + {} edges, cost {:.3e} -> {:.3e}, {} iterations, {ms:.1} ms",
+                m.query,
+                m.matched,
+                m.inliers,
+                m.s_qm.s,
+                kfs.len(),
+                c.edges.0,
+                c.edges.1,
+                c.report.initial_cost,
+                c.report.final_cost,
+                c.report.iterations
+            ),
+            header,
+            records,
+        })
+    }
+}
+
+fn send(
+    publisher: &Publisher<Ipc, [CorrectionRecord], CorrectionHeader>,
+    out: &Outgoing,
+) -> anyhow::Result<()> {
+    let sample = publisher.loan_slice_uninit(out.records.len())?;
+    let mut sample = sample.write_from_slice(&out.records);
+    *sample.user_header_mut() = out.header;
+    sample.send()?;
+    Ok(())
+}
+
+/// Receives keyframes until SIGINT/SIGTERM; detects loops and sends corrections.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
     let mut file = StatusFile::new(params.status.clone());
     let mut status = shoal_runtime::resume_status(&file, SERVICE_NAME);
+    let vocabulary = match &params.vocabulary {
+        Some(p) => Vocabulary::load(p)
+            .with_context(|| format!("loading the vocabulary {}", p.display()))?,
+        None => Vocabulary::from_bytes(SHIPPED_VOCABULARY)
+            .context("the built-in vocabulary is corrupt")?,
+    };
+    let mut closer = Closer::new(vocabulary, params.method.into());
     let prefix = params
         .ipc_prefix
         .clone()
         .unwrap_or_else(topics::prefix_from_env);
     topics::check_foreign_versions(&prefix)?;
     let node = topics::create_node("loop_closer", &prefix)?;
-    let sub = topics::keyframe_subscriber(&topics::loop_keyframes_service(&node)?)?;
+    let sub = topics::slice_subscriber(
+        &topics::loop_keyframes_service(&node)?,
+        topics::KEYFRAME_BUFFER,
+    )?;
+    let publisher = topics::slice_publisher(
+        &topics::corrections_service(&node)?,
+        topics::MAX_CORRECTION_RECORDS,
+    )?;
     shoal_runtime::signal_ready();
     loop {
         let mut idle = true;
-        while let Some(kf) = sub.receive()? {
+        while let Some(msg) = sub.receive()? {
             idle = false;
-            let h = kf.user_header();
-            match h.meta.check() {
-                Ok(()) => status.add(&format!("c{}.keyframes_received", h.meta.client_id), 1),
-                Err(e) => status.error("schema_version", format!("loop keyframe: {e}")),
+            let h = *msg.user_header();
+            if let Err(e) = h.meta.check() {
+                status.error("schema_version", format!("loop keyframe: {e}"));
+                continue;
+            }
+            let c = h.meta.client_id;
+            status.add(&format!("c{c}.keyframes_received"), 1);
+            let kf = match keyframe_from_wire(&h, msg.payload()) {
+                Ok(kf) => kf,
+                Err(e) => {
+                    status.error("bad_keyframe", e);
+                    continue;
+                }
+            };
+            drop(msg);
+            let t0 = Instant::now();
+            let result = closer.add(kf);
+            status.add("detect_us", t0.elapsed().as_micros() as u64);
+            status
+                .counters
+                .insert("database_keyframes".into(), closer.keyframes() as u64);
+            match result {
+                Ok(None) => {}
+                Ok(Some(out)) => {
+                    let kind = if out.header.kind == CORRECTION_MERGE {
+                        "merges"
+                    } else {
+                        "loops"
+                    };
+                    status.add(kind, 1);
+                    eprintln!("loop_closer: {}", out.summary);
+                    if !params.detect_only {
+                        if out.records.len() > topics::MAX_CORRECTION_RECORDS {
+                            status.error(
+                                "correction",
+                                format!("{} records exceed the message", out.records.len()),
+                            );
+                        } else {
+                            send(&publisher, &out)?;
+                            status.add("corrections_sent", 1);
+                        }
+                    }
+                }
+                Err(e) => status.error("loop", e),
             }
         }
         let _ = file.write_every(&status, Duration::from_millis(200));

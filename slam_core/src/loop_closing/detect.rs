@@ -464,6 +464,31 @@ impl LoopDetector {
         }
     }
 
+    /// The stored keyframes of map `map_id` (any order).
+    pub fn keyframes_of_map(&self, map_id: MapId) -> impl Iterator<Item = &KeptKeyframe> + '_ {
+        self.kfs
+            .values()
+            .map(|s| &s.kf)
+            .filter(move |k| k.map_id == map_id)
+    }
+
+    /// Moves `kf_id` by a pose-graph correction `Δ` (map → map similarity, seed §3.4.3):
+    /// its pose becomes `Δ ∘ T_sk` (rotation `R_Δ R_k`, centre `Δ(c_k)`) and its points in
+    /// its own frame are scaled by `s_Δ`. Returns whether it is stored.
+    pub fn apply_correction(&mut self, kf_id: KfId, delta: &Sim3) -> bool {
+        let ok = delta.s.is_finite() && delta.s > 0.0 && delta.t.iter().all(|v| v.is_finite());
+        let Some(st) = self.kfs.get_mut(&kf_id).filter(|_| ok) else {
+            return false;
+        };
+        let kf = &mut st.kf;
+        let centre = delta.transform_point(&kf.t_sk.translation.vector);
+        kf.t_sk = Isometry3::from_parts(Translation3::from(centre), delta.r * kf.t_sk.rotation);
+        for p in &mut kf.points {
+            p.p_k *= delta.s;
+        }
+        true
+    }
+
     /// Moves `kf_id` to map `map_id` (pose unchanged); returns whether it is stored.
     pub fn set_map(&mut self, kf_id: KfId, map_id: MapId) -> bool {
         match self.kfs.get_mut(&kf_id) {

@@ -1,0 +1,92 @@
+//! The loop closer end to end (issue 5), real processes on synthetic `two-agents`: the
+//! loop closer finds where the two cameras saw the same place, the mapper merges the two
+//! clients' server maps into one, and the server keyframes of both agents, evaluated
+//! together in that one map with a single Sim(3) alignment, are within 0.3% of the
+//! distance travelled.
+mod common;
+
+use std::path::Path;
+
+use common::*;
+
+fn u(v: &serde_json::Value) -> u64 {
+    v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
+}
+
+/// Server keyframes of both clients (one map) against both agents' ground truth with one
+/// Sim(3): (RMSE m, keyframes). Agent 1's times are shifted so the two never associate
+/// across agents.
+fn joint_server_ate(out: &Path, ds: &[std::path::PathBuf]) -> (f64, usize) {
+    const SHIFT: i64 = 1_000_000_000_000; // 1000 s
+    let (mut gt_t, mut gt_p, mut est_t, mut est_p) = (vec![], vec![], vec![], vec![]);
+    for (c, d) in ds.iter().enumerate() {
+        let dataset = datasets::open(d).expect("dataset");
+        let gt = dataset.ground_truth.expect("ground truth");
+        let est = datasets::trajectory::read_tum(&out.join(format!("keyframes_server_c{c}.txt")))
+            .expect("server keyframes");
+        let shift = c as i64 * SHIFT;
+        gt_t.extend(gt.iter().map(|g| g.t_ns + shift));
+        gt_p.extend(gt.iter().map(|g| g.pose));
+        est_t.extend(est.poses.iter().map(|p| p.t_ns + shift));
+        est_p.extend(est.poses.iter().map(|p| p.pose));
+    }
+    let params = slam_core::metrics::EvalParams {
+        alignment: slam_core::metrics::Alignment::Sim3,
+        ..Default::default()
+    };
+    let r = slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &params).expect("ATE");
+    (r.ape.rmse, r.pairs.len())
+}
+
+#[test]
+fn two_agents_maps_merge_into_one_accurate_map() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "two-agents", 480, None);
+    let out = dir.path().join("out");
+    let o = run_pipeline(
+        &[&ds[0], &ds[1]],
+        &out,
+        "loop_two_agents",
+        &["--tracker-arg=--window=10"],
+    );
+    assert!(o.status.success(), "shoal run failed");
+    let r = report(&out);
+    let lc = &r["services"]["loop_closer"]["counters"];
+    let mc = &r["services"]["mapper"]["counters"];
+    eprintln!("loop closer: {lc}");
+    assert!(u(&lc["merges"]) >= 1, "no merge found: {lc}");
+    assert_eq!(
+        u(&mc["corrections_applied_merge"]),
+        u(&lc["merges"]),
+        "every merge the loop closer sent was applied: {mc}"
+    );
+    assert!(mc.get("corrections_refused").is_none(), "{mc}");
+    assert_eq!(u(&r["mapper"]["maps"]), 1, "one map after the merge");
+    assert_eq!(
+        u(&mc["c0.map_id"]),
+        u(&mc["c1.map_id"]),
+        "both clients continue in the same map"
+    );
+    let mut length = 0.0;
+    let mut n_server = 0;
+    for c in 0..2 {
+        let cl = &r["clients"][c];
+        let sent = u(&cl["keyframes_sent"]);
+        assert_eq!(u(&cl["keyframes_applied"]), sent);
+        assert_eq!(u(&cl["keyframes_acked"]), sent);
+        let s = &cl["ate_server_keyframes"];
+        length += s["path_length_m"].as_f64().expect("path length");
+        n_server += u(&cl["server_keyframes"]) as usize;
+        eprintln!(
+            "client {c}: server keyframes ATE {:.4} m (alone), client keyframes {:.4} m",
+            s["rmse_m"], cl["ate_client_keyframes"]["rmse_m"]
+        );
+    }
+    let (rmse, n) = joint_server_ate(&out, &ds);
+    let percent = 100.0 * rmse / length;
+    eprintln!(
+        "both agents in one map: {n} server keyframes, ATE {rmse:.4} m = {percent:.3}% of {length:.1} m"
+    );
+    assert_eq!(n, n_server, "every server keyframe evaluated");
+    assert!(percent <= 0.3, "joint server ATE {percent:.3}% > 0.3%");
+}
