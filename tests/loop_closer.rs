@@ -90,3 +90,64 @@ fn two_agents_maps_merge_into_one_accurate_map() {
     assert_eq!(n, n_server, "every server keyframe evaluated");
     assert!(percent <= 0.3, "joint server ATE {percent:.3}% > 0.3%");
 }
+
+/// ATE (m, Sim(3)-aligned) of a TUM file of keyframes against the ground truth of `ds`.
+fn ate_of(ds: &Path, est: &Path) -> (f64, usize) {
+    let gt = datasets::open(ds)
+        .expect("dataset")
+        .ground_truth
+        .expect("ground truth");
+    let est = datasets::trajectory::read_tum(est).expect("trajectory");
+    let params = slam_core::metrics::EvalParams {
+        alignment: slam_core::metrics::Alignment::Sim3,
+        ..Default::default()
+    };
+    let r = slam_core::metrics::evaluate(
+        &gt.iter().map(|g| g.t_ns).collect::<Vec<_>>(),
+        &gt.iter().map(|g| g.pose).collect::<Vec<_>>(),
+        &est.poses.iter().map(|p| p.t_ns).collect::<Vec<_>>(),
+        &est.poses.iter().map(|p| p.pose).collect::<Vec<_>>(),
+        &params,
+    )
+    .expect("ATE");
+    (r.ape.rmse, r.pairs.len())
+}
+
+/// A drifting client on `loop` (5-keyframe window, 400 features: its VO drifts ~1%) with
+/// the mapper's revisit search off, so that closing the loop is left to the loop closer:
+/// when lap 2 comes back to the start, a loop is detected within the one map, the pose
+/// graph correction is applied, and the server keyframes right after it (correction +
+/// global BA) have at most half the ATE they had right before it.
+#[test]
+fn loop_closure_halves_the_server_map_error() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "loop", 900, None);
+    let out = dir.path().join("out");
+    let o = run_pipeline(
+        &[&ds[0]],
+        &out,
+        "loop_drift",
+        &[
+            "--tracker-arg=--window=5",
+            "--tracker-arg=--features=400",
+            "--mapper-arg=--spatial-keyframes=0",
+        ],
+    );
+    assert!(o.status.success(), "shoal run failed");
+    let r = report(&out);
+    let lc = &r["services"]["loop_closer"]["counters"];
+    let mc = &r["services"]["mapper"]["counters"];
+    eprintln!("loop closer: {lc}");
+    assert!(u(&lc["loops"]) >= 1, "no loop detected: {lc}");
+    assert!(u(&mc["corrections_applied_pose_graph"]) >= 1, "{mc}");
+    let (before, n0) = ate_of(&ds[0], &out.join("correction_1_before.txt"));
+    let (after, n1) = ate_of(&ds[0], &out.join("correction_1_after.txt"));
+    eprintln!(
+        "server keyframes ({n0}): ATE {before:.4} m before the loop correction, {after:.4} m after"
+    );
+    assert_eq!(n0, n1);
+    assert!(
+        after <= 0.5 * before,
+        "{after:.4} m after vs {before:.4} m before"
+    );
+}

@@ -67,6 +67,10 @@ pub struct Params {
     /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
     #[arg(long)]
     pub ipc_prefix: Option<String>,
+    /// Keyframes near the predicted pose searched for a revisit (0: none, so that a revisit
+    /// is left to loop closing; for ablations).
+    #[arg(long, default_value_t = HandlerParams::default().spatial_keyframes)]
+    pub spatial_keyframes: usize,
     /// At the end, wait at most this long (s) for the handlers to finish their queues.
     #[arg(long, default_value_t = 50.0)]
     pub drain_seconds: f64,
@@ -96,6 +100,7 @@ struct Client {
 
 /// The main thread's state apart from the iceoryx2 ports.
 struct Mapper {
+    handler_params: HandlerParams,
     clients: Vec<Client>,
     workers: Vec<Worker>,
     /// Latest size of every server map.
@@ -116,7 +121,7 @@ impl Mapper {
                 self.workers.push(
                     Worker::spawn(
                         c,
-                        HandlerParams::default(),
+                        self.handler_params.clone(),
                         self.out.clone(),
                         self.results_tx.clone(),
                     )
@@ -537,6 +542,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     });
     let (results_tx, results_rx) = crossbeam_channel::unbounded();
     let mut m = Mapper {
+        handler_params: HandlerParams {
+            spatial_keyframes: params.spatial_keyframes,
+            ..HandlerParams::default()
+        },
         workers: Vec::new(),
         map_sizes: BTreeMap::new(),
         loop_seq: 0,

@@ -335,12 +335,26 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
             }
             Job::Correction { correction, replay } => {
                 let t0 = Instant::now();
+                let snapshot = |g: &Group, when: &str| {
+                    if let (Some(out), Correction::PoseGraph { id, map, .. }) =
+                        (out.as_deref(), &correction)
+                    {
+                        if let Some(m) = g.maps.get(map) {
+                            let _ = write_tum(
+                                &out.join(format!("correction_{id}_{when}.txt")),
+                                &m.trajectory(),
+                            );
+                        }
+                    }
+                };
+                snapshot(&g, "before");
                 let result = g.apply(&correction);
                 // The global BA the correction asked for, at once (live and in replays).
                 if result.is_ok() {
                     for cs in g.clients.values_mut() {
                         while cs.h.idle_step(&mut g.maps).is_some() {}
                     }
+                    snapshot(&g, "after");
                 }
                 dirty = true;
                 let clients: Vec<u32> = g.clients.keys().copied().collect();
@@ -446,6 +460,8 @@ fn handle(
 /// merged) in `..._m{n}.txt`; `OUT/keyframes_client_c{c}.txt`, the client poses `T_ck` of
 /// every keyframe of the current session as received (the client VO's keyframes, for
 /// comparison); `OUT/map_growth_c{c}.txt`, the size of its map after each keyframe.
+/// (Pose-graph corrections also leave `OUT/correction_{id}_before.txt` / `_after.txt`: the
+/// corrected map's keyframes right before and after the correction and its global BA.)
 fn write_files(out: Option<&Path>, g: &Group) {
     let Some(out) = out else { return };
     for (c, cs) in &g.clients {
