@@ -264,7 +264,11 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         progress.update(&recorder);
         supervise(&mut services, &exe, cfg, &mut launcher_errors)?;
         if !injector.is_empty() {
-            injector.step(&mut services, ready_at.elapsed().as_secs_f64());
+            injector.step(
+                &mut services,
+                ready_at.elapsed().as_secs_f64(),
+                &recorder.frames_posed(),
+            );
         }
         let clients_done = (0..cfg.datasets.len()).all(|c| {
             let finished = |svc: &str| {
@@ -334,6 +338,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         interrupted,
         timed_out,
     )?;
+    rep.faults_summary = faults::FaultsSummary::of(&injector.events);
     rep.faults = injector.events;
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
@@ -421,9 +426,12 @@ fn supervise(
             if Instant::now() >= at {
                 // Clean what the dead process left in shared memory before it rejoins.
                 let _ = cleanup_dead_nodes(&cfg.ipc_prefix);
+                // What the new process will resume from (the dead one's last status write).
+                let snapshot = report::load_status(&sv.status).counters;
                 sv.restarts += 1;
                 sv.spawn(exe)
                     .with_context(|| format!("restarting {}", sv.name))?;
+                sv.restart_snapshots.push((Instant::now(), snapshot));
             }
         }
     }
