@@ -1,8 +1,12 @@
-//! Fault injection: a kill schedule (`--kill SERVICE@SECONDS`, repeatable) and chaos
+//! Fault injection: a kill schedule (`--kill SERVICE@SECONDS` or `--kill SERVICE@fFRAMES`,
+//! repeatable; the second form fires once the recorder has poses of FRAMES distinct frames of
+//! the service's client, a fixed point in the data of a lock-step replay) and chaos
 //! (`--chaos SEED:PERIOD`: a random running service every PERIOD seconds on average,
 //! exponential gaps, reproducible from SEED). Kills are SIGKILL of the real child process;
 //! the supervisor then restarts the service like after any crash. Each kill is recorded
-//! with its time and the recovery time (kill → the restarted service's readiness line).
+//! with its time, the frame count, the recovery time (kill → the restarted service's
+//! readiness line) and the counters the restarted process resumed from; the report's
+//! `faults_summary` gives kills per service and recovery p50 / max.
 use std::collections::BTreeMap;
 use std::str::FromStr;
 use std::time::Instant;
