@@ -143,6 +143,9 @@ def run(shoal, dataset, out, every, extra):
     t0 = time.time()
     rows = []
     names = set()
+    # Samples as they come (the summary and rss.csv are written at the end; stopping the
+    # launcher with SIGINT ends the run cleanly and still writes them).
+    raw = open(os.path.join(out, "rss_samples.jsonl"), "w")
     while p.poll() is None:
         kids = children(p.pid)
         row = {"t_s": round(time.time() - t0, 1), "launcher": rss_kib(p.pid)}
@@ -155,7 +158,10 @@ def run(shoal, dataset, out, every, extra):
         row["frames"] = status(out, "tracker_c0").get("counters", {}).get("frames_received")
         if kids:
             rows.append(row)
+            raw.write(json.dumps(row) + "\n")
+            raw.flush()
         time.sleep(every)
+    raw.close()
     log = p.stdout.read().decode(errors="replace")
     cols = ["t_s", "frames", "map_keyframes", "map_points", "launcher"] + sorted(names)
     with open(os.path.join(out, "rss.csv"), "w", newline="") as f:

@@ -12,6 +12,9 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
 
+/// A process that ran this long after being ready resets the restart back-off.
+pub const STABLE_AFTER: Duration = Duration::from_secs(5);
+
 /// What is known of a child's life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Phase {
@@ -57,6 +60,9 @@ pub struct Supervised {
     pub ready_at: Option<Instant>,
     /// True for services that end by themselves at the end of their input.
     pub ends_by_itself: bool,
+    /// Crashes in a row, each within [`STABLE_AFTER`] of its start being ready (sets the
+    /// back-off; a process that ran longer resets it).
+    pub quick_crashes: u32,
     /// CPU time (user + system, s) of this service's processes that were reaped, summed over
     /// all its starts (from `wait4`'s resource usage of each process).
     pub cpu_s: f64,
@@ -93,6 +99,7 @@ impl Supervised {
             recoveries_s: Vec::new(),
             ready_at: None,
             ends_by_itself,
+            quick_crashes: 0,
             cpu_s: 0.0,
             restart_snapshots: Vec::new(),
         }
@@ -232,9 +239,24 @@ impl Supervised {
         }
     }
 
-    /// Back-off before the next restart: 100 ms doubling per restart, at most 3.2 s.
+    /// Back-off before the next restart: 100 ms doubling per crash in a row, at most 3.2 s.
     pub fn backoff(&self) -> Duration {
-        Duration::from_millis(100u64 << self.restarts.min(5))
+        Duration::from_millis(100u64 << self.quick_crashes.min(5))
+    }
+
+    /// Notes a crash of the current process; returns the back-off before its restart. A
+    /// process that had been ready for [`STABLE_AFTER`] resets the back-off, so a service
+    /// that crashes now and then (chaos) is not restarted ever more slowly.
+    pub fn note_crash(&mut self) -> Duration {
+        let stable = self
+            .ready_at
+            .is_some_and(|r| r > self.spawned_at && r.elapsed() >= STABLE_AFTER);
+        if stable {
+            self.quick_crashes = 0;
+        }
+        let b = self.backoff();
+        self.quick_crashes += 1;
+        b
     }
 
     /// Waits up to `timeout` for the child to exit, then SIGKILLs and reaps it.

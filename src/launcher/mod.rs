@@ -42,7 +42,9 @@ pub struct RunConfig {
     pub tracker_args: Vec<String>,
     /// Give up (stop everything, report) after this long.
     pub max_duration: Option<Duration>,
-    /// Most restarts of one service before it is given up.
+    /// Most restarts of a crash-looping service before it is given up: crashes in a row,
+    /// each within `child::STABLE_AFTER` of being ready (a service that runs a while between
+    /// kills, e.g. under `--chaos`, is always restarted).
     pub max_restarts: u32,
     /// Kill schedule (`--kill SERVICE@SECONDS`).
     pub kills: Vec<faults::KillSpec>,
@@ -405,22 +407,25 @@ fn supervise(
                 sv.phase = Phase::Failed;
                 continue;
             }
-            if sv.restarts >= cfg.max_restarts {
+            let backoff = sv.note_crash();
+            if sv.quick_crashes > cfg.max_restarts {
                 errors.push(ErrorRecord {
                     service: sv.name.clone(),
                     kind: "gave_up".into(),
-                    detail: format!("{what} after {} restarts", sv.restarts),
+                    detail: format!(
+                        "{what} after {} restarts ({} crashes in a row, each within {:?} of \
+                         being ready)",
+                        sv.restarts,
+                        sv.quick_crashes,
+                        child::STABLE_AFTER
+                    ),
                 });
                 sv.phase = Phase::Failed;
                 continue;
             }
-            tracing::warn!(
-                "{} died ({what}); restarting in {:?}",
-                sv.name,
-                sv.backoff()
-            );
+            tracing::warn!("{} died ({what}); restarting in {backoff:?}", sv.name);
             sv.crashed_at = Some(Instant::now());
-            sv.phase = Phase::WaitingRestart(Instant::now() + sv.backoff());
+            sv.phase = Phase::WaitingRestart(Instant::now() + backoff);
         }
         if let Phase::WaitingRestart(at) = sv.phase {
             if Instant::now() >= at {
