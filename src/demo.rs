@@ -89,6 +89,17 @@ pub fn print_summary(rep: &RunReport, out: &Path) {
         "frame publish -> pose publish: p50 {:.3} ms, p90 {:.3} ms, p99 {:.3} ms, max {:.3} ms ({} frames)",
         l.p50, l.p90, l.p99, l.max, l.n
     );
+    let f = &rep.faults_summary;
+    if f.kills > 0 {
+        let ms = |v: Option<f64>| v.map_or("-".to_string(), |s| format!("{:.0} ms", s * 1e3));
+        println!(
+            "faults: {} kills, {} recovered, recovery p50 {}, max {}",
+            f.kills,
+            f.recovered,
+            ms(f.recovery_p50_s),
+            ms(f.recovery_max_s)
+        );
+    }
     let restarts: u32 = rep.services.values().map(|s| s.restarts).sum();
     println!(
         "{} services, {restarts} restarts, {} errors; wall time {:.1} s",

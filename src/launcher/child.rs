@@ -12,6 +12,9 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
 
+/// A process that ran this long after being ready resets the restart back-off.
+pub const STABLE_AFTER: Duration = Duration::from_secs(5);
+
 /// What is known of a child's life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Phase {
@@ -57,6 +60,15 @@ pub struct Supervised {
     pub ready_at: Option<Instant>,
     /// True for services that end by themselves at the end of their input.
     pub ends_by_itself: bool,
+    /// Crashes in a row, each within [`STABLE_AFTER`] of its start being ready (sets the
+    /// back-off; a process that ran longer resets it).
+    pub quick_crashes: u32,
+    /// CPU time (user + system, s) of this service's processes that were reaped, summed over
+    /// all its starts (from `wait4`'s resource usage of each process).
+    pub cpu_s: f64,
+    /// Per restart: when the new process was spawned and the status counters it resumed from
+    /// (the file the dead process left, read just before the new one started).
+    pub restart_snapshots: Vec<(Instant, std::collections::BTreeMap<String, u64>)>,
 }
 
 /// How a child ended.
@@ -87,6 +99,9 @@ impl Supervised {
             recoveries_s: Vec::new(),
             ready_at: None,
             ends_by_itself,
+            quick_crashes: 0,
+            cpu_s: 0.0,
+            restart_snapshots: Vec::new(),
         }
     }
 
@@ -160,14 +175,53 @@ impl Supervised {
 
     /// Reaps the child if it exited (waitpid, so no zombie keeps its PID and locks alive).
     pub fn try_reap(&mut self) -> Option<ExitStatus> {
-        let child = self.child.as_mut()?;
-        match child.try_wait() {
-            Ok(Some(st)) => {
+        self.reap(false)
+    }
+
+    /// Reaps the child with `wait4` (blocking or not) and adds its CPU time to `cpu_s`.
+    /// `std::process::Child::try_wait` would discard the child's resource usage, which is
+    /// only available when the process is reaped.
+    fn reap(&mut self, block: bool) -> Option<ExitStatus> {
+        let pid = self.child.as_ref()?.id() as libc::pid_t;
+        let mut raw = 0;
+        // SAFETY: an all-zero rusage is a valid value of this plain C struct.
+        let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+        let flags = if block { 0 } else { libc::WNOHANG };
+        loop {
+            // SAFETY: wait4 on our own child's pid with valid out-pointers.
+            let r = unsafe { libc::wait4(pid, &mut raw, flags, &mut usage) };
+            if r == pid {
+                let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+                self.cpu_s += tv(usage.ru_utime) + tv(usage.ru_stime);
+                // The process is reaped: dropping the `Child` neither waits nor kills.
                 self.child = None;
-                Some(st)
+                return Some(ExitStatus::from_raw(raw));
             }
-            _ => None,
+            if r == -1 && std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted
+            {
+                continue;
+            }
+            return None;
         }
+    }
+
+    /// CPU time (user + system, s) the running child has used so far (`/proc/PID/stat`),
+    /// 0 when there is none or it cannot be read.
+    pub fn running_cpu_s(&self) -> f64 {
+        let Some(pid) = self.pid() else { return 0.0 };
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            return 0.0;
+        };
+        // Fields after the command name (which may hold spaces) closed by the last ')'.
+        let Some((_, rest)) = stat.rsplit_once(')') else {
+            return 0.0;
+        };
+        let f: Vec<&str> = rest.split_whitespace().collect();
+        // SAFETY: sysconf has no preconditions.
+        let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) }.max(1) as f64;
+        let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0);
+        // utime and stime are fields 14 and 15 of stat(5), 12 and 13 after the name.
+        (ticks(11) + ticks(12)) as f64 / hz
     }
 
     /// Process id of the running child.
@@ -185,9 +239,24 @@ impl Supervised {
         }
     }
 
-    /// Back-off before the next restart: 100 ms doubling per restart, at most 3.2 s.
+    /// Back-off before the next restart: 100 ms doubling per crash in a row, at most 3.2 s.
     pub fn backoff(&self) -> Duration {
-        Duration::from_millis(100u64 << self.restarts.min(5))
+        Duration::from_millis(100u64 << self.quick_crashes.min(5))
+    }
+
+    /// Notes a crash of the current process; returns the back-off before its restart. A
+    /// process that had been ready for [`STABLE_AFTER`] resets the back-off, so a service
+    /// that crashes now and then (chaos) is not restarted ever more slowly.
+    pub fn note_crash(&mut self) -> Duration {
+        let stable = self
+            .ready_at
+            .is_some_and(|r| r > self.spawned_at && r.elapsed() >= STABLE_AFTER);
+        if stable {
+            self.quick_crashes = 0;
+        }
+        let b = self.backoff();
+        self.quick_crashes += 1;
+        b
     }
 
     /// Waits up to `timeout` for the child to exit, then SIGKILLs and reaps it.
@@ -201,6 +270,6 @@ impl Supervised {
             std::thread::sleep(Duration::from_millis(5));
         }
         self.signal(libc::SIGKILL);
-        self.child.as_mut().and_then(|c| c.wait().ok())
+        self.reap(true)
     }
 }

@@ -46,7 +46,9 @@ pub struct RunConfig {
     pub loop_closer_args: Vec<String>,
     /// Give up (stop everything, report) after this long.
     pub max_duration: Option<Duration>,
-    /// Most restarts of one service before it is given up.
+    /// Most restarts of a crash-looping service before it is given up: crashes in a row,
+    /// each within `child::STABLE_AFTER` of being ready (a service that runs a while between
+    /// kills, e.g. under `--chaos`, is always restarted).
     pub max_restarts: u32,
     /// Kill schedule (`--kill SERVICE@SECONDS`).
     pub kills: Vec<faults::KillSpec>,
@@ -280,7 +282,11 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         progress.update(&recorder);
         supervise(&mut services, &exe, cfg, &mut launcher_errors)?;
         if !injector.is_empty() {
-            injector.step(&mut services, ready_at.elapsed().as_secs_f64());
+            injector.step(
+                &mut services,
+                ready_at.elapsed().as_secs_f64(),
+                &recorder.frames_posed(),
+            );
         }
         let clients_done = (0..cfg.datasets.len()).all(|c| {
             let finished = |svc: &str| {
@@ -350,6 +356,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         interrupted,
         timed_out,
     )?;
+    rep.faults_summary = faults::FaultsSummary::of(&injector.events);
     rep.faults = injector.events;
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
@@ -416,30 +423,36 @@ fn supervise(
                 sv.phase = Phase::Failed;
                 continue;
             }
-            if sv.restarts >= cfg.max_restarts {
+            let backoff = sv.note_crash();
+            if sv.quick_crashes > cfg.max_restarts {
                 errors.push(ErrorRecord {
                     service: sv.name.clone(),
                     kind: "gave_up".into(),
-                    detail: format!("{what} after {} restarts", sv.restarts),
+                    detail: format!(
+                        "{what} after {} restarts ({} crashes in a row, each within {:?} of \
+                         being ready)",
+                        sv.restarts,
+                        sv.quick_crashes,
+                        child::STABLE_AFTER
+                    ),
                 });
                 sv.phase = Phase::Failed;
                 continue;
             }
-            tracing::warn!(
-                "{} died ({what}); restarting in {:?}",
-                sv.name,
-                sv.backoff()
-            );
+            tracing::warn!("{} died ({what}); restarting in {backoff:?}", sv.name);
             sv.crashed_at = Some(Instant::now());
-            sv.phase = Phase::WaitingRestart(Instant::now() + sv.backoff());
+            sv.phase = Phase::WaitingRestart(Instant::now() + backoff);
         }
         if let Phase::WaitingRestart(at) = sv.phase {
             if Instant::now() >= at {
                 // Clean what the dead process left in shared memory before it rejoins.
                 let _ = cleanup_dead_nodes(&cfg.ipc_prefix);
+                // What the new process will resume from (the dead one's last status write).
+                let snapshot = report::load_status(&sv.status).counters;
                 sv.restarts += 1;
                 sv.spawn(exe)
                     .with_context(|| format!("restarting {}", sv.name))?;
+                sv.restart_snapshots.push((Instant::now(), snapshot));
             }
         }
     }

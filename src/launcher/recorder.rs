@@ -60,8 +60,14 @@ impl LatencyHist {
 /// What the recorder keeps of one client.
 pub struct ClientRecord {
     subscriber: iceoryx2::port::subscriber::Subscriber<Ipc, TrackedPose, ()>,
-    /// Poses received (one per frame the tracker handled).
+    /// Poses received (one per frame the tracker handled; a frame handled twice, by a
+    /// tracker that died before acknowledging it and by its restarted successor, twice).
     pub poses: u64,
+    /// Distinct frames (dataset indices) with a pose: the frames the tracker handled, exact
+    /// across tracker restarts (a killed tracker's own counters lag its last status write).
+    pub frames_posed: u64,
+    /// Which dataset indices have a pose (bit set).
+    posed: Vec<u64>,
     /// Frames with a valid pose when they were tracked.
     pub tracked: u64,
     /// Frames given a pose later, when the VO initialised (`FLAG_BACKFILL`).
@@ -76,6 +82,25 @@ pub struct ClientRecord {
     pub ended: bool,
     /// Messages of another schema version.
     pub bad_messages: u64,
+}
+
+impl ClientRecord {
+    /// Notes a pose of frame `index`; counts it once.
+    fn mark_posed(&mut self, index: u64) {
+        // The ingest sets indices below the dataset's length; a bogus one must not make the
+        // launcher allocate gigabytes (2^27 frames: 16 MiB of bits, 77 days at 20 Hz).
+        if index >= 1 << 27 {
+            return;
+        }
+        let (word, bit) = ((index / 64) as usize, 1u64 << (index % 64));
+        if word >= self.posed.len() {
+            self.posed.resize(word + 1, 0);
+        }
+        if self.posed[word] & bit == 0 {
+            self.posed[word] |= bit;
+            self.frames_posed += 1;
+        }
+    }
 }
 
 /// The recorder of all clients.
@@ -99,6 +124,8 @@ impl Recorder {
             clients.push(ClientRecord {
                 subscriber: topics::subscriber(&service)?,
                 poses: 0,
+                frames_posed: 0,
+                posed: Vec::new(),
                 tracked: 0,
                 tracked_server: 0,
                 backfilled: 0,
@@ -114,6 +141,11 @@ impl Recorder {
             publish_to_receive: LatencyHist::new(),
             tracker_total: LatencyHist::new(),
         })
+    }
+
+    /// Distinct frames with a pose, per client.
+    pub fn frames_posed(&self) -> Vec<u64> {
+        self.clients.iter().map(|c| c.frames_posed).collect()
     }
 
     /// Takes every pose waiting; returns how many were taken.
@@ -140,6 +172,7 @@ impl Recorder {
                     continue;
                 }
                 rec.poses += 1;
+                rec.mark_posed(p.dataset_index);
                 self.publish_to_pose
                     .record_ns(p.meta.publish_mono_ns - p.frame_publish_mono_ns);
                 self.publish_to_receive

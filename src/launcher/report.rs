@@ -20,15 +20,27 @@ pub struct ClientReport {
     pub frames_total: u64,
     /// Frames the camera ingest published (re-sends not counted).
     pub frames_published: u64,
-    /// Frames the tracker took from shared memory.
+    /// Distinct frames the tracker handled (a pose left the tracker for them), counted by the
+    /// launcher's recorder: exact across tracker restarts, when the killed tracker's own
+    /// counters lag its last status write.
     pub frames_received: u64,
     /// Frames with a valid pose when they were tracked.
     pub frames_tracked: u64,
     /// Frames seen while the VO initialised, given a pose once the map existed.
     pub frames_backfilled: u64,
-    /// Frames published but never taken by the tracker, plus frames the ingest missed while
-    /// it was down (real time).
+    /// Frames of the replayed part of the dataset that got no pose, corrupt images (errors,
+    /// never published) not counted: frames published while the tracker was down or that it
+    /// never took (real time: a killed tracker drops the frames published until its restart
+    /// is ready), frames the camera ingest missed while it was down (real time), and a frame
+    /// acknowledged by a tracker killed before it published the pose. In lock-step the ingest
+    /// waits for each frame's acknowledgement and re-sends to a restarted tracker, so kills
+    /// of any service drop nothing there.
     pub frames_dropped: u64,
+    /// Of the dropped frames: the ones the camera ingest skipped because they were due while
+    /// it was down (real time).
+    pub frames_skipped_late: u64,
+    /// Corrupt images (reported as errors, not published).
+    pub frames_corrupt: u64,
     /// Frames re-sent in lock-step because no ack came (consumer restarted).
     pub frames_resent: u64,
     /// IMU samples published.
@@ -41,7 +53,13 @@ pub struct ClientReport {
     pub keyframes_sent: u64,
     /// Keyframes the tracker saw acknowledged by the mapper.
     pub keyframes_acked: u64,
-    /// Keyframes the mapper applied (journaled).
+    /// Keyframes sent by a tracker that was killed before it saw their acknowledgement (the
+    /// mapper still applied them; `keyframes_acked + keyframes_unacked_at_crash ==
+    /// keyframes_sent`).
+    pub keyframes_unacked_at_crash: u64,
+    /// Keyframes the mapper applied: distinct keyframes of the client in the mapper's
+    /// journal (a keyframe is journaled before it is acknowledged; the mapper's own counter
+    /// lags its last status write when it is killed).
     pub keyframes_applied: u64,
     /// Keyframe messages the mapper received (re-sends included).
     pub keyframes_received: u64,
@@ -49,6 +67,17 @@ pub struct ClientReport {
     pub keyframes_kept: u64,
     /// Keyframes in the client's server maps at the end (after culling).
     pub server_keyframes: u64,
+    /// Server maps of the client (one per VO session that reached two keyframes).
+    pub server_maps: u64,
+    /// Keyframes the mapper forwarded to the loop closer.
+    pub keyframes_forwarded: u64,
+    /// Forwarded keyframes the loop closer received.
+    pub loop_keyframes_received: u64,
+    /// CPU time (user + system), s, of the client's processes summed over their restarts
+    /// (`tracker`, `camera_ingest`, `imu_ingest`), and `mapper_handler`: the time the
+    /// mapper's handler thread of this client spent handling its keyframes and idle steps
+    /// (wall time of a compute-bound thread).
+    pub cpu_s: BTreeMap<String, f64>,
     /// Keyframe message bytes the mapper received per second of data.
     pub keyframe_bytes_per_s: f64,
     /// Frames published with a pose in the server map (from the mapper's feedback).
@@ -157,6 +186,8 @@ pub struct ServiceReport {
     pub outcome: String,
     /// Recovery times in s (crash seen → ready again).
     pub recovery_s: Vec<f64>,
+    /// CPU time (user + system) of all its processes (every start), s.
+    pub cpu_s: f64,
     /// The service's own counters.
     pub counters: BTreeMap<String, u64>,
 }
@@ -212,11 +243,46 @@ pub struct RunReport {
     pub errors: Vec<ErrorRecord>,
     /// Error counts per `service/kind`, including those not listed in `errors`.
     pub error_counts: BTreeMap<String, u64>,
+    /// Loops the loop closer closed (its `loops` counter; 0 while it is plumbing that
+    /// only counts keyframes).
+    pub loops: u64,
+    /// CPU time of the launcher process itself (supervision, recorder), s.
+    pub launcher_cpu_s: f64,
     /// Kills injected (`--kill`, `--chaos`): service, time, recovery time.
     pub faults: Vec<super::faults::FaultEvent>,
+    /// Kills per service and recovery times (p50 / max).
+    pub faults_summary: super::faults::FaultsSummary,
 }
 
-fn load_status(path: &Path) -> Status {
+/// Distinct keyframes (session, id) per client in the mapper journal at `path`.
+fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<u64>> {
+    let bytes = std::fs::read(path).ok()?;
+    let contents = mapper::journal::parse(&bytes);
+    let mut seen: Vec<std::collections::HashSet<(u32, u64)>> = vec![Default::default(); clients];
+    for e in &contents.entries {
+        if let mapper::journal::Entry::Keyframe { client, header, .. } = e {
+            if let Some(s) = seen.get_mut(*client as usize) {
+                s.insert((header.meta.session_id, header.keyframe_id));
+            }
+        }
+    }
+    Some(seen.iter().map(|s| s.len() as u64).collect())
+}
+
+/// CPU time (user + system) of the calling process, s.
+fn self_cpu_s() -> f64 {
+    // SAFETY: an all-zero rusage is valid; getrusage fills it.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: valid out-pointer.
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
+        return 0.0;
+    }
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    tv(u.ru_utime) + tv(u.ru_stime)
+}
+
+/// The status file at `path` (default when missing or unreadable).
+pub fn load_status(path: &Path) -> Status {
     std::fs::read_to_string(path)
         .ok()
         .and_then(|t| serde_json::from_str(&t).ok())
@@ -264,15 +330,39 @@ impl RunReport {
             .map(|s| (s.name.clone(), load_status(&s.status)))
             .collect();
         let get = |svc: &str, key: &str| statuses.get(svc).map_or(0, |s| s.get(key));
+        let value = |svc: &str, key: &str| {
+            statuses
+                .get(svc)
+                .and_then(|s| s.values.get(key).copied())
+                .unwrap_or(0.0)
+        };
+        let errors_of = |svc: &str, kind: &str| {
+            statuses
+                .get(svc)
+                .and_then(|s| s.error_counts.get(kind).copied())
+                .unwrap_or(0)
+        };
+        let cpu_of = |svc: &str| {
+            services
+                .iter()
+                .find(|s| s.name == svc)
+                .map_or(0.0, |s| s.cpu_s + s.running_cpu_s())
+        };
         let mapper = statuses.get("mapper");
+        let journaled = journal_keyframes(&cfg.out.join(super::MAPPER_JOURNAL), datasets.len());
+        let loop_closer = statuses.get("loop_closer");
         for (c, ds) in datasets.iter().enumerate() {
             let cam = format!("camera_ingest:{c}");
             let imu = format!("imu_ingest:{c}");
             let trk = format!("tracker:{c}");
             let total = cfg.max_frames.unwrap_or(usize::MAX).min(ds.frames.len()) as u64;
             let published = get(&cam, "frames_published");
-            let received = get(&trk, "frames_received");
             let rec = &recorder.clients[c];
+            let received = rec.frames_posed;
+            // Frames the camera went through (published, skipped late, or corrupt): all of
+            // them unless the run was stopped early.
+            let offered = (value(&cam, "next_index") as u64).min(total);
+            let corrupt = errors_of(&cam, "corrupt_image");
             // Backfilled poses arrive after later frames: order by time.
             let mut traj = rec.trajectory.clone();
             traj.sort_by_key(|p| p.0);
@@ -321,8 +411,9 @@ impl RunReport {
                 frames_received: received,
                 frames_tracked: rec.tracked,
                 frames_backfilled: rec.backfilled,
-                frames_dropped: published.saturating_sub(received)
-                    + get(&cam, "frames_skipped_late"),
+                frames_dropped: offered.saturating_sub(received + corrupt),
+                frames_skipped_late: get(&cam, "frames_skipped_late"),
+                frames_corrupt: corrupt,
                 frames_resent: get(&cam, "frames_resent"),
                 imu_samples_published: get(&imu, "imu_samples_published"),
                 imu_samples_received: get(&trk, "imu_samples_received"),
@@ -330,10 +421,26 @@ impl RunReport {
                     + get(&imu, "imu_samples_skipped_late"),
                 keyframes_sent: get(&trk, "keyframes_sent"),
                 keyframes_acked: get(&trk, "keyframes_acked_seen"),
-                keyframes_applied: m("keyframes_applied"),
+                keyframes_unacked_at_crash: get(&trk, "keyframes_unacked_at_crash"),
+                keyframes_applied: journaled
+                    .as_ref()
+                    .map_or_else(|| m("keyframes_applied"), |j| j[c]),
                 keyframes_received: m("keyframes_received"),
                 keyframes_kept: m("keyframes_kept"),
                 server_keyframes: m("server_keyframes"),
+                server_maps: m("maps"),
+                keyframes_forwarded: m("keyframes_forwarded"),
+                loop_keyframes_received: loop_closer
+                    .map_or(0, |s| s.get(&format!("c{c}.keyframes_received"))),
+                cpu_s: BTreeMap::from([
+                    ("tracker".to_string(), cpu_of(&trk)),
+                    ("camera_ingest".to_string(), cpu_of(&cam)),
+                    ("imu_ingest".to_string(), cpu_of(&imu)),
+                    (
+                        "mapper_handler".to_string(),
+                        (m("handle_us") + m("idle_us")) as f64 * 1e-6,
+                    ),
+                ]),
                 keyframe_bytes_per_s: if data_s > 0.0 { kf_bytes / data_s } else { 0.0 },
                 frames_server_pose: rec.tracked_server,
                 ate_client_keyframes: ate_file("keyframes_client"),
@@ -349,6 +456,9 @@ impl RunReport {
             keyframes: g("keyframes"),
             points: g("points"),
         };
+        // The loop closer is plumbing: no `loops` counter yet, so 0.
+        rep.loops = loop_closer.map_or(0, |s| s.get("loops"));
+        rep.launcher_cpu_s = self_cpu_s();
         rep.latency_ms = LatencyReport {
             publish_to_pose: recorder.publish_to_pose.percentiles(),
             publish_to_receive: recorder.publish_to_receive.percentiles(),
@@ -375,6 +485,7 @@ impl RunReport {
                     restarts: sv.restarts,
                     outcome: outcome.to_string(),
                     recovery_s: sv.recoveries_s.clone(),
+                    cpu_s: sv.cpu_s + sv.running_cpu_s(),
                     counters: st.counters.clone(),
                 },
             );

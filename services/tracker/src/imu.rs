@@ -49,6 +49,12 @@ impl ImuInput {
                 continue;
             }
             if let Some((seq, t)) = self.last {
+                if m.meta.seq <= seq {
+                    // A restarted IMU ingest resumes from its last status write and
+                    // publishes again samples its predecessor had sent: already taken.
+                    status.add("imu_samples_duplicate", 1);
+                    continue;
+                }
                 if m.meta.seq > seq + 1 {
                     status.add("imu_samples_dropped", m.meta.seq - seq - 1);
                 }

@@ -111,6 +111,63 @@ impl ServerRef {
     }
 }
 
+/// The keyframe counters of the status file, kept current: a SIGKILLed tracker must leave
+/// exact figures behind (keyframes are few, so the status is written whenever one is sent or
+/// acknowledged). Counters carry on from the previous start; the keyframes a killed tracker
+/// had sent without seeing their acknowledgement are counted as `keyframes_unacked_at_crash`
+/// by its successor (the mapper applied them; their acknowledgements went to a dead process),
+/// so that `keyframes_acked_seen + keyframes_unacked_at_crash == keyframes_sent`.
+struct KeyframeCounts {
+    sent_base: u64,
+    resent_base: u64,
+    acked_base: u64,
+    written: (u64, u64, u64),
+}
+
+impl KeyframeCounts {
+    fn resume(status: &mut Status) -> Self {
+        let unacked = status.values.remove("keyframes_unacked").unwrap_or(0.0) as u64;
+        let queued = status.values.remove("keyframes_queued").unwrap_or(0.0) as u64;
+        if status.starts > 1 {
+            status.add("keyframes_unacked_at_crash", unacked);
+            // Queued behind the in-flight limit, never sent: lost with the process (as are
+            // the keyframes still in its VO window).
+            status.add("keyframes_unsent_at_crash", queued);
+        }
+        Self {
+            sent_base: status.get("keyframes_sent"),
+            resent_base: status.get("keyframes_resent"),
+            acked_base: status.get("keyframes_acked_seen"),
+            written: (0, 0, 0),
+        }
+    }
+
+    /// Puts the outbox's counts into `status`.
+    fn set(&self, outbox: &outbox::Outbox, status: &mut Status) {
+        let mut put = |k: &str, v: u64| {
+            status.counters.insert(k.to_string(), v);
+        };
+        put("keyframes_sent", self.sent_base + outbox.sent);
+        put("keyframes_resent", self.resent_base + outbox.resent);
+        put("keyframes_acked_seen", self.acked_base + outbox.acked);
+        let in_flight = outbox.in_flight();
+        status.set_value("keyframes_unacked", in_flight as f64);
+        status.set_value("keyframes_queued", (outbox.pending() - in_flight) as f64);
+    }
+
+    /// Writes the status now if a keyframe was sent, re-sent or acknowledged since the last
+    /// call (a failed write is retried at the next change or periodic write).
+    fn sync(&mut self, outbox: &outbox::Outbox, status: &mut Status, file: &mut StatusFile) {
+        let now = (outbox.sent, outbox.resent, outbox.acked);
+        if now != self.written {
+            self.set(outbox, status);
+            if file.write(status).is_ok() {
+                self.written = now;
+            }
+        }
+    }
+}
+
 /// Parameters of the tracker service.
 #[derive(Debug, Clone, clap::Parser)]
 #[command(name = "tracker", about = "Client tracker service")]
@@ -205,11 +262,15 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let session_id = session_base | 1;
     let kf_pub = topics::keyframe_publisher(&topics::keyframes_service(&node, c)?)?;
     let mut outbox = outbox::Outbox::new(c);
+    let mut kf_counts = KeyframeCounts::resume(&mut status);
     let mut server_ref: Option<ServerRef> = None;
     let mut vo: Option<VoTracker> = None;
     shoal_runtime::signal_ready();
 
     let mut last_seq: Option<u64> = status.values.get("last_frame_seq").map(|v| *v as u64);
+    // After a restart `last_frame_seq` is the dead process's last status write: the first
+    // frame's jump past it also covers frames that process handled after that write.
+    let mut first_after_restart = status.starts > 1;
     let mut imu_in = imu::ImuInput::default();
     let mut ack_seq = 0u64;
     let mut ended = false;
@@ -248,6 +309,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             }
         }
         outbox.resend_stale(&kf_pub, 2_000_000_000)?;
+        kf_counts.sync(&outbox, &mut status, &mut file);
         if ended {
             if node.wait(Duration::from_micros(200)).is_err() {
                 break;
@@ -276,6 +338,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     for kf in v.drain_keyframes() {
                         outbox.send(&kf_pub, &kf, sess)?;
                     }
+                    kf_counts.sync(&outbox, &mut status, &mut file);
                 }
                 ack_pub.send_copy(ack)?;
                 status.set_value("end_of_stream_seq", h.meta.seq as f64);
@@ -297,8 +360,14 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             }
             let expected = last_seq.map_or(0, |l| l + 1);
             if h.meta.seq > expected {
-                status.add("frames_gap", h.meta.seq - expected);
+                let gap = if first_after_restart {
+                    "frames_gap_at_restart"
+                } else {
+                    "frames_gap"
+                };
+                status.add(gap, h.meta.seq - expected);
             }
+            first_after_restart = false;
             last_seq = Some(h.meta.seq);
             let pixels = sample.payload();
             if pixels.len() != h.payload_len() {
@@ -394,6 +463,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                             for kf in &o.evicted {
                                 outbox.send(&kf_pub, kf, sess)?;
                             }
+                            kf_counts.sync(&outbox, &mut status, &mut file);
                             vo_session = session_base | v.session_id();
                             // Poses of the frames seen while initialising.
                             for (t_ns, t_cw) in &o.backfill {
@@ -463,11 +533,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     if let Some(l) = log.as_mut() {
         l.flush()?;
     }
-    status.add("keyframes_sent", outbox.sent);
-    status.add("keyframes_resent", outbox.resent);
-    status.add("keyframes_acked_seen", outbox.acked);
+    kf_counts.set(&outbox, &mut status);
     status.set_value("sent_poses_kept", outbox.sent_poses_kept() as f64);
-    status.set_value("keyframes_unacked", outbox.pending() as f64);
     status.finished = ended;
     file.write(&status)?;
     Ok(status)

@@ -65,9 +65,17 @@ impl Outbox {
         }
     }
 
-    /// Number of keyframes waiting for an acknowledgement.
+    /// Number of keyframes waiting for an acknowledgement (sent or still queued).
     pub fn pending(&self) -> usize {
         self.pending.len()
+    }
+
+    /// Keyframes sent (published at least once) and not acknowledged yet.
+    pub fn in_flight(&self) -> usize {
+        self.pending
+            .values()
+            .filter(|p| p.last_sent_ns != 0)
+            .count()
     }
 
     /// Converts and publishes `kf` of VO session `session`, keeping it until acknowledged.
