@@ -11,6 +11,10 @@ pub const FLAG_RESEND: u32 = 1 << 1;
 /// A [`TrackedPose`] of an earlier frame, found later (the frames seen while the VO was
 /// initialising get their poses once the map exists); not a new frame, no latency stamps.
 pub const FLAG_BACKFILL: u32 = 1 << 2;
+/// `MsgMeta::flags` bit: a loop keyframe re-sent to a restarted loop closer (already
+/// searched for loops); with [`FLAG_END_OF_STREAM`] and no keypoints, the end of the
+/// resynchronisation.
+pub const FLAG_RESYNC: u32 = 1 << 3;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
@@ -498,6 +502,23 @@ impl Default for LoopKeypointRecord {
     }
 }
 
+/// Loop closer → mapper: send the keyframes of all server maps, from index `next` of the
+/// mapper's snapshot (`next = 0` takes a new snapshot), at most `max` of them (DESIGN.md: a
+/// restarted loop closer rebuilds its keyframe database from the mapper).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v1::ResyncRequest")]
+#[repr(C)]
+pub struct ResyncRequest {
+    /// Identity (`meta.seq` counts requests).
+    pub meta: MsgMeta,
+    /// First snapshot index wanted.
+    pub next: u64,
+    /// Most keyframes to send in this batch.
+    pub max: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+}
+
 /// [`CorrectionHeader::kind`]: merge map `from_map` into `into_map` by `sim3`.
 pub const CORRECTION_MERGE: u32 = 1;
 /// [`CorrectionHeader::kind`]: per-keyframe pose-graph corrections of map `into_map`.
@@ -609,6 +630,7 @@ const _: () = {
     assert!(size_of::<LoopKeyframeHeader>() == 40 + 32 + 56 + 72 + 16 + 8 * 32 + 4 * 32);
     assert!(size_of::<CorrectionHeader>() == 40 + 16 + 32 + 56 + 16);
     assert!(size_of::<CorrectionRecord>() == 24 + 56 + 8);
+    assert!(size_of::<ResyncRequest>() == 40 + 16);
 };
 
 #[cfg(test)]

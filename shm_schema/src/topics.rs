@@ -11,7 +11,7 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFac
 
 use crate::{
     CorrectionHeader, CorrectionRecord, Feedback, LoopKeyframeHeader, LoopKeypointRecord,
-    TrackedPose,
+    ResyncRequest, TrackedPose,
 };
 use crate::{FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeypointRecord, SCHEMA_VERSION};
 
@@ -262,6 +262,24 @@ pub fn loop_keyframes_service(
     node: &Node<Ipc>,
 ) -> Result<PubSubFactory<Ipc, [LoopKeypointRecord], LoopKeyframeHeader>, TopicError> {
     slice_topic(node, &host_topic("loop_keyframes"), KEYFRAME_BUFFER)
+}
+
+/// Resynchronisation requests of a (restarted) loop closer to the mapper (host-wide).
+pub fn resync_service(
+    node: &Node<Ipc>,
+) -> Result<PubSubFactory<Ipc, ResyncRequest, ()>, TopicError> {
+    let name = host_topic("loop_resync");
+    node.service_builder(&service_name(&name)?)
+        .publish_subscribe::<ResyncRequest>()
+        .enable_safe_overflow(true)
+        .subscriber_max_buffer_size(16)
+        .subscriber_max_borrowed_samples(4)
+        .history_size(0)
+        .max_publishers(2)
+        .max_subscribers(8)
+        .max_nodes(16)
+        .open_or_create()
+        .map_err(|e| err(&name, e))
 }
 
 /// Loop corrections, loop closer → mapper (host-wide).

@@ -203,6 +203,11 @@ impl Closer {
         self.detector.len()
     }
 
+    /// Stores a keyframe re-sent by the mapper after a restart (no loop search).
+    pub fn insert(&mut self, kf: KeptKeyframe) {
+        self.detector.insert(kf);
+    }
+
     /// Adds a keyframe: a verified loop gives the correction to send.
     pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
         let client = (kf.kf_id >> 40) as u32;
@@ -363,6 +368,40 @@ fn send(
     Ok(())
 }
 
+/// Keyframes asked of the mapper per resynchronisation batch (fewer than the loop
+/// keyframe topic's buffer, so a batch never overflows it).
+const RESYNC_BATCH: u32 = 32;
+
+/// Rebuilding the keyframe database from the mapper at start-up (DESIGN.md: a restarted
+/// loop closer resynchronises from the mapper): batches of [`RESYNC_BATCH`] keyframes are
+/// asked for until the mapper's end marker; a request without progress is repeated.
+struct Resync {
+    received: u64,
+    asked: u64,
+    asked_at: Instant,
+    seq: u64,
+    done: bool,
+}
+
+impl Resync {
+    fn ask(
+        &mut self,
+        publisher: &Publisher<Ipc, shm_schema::ResyncRequest, ()>,
+        next: u64,
+    ) -> anyhow::Result<()> {
+        publisher.send_copy(shm_schema::ResyncRequest {
+            meta: MsgMeta::new(0, 0, self.seq, monotonic_ns()),
+            next,
+            max: RESYNC_BATCH,
+            reserved: 0,
+        })?;
+        self.seq += 1;
+        self.asked = next;
+        self.asked_at = Instant::now();
+        Ok(())
+    }
+}
+
 /// Receives keyframes until SIGINT/SIGTERM; detects loops and sends corrections.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
     let mut file = StatusFile::new(params.status.clone());
@@ -388,14 +427,50 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         &topics::corrections_service(&node)?,
         topics::MAX_CORRECTION_RECORDS,
     )?;
+    let resync_pub = topics::publisher(&topics::resync_service(&node)?)?;
+    let mut resync = Resync {
+        received: 0,
+        asked: 0,
+        asked_at: Instant::now(),
+        seq: 0,
+        done: false,
+    };
+    resync.ask(&resync_pub, 0)?;
     shoal_runtime::signal_ready();
     loop {
         let mut idle = true;
+        if !resync.done && resync.asked_at.elapsed() > Duration::from_secs(2) {
+            // No progress (mapper not up yet, or a lost batch): ask again from where we are.
+            let next = resync.received;
+            resync.ask(&resync_pub, next)?;
+        }
         while let Some(msg) = sub.receive()? {
             idle = false;
             let h = *msg.user_header();
             if let Err(e) = h.meta.check() {
                 status.error("schema_version", format!("loop keyframe: {e}"));
+                continue;
+            }
+            if h.meta.flags & shm_schema::FLAG_RESYNC != 0 {
+                if resync.done {
+                    continue;
+                }
+                if h.meta.flags & shm_schema::FLAG_END_OF_STREAM != 0 {
+                    resync.done = true;
+                    status
+                        .counters
+                        .insert("resync_keyframes".into(), resync.received);
+                    continue;
+                }
+                match keyframe_from_wire(&h, msg.payload()) {
+                    Ok(kf) => closer.insert(kf),
+                    Err(e) => status.error("bad_keyframe", format!("resync: {e}")),
+                }
+                resync.received += 1;
+                if resync.received >= resync.asked + u64::from(RESYNC_BATCH) {
+                    let next = resync.received;
+                    resync.ask(&resync_pub, next)?;
+                }
                 continue;
             }
             let c = h.meta.client_id;

@@ -101,6 +101,8 @@ struct Client {
 /// The main thread's state apart from the iceoryx2 ports.
 struct Mapper {
     handler_params: HandlerParams,
+    /// Keyframes of all maps for a restarted loop closer (taken on its first request).
+    resync: Vec<slam_core::server::KeptKeyframe>,
     clients: Vec<Client>,
     workers: Vec<Worker>,
     /// Latest size of every server map.
@@ -225,6 +227,58 @@ impl Mapper {
             .context("writing the journal")?;
         }
         self.dispatch(corr, false)
+    }
+
+    /// A resynchronisation request of the loop closer: keyframes `next..next + max` of the
+    /// snapshot of all maps (a new snapshot when `next` is 0), then, after the last one,
+    /// an end marker.
+    fn resync(
+        &mut self,
+        req: &shm_schema::ResyncRequest,
+        loop_pub: &LoopPublisher,
+    ) -> anyhow::Result<()> {
+        self.status.add("resync_requests", 1);
+        if req.next == 0 {
+            self.resync.clear();
+            for w in &self.workers {
+                let (tx, rx) = crossbeam_channel::bounded(1);
+                if w.send(Job::Snapshot { reply: tx }) {
+                    // A worker finishes its queue first; a handed-over one answers nothing.
+                    if let Ok(kfs) = rx.recv_timeout(Duration::from_secs(20)) {
+                        self.resync.extend(kfs);
+                    }
+                }
+            }
+            self.resync.sort_by_key(|k| k.kf_id);
+        }
+        let from = (req.next as usize).min(self.resync.len());
+        let to = (from + req.max as usize).min(self.resync.len());
+        for k in &self.resync[from..to] {
+            let client = (k.kf_id >> 40) as u32;
+            let mut meta = MsgMeta::new(client, 0, self.loop_seq, monotonic_ns());
+            meta.flags |= shm_schema::FLAG_RESYNC;
+            let (intr, w, h) = shoal_runtime::wire::intrinsics_from_camera(&k.camera);
+            let (lh, recs) = convert::loop_keyframe(k, meta, &intr, w, h);
+            let out = loop_pub.loan_slice_uninit(recs.len())?;
+            let mut out = out.write_from_slice(&recs);
+            *out.user_header_mut() = lh;
+            out.send()?;
+            self.loop_seq += 1;
+            self.status.add("resync_keyframes_sent", 1);
+        }
+        if to == self.resync.len() {
+            let mut meta = MsgMeta::new(0, 0, self.loop_seq, monotonic_ns());
+            meta.flags |= shm_schema::FLAG_RESYNC | shm_schema::FLAG_END_OF_STREAM;
+            let out = loop_pub.loan_slice_uninit(0)?;
+            let mut out = out.write_from_slice(&[]);
+            *out.user_header_mut() = LoopKeyframeHeader {
+                meta,
+                ..LoopKeyframeHeader::default()
+            };
+            out.send()?;
+            self.loop_seq += 1;
+        }
+        Ok(())
     }
 
     /// A worker applied (or refused) a correction: publish the moved poses, update figures.
@@ -542,6 +596,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     });
     let (results_tx, results_rx) = crossbeam_channel::unbounded();
     let mut m = Mapper {
+        resync: Vec::new(),
         handler_params: HandlerParams {
             spatial_keyframes: params.spatial_keyframes,
             ..HandlerParams::default()
@@ -593,6 +648,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         &topics::loop_keyframes_service(&node)?,
         topics::MAX_KEYPOINTS,
     )?;
+    let resync_sub = topics::subscriber(&topics::resync_service(&node)?)?;
     let corr_sub = topics::slice_subscriber(
         &topics::corrections_service(&node)?,
         topics::CORRECTION_BUFFER,
@@ -624,6 +680,16 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         }
         if drain_outcomes(&mut m, &results_rx, &fbs, &loop_pub)? > 0 {
             idle = false;
+        }
+        while let Some(req) = resync_sub.receive()? {
+            idle = false;
+            let req = *req;
+            if let Err(e) = req.meta.check() {
+                m.status
+                    .error("schema_version", format!("resync request: {e}"));
+                continue;
+            }
+            m.resync(&req, &loop_pub)?;
         }
         let _ = file.write_every(&m.status, Duration::from_millis(200));
         if idle && node.wait(Duration::from_millis(1)).is_err() {

@@ -20,8 +20,8 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 use nalgebra::Isometry3;
 use slam_core::server::{
-    apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeyframeHandler,
-    KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
+    apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeptKeyframe,
+    KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
 };
 
 use crate::convert::Correction;
@@ -56,6 +56,12 @@ pub enum Job {
     HandOver {
         /// Where the group goes.
         to: Sender<Group>,
+    },
+    /// The loop closer's summaries of every keyframe of every map of the group (for a
+    /// restarted loop closer), with their current poses.
+    Snapshot {
+        /// Where they go.
+        reply: Sender<Vec<KeptKeyframe>>,
     },
     /// Wait for a group handed over by another worker and host it too.
     TakeOver {
@@ -325,6 +331,19 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
                 write_files(out.as_deref(), &g);
                 let _ = to.send(std::mem::take(&mut g));
                 return;
+            }
+            Job::Snapshot { reply } => {
+                let all = g
+                    .maps
+                    .values()
+                    .flat_map(|m| {
+                        m.map.keyframes.keys().filter_map(|k| {
+                            m.kept_summary(*k, *k & slam_core::server::types::MAX_CLIENT_KF_ID)
+                        })
+                    })
+                    .collect();
+                let _ = reply.send(all);
+                continue;
             }
             Job::TakeOver { from } => {
                 if let Ok(other) = from.recv() {

@@ -40,3 +40,18 @@ pub fn sim3_from_wire(p: &Pose, scale: f64) -> Option<Sim3> {
 pub fn wire_from_sim3(s: &Sim3) -> (Pose, f64) {
     (wire_from_iso(&s.to_isometry()), s.s)
 }
+
+/// The wire intrinsics `(intrinsics, width, height)` of a camera model (the inverse of
+/// [`crate::camera_from_intrinsics`]).
+pub fn intrinsics_from_camera(
+    c: &slam_core::camera::PinholeRadtan,
+) -> (shm_schema::Intrinsics, u32, u32) {
+    (
+        shm_schema::Intrinsics {
+            pinhole: [c.fx, c.fy, c.cx, c.cy],
+            distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
+        },
+        c.width,
+        c.height,
+    )
+}

@@ -194,6 +194,17 @@ impl LoopDetector {
     /// `kf`'s map is verified by [`compute_sim3`], best score first; the first verified
     /// one is returned.
     pub fn add(&mut self, kf: KeptKeyframe) -> Option<LoopMatch> {
+        self.store(kf, true)
+    }
+
+    /// Stores `kf` without querying the database (a keyframe of a resynchronisation after a
+    /// restart: its loops were closed before). A keyframe with a known id replaces the
+    /// stored one.
+    pub fn insert(&mut self, kf: KeptKeyframe) {
+        self.store(kf, false);
+    }
+
+    fn store(&mut self, kf: KeptKeyframe, query: bool) -> Option<LoopMatch> {
         let id = kf.kf_id;
         if self.kfs.contains_key(&id) {
             self.remove(id);
@@ -207,7 +218,11 @@ impl LoopDetector {
                 FeatureVector::default(),
             ),
         };
-        let found = self.detect(&kf, &bow, &fv);
+        let found = if query {
+            self.detect(&kf, &bow, &fv)
+        } else {
+            None
+        };
         // Store: symmetric covisibility with the known neighbours.
         let mut covis = Vec::with_capacity(kf.covisible.len());
         for &(n, w) in &kf.covisible {
@@ -221,7 +236,9 @@ impl LoopDetector {
         }
         self.db.add(id, &bow);
         let state = self.maps.entry(kf.map_id).or_default();
-        if found.is_some() {
+        if !query {
+            // Resynchronised keyframes do not count towards the cooldown.
+        } else if found.is_some() {
             state.groups.clear();
             state.since_loop = Some(0);
         } else if let Some(n) = state.since_loop.as_mut() {
