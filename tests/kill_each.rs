@@ -228,8 +228,9 @@ fn kill_mapper() {
     check_ate(&rep, "mapper kill");
 }
 
-/// The loop closer is plumbing (it counts the keyframes the mapper forwards): the restarted
-/// one receives the keyframes forwarded after its restart.
+/// A restarted loop closer rebuilds its keyframe database from the mapper (resync): every
+/// keyframe of the final server map is in its database, and the live keyframes after the
+/// restart arrive too.
 #[test]
 fn kill_loop_closer() {
     let kill = format!("loop_closer@f{KILL_AT}");
@@ -251,5 +252,12 @@ fn kill_loop_closer() {
         "the restarted loop closer received keyframes: {before} -> {total}"
     );
     assert!(total <= forwarded);
+    let lc = &rep["services"]["loop_closer"]["counters"];
+    let resynced = u(&lc["resync_keyframes"]);
+    let db = u(&lc["database_keyframes"]);
+    let in_maps = u(&rep["mapper"]["keyframes"]);
+    eprintln!("loop_closer kill: {resynced} keyframes re-sent by the mapper, database {db}, maps {in_maps}");
+    assert!(resynced > 0, "the restarted loop closer got the mapper's keyframes");
+    assert!(db >= in_maps, "database {db} < {in_maps} keyframes in the maps");
     check_ate(&rep, "loop_closer kill");
 }
