@@ -243,9 +243,12 @@ pub struct RunReport {
     pub errors: Vec<ErrorRecord>,
     /// Error counts per `service/kind`, including those not listed in `errors`.
     pub error_counts: BTreeMap<String, u64>,
-    /// Loops the loop closer closed (its `loops` counter; 0 while it is plumbing that
-    /// only counts keyframes).
+    /// Loops the loop closer closed within one map (pose graph corrections sent).
     pub loops: u64,
+    /// Map merges the loop closer found (loops between two maps).
+    pub merges: u64,
+    /// Corrections (merges and pose graph corrections) the mapper applied.
+    pub corrections_applied: u64,
     /// CPU time of the launcher process itself (supervision, recorder), s.
     pub launcher_cpu_s: f64,
     /// Kills injected (`--kill`, `--chaos`): service, time, recovery time.
@@ -456,8 +459,10 @@ impl RunReport {
             keyframes: g("keyframes"),
             points: g("points"),
         };
-        // The loop closer is plumbing: no `loops` counter yet, so 0.
         rep.loops = loop_closer.map_or(0, |s| s.get("loops"));
+        rep.merges = loop_closer.map_or(0, |s| s.get("merges"));
+        rep.corrections_applied =
+            g("corrections_applied_merge") + g("corrections_applied_pose_graph");
         rep.launcher_cpu_s = self_cpu_s();
         rep.latency_ms = LatencyReport {
             publish_to_pose: recorder.publish_to_pose.percentiles(),

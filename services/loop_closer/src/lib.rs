@@ -208,10 +208,15 @@ impl Closer {
         self.detector.insert(kf);
     }
 
-    /// Adds a keyframe: a verified loop gives the correction to send.
+    /// Adds a keyframe: a verified loop gives the correction to send. With
+    /// `SHOAL_DEBUG_LOOP` set, every query's statistics go to stderr.
     pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
         let client = (kf.kf_id >> 40) as u32;
-        let Some(m) = self.detector.add(kf) else {
+        let found = self.detector.add(kf);
+        if std::env::var_os("SHOAL_DEBUG_LOOP").is_some() {
+            eprintln!("loop_closer: query {:?}", self.detector.last_query());
+        }
+        let Some(m) = found else {
             return Ok(None);
         };
         if m.query_map != m.matched_map {

@@ -79,60 +79,6 @@ pub fn server_keyframe(
     Ok(kf)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn pose_round_trip_and_bad_pose() {
-        let t = Isometry3::from_parts(
-            Translation3::new(1.0, -2.0, 0.5),
-            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.7),
-        );
-        let back = iso_from_wire(&wire_from_iso(&t)).expect("valid");
-        assert!((back.translation.vector - t.translation.vector).norm() < 1e-12);
-        assert!(back.rotation.angle_to(&t.rotation) < 1e-12);
-        let mut bad = wire_from_iso(&t);
-        bad.t[0] = f64::NAN;
-        assert!(iso_from_wire(&bad).is_none());
-        bad = Pose {
-            t: [0.0; 3],
-            q: [0.0; 4],
-        };
-        assert!(iso_from_wire(&bad).is_none());
-    }
-
-    #[test]
-    fn message_to_server_keyframe() {
-        let mut h = KeyframeHeader {
-            keyframe_id: 7,
-            n_keypoints: 2,
-            width: 640,
-            height: 480,
-            pose_ck: Pose::IDENTITY,
-            ..KeyframeHeader::default()
-        };
-        h.intrinsics.pinhole = [400.0, 400.0, 320.0, 240.0];
-        let recs = [
-            KeypointRecord {
-                u: 10.0,
-                v: 20.0,
-                octave: 2,
-                map_point_id: 42,
-                ..KeypointRecord::default()
-            },
-            KeypointRecord::default(),
-        ];
-        let kf = server_keyframe(3, &h, &recs).expect("valid");
-        assert_eq!(kf.client_id, 3);
-        assert_eq!(kf.client_points, vec![Some(42), None]);
-        assert_eq!(kf.features.keypoints[0].octave, 2);
-        assert!(server_keyframe(3, &h, &recs[..1]).is_err());
-        h.intrinsics.pinhole[0] = 0.0;
-        assert!(server_keyframe(3, &h, &recs).is_err());
-    }
-}
-
 /// A loop correction as the mapper applies it.
 #[derive(Debug, Clone)]
 pub enum Correction {
@@ -284,4 +230,60 @@ pub fn loop_keyframe(
         h.n_covisible = i as u32 + 1;
     }
     (h, records)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+    use shm_schema::Pose;
+
+    #[test]
+    fn pose_round_trip_and_bad_pose() {
+        let t = Isometry3::from_parts(
+            Translation3::new(1.0, -2.0, 0.5),
+            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.7),
+        );
+        let back = iso_from_wire(&wire_from_iso(&t)).expect("valid");
+        assert!((back.translation.vector - t.translation.vector).norm() < 1e-12);
+        assert!(back.rotation.angle_to(&t.rotation) < 1e-12);
+        let mut bad = wire_from_iso(&t);
+        bad.t[0] = f64::NAN;
+        assert!(iso_from_wire(&bad).is_none());
+        bad = Pose {
+            t: [0.0; 3],
+            q: [0.0; 4],
+        };
+        assert!(iso_from_wire(&bad).is_none());
+    }
+
+    #[test]
+    fn message_to_server_keyframe() {
+        let mut h = KeyframeHeader {
+            keyframe_id: 7,
+            n_keypoints: 2,
+            width: 640,
+            height: 480,
+            pose_ck: Pose::IDENTITY,
+            ..KeyframeHeader::default()
+        };
+        h.intrinsics.pinhole = [400.0, 400.0, 320.0, 240.0];
+        let recs = [
+            KeypointRecord {
+                u: 10.0,
+                v: 20.0,
+                octave: 2,
+                map_point_id: 42,
+                ..KeypointRecord::default()
+            },
+            KeypointRecord::default(),
+        ];
+        let kf = server_keyframe(3, &h, &recs).expect("valid");
+        assert_eq!(kf.client_id, 3);
+        assert_eq!(kf.client_points, vec![Some(42), None]);
+        assert_eq!(kf.features.keypoints[0].octave, 2);
+        assert!(server_keyframe(3, &h, &recs[..1]).is_err());
+        h.intrinsics.pinhole[0] = 0.0;
+        assert!(server_keyframe(3, &h, &recs).is_err());
+    }
 }

@@ -508,6 +508,35 @@ mod tests {
                 kf_id: 1,
             },
             keyframe(2),
+            Entry::Correction {
+                header: Box::new(CorrectionHeader {
+                    meta: MsgMeta::new(1, 0, 7, 5),
+                    correction_id: 7,
+                    kind: shm_schema::CORRECTION_POSE_GRAPH,
+                    n_records: 2,
+                    query_kf: 9,
+                    matched_kf: 3,
+                    from_map: 1 << 32,
+                    into_map: 1 << 32,
+                    scale: 1.25,
+                    inliers: 88,
+                    ..CorrectionHeader::default()
+                }),
+                records: vec![
+                    CorrectionRecord {
+                        kind: shm_schema::RECORD_KEYFRAME_DELTA,
+                        a: 3,
+                        scale: 0.9,
+                        ..CorrectionRecord::default()
+                    },
+                    CorrectionRecord {
+                        kind: shm_schema::RECORD_POINT_PAIR,
+                        a: 11,
+                        b: 12,
+                        ..CorrectionRecord::default()
+                    },
+                ],
+            },
         ];
         {
             let (mut j, c) = Journal::open(&path).expect("open");
@@ -520,13 +549,13 @@ mod tests {
         let c = parse(&full);
         assert_eq!(c.entries, entries);
         assert!(c.problem.is_none());
-        // A crash in the middle of the last write: the first two entries survive.
+        // A crash in the middle of the last write: the entries before it survive.
         std::fs::write(&path, &full[..full.len() - 10]).expect("write");
         let (mut j, c) = Journal::open(&path).expect("reopen");
-        assert_eq!(c.entries, entries[..2]);
+        assert_eq!(c.entries, entries[..3]);
         assert!(c.problem.as_deref().is_some_and(|p| p.contains("torn")));
         // Appending after the cut gives a clean journal again.
-        j.append(&entries[2]).expect("append");
+        j.append(&entries[3]).expect("append");
         drop(j);
         let c = parse(&std::fs::read(&path).expect("read"));
         assert_eq!(c.entries, entries);

@@ -32,6 +32,10 @@ use shoal_runtime::{Status, StatusFile};
 use slam_core::features::GrayImage;
 use slam_core::vo::{VoFrame, VoOutput, VoParams, VoState, VoTracker};
 
+/// Keyframe ids of one life of the tracker process: `start << KF_ID_BITS_PER_START` on
+/// (2^28 keyframes per life, 4096 lives within the server's 40-bit client keyframe ids).
+const KF_ID_BITS_PER_START: u32 = 28;
+
 fn new_vo(params: &Params, h: &shm_schema::FrameHeader) -> anyhow::Result<VoTracker> {
     let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
     let mut vp = VoParams {
@@ -407,7 +411,11 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             let mut vo_session = session_id;
             if !params.no_vo && pixels.len() >= h.payload_len() && h.width > 0 {
                 if vo.is_none() {
-                    vo = Some(new_vo(params, &h)?);
+                    let mut v = new_vo(params, &h)?;
+                    // Keyframe ids stay unique per client across restarts of this process
+                    // (the server names keyframes by them): each life gets its own range.
+                    v.start_keyframe_ids_at(u64::from(session_base >> 16) << KF_ID_BITS_PER_START);
+                    vo = Some(v);
                 }
                 // Rolling shutter: the gyro over the frame's readout, waiting a little for
                 // the samples up to its last row when the IMU stream is live.

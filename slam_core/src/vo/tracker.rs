@@ -377,6 +377,13 @@ impl VoTracker {
         self.relocalized
     }
 
+    /// Numbers this tracker's keyframes from `first` on (a restarted tracker process keeps
+    /// keyframe ids unique per client across its lives: the server names keyframes by them).
+    /// Only raises the counter.
+    pub fn start_keyframe_ids_at(&mut self, first: KfId) {
+        self.next_kf_id = self.next_kf_id.max(first);
+    }
+
     /// Reads the client map (locks it; the local-mapping thread waits meanwhile).
     pub fn with_map<R>(&self, f: impl FnOnce(&ClientMap) -> R) -> R {
         f(&lock(&self.shared))
