@@ -522,6 +522,7 @@ impl KeyframeHandler {
         protected.extend(self.last.and_then(|l| l.server_kf));
         let culled = cull_redundant_keyframes(&mut map.map, k, &protected, &self.params.culling);
         self.stats.culled += culled.len() as u64;
+        map.prune_associations();
         Some(IdleReport {
             ba,
             culled,

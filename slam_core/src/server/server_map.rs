@@ -97,6 +97,34 @@ impl ServerMap {
         n
     }
 
+    /// Drops associations that can no longer be used: client points whose server point was
+    /// erased, and waiting observations of keyframes no longer in the map. Without this the
+    /// tables grow with every client point ever seen, not with the map (a long run revisiting
+    /// the same place keeps creating client points). Returns the entries dropped.
+    pub fn prune_associations(&mut self) -> usize {
+        let mut dropped = 0;
+        let (points, keyframes) = (&self.map.points, &self.map.keyframes);
+        for a in self.assoc.values_mut() {
+            let before = a.client_to_server.len();
+            a.client_to_server.retain(|_, s| points.contains_key(s));
+            dropped += before - a.client_to_server.len();
+            a.pending.retain(|_, list| {
+                let n = list.len();
+                list.retain(|(k, _)| keyframes.contains_key(k));
+                dropped += n - list.len();
+                !list.is_empty()
+            });
+        }
+        dropped
+    }
+
+    /// Client-point associations and waiting observations held (for memory figures).
+    pub fn association_count(&self) -> (usize, usize) {
+        self.assoc.values().fold((0, 0), |a, x| {
+            (a.0 + x.client_to_server.len(), a.1 + x.pending.len())
+        })
+    }
+
     /// Replaces point `from` by point `to` in the associations (after a fusion).
     pub(crate) fn redirect_point(&mut self, from: PointId, to: PointId) {
         for a in self.assoc.values_mut() {
