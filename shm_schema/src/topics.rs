@@ -352,18 +352,7 @@ fn keyframe_topic(
     node: &Node<Ipc>,
     name: &str,
 ) -> Result<PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
-    node.service_builder(&service_name(name)?)
-        .publish_subscribe::<[KeypointRecord]>()
-        .user_header::<KeyframeHeader>()
-        .enable_safe_overflow(true)
-        .subscriber_max_buffer_size(KEYFRAME_BUFFER)
-        .subscriber_max_borrowed_samples(4)
-        .history_size(0)
-        .max_publishers(2)
-        .max_subscribers(8)
-        .max_nodes(16)
-        .open_or_create()
-        .map_err(|e| err(name, e))
+    slice_topic(node, name, KEYFRAME_BUFFER)
 }
 
 /// A keyframe publisher with room for [`MAX_KEYPOINTS`] records per message.

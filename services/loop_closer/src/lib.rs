@@ -28,9 +28,9 @@ use shm_schema::{
     CORRECTION_MERGE, CORRECTION_POSE_GRAPH, MAX_LOOP_COVISIBLE, RECORD_KEYFRAME_DELTA,
     RECORD_POINT_PAIR,
 };
-use shoal_runtime::wire::{iso_from_wire, wire_from_sim3};
+use shoal_runtime::wire::{iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint};
 use shoal_runtime::{Status, StatusFile};
-use slam_core::features::{KeyPoint, OrbFeatures, PATCH_SIZE};
+use slam_core::features::OrbFeatures;
 use slam_core::loop_closing::{LoopDetector, LoopDetectorParams, LoopMatch};
 use slam_core::pgo::{
     correct_loop, GraphKeyframe, LoopConstraint, LoopGraphParams, PgoMethod, Sim3,
@@ -40,31 +40,6 @@ use slam_core::server::{KeptKeyframe, KeptPoint, MapId};
 
 /// The vocabulary shipped with the project (`assets/orb_vocab.bin`), built in.
 static SHIPPED_VOCABULARY: &[u8] = include_bytes!("../../../assets/orb_vocab.bin");
-
-/// Scale between pyramid levels of the client's ORB extractor (restores keypoint sizes).
-const LEVEL_SCALE: f32 = 1.2;
-
-/// Pose graph method on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Method {
-    /// Scales by linear least squares, then scales + translations (seed eq. 3.10-3.12).
-    Stepwise,
-    /// Levenberg-Marquardt on all Sim(3) parameters.
-    Direct,
-    /// Stepwise, then direct from its result.
-    #[value(name = "stepwise+direct")]
-    StepwiseDirect,
-}
-
-impl From<Method> for PgoMethod {
-    fn from(m: Method) -> Self {
-        match m {
-            Method::Stepwise => PgoMethod::Stepwise,
-            Method::Direct => PgoMethod::Direct,
-            Method::StepwiseDirect => PgoMethod::StepwiseDirect,
-        }
-    }
-}
 
 /// Parameters of the loop closer service.
 #[derive(Debug, Clone, clap::Parser)]
@@ -83,8 +58,8 @@ pub struct Params {
     /// "Loop closing"): on the drifting `loop` the stepwise solution gave the lowest server
     /// keyframe ATE after the correction and global BA (0.0054 m mean of 2 runs, against
     /// 0.0076 m direct and 0.0064 m stepwise + direct) in 1 ms instead of 15-22 ms.
-    #[arg(long, value_enum, default_value_t = Method::Stepwise)]
-    pub method: Method,
+    #[arg(long, default_value = "stepwise", value_parser = clap::value_parser!(PgoMethod))]
+    pub method: PgoMethod,
     /// Detect and report loops but send no correction.
     #[arg(long)]
     pub detect_only: bool,
@@ -115,23 +90,16 @@ pub fn keyframe_from_wire(
     }
     let t_sk = iso_from_wire(&h.pose_sk)
         .ok_or_else(|| format!("loop keyframe {:#x}: invalid pose", h.kf_id))?;
-    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
-    if !(fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite()) || h.width == 0 {
+    if !valid_intrinsics(&h.intrinsics, h.width) {
         return Err(format!("loop keyframe {:#x}: invalid intrinsics", h.kf_id));
     }
     let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
     let mut features = OrbFeatures::with_capacity(records.len());
     let mut points = Vec::new();
     for (i, r) in records.iter().enumerate() {
-        let octave = r.octave.min(u8::MAX as u32) as u8;
-        features.keypoints.push(KeyPoint {
-            x: r.u,
-            y: r.v,
-            angle: r.angle,
-            response: r.response,
-            size: PATCH_SIZE * LEVEL_SCALE.powi(octave as i32),
-            octave,
-        });
+        features
+            .keypoints
+            .push(wire_keypoint(r.u, r.v, r.angle, r.response, r.octave));
         features.descriptors.push(r.descriptor);
         if r.has_point != 0 {
             let p_k = Vector3::new(r.p_k[0], r.p_k[1], r.p_k[2]);
@@ -420,7 +388,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         None => Vocabulary::from_bytes(SHIPPED_VOCABULARY)
             .context("the built-in vocabulary is corrupt")?,
     };
-    let mut closer = Closer::new(vocabulary, params.method.into());
+    let mut closer = Closer::new(vocabulary, params.method);
     let prefix = params
         .ipc_prefix
         .clone()

@@ -9,16 +9,13 @@ use shm_schema::{
     MAX_LOOP_COVISIBLE, NO_MAP_POINT, RECORD_KEYFRAME_DELTA, RECORD_POINT_PAIR,
 };
 use slam_core::camera::PinholeRadtan;
-use slam_core::features::{KeyPoint, OrbFeatures, PATCH_SIZE};
+use slam_core::features::OrbFeatures;
 use slam_core::pgo::Sim3;
 use slam_core::server::{KeptKeyframe, MapId, ServerKeyframe};
 use slam_core::vo::{KfId, PointId};
 
-/// Scale between pyramid levels of the client's ORB extractor (only used to restore the
-/// keypoint size, which the message does not carry).
-const LEVEL_SCALE: f32 = 1.2;
-
 pub use shoal_runtime::wire::{iso_from_wire, sim3_from_wire, wire_from_iso, wire_from_sim3};
+use shoal_runtime::wire::{valid_intrinsics, wire_keypoint};
 
 /// The camera of a keyframe message.
 pub fn camera_of(h: &KeyframeHeader) -> PinholeRadtan {
@@ -45,22 +42,15 @@ pub fn server_keyframe(
     let t_ck = iso_from_wire(&h.pose_ck)
         .ok_or_else(|| format!("keyframe {}: invalid pose", h.keyframe_id))?;
     let camera = camera_of(h);
-    let [fx, fy, cx, cy] = h.intrinsics.pinhole;
-    if !(fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite()) || h.width == 0 {
+    if !valid_intrinsics(&h.intrinsics, h.width) {
         return Err(format!("keyframe {}: invalid intrinsics", h.keyframe_id));
     }
     let mut features = OrbFeatures::with_capacity(records.len());
     let mut client_points = Vec::with_capacity(records.len());
     for r in records {
-        let octave = r.octave.min(u8::MAX as u32) as u8;
-        features.keypoints.push(KeyPoint {
-            x: r.u,
-            y: r.v,
-            angle: r.angle,
-            response: r.response,
-            size: PATCH_SIZE * LEVEL_SCALE.powi(octave as i32),
-            octave,
-        });
+        features
+            .keypoints
+            .push(wire_keypoint(r.u, r.v, r.angle, r.response, r.octave));
         features.descriptors.push(r.descriptor);
         client_points.push((r.map_point_id != NO_MAP_POINT).then_some(r.map_point_id));
     }

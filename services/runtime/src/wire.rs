@@ -55,3 +55,33 @@ pub fn intrinsics_from_camera(
         c.height,
     )
 }
+
+/// Scale between pyramid levels of the client's ORB extractor (restores keypoint sizes, which
+/// keyframe messages do not carry).
+pub const LEVEL_SCALE: f32 = 1.2;
+
+/// A keypoint of a keyframe message (its size restored from the octave).
+pub fn wire_keypoint(
+    u: f32,
+    v: f32,
+    angle: f32,
+    response: f32,
+    octave: u32,
+) -> slam_core::features::KeyPoint {
+    let octave = octave.min(u8::MAX as u32) as u8;
+    slam_core::features::KeyPoint {
+        x: u,
+        y: v,
+        angle,
+        response,
+        size: slam_core::features::PATCH_SIZE * LEVEL_SCALE.powi(octave as i32),
+        octave,
+    }
+}
+
+/// Whether message intrinsics can make a camera: positive focal lengths, a finite principal
+/// point and a width.
+pub fn valid_intrinsics(i: &shm_schema::Intrinsics, width: u32) -> bool {
+    let [fx, fy, cx, cy] = i.pinhole;
+    fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite() && width > 0
+}

@@ -90,6 +90,22 @@ pub enum PgoMethod {
     StepwiseDirect,
 }
 
+impl std::str::FromStr for PgoMethod {
+    type Err = String;
+
+    /// `stepwise`, `direct` or `stepwise+direct` (the names of `shoal pgo --method`).
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "stepwise" => Ok(PgoMethod::Stepwise),
+            "direct" => Ok(PgoMethod::Direct),
+            "stepwise+direct" => Ok(PgoMethod::StepwiseDirect),
+            _ => Err(format!(
+                "unknown method {s:?}: stepwise, direct or stepwise+direct"
+            )),
+        }
+    }
+}
+
 /// Starting point of an SE(3) optimisation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum PgoInit {
