@@ -359,25 +359,14 @@ fn keyframe_topic(
 pub fn keyframe_publisher(
     service: &PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>,
 ) -> Result<Publisher<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
-    service
-        .publisher_builder()
-        .initial_max_slice_len(MAX_KEYPOINTS)
-        .allocation_strategy(AllocationStrategy::Static)
-        .backpressure_strategy(BackpressureStrategy::DiscardData)
-        .max_loaned_samples(2)
-        .create()
-        .map_err(|e| err(service.name().as_str(), e))
+    slice_publisher(service, MAX_KEYPOINTS)
 }
 
 /// A keyframe subscriber with the service's full buffer.
 pub fn keyframe_subscriber(
     service: &PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>,
 ) -> Result<Subscriber<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
-    service
-        .subscriber_builder()
-        .buffer_size(KEYFRAME_BUFFER)
-        .create()
-        .map_err(|e| err(service.name().as_str(), e))
+    slice_subscriber(service, KEYFRAME_BUFFER)
 }
 
 /// Publisher of a fixed-size topic that never blocks.

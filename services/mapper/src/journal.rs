@@ -137,10 +137,7 @@ impl Dec<'_> {
     }
 }
 
-fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) -> Vec<u8> {
-    let mut e = Enc(Vec::with_capacity(256 + 64 * records.len()));
-    e.u32(client);
-    let m = &h.meta;
+fn encode_meta(e: &mut Enc, m: &MsgMeta) {
     for v in [m.magic, m.schema_version, m.client_id, m.session_id] {
         e.u32(v);
     }
@@ -148,6 +145,25 @@ fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) 
     e.i64(m.publish_mono_ns);
     e.u32(m.flags);
     e.u32(m.reserved);
+}
+
+fn decode_meta(d: &mut Dec) -> Option<MsgMeta> {
+    Some(MsgMeta {
+        magic: d.u32()?,
+        schema_version: d.u32()?,
+        client_id: d.u32()?,
+        session_id: d.u32()?,
+        seq: d.u64()?,
+        publish_mono_ns: d.i64()?,
+        flags: d.u32()?,
+        reserved: d.u32()?,
+    })
+}
+
+fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) -> Vec<u8> {
+    let mut e = Enc(Vec::with_capacity(256 + 64 * records.len()));
+    e.u32(client);
+    encode_meta(&mut e, &h.meta);
     e.u64(h.keyframe_id);
     e.i64(h.t_ns);
     e.f64s(&h.pose_ck.t);
@@ -173,16 +189,7 @@ fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) 
 fn decode_keyframe(p: &[u8]) -> Option<Entry> {
     let mut d = Dec(p);
     let client = d.u32()?;
-    let meta = MsgMeta {
-        magic: d.u32()?,
-        schema_version: d.u32()?,
-        client_id: d.u32()?,
-        session_id: d.u32()?,
-        seq: d.u64()?,
-        publish_mono_ns: d.i64()?,
-        flags: d.u32()?,
-        reserved: d.u32()?,
-    };
+    let meta = decode_meta(&mut d)?;
     let header = Box::new(KeyframeHeader {
         meta,
         keyframe_id: d.u64()?,
@@ -238,14 +245,7 @@ fn decode_pose(d: &mut Dec) -> Option<Pose> {
 
 fn encode_correction(h: &CorrectionHeader, records: &[CorrectionRecord]) -> Vec<u8> {
     let mut e = Enc(Vec::with_capacity(256 + 88 * records.len()));
-    let m = &h.meta;
-    for v in [m.magic, m.schema_version, m.client_id, m.session_id] {
-        e.u32(v);
-    }
-    e.u64(m.seq);
-    e.i64(m.publish_mono_ns);
-    e.u32(m.flags);
-    e.u32(m.reserved);
+    encode_meta(&mut e, &h.meta);
     e.u64(h.correction_id);
     e.u32(h.kind);
     e.u32(h.n_records);
@@ -270,16 +270,7 @@ fn encode_correction(h: &CorrectionHeader, records: &[CorrectionRecord]) -> Vec<
 
 fn decode_correction(p: &[u8]) -> Option<Entry> {
     let mut d = Dec(p);
-    let meta = MsgMeta {
-        magic: d.u32()?,
-        schema_version: d.u32()?,
-        client_id: d.u32()?,
-        session_id: d.u32()?,
-        seq: d.u64()?,
-        publish_mono_ns: d.i64()?,
-        flags: d.u32()?,
-        reserved: d.u32()?,
-    };
+    let meta = decode_meta(&mut d)?;
     let header = Box::new(CorrectionHeader {
         meta,
         correction_id: d.u64()?,
