@@ -201,18 +201,7 @@ macro_rules! fixed_topic {
             node: &Node<Ipc>,
             client: u32,
         ) -> Result<PubSubFactory<Ipc, $ty, ()>, TopicError> {
-            let name = client_topic(client, $topic);
-            node.service_builder(&service_name(&name)?)
-                .publish_subscribe::<$ty>()
-                .enable_safe_overflow(true)
-                .subscriber_max_buffer_size($buffer)
-                .subscriber_max_borrowed_samples(4)
-                .history_size(0)
-                .max_publishers(2)
-                .max_subscribers(8)
-                .max_nodes(16)
-                .open_or_create()
-                .map_err(|e| err(&name, e))
+            fixed_service(node, &client_topic(client, $topic), $buffer)
         }
     };
 }
@@ -268,18 +257,26 @@ pub fn loop_keyframes_service(
 pub fn resync_service(
     node: &Node<Ipc>,
 ) -> Result<PubSubFactory<Ipc, ResyncRequest, ()>, TopicError> {
-    let name = host_topic("loop_resync");
-    node.service_builder(&service_name(&name)?)
-        .publish_subscribe::<ResyncRequest>()
+    fixed_service(node, &host_topic("loop_resync"), 16)
+}
+
+/// A fixed-size topic with safe overflow (a dead consumer never blocks a producer).
+fn fixed_service<T: core::fmt::Debug + ZeroCopySend + 'static>(
+    node: &Node<Ipc>,
+    name: &str,
+    buffer: usize,
+) -> Result<PubSubFactory<Ipc, T, ()>, TopicError> {
+    node.service_builder(&service_name(name)?)
+        .publish_subscribe::<T>()
         .enable_safe_overflow(true)
-        .subscriber_max_buffer_size(16)
+        .subscriber_max_buffer_size(buffer)
         .subscriber_max_borrowed_samples(4)
         .history_size(0)
         .max_publishers(2)
         .max_subscribers(8)
         .max_nodes(16)
         .open_or_create()
-        .map_err(|e| err(&name, e))
+        .map_err(|e| err(name, e))
 }
 
 /// Loop corrections, loop closer → mapper (host-wide).

@@ -104,14 +104,12 @@ impl ServerRef {
 
     /// The server-map pose (wire, camera → server map) of a frame with client pose `t_cf`.
     fn frame_pose(&self, t_cf: &nalgebra::Isometry3<f64>) -> Pose {
-        let t =
-            slam_core::server::frame_pose_in_server_map(&self.t_cj, &self.t_sj, self.lambda, t_cf);
-        let q = t.rotation.quaternion();
-        let v = t.translation.vector;
-        Pose {
-            t: [v.x, v.y, v.z],
-            q: [q.i, q.j, q.k, q.w],
-        }
+        shoal_runtime::wire::wire_from_iso(&slam_core::server::frame_pose_in_server_map(
+            &self.t_cj,
+            &self.t_sj,
+            self.lambda,
+            t_cf,
+        ))
     }
 }
 

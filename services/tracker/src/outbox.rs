@@ -42,13 +42,7 @@ pub struct Outbox {
 
 /// Camera-to-map pose of a keyframe as a wire [`Pose`] (`T_ck`, p_c = R_ck p_k + t_ck).
 pub fn wire_pose(t_cw: &nalgebra::Isometry3<f64>) -> Pose {
-    let t_wc = t_cw.inverse();
-    let q = t_wc.rotation.quaternion();
-    let t = t_wc.translation.vector;
-    Pose {
-        t: [t.x, t.y, t.z],
-        q: [q.i, q.j, q.k, q.w],
-    }
+    shoal_runtime::wire::wire_from_iso(&t_cw.inverse())
 }
 
 impl Outbox {
