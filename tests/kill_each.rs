@@ -179,10 +179,11 @@ fn kill_imu_ingest() {
     check_ate(&rep, "imu_ingest kill");
 }
 
-/// A restarted tracker starts a new VO session, which gets its own server map. On this
-/// half lap the new session never sees the old one's places again (the keyframes still in
-/// the killed tracker's window were never sent), so there is nothing to merge here: the
-/// merge back and the ATE of the merged map are checked on a longer sequence in
+/// A restarted tracker first sends the keyframes its predecessor had in its VO window (the
+/// keyframe spool), then starts a new VO session, which gets its own server map. On this
+/// half lap the new session never sees the old one's places again (a second apart, the
+/// views differ too much for the session-continuation check), so there is nothing to merge
+/// here: the merge back and the ATE of the merged map are checked on a longer sequence in
 /// `tests/loop_closer.rs` (`killed_tracker_session_is_merged_back`).
 #[test]
 fn kill_tracker() {
@@ -197,6 +198,12 @@ fn kill_tracker() {
     );
     let sent_before = u(&f["counters_at_restart"]["keyframes_sent"]);
     assert!(sent_before > 0, "the first session sent keyframes: {f}");
+    // The keyframes still in the killed tracker's VO window (10) were spooled; its
+    // successor sent them (they are in keyframes_sent == applied, checked above).
+    assert!(
+        u(&c["keyframes_recovered"]) >= 1,
+        "the killed tracker's window was recovered from the spool: {c:#}"
+    );
     assert!(
         u(&c["keyframes_sent"]) > sent_before,
         "the new session sent keyframes: {c:#}"

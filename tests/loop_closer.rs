@@ -152,14 +152,16 @@ fn loop_closure_halves_the_server_map_error() {
     );
 }
 
-/// Issue 6's tracker kill: a tracker SIGKILLed a third of the way through a lap starts a
-/// new VO session with its own server map; when the new session comes back to where the
-/// first one began (lap 2), the loop closer finds it and the mapper merges the two maps.
-/// The run ends with one map holding both sessions, globally consistent (server keyframe
-/// ATE ≤ 0.5% of the path). The issue's "within 20% of a fault-free run" is printed, not
-/// asserted, because it does not hold here: in the test profile the merged map is at
-/// 0.053 m against 0.022 m fault-free (each reproducible run to run), in a release build
-/// 0.019 m against 0.050 m.
+/// Issue 6's tracker kill: a tracker SIGKILLed a third of the way through a lap; its
+/// successor sends the keyframes of the dead VO window from the spool (nothing lost), then
+/// starts a new VO session with its own server map; when the new session comes back to
+/// where the first one began (lap 2), the loop closer finds it and the mapper merges the
+/// two maps. The run ends with one map holding both sessions, globally consistent (server
+/// keyframe ATE ≤ 0.5% of the path). The issue's "within 20% of a fault-free run" is
+/// printed, not asserted, because it does not hold: over 5 release runs each the merged
+/// map is at 0.019-0.045 m against 0.014-0.031 m fault-free (BENCHMARKS.md, "Fault
+/// injection"); the old session's last seconds stay as they drifted, since nothing links
+/// them to the lap-2 keyframes.
 #[test]
 fn killed_tracker_session_is_merged_back() {
     let dir = tempdir();
@@ -190,6 +192,10 @@ fn killed_tracker_session_is_merged_back() {
     );
     assert_eq!(u(&r["mapper"]["maps"]), 1, "one map after the merge");
     assert_eq!(u(&c["keyframes_applied"]), u(&c["keyframes_sent"]));
+    assert!(
+        u(&c["keyframes_recovered"]) >= 1,
+        "the dead tracker's window came from the spool: {c:#}"
+    );
     let (a, b) = (ate(&r), ate(&base));
     eprintln!(
         "tracker kill: merged map ATE {a:.4} m over {} keyframes of both sessions; fault-free {b:.4} m ({:+.0}%)",

@@ -19,7 +19,7 @@ pub mod topics;
 pub use messages::*;
 
 /// Version of the message layout. Bump on any change of a type in this crate.
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 
 /// Magic number at the start of every message (`"SHOL"`).
 pub const MAGIC: u32 = 0x5348_4F4C;

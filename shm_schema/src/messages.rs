@@ -18,7 +18,7 @@ pub const FLAG_RESYNC: u32 = 1 << 3;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
-#[type_name("shoal::v1::MsgMeta")]
+#[type_name("shoal::v2::MsgMeta")]
 #[repr(C)]
 pub struct MsgMeta {
     /// [`MAGIC`].
@@ -105,7 +105,7 @@ impl MsgMeta {
 /// A rigid pose `T_ab` (maps b-frame points into frame a): translation and a unit
 /// quaternion in Hamilton convention, stored `[x, y, z, w]` (TUM order).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::Pose")]
+#[type_name("shoal::v2::Pose")]
 #[repr(C)]
 pub struct Pose {
     /// Translation `t_ab`.
@@ -138,7 +138,7 @@ pub enum PixelFormat {
 
 /// Camera intrinsics and radial-tangential distortion (seed eq. 2.57-2.60).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::Intrinsics")]
+#[type_name("shoal::v2::Intrinsics")]
 #[repr(C)]
 pub struct Intrinsics {
     /// `[fx, fy, cx, cy]` in pixels.
@@ -150,7 +150,7 @@ pub struct Intrinsics {
 /// User header of a frame sample; the payload is the `[u8]` pixel slice
 /// (`stride * height` bytes). Published by `camera_ingest`, read in place by the tracker.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::FrameHeader")]
+#[type_name("shoal::v2::FrameHeader")]
 #[repr(C)]
 pub struct FrameHeader {
     /// Identity, version, sequence number (= frame index in the stream), publish stamp.
@@ -194,7 +194,7 @@ impl FrameHeader {
 
 /// One IMU sample (body frame), published by `imu_ingest`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::ImuMsg")]
+#[type_name("shoal::v2::ImuMsg")]
 #[repr(C)]
 pub struct ImuMsg {
     /// Identity, version, sequence number, publish stamp.
@@ -210,7 +210,7 @@ pub struct ImuMsg {
 /// Sent by a frame consumer (the tracker) when it has taken a frame. In lock-step replay
 /// the ingests wait for it before publishing the next frame (and the IMU samples up to it).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::FrameAck")]
+#[type_name("shoal::v2::FrameAck")]
 #[repr(C)]
 pub struct FrameAck {
     /// Identity; `meta.seq` is the ack's own sequence number.
@@ -283,7 +283,7 @@ pub mod stage {
 
 /// Per-frame output of the tracker: pose, state, latency stamps and stage timings.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::TrackedPose")]
+#[type_name("shoal::v2::TrackedPose")]
 #[repr(C)]
 pub struct TrackedPose {
     /// Identity; `meta.seq` is the frame's sequence number, `meta.publish_mono_ns` the pose
@@ -298,6 +298,9 @@ pub struct TrackedPose {
     /// Camera pose in the server map (from feedback, seed eq. 3.1/3.4), valid when
     /// `has_server_pose != 0`.
     pub server_pose: Pose,
+    /// Server map `server_pose` is in (the map id of the feedback it comes from); a map
+    /// merged into another keeps its id here for the poses reported before the merge.
+    pub server_map_id: u64,
     /// A [`TrackState`] as `u32`.
     pub state: u32,
     /// 1 when `server_pose` is valid.
@@ -317,7 +320,7 @@ pub struct TrackedPose {
 /// Header of a keyframe message (tracker → mapper); the payload is a slice of
 /// [`KeypointRecord`]s (seed §3.3: pose in the client map + keypoints + descriptors).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::KeyframeHeader")]
+#[type_name("shoal::v2::KeyframeHeader")]
 #[repr(C)]
 pub struct KeyframeHeader {
     /// Identity (client, session); `meta.seq` counts keyframe messages of the client.
@@ -345,7 +348,7 @@ pub const NO_MAP_POINT: u64 = u64::MAX;
 
 /// One keypoint of a keyframe message (64 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::KeypointRecord")]
+#[type_name("shoal::v2::KeypointRecord")]
 #[repr(C)]
 pub struct KeypointRecord {
     /// Pixel u (distorted image), level-0 coordinates.
@@ -383,7 +386,7 @@ impl Default for KeypointRecord {
 
 /// Mapper → tracker: acknowledgement and pose feedback (seed §3.4.1).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::Feedback")]
+#[type_name("shoal::v2::Feedback")]
 #[repr(C)]
 pub struct Feedback {
     /// Identity (client the feedback is for).
@@ -409,7 +412,7 @@ pub const MAX_LOOP_COVISIBLE: usize = 32;
 /// a server map, with what place recognition and loop geometry need (seed §3.4.1-3.4.2);
 /// the payload is a slice of [`LoopKeypointRecord`]s.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::LoopKeyframeHeader")]
+#[type_name("shoal::v2::LoopKeyframeHeader")]
 #[repr(C)]
 pub struct LoopKeyframeHeader {
     /// Identity (client, session of the keyframe; `meta.seq` counts loop keyframe messages
@@ -463,7 +466,7 @@ impl Default for LoopKeyframeHeader {
 
 /// One keypoint of a loop keyframe message (88 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::LoopKeypointRecord")]
+#[type_name("shoal::v2::LoopKeypointRecord")]
 #[repr(C)]
 pub struct LoopKeypointRecord {
     /// Pixel u (distorted image), level-0 coordinates.
@@ -506,7 +509,7 @@ impl Default for LoopKeypointRecord {
 /// mapper's snapshot (`next = 0` takes a new snapshot), at most `max` of them (DESIGN.md: a
 /// restarted loop closer rebuilds its keyframe database from the mapper).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::ResyncRequest")]
+#[type_name("shoal::v2::ResyncRequest")]
 #[repr(C)]
 pub struct ResyncRequest {
     /// Identity (`meta.seq` counts requests).
@@ -532,7 +535,7 @@ pub const RECORD_POINT_PAIR: u32 = 2;
 /// of [`CorrectionRecord`]s. The loop closer computes, the mapper (owner of the maps)
 /// applies.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::CorrectionHeader")]
+#[type_name("shoal::v2::CorrectionHeader")]
 #[repr(C)]
 pub struct CorrectionHeader {
     /// Identity (`client_id` of the query keyframe; `meta.seq` counts corrections).
@@ -584,7 +587,7 @@ impl Default for CorrectionHeader {
 
 /// One record of a correction (88 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v1::CorrectionRecord")]
+#[type_name("shoal::v2::CorrectionRecord")]
 #[repr(C)]
 pub struct CorrectionRecord {
     /// [`RECORD_KEYFRAME_DELTA`] or [`RECORD_POINT_PAIR`].
@@ -622,7 +625,7 @@ const _: () = {
     assert!(size_of::<FrameHeader>() == 40 + 24 + 32 + 72 + 56);
     assert!(size_of::<ImuMsg>() == 40 + 8 + 48);
     assert!(size_of::<FrameAck>() == 56);
-    assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 16 + 16 + 32);
+    assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 8 + 16 + 16 + 32);
     assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16);
     assert!(size_of::<KeypointRecord>() == 64 && align_of::<KeypointRecord>() == 8);
     assert!(size_of::<Feedback>() == 40 + 16 + 56 + 16);

@@ -120,6 +120,9 @@ fn foreign_live_nodes(prefix: &str) -> anyhow::Result<Vec<String>> {
 /// The mapper's journal in the output folder (replayed by a restarted mapper).
 pub const MAPPER_JOURNAL: &str = "mapper_journal.bin";
 
+/// Folder of the trackers' keyframe spools (`c{i}/` each), in the output folder.
+pub const TRACKER_SPOOL: &str = "spool";
+
 /// How long the mapper may take at the end to finish its handlers' queues.
 const MAPPER_STOP_TIMEOUT: Duration = Duration::from_secs(60);
 
@@ -155,7 +158,16 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
         ),
     ];
     for (c, ds) in cfg.datasets.iter().enumerate() {
-        let mut targs = vec![s("tracker"), s("--client"), c.to_string()];
+        let mut targs = vec![
+            s("tracker"),
+            s("--client"),
+            c.to_string(),
+            s("--spool"),
+            out.join(TRACKER_SPOOL)
+                .join(format!("c{c}"))
+                .display()
+                .to_string(),
+        ];
         targs.extend(
             cfg.tracker_args
                 .iter()
@@ -204,6 +216,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     // taken for a crash of this one.
     let _ = std::fs::remove_dir_all(cfg.out.join("status"));
     let _ = std::fs::remove_file(cfg.out.join(MAPPER_JOURNAL));
+    let _ = std::fs::remove_dir_all(cfg.out.join(TRACKER_SPOOL));
     // Server outputs of an earlier run in the same folder.
     if let Ok(rd) = std::fs::read_dir(&cfg.out) {
         for e in rd.flatten() {
@@ -317,6 +330,12 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
             break;
         }
     }
+    // The trackers are done and the mapper has acknowledged every keyframe, but the loop
+    // closer may still be querying the last ones and a correction may be on its way: stop
+    // the server side only once it is quiet, so that a loop found at the very end is applied.
+    if !interrupted && !timed_out {
+        wait_server_quiet(&services, SERVER_QUIET_TIMEOUT);
+    }
     // Stop in order: sensors, trackers, then the server side.
     for prefix in [
         "camera_ingest",
@@ -360,6 +379,49 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     rep.faults = injector.events;
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
+}
+
+/// How long the end of a run waits at most for the mapper and loop closer to be quiet.
+const SERVER_QUIET_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Waits until the loop closer has taken every keyframe the mapper forwarded, the mapper
+/// every correction the loop closer sent, and neither status file's counters changed for
+/// half a second (work in progress shows up as changing counters), or `timeout`.
+fn wait_server_quiet(services: &[Supervised], timeout: Duration) {
+    let path = |name: &str| {
+        services
+            .iter()
+            .find(|s| s.name == name && s.child.is_some())
+            .map(|s| s.status.clone())
+    };
+    let (Some(mapper), Some(closer)) = (path("mapper"), path("loop_closer")) else {
+        return;
+    };
+    let start = Instant::now();
+    let mut last = None;
+    let mut same_since = Instant::now();
+    while start.elapsed() < timeout {
+        let m = report::load_status(&mapper).counters;
+        let l = report::load_status(&closer).counters;
+        let sum = |c: &std::collections::BTreeMap<String, u64>, suffix: &str| -> u64 {
+            c.iter()
+                .filter(|(k, _)| k.starts_with('c') && k.ends_with(suffix))
+                .map(|(_, v)| *v)
+                .sum()
+        };
+        let caught_up = sum(&l, ".keyframes_received") >= sum(&m, ".keyframes_forwarded")
+            && m.get("corrections_received").copied().unwrap_or(0)
+                >= l.get("corrections_sent").copied().unwrap_or(0);
+        let now = Some((m, l));
+        if now != last {
+            last = now;
+            same_since = Instant::now();
+        } else if caught_up && same_since.elapsed() >= Duration::from_millis(500) {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    tracing::warn!("the mapper and loop closer were still busy after {timeout:?}; stopping them");
 }
 
 fn wait_ready(services: &mut [Supervised], timeout: Duration) -> anyhow::Result<()> {

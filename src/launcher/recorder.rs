@@ -76,8 +76,8 @@ pub struct ClientRecord {
     pub tracked_server: u64,
     /// Valid poses, in arrival order (backfilled ones arrive late): (t_ns, pose).
     pub trajectory: Vec<(i64, shm_schema::Pose)>,
-    /// Valid server-map poses: (t_ns, pose).
-    pub server_trajectory: Vec<(i64, shm_schema::Pose)>,
+    /// Valid server-map poses: (t_ns, pose, server map id).
+    pub server_trajectory: Vec<(i64, shm_schema::Pose, u64)>,
     /// True once the tracker sent its end of stream.
     pub ended: bool,
     /// Messages of another schema version.
@@ -184,7 +184,8 @@ impl Recorder {
                     rec.trajectory.push((p.t_ns, p.pose));
                     if p.has_server_pose != 0 {
                         rec.tracked_server += 1;
-                        rec.server_trajectory.push((p.t_ns, p.server_pose));
+                        rec.server_trajectory
+                            .push((p.t_ns, p.server_pose, p.server_map_id));
                     }
                 }
             }

@@ -57,6 +57,9 @@ pub struct ClientReport {
     /// mapper still applied them; `keyframes_acked + keyframes_unacked_at_crash ==
     /// keyframes_sent`).
     pub keyframes_unacked_at_crash: u64,
+    /// Keyframes a killed tracker had created and not sent yet (its VO window), sent by its
+    /// successor from the keyframe spool (included in `keyframes_sent`).
+    pub keyframes_recovered: u64,
     /// Keyframes the mapper applied: distinct keyframes of the client in the mapper's
     /// journal (a keyframe is journaled before it is acknowledged; the mapper's own counter
     /// lags its last status write when it is killed).
@@ -82,12 +85,17 @@ pub struct ClientReport {
     pub keyframe_bytes_per_s: f64,
     /// Frames published with a pose in the server map (from the mapper's feedback).
     pub frames_server_pose: u64,
+    /// Of those, frames whose pose is in another map than the client's final one (a map
+    /// merged later, an older session's map): not in `trajectory_server_c{i}.txt` nor in
+    /// `ate_server_frames`.
+    pub frames_server_pose_other_maps: u64,
     /// ATE of the client VO's keyframes as the mapper received them (`keyframes_client_c{i}.txt`).
     pub ate_client_keyframes: Option<AteReport>,
     /// ATE of the server keyframes of the client's current server map
     /// (`keyframes_server_c{i}.txt`).
     pub ate_server_keyframes: Option<AteReport>,
-    /// ATE of the per-frame poses in the server map (`trajectory_server_c{i}.txt`).
+    /// ATE of the per-frame poses in the client's final server map, as reported live
+    /// (`trajectory_server_c{i}.txt`).
     pub ate_server_frames: Option<AteReport>,
     /// Trajectory file written, if any.
     pub trajectory: Option<String>,
@@ -260,10 +268,10 @@ pub struct RunReport {
 /// Distinct keyframes (session, id) per client in the mapper journal at `path`.
 fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<u64>> {
     let bytes = std::fs::read(path).ok()?;
-    let contents = mapper::journal::parse(&bytes);
+    let contents = shoal_runtime::journal::parse(&bytes);
     let mut seen: Vec<std::collections::HashSet<(u32, u64)>> = vec![Default::default(); clients];
     for e in &contents.entries {
-        if let mapper::journal::Entry::Keyframe { client, header, .. } = e {
+        if let shoal_runtime::journal::Entry::Keyframe { client, header, .. } = e {
             if let Some(s) = seen.get_mut(*client as usize) {
                 s.insert((header.meta.session_id, header.keyframe_id));
             }
@@ -378,10 +386,22 @@ impl RunReport {
                 write_tum(&path, &traj)?;
                 trajectory = Some(path.display().to_string());
             }
-            if !rec.server_trajectory.is_empty() {
+            // Per-frame server poses of the client's final map: the poses reported in a map
+            // that was later merged into another are in a different frame.
+            let final_map = mapper.and_then(|s| s.counters.get(&format!("c{c}.map_id")).copied());
+            let mut server_traj: Vec<(i64, shm_schema::Pose)> = rec
+                .server_trajectory
+                .iter()
+                .filter(|p| final_map.is_none_or(|m| p.2 == m))
+                .map(|p| (p.0, p.1))
+                .collect();
+            let server_frames_other_maps = (rec.server_trajectory.len() - server_traj.len()) as u64;
+            server_traj.sort_by_key(|p| p.0);
+            server_traj.dedup_by_key(|p| p.0);
+            if !server_traj.is_empty() {
                 write_tum(
                     &cfg.out.join(format!("trajectory_server_c{c}.txt")),
-                    &rec.server_trajectory,
+                    &server_traj,
                 )?;
             }
             let m = |k: &str| mapper.map_or(0, |s| s.get(&format!("c{c}.{k}")));
@@ -393,9 +413,6 @@ impl RunReport {
                     &out.join(format!("{name}_c{c}.png")),
                 )
             };
-            let mut server_traj = rec.server_trajectory.clone();
-            server_traj.sort_by_key(|p| p.0);
-            server_traj.dedup_by_key(|p| p.0);
             let ate_server_frames = evaluate_client(
                 ds,
                 &server_traj,
@@ -425,6 +442,7 @@ impl RunReport {
                 keyframes_sent: get(&trk, "keyframes_sent"),
                 keyframes_acked: get(&trk, "keyframes_acked_seen"),
                 keyframes_unacked_at_crash: get(&trk, "keyframes_unacked_at_crash"),
+                keyframes_recovered: get(&trk, "keyframes_recovered"),
                 keyframes_applied: journaled
                     .as_ref()
                     .map_or_else(|| m("keyframes_applied"), |j| j[c]),
@@ -446,6 +464,7 @@ impl RunReport {
                 ]),
                 keyframe_bytes_per_s: if data_s > 0.0 { kf_bytes / data_s } else { 0.0 },
                 frames_server_pose: rec.tracked_server,
+                frames_server_pose_other_maps: server_frames_other_maps,
                 ate_client_keyframes: ate_file("keyframes_client"),
                 ate_server_keyframes: ate_file("keyframes_server"),
                 ate_server_frames,

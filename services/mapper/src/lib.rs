@@ -1,7 +1,7 @@
 //! Mapper service: owns the server maps of all clients (seed §3.4.1).
 //!
 //! The main thread takes every client's keyframe messages from shared memory, checks their
-//! schema version, converts them ([`convert`]), journals them whole ([`journal`]) and only
+//! schema version, converts them ([`convert`]), journals them whole ([`shoal_runtime::journal`]) and only
 //! then acknowledges them on the client's feedback service (the tracker keeps a keyframe
 //! until it is acknowledged). Duplicates (re-sends) are acknowledged again but not re-applied.
 //! Each client has its own [`slam_core::server::KeyframeHandler`] on its own thread
@@ -23,7 +23,6 @@
 #![deny(missing_docs)]
 
 pub mod convert;
-pub mod journal;
 pub mod worker;
 
 use std::collections::{BTreeMap, HashSet};
@@ -43,7 +42,7 @@ use shoal_runtime::{Status, StatusFile};
 use slam_core::server::{HandlerParams, KeyframeStatus, MapId};
 
 use convert::Correction;
-use journal::{Entry, Journal};
+use shoal_runtime::journal::{Entry, Journal};
 use worker::{CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker};
 
 type LoopPublisher = Publisher<Ipc, [LoopKeypointRecord], LoopKeyframeHeader>;
@@ -71,6 +70,11 @@ pub struct Params {
     /// is left to loop closing; for ablations).
     #[arg(long, default_value_t = HandlerParams::default().spatial_keyframes)]
     pub spatial_keyframes: usize,
+    /// Global BA when a kept keyframe re-observes at least this many points of a place
+    /// seen more than 5 s before (a revisit; at most one per 5 s of data). 0: never (an
+    /// ablation: the revisit then only links the keyframes locally).
+    #[arg(long, default_value_t = HandlerParams::default().revisit_min_points)]
+    pub revisit_points: usize,
     /// At the end, wait at most this long (s) for the handlers to finish their queues.
     #[arg(long, default_value_t = 50.0)]
     pub drain_seconds: f64,
@@ -340,6 +344,7 @@ impl Mapper {
         set(format!("c{c}.keyframes_kept"), f.stats.kept);
         set(format!("c{c}.keyframes_discarded"), f.stats.discarded);
         set(format!("c{c}.keyframes_culled"), f.stats.culled);
+        set(format!("c{c}.revisit_global_ba"), f.stats.revisit_global_ba);
         set(format!("c{c}.maps"), f.stats.maps);
         set(format!("c{c}.server_keyframes"), f.keyframes as u64);
         if let Some(m) = f.map_id {
@@ -599,6 +604,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         resync: Vec::new(),
         handler_params: HandlerParams {
             spatial_keyframes: params.spatial_keyframes,
+            revisit_min_points: params.revisit_points,
             ..HandlerParams::default()
         },
         workers: Vec::new(),

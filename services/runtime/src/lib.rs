@@ -3,6 +3,7 @@
 //! resume), error records, the readiness line and the exit codes.
 #![deny(missing_docs)]
 
+pub mod journal;
 pub mod wire;
 
 use std::collections::BTreeMap;

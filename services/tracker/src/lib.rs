@@ -71,6 +71,7 @@ fn run_vo(
 /// the scale ratio (seed eq. 3.1, 3.4), for frames of the same VO session.
 struct ServerRef {
     session: u32,
+    map_id: u64,
     t_cj: nalgebra::Isometry3<f64>,
     t_sj: nalgebra::Isometry3<f64>,
     lambda: f64,
@@ -96,6 +97,7 @@ impl ServerRef {
         );
         Some(Self {
             session: f.acked_session_id,
+            map_id: f.server_map_id,
             t_cj,
             t_sj,
             lambda: f.scale_ratio,
@@ -195,6 +197,10 @@ pub struct Params {
     /// Turn rolling-shutter compensation off (for comparison).
     #[arg(long)]
     pub no_rs: bool,
+    /// Keyframe spool folder: keyframes created and not yet sent are kept there, so that a
+    /// restarted tracker sends its killed predecessor's VO window (none: not kept).
+    #[arg(long)]
+    pub spool: Option<PathBuf>,
     /// Most keyframes in the client map (seed: N = 100).
     #[arg(long, default_value_t = 100)]
     pub window: usize,
@@ -208,6 +214,7 @@ pub struct Params {
 
 pub mod imu;
 pub mod outbox;
+pub mod spool;
 
 /// The service's name in reports.
 pub fn service_name(client: u32) -> String {
@@ -227,6 +234,67 @@ pub fn fnv1a(bytes: &[u8]) -> u64 {
         h = h.wrapping_mul(0x0000_0100_0000_01b3);
     }
     h
+}
+
+/// Opens the keyframe spool and sends what a killed predecessor left in it (its VO window),
+/// before this process starts its own session. A spool that cannot be opened is an error
+/// in the status, and the tracker runs without it.
+fn open_spool(
+    params: &Params,
+    kf_pub: &iceoryx2::port::publisher::Publisher<
+        topics::Ipc,
+        [shm_schema::KeypointRecord],
+        shm_schema::KeyframeHeader,
+    >,
+    outbox: &mut outbox::Outbox,
+    status: &mut Status,
+) -> anyhow::Result<Option<spool::Spool>> {
+    let Some(dir) = &params.spool else {
+        return Ok(None);
+    };
+    let mut sp = match spool::Spool::open(dir) {
+        Ok(s) => s,
+        Err(e) => {
+            status.error("spool", format!("{}: {e}", dir.display()));
+            return Ok(None);
+        }
+    };
+    let rec = sp.recover(params.client);
+    for e in rec.errors {
+        status.error("spool", e);
+    }
+    for k in rec.keyframes {
+        let (session, id) = (k.header.meta.session_id, k.header.keyframe_id);
+        outbox.send_message(kf_pub, k.header, k.records)?;
+        sp.sent(session, id);
+        status.add("keyframes_recovered", 1);
+    }
+    Ok(Some(sp))
+}
+
+/// Writes the keyframes of the VO map newer than `last` (of session `session`) to the spool.
+fn spool_new_keyframes(
+    v: &VoTracker,
+    sp: &mut spool::Spool,
+    client: u32,
+    session: u32,
+    last: &mut Option<(u32, u64)>,
+    status: &mut Status,
+) {
+    let after = last.filter(|l| l.0 == session).map(|l| l.1);
+    let new: Vec<_> = v.with_map(|m| {
+        m.keyframes
+            .range(after.map_or(0, |a| a + 1)..)
+            .map(|(id, kf)| (*id, outbox::keyframe_message(client, kf, session)))
+            .collect()
+    });
+    for (id, (h, r)) in new {
+        if let Err(e) = sp.write(client, &h, &r) {
+            status.error("spool", format!("keyframe {id}: {e}"));
+        }
+        *last = Some((session, id));
+        status.add("keyframes_spooled", 1);
+    }
 }
 
 /// Consumes frames until the end of the stream or SIGINT/SIGTERM.
@@ -265,6 +333,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let kf_pub = topics::keyframe_publisher(&topics::keyframes_service(&node, c)?)?;
     let mut outbox = outbox::Outbox::new(c);
     let mut kf_counts = KeyframeCounts::resume(&mut status);
+    let mut spool = open_spool(params, &kf_pub, &mut outbox, &mut status)?;
+    // Newest keyframe written to the spool: (VO session, id).
+    let mut spooled: Option<(u32, u64)> = None;
+    kf_counts.sync(&outbox, &mut status, &mut file);
     let mut server_ref: Option<ServerRef> = None;
     let mut vo: Option<VoTracker> = None;
     shoal_runtime::signal_ready();
@@ -339,6 +411,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     let sess = session_base | v.session_id();
                     for kf in v.drain_keyframes() {
                         outbox.send(&kf_pub, &kf, sess)?;
+                        if let Some(sp) = spool.as_mut() {
+                            sp.sent(sess, kf.id);
+                        }
                     }
                     kf_counts.sync(&outbox, &mut status, &mut file);
                 }
@@ -468,9 +543,22 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                                 session_base | v.session_id().saturating_sub(o.new_session as u32);
                             for kf in &o.evicted {
                                 outbox.send(&kf_pub, kf, sess)?;
+                                if let Some(sp) = spool.as_mut() {
+                                    sp.sent(sess, kf.id);
+                                }
                             }
                             kf_counts.sync(&outbox, &mut status, &mut file);
                             vo_session = session_base | v.session_id();
+                            if let Some(sp) = spool.as_mut() {
+                                spool_new_keyframes(
+                                    v,
+                                    sp,
+                                    c,
+                                    vo_session,
+                                    &mut spooled,
+                                    &mut status,
+                                );
+                            }
                             // Poses of the frames seen while initialising.
                             for (t_ns, t_cw) in &o.backfill {
                                 let mut meta =
@@ -502,7 +590,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 server_ref
                     .as_ref()
                     .filter(|r| r.session == vo_session)
-                    .map(|r| r.frame_pose(&t))
+                    .map(|r| (r.frame_pose(&t), r.map_id))
             });
             if server_pose.is_some() {
                 status.add("frames_server_pose", 1);
@@ -514,7 +602,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 t_ns: h.t_mid_ns,
                 dataset_index: h.dataset_index,
                 pose: pose_out,
-                server_pose: server_pose.unwrap_or(Pose::IDENTITY),
+                server_pose: server_pose.map_or(Pose::IDENTITY, |p| p.0),
+                server_map_id: server_pose.map_or(0, |p| p.1),
                 state: state as u32,
                 has_server_pose: server_pose.is_some() as u32,
                 tracked_points: tracked,

@@ -45,6 +45,47 @@ pub fn wire_pose(t_cw: &nalgebra::Isometry3<f64>) -> Pose {
     shoal_runtime::wire::wire_from_iso(&t_cw.inverse())
 }
 
+/// The keyframe message of `kf` of VO session `session` (seed §3.3: its pose in the client
+/// map, keypoints, descriptors and client map-point ids); `meta.seq` is set when sent.
+pub fn keyframe_message(
+    client: u32,
+    kf: &Keyframe,
+    session: u32,
+) -> (KeyframeHeader, Vec<KeypointRecord>) {
+    let c = &kf.camera;
+    let n = kf.features.len().min(MAX_KEYPOINTS);
+    let records: Vec<KeypointRecord> = (0..n)
+        .map(|i| {
+            let k = kf.features.keypoints[i];
+            KeypointRecord {
+                u: k.x,
+                v: k.y,
+                angle: k.angle,
+                response: k.response,
+                octave: k.octave as u32,
+                reserved: 0,
+                map_point_id: kf.points.get(i).copied().flatten().unwrap_or(NO_MAP_POINT),
+                descriptor: kf.features.descriptors[i],
+            }
+        })
+        .collect();
+    let header = KeyframeHeader {
+        meta: MsgMeta::new(client, session, 0, 0),
+        keyframe_id: kf.id,
+        t_ns: kf.t_ns,
+        pose_ck: wire_pose(&kf.t_cw),
+        intrinsics: Intrinsics {
+            pinhole: [c.fx, c.fy, c.cx, c.cy],
+            distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
+        },
+        width: c.width,
+        height: c.height,
+        n_keypoints: n as u32,
+        reserved: 0,
+    };
+    (header, records)
+}
+
 impl Outbox {
     /// An empty outbox for `client`.
     pub fn new(client: u32) -> Self {
@@ -79,41 +120,28 @@ impl Outbox {
         kf: &Keyframe,
         session: u32,
     ) -> anyhow::Result<()> {
-        let c = &kf.camera;
-        let n = kf.features.len().min(MAX_KEYPOINTS);
-        let records: Vec<KeypointRecord> = (0..n)
-            .map(|i| {
-                let k = kf.features.keypoints[i];
-                KeypointRecord {
-                    u: k.x,
-                    v: k.y,
-                    angle: k.angle,
-                    response: k.response,
-                    octave: k.octave as u32,
-                    reserved: 0,
-                    map_point_id: kf.points[i].unwrap_or(NO_MAP_POINT),
-                    descriptor: kf.features.descriptors[i],
-                }
-            })
-            .collect();
-        let header = KeyframeHeader {
-            meta: MsgMeta::new(self.client, session, self.next_seq, 0),
-            keyframe_id: kf.id,
-            t_ns: kf.t_ns,
-            pose_ck: wire_pose(&kf.t_cw),
-            intrinsics: Intrinsics {
-                pinhole: [c.fx, c.fy, c.cx, c.cy],
-                distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
-            },
-            width: c.width,
-            height: c.height,
-            n_keypoints: n as u32,
-            reserved: 0,
-        };
+        let (header, records) = keyframe_message(self.client, kf, session);
+        self.send_message(publisher, header, records)
+    }
+
+    /// Publishes a keyframe message built by [`keyframe_message`] (e.g. one recovered from
+    /// the spool of a killed predecessor), keeping it until acknowledged. Its session and id
+    /// are the header's; the sequence number is this outbox's.
+    pub fn send_message(
+        &mut self,
+        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
+        mut header: KeyframeHeader,
+        records: Vec<KeypointRecord>,
+    ) -> anyhow::Result<()> {
+        let session = header.meta.session_id;
+        header.meta = MsgMeta::new(self.client, session, self.next_seq, 0);
         self.next_seq += 1;
-        self.sent_poses.insert((session, kf.id), kf.t_cw.inverse());
+        let key = (session, header.keyframe_id);
+        if let Some(t_ck) = shoal_runtime::wire::iso_from_wire(&header.pose_ck) {
+            self.sent_poses.insert(key, t_ck);
+        }
         self.pending.insert(
-            (session, kf.id),
+            key,
             Pending {
                 header,
                 records,

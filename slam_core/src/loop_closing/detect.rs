@@ -47,6 +47,15 @@ pub struct LoopDetectorParams {
     pub feature_level: Option<usize>,
     /// Geometric verification.
     pub sim3: Sim3Params,
+    /// Session continuation: the first keyframes of a map are verified directly against
+    /// the newest keyframes of the same client's other maps made at most this long (s)
+    /// before them, without the bag-of-words threshold or the consistency test. A VO that
+    /// restarted (a killed tracker, a new VO session after tracking loss) usually starts
+    /// where the old one stopped; that time adjacency is the prior, the Sim(3) verification
+    /// the proof. 0 disables it.
+    pub continuation_window_s: f64,
+    /// Keyframes of the other map tried per query in session continuation (newest first).
+    pub continuation_candidates: usize,
 }
 
 impl Default for LoopDetectorParams {
@@ -61,6 +70,8 @@ impl Default for LoopDetectorParams {
             neighbourhood_size: 20,
             feature_level: Some(2),
             sim3: Sim3Params::default(),
+            continuation_window_s: 5.0,
+            continuation_candidates: 3,
         }
     }
 }
@@ -84,6 +95,8 @@ pub struct QueryStats {
     pub consistent: usize,
     /// Consistent candidates verified geometrically (stops at the first success).
     pub verified: usize,
+    /// Session-continuation candidates verified geometrically.
+    pub continuation: usize,
 }
 
 /// A keyframe known to the detector.
@@ -128,6 +141,10 @@ pub struct LoopDetector {
     db: KeyframeDatabase,
     kfs: HashMap<KfId, Stored>,
     maps: HashMap<MapId, MapState>,
+    /// Maps renamed by [`LoopDetector::rename_map`]: `from → (into, S_into_from)`. A
+    /// keyframe of `from` that arrives later (the mapper made it before it applied the
+    /// merge) is moved into `into` first.
+    merged: HashMap<MapId, (MapId, Sim3)>,
     params: LoopDetectorParams,
     last: QueryStats,
 }
@@ -148,6 +165,7 @@ impl LoopDetector {
             db,
             kfs: HashMap::new(),
             maps: HashMap::new(),
+            merged: HashMap::new(),
             params,
             last: QueryStats::default(),
         }
@@ -204,7 +222,17 @@ impl LoopDetector {
         self.store(kf, false);
     }
 
-    fn store(&mut self, kf: KeptKeyframe, query: bool) -> Option<LoopMatch> {
+    fn store(&mut self, mut kf: KeptKeyframe, query: bool) -> Option<LoopMatch> {
+        // A keyframe of a map merged away: into the map it joined (a chain of merges is
+        // followed; map ids are never reused, so it ends).
+        let mut hops = 0;
+        while let Some((into, s)) = self.merged.get(&kf.map_id).copied() {
+            move_keyframe(&mut kf, &s, into);
+            hops += 1;
+            if hops > self.merged.len() {
+                break;
+            }
+        }
         let id = kf.kf_id;
         if self.kfs.contains_key(&id) {
             self.remove(id);
@@ -261,14 +289,20 @@ impl LoopDetector {
             map_id: kf.map_id,
             ..QueryStats::default()
         };
-        let state = self.maps.entry(kf.map_id).or_default();
-        if state
+        if self
+            .maps
+            .entry(kf.map_id)
+            .or_default()
             .since_loop
             .is_some_and(|n| n < p.min_keyframes_after_loop)
         {
             self.last.cooldown = true;
             return None;
         }
+        if let Some(found) = self.continuation(kf, fv) {
+            return Some(found);
+        }
+        let state = self.maps.entry(kf.map_id).or_default();
         // Neighbours: the keyframe's own covisibility list.
         let mut neighbours: HashSet<KfId> = kf.covisible.iter().map(|e| e.0).collect();
         neighbours.remove(&kf.kf_id);
@@ -306,6 +340,33 @@ impl LoopDetector {
             self.last.verified = considered;
             if let Some(mut found) = self.verify(kf, fv, m_id) {
                 found.candidates_considered = considered;
+                return Some(found);
+            }
+        }
+        None
+    }
+
+    /// Session continuation (see [`LoopDetectorParams::continuation_window_s`]): the newest
+    /// keyframes of the same client's other maps made shortly before `kf`, verified by
+    /// [`compute_sim3`]; the first verified one is returned.
+    fn continuation(&mut self, kf: &KeptKeyframe, fv: &FeatureVector) -> Option<LoopMatch> {
+        let p = self.params;
+        if p.continuation_window_s <= 0.0 || p.continuation_candidates == 0 {
+            return None;
+        }
+        let window_ns = (p.continuation_window_s * 1e9) as i64;
+        let client = kf.map_id >> 32;
+        let mut cands: Vec<(i64, KfId)> = self
+            .kfs
+            .values()
+            .filter(|s| s.kf.map_id != kf.map_id && s.kf.map_id >> 32 == client)
+            .filter(|s| (0..=window_ns).contains(&(kf.t_ns - s.kf.t_ns)))
+            .map(|s| (s.kf.t_ns, s.kf.kf_id))
+            .collect();
+        cands.sort_by(|a, b| b.cmp(a));
+        for (_, m_id) in cands.into_iter().take(p.continuation_candidates) {
+            self.last.continuation += 1;
+            if let Some(found) = self.verify(kf, fv, m_id) {
                 return Some(found);
             }
         }
@@ -533,16 +594,22 @@ impl LoopDetector {
         }
         let mut moved = 0;
         for st in self.kfs.values_mut().filter(|st| st.kf.map_id == from) {
-            let kf = &mut st.kf;
-            let centre = s.transform_point(&kf.t_sk.translation.vector);
-            kf.t_sk = Isometry3::from_parts(Translation3::from(centre), s.r * kf.t_sk.rotation);
-            for p in &mut kf.points {
-                p.p_k *= s.s;
-            }
-            kf.map_id = into;
+            move_keyframe(&mut st.kf, s, into);
             moved += 1;
         }
         self.maps.remove(&from);
+        self.merged.insert(from, (into, *s));
         moved
     }
+}
+
+/// Moves keyframe `kf` into map `into` by the similarity `s` (into ← its map): its pose, and
+/// its points (in its own frame) by the scale.
+fn move_keyframe(kf: &mut KeptKeyframe, s: &Sim3, into: MapId) {
+    let centre = s.transform_point(&kf.t_sk.translation.vector);
+    kf.t_sk = Isometry3::from_parts(Translation3::from(centre), s.r * kf.t_sk.rotation);
+    for p in &mut kf.points {
+        p.p_k *= s.s;
+    }
+    kf.map_id = into;
 }

@@ -355,6 +355,16 @@ fn removal_pose_updates_and_map_rename() {
         (p_new.coords - expect).norm() < 1e-9,
         "points follow the similarity"
     );
+    // A keyframe of map B made before the mapper applied the merge arrives afterwards,
+    // still labelled B: it is stored in A, moved by the same similarity.
+    let late = &s.map_b[1];
+    assert_eq!(late.map_id, MAP_B);
+    det.add(late.clone());
+    let stored = det.keyframe(late.kf_id).unwrap();
+    assert_eq!(stored.map_id, MAP_A, "a late keyframe of a merged map");
+    let p_old = late.t_sk * nalgebra::Point3::from(late.points[0].p_k);
+    let p_new = stored.t_sk * nalgebra::Point3::from(stored.points[0].p_k);
+    assert!((p_new.coords - s_ab.transform_point(&p_old.coords)).norm() < 1e-9);
     let bad = Sim3::new(UnitQuaternion::identity(), Vector3::zeros(), 0.0);
     assert_eq!(det.rename_map(MAP_A, MAP_B, &bad), 0);
     assert!(det.update_pose(kf.kf_id, kf.t_sk));

@@ -75,6 +75,18 @@ pub struct HandlerParams {
     pub culling: KfCullingParams,
     /// Pose-only optimisation.
     pub pose_opt: PoseOptParams,
+    /// Revisit: a kept keyframe re-observes at least this many points whose other
+    /// observers are all older than [`Self::revisit_min_age_s`] (points of a place seen
+    /// before, found by the revisit search, not tracked continuously). Such a keyframe ties
+    /// the new end of the trajectory to the old one, and a global BA then spreads the drift
+    /// accumulated in between over the loop (what the seed gets from a loop correction, here
+    /// without one: the prediction was close enough for the revisit search to match).
+    /// 0 disables it.
+    pub revisit_min_points: usize,
+    /// Age (s) of the observers that makes a point "seen before".
+    pub revisit_min_age_s: f64,
+    /// At most one revisit global BA per this many seconds of data.
+    pub revisit_cooldown_s: f64,
 }
 
 impl Default for HandlerParams {
@@ -96,6 +108,9 @@ impl Default for HandlerParams {
             ba_neighbours: 10,
             culling: KfCullingParams::default(),
             pose_opt: PoseOptParams::default(),
+            revisit_min_points: 20,
+            revisit_min_age_s: 5.0,
+            revisit_cooldown_s: 5.0,
         }
     }
 }
@@ -115,6 +130,8 @@ pub struct HandlerStats {
     pub culled: u64,
     /// Server maps created.
     pub maps: u64,
+    /// Global BAs run because a kept keyframe revisited an old place.
+    pub revisit_global_ba: u64,
 }
 
 /// What an idle step did.
@@ -153,6 +170,8 @@ pub struct KeyframeHandler {
     latest_kept: Option<KfId>,
     converged: bool,
     global_ba: bool,
+    /// Time (ns) of the keyframe that triggered the last revisit global BA.
+    last_revisit_ba: Option<i64>,
     next_point_id: PointId,
     stats: HandlerStats,
     refiner: Refiner,
@@ -176,6 +195,7 @@ impl KeyframeHandler {
             latest_kept: None,
             converged: true,
             global_ba: false,
+            last_revisit_ba: None,
             next_point_id: u64::from(client_id) << 40,
             stats: HandlerStats::default(),
             refiner: Refiner::default(),
@@ -474,6 +494,11 @@ impl KeyframeHandler {
             self.converged = false;
             self.stats.kept += 1;
             server_kf = Some(id);
+            if self.is_revisit(map, id) {
+                self.global_ba = true;
+                self.last_revisit_ba = map.map.keyframes.get(&id).map(|k| k.t_ns);
+                self.stats.revisit_global_ba += 1;
+            }
         } else {
             self.stats.discarded += 1;
             if reference.is_some() {
@@ -488,6 +513,47 @@ impl KeyframeHandler {
             server_kf,
         });
         Ok(report)
+    }
+
+    /// Whether kept keyframe `id` revisits an old place (see
+    /// [`HandlerParams::revisit_min_points`]) outside the cooldown of the last revisit BA.
+    fn is_revisit(&self, map: &ServerMap, id: KfId) -> bool {
+        let p = &self.params;
+        let Some(kf) = map.map.keyframes.get(&id) else {
+            return false;
+        };
+        let cooldown_ns = (p.revisit_cooldown_s * 1e9) as i64;
+        if p.revisit_min_points == 0
+            || self
+                .last_revisit_ba
+                .is_some_and(|t| kf.t_ns - t < cooldown_ns)
+        {
+            return false;
+        }
+        let min_age_ns = (p.revisit_min_age_s * 1e9) as i64;
+        let old = |k: &KfId| {
+            *k != id
+                && map
+                    .map
+                    .keyframes
+                    .get(k)
+                    .is_some_and(|o| kf.t_ns - o.t_ns >= min_age_ns)
+        };
+        let seen_before = kf
+            .points
+            .iter()
+            .flatten()
+            .filter_map(|pid| map.map.points.get(pid))
+            .filter(|mp| {
+                let mut others = mp.observations.iter().map(|(k, _)| k).filter(|k| **k != id);
+                let mut any = false;
+                others.all(|k| {
+                    any = true;
+                    old(k)
+                }) && any
+            })
+            .count();
+        seen_before >= p.revisit_min_points
     }
 
     /// One idle step (seed §3.4.1, "when idle and not locally converged"): local BA around

@@ -1,4 +1,8 @@
-//! The mapper's append-only journal (design: faults): every keyframe the mapper applies is
+//! Journals of the services (design: faults). The tracker's keyframe spool writes one
+//! keyframe entry per file ([`encode_entry`], read back by [`parse`]); the mapper keeps an
+//! append-only [`Journal`].
+//!
+//! The mapper's append-only journal: every keyframe the mapper applies is
 //! written whole (header + keypoint records) before it is acknowledged, and after each
 //! handled keyframe whose handler then ran its idle step (local BA + culling) a small idle
 //! marker is written. A restarted mapper replays the keyframes in journal order through
@@ -394,6 +398,19 @@ pub fn parse(bytes: &[u8]) -> Contents {
     c
 }
 
+/// One entry framed as in a journal file (magic, kind, length, payload, checksum).
+pub fn encode_entry(entry: &Entry) -> Vec<u8> {
+    let (kind, payload) = encode(entry);
+    let len = payload.len() as u32;
+    let mut buf = Vec::with_capacity(HEAD + payload.len() + 8);
+    buf.extend(MAGIC.to_le_bytes());
+    buf.extend(u32::from(kind).to_le_bytes());
+    buf.extend(len.to_le_bytes());
+    buf.extend(&payload);
+    buf.extend(checksum(kind, len, &payload).to_le_bytes());
+    buf
+}
+
 /// The journal file, open for appending.
 #[derive(Debug)]
 pub struct Journal {
@@ -439,14 +456,7 @@ impl Journal {
     /// Appends one entry (a single write, flushed to the OS: it survives a crash of the
     /// process; no fsync, so not a power loss).
     pub fn append(&mut self, entry: &Entry) -> std::io::Result<()> {
-        let (kind, payload) = encode(entry);
-        let len = payload.len() as u32;
-        let mut buf = Vec::with_capacity(HEAD + payload.len() + 8);
-        buf.extend(MAGIC.to_le_bytes());
-        buf.extend(u32::from(kind).to_le_bytes());
-        buf.extend(len.to_le_bytes());
-        buf.extend(&payload);
-        buf.extend(checksum(kind, len, &payload).to_le_bytes());
+        let buf = encode_entry(entry);
         self.file.write_all(&buf)?;
         self.file.flush()?;
         self.bytes_written += buf.len() as u64;

@@ -1,0 +1,235 @@
+//! The tracker's keyframe spool (design: faults; issue 6, "lose no keyframe").
+//!
+//! A keyframe is sent to the mapper only when it leaves the client's VO window (seed §3.3:
+//! the oldest of N keyframes), so a SIGKILLed tracker used to take up to N keyframes with it.
+//! The spool keeps them on disk: every keyframe the VO creates is written to
+//! `DIR/{session:08x}_{id:016x}.kf` (one [`shoal_runtime::journal`] entry, written to a
+//! temporary file and renamed, so a kill leaves the whole file or none) and deleted when it
+//! is sent (from then on the outbox and the mapper's acknowledgement take over). What is left
+//! in the folder after a kill is exactly the dead process's window: its successor sends
+//! those keyframes first, as keyframes of the dead session, so the mapper appends them to
+//! that session's map, and only then starts its own session.
+//!
+//! Spooled keyframes carry the pose and map points they had when they were created (local
+//! BA refines the window afterwards; that refinement dies with the process).
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use shm_schema::{KeyframeHeader, KeypointRecord};
+use shoal_runtime::journal::{encode_entry, parse, Entry};
+
+/// A keyframe recovered from the spool.
+pub struct Recovered {
+    /// Message header (session and keyframe id of the dead process).
+    pub header: KeyframeHeader,
+    /// Keypoint records.
+    pub records: Vec<KeypointRecord>,
+}
+
+/// What [`Spool::recover`] found.
+#[derive(Default)]
+pub struct Recovery {
+    /// Keyframes in (session, id) order.
+    pub keyframes: Vec<Recovered>,
+    /// Files that could not be used (torn, corrupt, unreadable), with the reason.
+    pub errors: Vec<String>,
+}
+
+/// Keyframes created and not yet sent, on disk.
+pub struct Spool {
+    dir: PathBuf,
+    /// (session, id) of the files this process knows of.
+    files: BTreeSet<(u32, u64)>,
+    /// Keyframes written.
+    pub written: u64,
+    /// Bytes written.
+    pub bytes_written: u64,
+}
+
+impl Spool {
+    /// Opens (creates) the spool folder.
+    pub fn open(dir: &Path) -> std::io::Result<Self> {
+        std::fs::create_dir_all(dir)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            files: BTreeSet::new(),
+            written: 0,
+            bytes_written: 0,
+        })
+    }
+
+    fn path(&self, session: u32, id: u64) -> PathBuf {
+        self.dir.join(format!("{session:08x}_{id:016x}.kf"))
+    }
+
+    /// Reads every spooled keyframe left by earlier processes. Unusable files are reported
+    /// and deleted; the usable ones stay until [`Spool::sent`] is called for them.
+    pub fn recover(&mut self, client: u32) -> Recovery {
+        let mut out = Recovery::default();
+        let entries = match std::fs::read_dir(&self.dir) {
+            Ok(e) => e,
+            Err(e) => {
+                out.errors
+                    .push(format!("spool {}: {e}", self.dir.display()));
+                return out;
+            }
+        };
+        let mut names: Vec<PathBuf> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
+        names.sort();
+        for path in names {
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+            let Some(name) = name else { continue };
+            if !name.ends_with(".kf") {
+                // A temporary file of a write cut short by the kill.
+                let _ = std::fs::remove_file(&path);
+                continue;
+            }
+            let bytes = match std::fs::read(&path) {
+                Ok(b) => b,
+                Err(e) => {
+                    out.errors
+                        .push(format!("spool file {}: {e}", path.display()));
+                    continue;
+                }
+            };
+            let contents = parse(&bytes);
+            let entry = contents.entries.into_iter().next();
+            match entry {
+                Some(Entry::Keyframe {
+                    client: c,
+                    header,
+                    records,
+                }) if c == client && contents.problem.is_none() => {
+                    self.files
+                        .insert((header.meta.session_id, header.keyframe_id));
+                    out.keyframes.push(Recovered {
+                        header: *header,
+                        records,
+                    });
+                }
+                _ => {
+                    out.errors.push(format!(
+                        "spool file {}: not a keyframe of client {client}{}",
+                        path.display(),
+                        contents
+                            .problem
+                            .map(|p| format!(" ({p})"))
+                            .unwrap_or_default()
+                    ));
+                    let _ = std::fs::remove_file(&path);
+                }
+            }
+        }
+        out.keyframes
+            .sort_by_key(|k| (k.header.meta.session_id, k.header.keyframe_id));
+        out
+    }
+
+    /// Writes a keyframe just created (its message as it would be sent now).
+    pub fn write(
+        &mut self,
+        client: u32,
+        header: &KeyframeHeader,
+        records: &[KeypointRecord],
+    ) -> std::io::Result<()> {
+        let key = (header.meta.session_id, header.keyframe_id);
+        let bytes = encode_entry(&Entry::Keyframe {
+            client,
+            header: Box::new(*header),
+            records: records.to_vec(),
+        });
+        let path = self.path(key.0, key.1);
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, &bytes)?;
+        std::fs::rename(&tmp, &path)?;
+        self.files.insert(key);
+        self.written += 1;
+        self.bytes_written += bytes.len() as u64;
+        Ok(())
+    }
+
+    /// Keyframe `id` of `session` was sent: its file goes, with those of older keyframes of
+    /// the session (keyframes leave the window oldest first, so an older one still here was
+    /// culled by local mapping and will never be sent). Returns the files removed.
+    pub fn sent(&mut self, session: u32, id: u64) -> usize {
+        let gone: Vec<(u32, u64)> = self
+            .files
+            .range((session, 0)..=(session, id))
+            .copied()
+            .collect();
+        for (s, k) in &gone {
+            let _ = std::fs::remove_file(self.path(*s, *k));
+            self.files.remove(&(*s, *k));
+        }
+        gone.len()
+    }
+
+    /// Keyframes on disk.
+    pub fn len(&self) -> usize {
+        self.files.len()
+    }
+
+    /// Whether no keyframe is on disk.
+    pub fn is_empty(&self) -> bool {
+        self.files.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use shm_schema::MsgMeta;
+
+    fn message(session: u32, id: u64) -> (KeyframeHeader, Vec<KeypointRecord>) {
+        let header = KeyframeHeader {
+            meta: MsgMeta::new(3, session, 0, 0),
+            keyframe_id: id,
+            t_ns: id as i64 * 1000,
+            n_keypoints: 2,
+            ..KeyframeHeader::default()
+        };
+        let records = vec![
+            KeypointRecord {
+                u: id as f32,
+                map_point_id: 7,
+                ..KeypointRecord::default()
+            };
+            2
+        ];
+        (header, records)
+    }
+
+    #[test]
+    fn a_successor_recovers_exactly_the_unsent_keyframes() {
+        let dir = std::env::temp_dir().join(format!("shoal_spool_test_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut s = Spool::open(&dir).expect("spool");
+        for id in 1..=6 {
+            let (h, r) = message(65537, id);
+            s.write(3, &h, &r).expect("write");
+        }
+        // Keyframe 3 leaves the window (1 and 2 were culled), then the process dies.
+        assert_eq!(s.sent(65537, 3), 3);
+        std::fs::write(dir.join("00010001_0000000000000007.tmp"), b"torn").expect("tmp");
+        std::fs::write(dir.join("00010001_0000000000000008.kf"), b"garbage").expect("bad");
+        drop(s);
+        let mut next = Spool::open(&dir).expect("spool");
+        let rec = next.recover(3);
+        let ids: Vec<u64> = rec.keyframes.iter().map(|k| k.header.keyframe_id).collect();
+        assert_eq!(ids, vec![4, 5, 6]);
+        assert_eq!(rec.keyframes[0].records[0].u, 4.0);
+        assert_eq!(rec.keyframes[0].records[1].map_point_id, 7);
+        assert_eq!(rec.errors.len(), 1, "{:?}", rec.errors);
+        assert!(
+            rec.errors[0].contains("0000000000000008.kf"),
+            "{:?}",
+            rec.errors
+        );
+        assert_eq!(next.len(), 3);
+        assert_eq!(next.sent(65537, 6), 3);
+        assert!(next.is_empty());
+        let left = std::fs::read_dir(&dir).expect("dir").count();
+        assert_eq!(left, 0, "the temporary and the corrupt file are gone too");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
