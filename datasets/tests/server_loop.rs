@@ -202,6 +202,33 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
         "server {ate_server_map} vs client {ate_client}"
     );
     assert!(ate_server_handled < 2.0 * ate_client);
+    assert!(
+        h.stats().revisit_global_ba >= 1,
+        "lap 2 revisits lap 1: a global BA was due"
+    );
+    // Ablation: the same keyframes without the revisit global BA.
+    let mut h0 = KeyframeHandler::new(
+        CLIENT,
+        HandlerParams {
+            revisit_min_points: 0,
+            ..HandlerParams::default()
+        },
+    );
+    let mut maps0 = ServerMaps::new();
+    for kf in kfs {
+        h0.handle(&mut maps0, kf.clone()).expect("handle");
+        h0.idle_step(&mut maps0);
+    }
+    let ate_no_revisit = ate(world, &h0.current_map(&maps0).expect("map").trajectory());
+    println!(
+        "server map kfs with the revisit global BA {ate_server_map:.4} m ({} BAs), without \
+         {ate_no_revisit:.4} m; client kfs {ate_client:.4} m",
+        h.stats().revisit_global_ba
+    );
+    assert!(
+        ate_server_map < ate_no_revisit,
+        "the revisit BA did not help: {ate_server_map} vs {ate_no_revisit}"
+    );
 }
 
 #[test]
@@ -236,13 +263,17 @@ fn replay_is_deterministic() {
 #[test]
 fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
     let run = run();
-    let kfs = &run.keyframes[..run.keyframes.len().min(50)];
+    let kfs = &run.keyframes[..run.keyframes.len().min(60)];
     let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
     let mut maps = ServerMaps::new();
     let mut last_fb = None;
+    // The client restarts its VO (a new session) after the first keyframe from 25 on that
+    // the handler discarded: that one is the old session's last.
+    let mut switch: Option<usize> = None;
+    let mut last_discarded = None;
     for (i, kf) in kfs.iter().enumerate() {
         let mut kf = kf.clone();
-        if i >= 25 {
+        if switch.is_some_and(|s| i >= s) {
             // The client lost track and restarted its VO: the same images, a new session.
             kf.session_id += 1;
         }
@@ -254,13 +285,29 @@ fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
             let p: Isometry3<f64> = frame_pose_in_server_map(&t_cj, &t_sj, lambda, &t_ck);
             assert!((p.translation.vector - pred.translation.vector).norm() < 1e-12);
         }
-        match i {
-            0 | 25 => assert_eq!(r.status, KeyframeStatus::First),
-            1 | 26 => assert_eq!(r.status, KeyframeStatus::MapCreated),
-            _ => assert!(matches!(
+        if switch == Some(i) {
+            // The old session's discarded last keyframe joins its map at the session's end
+            // and goes to loop closing with the new session's first.
+            let ended: Vec<u64> = r.kept.iter().map(|k| k.client_kf_id).collect();
+            assert_eq!(ended, last_discarded.into_iter().collect::<Vec<_>>());
+            let k = last_discarded.expect("set with the switch");
+            let first_map = maps.values().next().expect("the first map");
+            assert!(first_map.map.keyframes.contains_key(&h.server_kf_id(k)));
+            assert_eq!(h.stats().kept_at_session_end, 1);
+        }
+        if i == 0 || switch == Some(i) {
+            assert_eq!(r.status, KeyframeStatus::First);
+        } else if i == 1 || switch.map(|s| s + 1) == Some(i) {
+            assert_eq!(r.status, KeyframeStatus::MapCreated);
+        } else {
+            assert!(matches!(
                 r.status,
                 KeyframeStatus::Kept | KeyframeStatus::Discarded
-            )),
+            ));
+        }
+        if switch.is_none() && i >= 24 && r.status == KeyframeStatus::Discarded {
+            switch = Some(i + 1);
+            last_discarded = Some(r.client_kf_id);
         }
         // Feedback after the idle step (local BA may move the last keyframe).
         h.idle_step(&mut maps);
@@ -268,10 +315,12 @@ fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
         assert_eq!(fb.acked_keyframe_id, r.client_kf_id);
         last_fb = fb.pose.map(|p| (t_ck, p));
     }
+    let switch = switch.expect("a discarded keyframe to end the first session at");
+    assert!(switch + 2 < kfs.len(), "the new session has keyframes");
     assert_eq!(maps.len(), 2);
     let ids: Vec<u64> = maps.keys().copied().collect();
     let second = &maps[&ids[1]];
-    assert_eq!(second.session_id, kfs[25].session_id + 1);
+    assert_eq!(second.session_id, kfs[switch].session_id + 1);
     assert!(second.map.keyframes.len() >= 2);
     // A keyframe of the old session now is stale.
     let r = h.handle(&mut maps, kfs[10].clone()).expect("handle");

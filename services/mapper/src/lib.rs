@@ -345,6 +345,10 @@ impl Mapper {
         set(format!("c{c}.keyframes_discarded"), f.stats.discarded);
         set(format!("c{c}.keyframes_culled"), f.stats.culled);
         set(format!("c{c}.revisit_global_ba"), f.stats.revisit_global_ba);
+        set(
+            format!("c{c}.kept_at_session_end"),
+            f.stats.kept_at_session_end,
+        );
         set(format!("c{c}.maps"), f.stats.maps);
         set(format!("c{c}.server_keyframes"), f.keyframes as u64);
         if let Some(m) = f.map_id {
@@ -541,8 +545,18 @@ impl Mapper {
                     s.add(&format!("c{c}.keyframes_replayed"), 1);
                 }
                 for k in &r.kept {
-                    if let Some((h, _)) = cl.waiting.remove(&(o.session, k.client_kf_id)) {
-                        let meta = MsgMeta::new(c, o.session, self.loop_seq, monotonic_ns());
+                    // Usually of this outcome's session; the previous session's last keyframe
+                    // when it was inserted at the session's end (client keyframe ids are
+                    // unique per client across sessions and tracker restarts).
+                    let wkey = cl
+                        .waiting
+                        .keys()
+                        .rev()
+                        .find(|w| w.1 == k.client_kf_id)
+                        .copied();
+                    if let Some((h, _)) = wkey.and_then(|w| cl.waiting.remove(&w)) {
+                        let session = wkey.map_or(o.session, |w| w.0);
+                        let meta = MsgMeta::new(c, session, self.loop_seq, monotonic_ns());
                         let (lh, recs) =
                             convert::loop_keyframe(k, meta, &h.intrinsics, h.width, h.height);
                         let out = loop_pub.loan_slice_uninit(recs.len())?;
@@ -553,9 +567,10 @@ impl Mapper {
                         s.add(&format!("c{c}.keyframes_forwarded"), 1);
                     }
                 }
-                let keep_first = r.status == KeyframeStatus::First;
-                cl.waiting
-                    .retain(|k, _| *k > key || (keep_first && *k == key));
+                // The first keyframe of a session waits for the second (map creation); the
+                // newest discarded one for the session's end (it may be inserted then).
+                let keep = matches!(r.status, KeyframeStatus::First | KeyframeStatus::Discarded);
+                cl.waiting.retain(|k, _| *k > key || (keep && *k == key));
             }
         }
         s.add(&format!("c{c}.handle_us"), (o.handle_ms * 1e3) as u64);

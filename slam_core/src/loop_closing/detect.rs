@@ -56,6 +56,11 @@ pub struct LoopDetectorParams {
     pub continuation_window_s: f64,
     /// Keyframes of the other map tried per query in session continuation (newest first).
     pub continuation_candidates: usize,
+    /// Geometric verification in session continuation: the time prior allows fewer
+    /// keyframe-to-keyframe matches to start the Sim(3) (the two keyframes are up to a
+    /// second apart), but the final test is the same: `min_inliers` after guided matching
+    /// of the old keyframe's neighbourhood.
+    pub continuation_sim3: Sim3Params,
 }
 
 impl Default for LoopDetectorParams {
@@ -72,6 +77,12 @@ impl Default for LoopDetectorParams {
             sim3: Sim3Params::default(),
             continuation_window_s: 5.0,
             continuation_candidates: 3,
+            continuation_sim3: Sim3Params {
+                min_matches: 12,
+                min_ransac_inliers: 10,
+                min_refined_inliers: 10,
+                ..Sim3Params::default()
+            },
         }
     }
 }
@@ -338,7 +349,7 @@ impl LoopDetector {
         for (m_id, _) in enough {
             considered += 1;
             self.last.verified = considered;
-            if let Some(mut found) = self.verify(kf, fv, m_id) {
+            if let Some(mut found) = self.verify(kf, fv, m_id, &p.sim3) {
                 found.candidates_considered = considered;
                 return Some(found);
             }
@@ -366,7 +377,7 @@ impl LoopDetector {
         cands.sort_by(|a, b| b.cmp(a));
         for (_, m_id) in cands.into_iter().take(p.continuation_candidates) {
             self.last.continuation += 1;
-            if let Some(found) = self.verify(kf, fv, m_id) {
+            if let Some(found) = self.verify(kf, fv, m_id, &p.continuation_sim3) {
                 return Some(found);
             }
         }
@@ -457,7 +468,13 @@ impl LoopDetector {
     }
 
     /// Geometric verification of candidate `m_id` for `q`, with `m`'s neighbourhood.
-    fn verify(&self, q: &KeptKeyframe, fv_q: &FeatureVector, m_id: KfId) -> Option<LoopMatch> {
+    fn verify(
+        &self,
+        q: &KeptKeyframe,
+        fv_q: &FeatureVector,
+        m_id: KfId,
+        sim3: &Sim3Params,
+    ) -> Option<LoopMatch> {
         let m = self.kfs.get(&m_id)?;
         let t_ms = m.kf.t_sk.inverse();
         let mut used = vec![m_id];
@@ -474,7 +491,7 @@ impl LoopDetector {
             .collect();
         let points = neighbourhood_points(&m.kf, neighbours);
         let guides = self.params.feature_level.map(|_| (fv_q, &m.fv));
-        let r = compute_sim3(q, &m.kf, guides, &points, &self.params.sim3)?;
+        let r = compute_sim3(q, &m.kf, guides, &points, sim3)?;
         Some(LoopMatch {
             query: q.kf_id,
             query_map: q.map_id,

@@ -132,6 +132,8 @@ pub struct HandlerStats {
     pub maps: u64,
     /// Global BAs run because a kept keyframe revisited an old place.
     pub revisit_global_ba: u64,
+    /// Keyframes discarded when handled and inserted when their session ended (its last).
+    pub kept_at_session_end: u64,
 }
 
 /// What an idle step did.
@@ -156,6 +158,18 @@ struct Last {
     server_kf: Option<KfId>,
 }
 
+/// The newest keyframe of the session when it was discarded, kept aside: if the session
+/// ends there (a new session starts: the VO restarted, e.g. a killed tracker), it is
+/// inserted after all, so that the old map reaches as close as possible to where the new
+/// one starts (the loop closer's session continuation matches the two).
+#[derive(Debug)]
+struct Held {
+    kf: ServerKeyframe,
+    map: MapId,
+    t_sk: Isometry3<f64>,
+    frame_points: Vec<Option<PointId>>,
+}
+
 /// The server keyframe handler of one client.
 #[derive(Debug)]
 pub struct KeyframeHandler {
@@ -172,6 +186,7 @@ pub struct KeyframeHandler {
     global_ba: bool,
     /// Time (ns) of the keyframe that triggered the last revisit global BA.
     last_revisit_ba: Option<i64>,
+    held: Option<Held>,
     next_point_id: PointId,
     stats: HandlerStats,
     refiner: Refiner,
@@ -196,6 +211,7 @@ impl KeyframeHandler {
             converged: true,
             global_ba: false,
             last_revisit_ba: None,
+            held: None,
             next_point_id: u64::from(client_id) << 40,
             stats: HandlerStats::default(),
             refiner: Refiner::default(),
@@ -295,7 +311,9 @@ impl KeyframeHandler {
         }
         self.acked = Some((kf.id, kf.session_id));
         if self.session != Some(kf.session_id) {
-            // New session: a new server map once it has two keyframes.
+            // New session: the old one's last keyframe joins its map if it was discarded;
+            // a new server map once the new session has two keyframes.
+            let closed = self.insert_held(maps);
             self.session = Some(kf.session_id);
             self.current = None;
             self.last = None;
@@ -304,7 +322,9 @@ impl KeyframeHandler {
             self.converged = true;
             let id = kf.id;
             self.first = Some(kf);
-            return Ok(self.report(id, KeyframeStatus::First));
+            let mut report = self.report(id, KeyframeStatus::First);
+            report.kept.extend(closed);
+            return Ok(report);
         }
         if self.current.is_none() {
             let Some(first) = self.first.take() else {
@@ -512,7 +532,38 @@ impl KeyframeHandler {
             lambda,
             server_kf,
         });
+        self.held = match server_kf {
+            Some(_) => None,
+            None => Some(Held {
+                kf,
+                map: map_id,
+                t_sk,
+                frame_points: self.frame_points.clone(),
+            }),
+        };
         Ok(report)
+    }
+
+    /// Inserts the held keyframe (the ended session's last one, discarded when handled) into
+    /// its map, as a kept keyframe would have been; returns its summary for loop closing.
+    fn insert_held(&mut self, maps: &mut ServerMaps) -> Option<KeptKeyframe> {
+        let h = self.held.take()?;
+        let map = maps.get_mut(&h.map)?;
+        let owner = (h.kf.client_id, h.kf.session_id);
+        // Points matched then may have been culled or fused since.
+        let points: Vec<Option<PointId>> = h
+            .frame_points
+            .iter()
+            .map(|p| p.filter(|p| map.map.points.contains_key(p)))
+            .collect();
+        let id = map.insert(&h.kf, &h.t_sk, &points);
+        map.triangulate_client_tracks(owner, id, &h.kf.client_points);
+        create_points_with_neighbours(&mut map.map, id, self.params.triangulation_neighbours);
+        cull_recent_points(&mut map.map, id);
+        self.next_point_id = self.next_point_id.max(map.map.next_point_id());
+        self.stats.kept += 1;
+        self.stats.kept_at_session_end += 1;
+        map.kept_summary(id, h.kf.id)
     }
 
     /// Whether kept keyframe `id` revisits an old place (see
@@ -637,6 +688,8 @@ impl KeyframeHandler {
     }
 
     fn after_correction(&mut self, s: &Sim3, global_ba: bool) {
+        // A held keyframe's pose and matches are from before the correction.
+        self.held = None;
         if let Some(l) = self.last.as_mut() {
             if l.server_kf.is_none() {
                 l.t_sk = transform_pose(s, &l.t_sk);
