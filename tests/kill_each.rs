@@ -180,11 +180,11 @@ fn kill_imu_ingest() {
 }
 
 /// A restarted tracker first sends the keyframes its predecessor had in its VO window (the
-/// keyframe spool), then starts a new VO session, which gets its own server map. On this
-/// half lap the new session never sees the old one's places again (a second apart, the
-/// views differ too much for the session-continuation check), so there is nothing to merge
-/// here: the merge back and the ATE of the merged map are checked on a longer sequence in
-/// `tests/loop_closer.rs` (`killed_tracker_session_is_merged_back`).
+/// keyframe spool), then starts a new VO session, which gets its own server map; the loop
+/// closer matches the new session's first keyframes with the old one's last (session
+/// continuation) and the mapper merges the two maps: one map at the end, as accurate as a
+/// fault-free run's (the issue's 20%). The same on a longer sequence, with the merge at lap
+/// 2 as the fallback: `tests/loop_closer.rs` (`killed_tracker_session_is_merged_back`).
 #[test]
 fn kill_tracker() {
     let kill = format!("tracker:0@f{KILL_AT}");
@@ -198,6 +198,10 @@ fn kill_tracker() {
     );
     let sent_before = u(&f["counters_at_restart"]["keyframes_sent"]);
     assert!(sent_before > 0, "the first session sent keyframes: {f}");
+    assert!(
+        u(&c["keyframes_sent"]) > sent_before,
+        "the new session sent keyframes: {c:#}"
+    );
     // The keyframes still in the killed tracker's VO window (10) were spooled; its
     // successor sent them (they are in keyframes_sent == applied, checked above).
     assert!(
@@ -205,16 +209,12 @@ fn kill_tracker() {
         "the killed tracker's window was recovered from the spool: {c:#}"
     );
     assert!(
-        u(&c["keyframes_sent"]) > sent_before,
-        "the new session sent keyframes: {c:#}"
+        u(&rep["merges"]) >= 1,
+        "the new session was merged back: {}",
+        rep["services"]["loop_closer"]
     );
-    let ate = server_ate(&rep);
-    eprintln!(
-        "tracker kill: server keyframe ATE of the new session's map {ate:.4} m ({} kfs); \
-         fault-free run {:.4} m",
-        u(&c["server_keyframes"]),
-        server_ate(baseline())
-    );
+    assert_eq!(u(&rep["mapper"]["maps"]), 1, "one map after the merge");
+    check_ate(&rep, "tracker kill (merged map)");
 }
 
 /// The restarted mapper rebuilds its maps from the journal and takes the keyframes the
