@@ -290,7 +290,22 @@ impl Closer {
             })
             .collect();
         let t0 = Instant::now();
-        let c = correct_loop(&kfs, &loops, m.matched, &self.graph).map_err(|e| e.to_string())?;
+        let c = match correct_loop(&kfs, &loops, m.matched, &self.graph) {
+            Ok(c) if c.report.final_cost <= c.report.initial_cost => c,
+            Ok(c) => {
+                // The optimiser made the graph worse: the loop contradicts the map (or the
+                // solve failed); sending it would damage the map.
+                self.loops.entry(map).or_default().pop();
+                return Err(format!(
+                    "loop {:#x}-{:#x} (scale {:.4}) refused: pose graph cost {:.3e} -> {:.3e}",
+                    m.query, m.matched, m.s_qm.s, c.report.initial_cost, c.report.final_cost
+                ));
+            }
+            Err(e) => {
+                self.loops.entry(map).or_default().pop();
+                return Err(e.to_string());
+            }
+        };
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let fallback = c.deltas.get(&m.query).copied().unwrap_or_default();
         let mut header = self.header(client, CORRECTION_POSE_GRAPH, m, &fallback);

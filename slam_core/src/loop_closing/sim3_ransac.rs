@@ -54,6 +54,10 @@ pub struct Sim3Params {
     pub seed: u64,
 }
 
+/// Largest change of the scale (|ln|) the reprojection refinement may make to the 3D-3D
+/// estimate (×/÷ 1.25).
+const MAX_REFINE_LOG_SCALE: f64 = 0.223;
+
 impl Default for Sim3Params {
     fn default() -> Self {
         Self {
@@ -284,10 +288,18 @@ pub fn compute_sim3(
             mask = tmp;
         }
     }
+    // Reprojection errors do not see the scale when the two cameras are (nearly) at the
+    // same place (a similarity about the common centre moves no projection), so the
+    // refinement may wander off in scale there: the 3D-3D estimate's scale bounds it.
+    let (s_start, mask_start) = (s, mask.clone());
     for _ in 0..2 {
         let (refined, _) = refine_sim3(&s, &corrs, &mask, cam_q, cam_m, &params.refine)?;
         s = refined;
         classify(&s, &corrs, params.chi2, cam_q, cam_m, &mut mask);
+    }
+    if !(s.s / s_start.s).is_finite() || (s.s / s_start.s).ln().abs() > MAX_REFINE_LOG_SCALE {
+        s = s_start;
+        mask = mask_start;
     }
     let refined_inliers = mask.iter().filter(|&&m| m).count();
     if refined_inliers < params.min_refined_inliers.max(3) {
