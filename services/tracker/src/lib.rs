@@ -549,7 +549,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                             }
                             kf_counts.sync(&outbox, &mut status, &mut file);
                             vo_session = session_base | v.session_id();
-                            if let Some(sp) = spool.as_mut() {
+                            // Keyframes enter the VO map only with a frame that reports one
+                            // (two at initialisation): no map lock on the other frames.
+                            if let (Some(sp), Some(_)) = (spool.as_mut(), o.keyframe) {
                                 spool_new_keyframes(
                                     v,
                                     sp,
