@@ -75,6 +75,11 @@ pub struct Params {
     /// ablation: the revisit then only links the keyframes locally).
     #[arg(long, default_value_t = HandlerParams::default().revisit_min_points)]
     pub revisit_points: usize,
+    /// Forget a client point not referenced by the last this-many keyframe ids of its
+    /// client session (must exceed the id span of the client VO's window; 0: never; memory
+    /// on long runs, BENCHMARKS.md "Long run").
+    #[arg(long, default_value_t = HandlerParams::default().assoc_horizon_kfs)]
+    pub assoc_horizon: u64,
     /// At the end, wait at most this long (s) for the handlers to finish their queues.
     #[arg(long, default_value_t = 50.0)]
     pub drain_seconds: f64,
@@ -620,6 +625,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         handler_params: HandlerParams {
             spatial_keyframes: params.spatial_keyframes,
             revisit_min_points: params.revisit_points,
+            assoc_horizon_kfs: params.assoc_horizon,
             ..HandlerParams::default()
         },
         workers: Vec::new(),

@@ -87,6 +87,11 @@ pub struct HandlerParams {
     pub revisit_min_age_s: f64,
     /// At most one revisit global BA per this many seconds of data.
     pub revisit_cooldown_s: f64,
+    /// Client points not referenced by the last this-many client keyframe ids of their
+    /// session are forgotten ([`ServerMap::forget_unseen`]). Must exceed the id span of the
+    /// client VO's window (the seed's window is 100 keyframes; culled VO keyframes widen
+    /// the span); 0 keeps every association.
+    pub assoc_horizon_kfs: u64,
 }
 
 impl Default for HandlerParams {
@@ -111,6 +116,7 @@ impl Default for HandlerParams {
             revisit_min_points: 20,
             revisit_min_age_s: 5.0,
             revisit_cooldown_s: 5.0,
+            assoc_horizon_kfs: 300,
         }
     }
 }
@@ -187,6 +193,8 @@ pub struct KeyframeHandler {
     /// Time (ns) of the keyframe that triggered the last revisit global BA.
     last_revisit_ba: Option<i64>,
     held: Option<Held>,
+    /// Client keyframe id of the last [`ServerMap::forget_unseen`].
+    last_forget: KfId,
     next_point_id: PointId,
     stats: HandlerStats,
     refiner: Refiner,
@@ -212,6 +220,7 @@ impl KeyframeHandler {
             global_ba: false,
             last_revisit_ba: None,
             held: None,
+            last_forget: 0,
             next_point_id: u64::from(client_id) << 40,
             stats: HandlerStats::default(),
             refiner: Refiner::default(),
@@ -375,6 +384,8 @@ impl KeyframeHandler {
             .filter(|p| p >> 40 == self.next_point_id >> 40)
             .fold(self.next_point_id, u64::max);
         let mut map = ServerMap::new(id, self.client_id, session, first_point);
+        map.touch(owner, first.id, &first.client_points);
+        map.touch(owner, second.id, &second.client_points);
         let none1 = vec![None; first.features.len()];
         let none2 = vec![None; second.features.len()];
         let k1 = map.insert(&first, &first.t_ck, &none1);
@@ -435,6 +446,15 @@ impl KeyframeHandler {
                 "server map {map_id} missing"
             )));
         };
+        map.touch(owner, kf.id, &kf.client_points);
+        // Forget client points the VO erased, every quarter horizon (not only in idle steps:
+        // once a long run revisits a finished map, keyframes are rarely kept and idle steps
+        // rarely run).
+        let horizon = self.params.assoc_horizon_kfs;
+        if horizon > 0 && kf.id >= self.last_forget.saturating_add(horizon / 4) {
+            map.forget_unseen(horizon);
+            self.last_forget = kf.id;
+        }
         // Eq. 3.1, 3.4.
         let pred = predict_server_pose(&last.t_ck, &t_sj, last.lambda, &kf.t_ck);
         let refined = self.refiner.refine(
@@ -550,6 +570,7 @@ impl KeyframeHandler {
         let h = self.held.take()?;
         let map = maps.get_mut(&h.map)?;
         let owner = (h.kf.client_id, h.kf.session_id);
+        map.touch(owner, h.kf.id, &h.kf.client_points);
         // Points matched then may have been culled or fused since.
         let points: Vec<Option<PointId>> = h
             .frame_points

@@ -167,3 +167,64 @@ fn invalid_foreign_and_duplicate_keyframes() {
     assert_eq!((fb.acked_keyframe_id, fb.acked_session_id), (1, 1));
     assert_eq!(fb.pose.unwrap().0, server_map_id(CLIENT, 0));
 }
+
+/// A client VO that revisits the same places makes new point ids for them (its window
+/// forgets the old ones): keyframes going back and forth over six poses whose client point
+/// ids are renumbered every three keyframes. Forgetting client points unseen for 6 keyframe
+/// ids keeps the association table at what the last few keyframes reference; without it the
+/// table holds every id ever sent. The poses stay on the truth either way.
+#[test]
+fn unseen_client_points_are_forgotten() {
+    let run = |horizon: u64| {
+        let params = HandlerParams {
+            assoc_horizon_kfs: horizon,
+            ..HandlerParams::default()
+        };
+        let mut h = KeyframeHandler::new(CLIENT, params);
+        let mut maps = ServerMaps::new();
+        let mut worst: f64 = 0.0;
+        for k in 0..48u64 {
+            let step = [0, 1, 2, 3, 4, 5, 4, 3, 2, 1][k as usize % 10];
+            let t_wk = true_pose(step);
+            let mut kf = keyframe(k, 1, &t_wk, &t_wk);
+            for c in kf.client_points.iter_mut().flatten() {
+                *c += 10_000 * (k / 3);
+            }
+            let r = h.handle(&mut maps, kf).unwrap();
+            if let Some(t) = r.t_sk {
+                worst = worst.max((t.translation.vector - t_wk.translation.vector).norm());
+            }
+            h.idle_step(&mut maps);
+        }
+        let map = h.current_map(&maps).unwrap();
+        (map.association_count().0, worst)
+    };
+    let (kept_all, err_all) = run(0);
+    let (kept_recent, err_recent) = run(6);
+    assert!(
+        err_all < 2e-3 && err_recent < 2e-3,
+        "{err_all} {err_recent}"
+    );
+    // 16 renumberings of ~500 visible points: thousands without forgetting; the last
+    // 6 ids (at most 3 renumberings) with it.
+    assert!(kept_all > 4000, "{kept_all}");
+    assert!(kept_recent < 1800, "{kept_recent}");
+}
+
+#[test]
+fn forget_unseen_keeps_recently_referenced_points() {
+    let mut map = ServerMap::new(1, CLIENT, 1, 0);
+    let (a, b) = ((CLIENT, 1), (CLIENT, 2));
+    map.touch(a, 1, &[]);
+    map.associate(a, 10, 100);
+    map.touch(a, 5, &[Some(11)]);
+    map.associate(a, 11, 101);
+    map.touch(a, 8, &[Some(10)]);
+    map.touch(b, 3, &[]);
+    map.associate(b, 10, 102);
+    map.touch(a, 12, &[]);
+    // Owner a: point 10 seen at 8, point 11 at 5; limit 12 - 5 = 7. Owner b: newest 3.
+    assert_eq!(map.forget_unseen(5), 1);
+    assert_eq!(map.association_count().0, 2);
+    assert_eq!(map.forget_unseen(100), 0);
+}

@@ -37,10 +37,26 @@ pub struct ServerMap {
 /// unique within one.
 pub type Owner = (u32, u32);
 
+/// The client-point tables of one owner. Every entry remembers the newest client keyframe
+/// id that referenced its client point (`seen`), so that client points the VO can no longer
+/// send (erased from its window) are forgotten: a VO revisiting a place makes new point ids
+/// for it, and without forgetting the table grows with every id ever sent (about 64 per
+/// keyframe on a long loop, BENCHMARKS.md "Long run"), not with the map.
 #[derive(Debug, Clone, Default)]
 struct Associations {
-    client_to_server: BTreeMap<PointId, PointId>,
-    pending: BTreeMap<PointId, Vec<(KfId, u32)>>,
+    /// Client point → (server point, newest client keyframe id that referenced it).
+    client_to_server: BTreeMap<PointId, (PointId, KfId)>,
+    /// Client point → kept-keyframe observations not yet triangulated, newest client
+    /// keyframe id that referenced it.
+    pending: BTreeMap<PointId, Pending>,
+    /// Newest client keyframe id of this owner seen by [`ServerMap::touch`].
+    newest: KfId,
+}
+
+#[derive(Debug, Clone, Default)]
+struct Pending {
+    obs: Vec<(KfId, u32)>,
+    seen: KfId,
 }
 
 impl ServerMap {
@@ -61,7 +77,7 @@ impl ServerMap {
             .get(&owner)?
             .client_to_server
             .get(&c)
-            .copied()
+            .map(|e| e.0)
             .filter(|s| self.map.points.contains_key(s))
     }
 
@@ -70,9 +86,42 @@ impl ServerMap {
     pub fn associate(&mut self, owner: Owner, c: PointId, s: PointId) {
         if self.server_point(owner, c).is_none() {
             let a = self.assoc.entry(owner).or_default();
-            a.client_to_server.insert(c, s);
+            a.client_to_server.insert(c, (s, a.newest));
             a.pending.remove(&c);
         }
+    }
+
+    /// Client keyframe `kf_id` of `owner` references `client_points`: marks them seen
+    /// (call before looking them up for that keyframe).
+    pub fn touch(&mut self, owner: Owner, kf_id: KfId, client_points: &[Option<PointId>]) {
+        let a = self.assoc.entry(owner).or_default();
+        a.newest = a.newest.max(kf_id);
+        for c in client_points.iter().flatten() {
+            if let Some(e) = a.client_to_server.get_mut(c) {
+                e.1 = e.1.max(kf_id);
+            }
+            if let Some(p) = a.pending.get_mut(c) {
+                p.seen = p.seen.max(kf_id);
+            }
+        }
+    }
+
+    /// Forgets client points of each owner not referenced by any of its last `horizon`
+    /// client keyframe ids (the VO erased them: a client point lives only while a keyframe
+    /// of the VO's window observes it, so `horizon` must exceed the id span of the client's
+    /// window). Returns the entries dropped.
+    pub fn forget_unseen(&mut self, horizon: KfId) -> usize {
+        let mut dropped = 0;
+        for a in self.assoc.values_mut() {
+            let Some(limit) = a.newest.checked_sub(horizon) else {
+                continue;
+            };
+            let before = a.client_to_server.len() + a.pending.len();
+            a.client_to_server.retain(|_, e| e.1 >= limit);
+            a.pending.retain(|_, p| p.seen >= limit);
+            dropped += before - a.client_to_server.len() - a.pending.len();
+        }
+        dropped
     }
 
     /// Sessions whose client points are associated with this map's points.
@@ -89,9 +138,12 @@ impl ServerMap {
         self.map.absorb(other.map);
         for (owner, a) in other.assoc {
             let mine = self.assoc.entry(owner).or_default();
+            mine.newest = mine.newest.max(a.newest);
             mine.client_to_server.extend(a.client_to_server);
-            for (c, list) in a.pending {
-                mine.pending.entry(c).or_default().extend(list);
+            for (c, p) in a.pending {
+                let e = mine.pending.entry(c).or_default();
+                e.obs.extend(p.obs);
+                e.seen = e.seen.max(p.seen);
             }
         }
         n
@@ -106,13 +158,13 @@ impl ServerMap {
         let (points, keyframes) = (&self.map.points, &self.map.keyframes);
         for a in self.assoc.values_mut() {
             let before = a.client_to_server.len();
-            a.client_to_server.retain(|_, s| points.contains_key(s));
+            a.client_to_server.retain(|_, e| points.contains_key(&e.0));
             dropped += before - a.client_to_server.len();
-            a.pending.retain(|_, list| {
-                let n = list.len();
-                list.retain(|(k, _)| keyframes.contains_key(k));
-                dropped += n - list.len();
-                !list.is_empty()
+            a.pending.retain(|_, p| {
+                let n = p.obs.len();
+                p.obs.retain(|(k, _)| keyframes.contains_key(k));
+                dropped += n - p.obs.len();
+                !p.obs.is_empty()
             });
         }
         dropped
@@ -128,9 +180,9 @@ impl ServerMap {
     /// Replaces point `from` by point `to` in the associations (after a fusion).
     pub(crate) fn redirect_point(&mut self, from: PointId, to: PointId) {
         for a in self.assoc.values_mut() {
-            for s in a.client_to_server.values_mut() {
-                if *s == from {
-                    *s = to;
+            for e in a.client_to_server.values_mut() {
+                if e.0 == from {
+                    e.0 = to;
                 }
             }
         }
@@ -205,7 +257,7 @@ impl ServerMap {
                 .assoc
                 .get(&owner)
                 .and_then(|a| a.pending.get(&c))
-                .cloned()
+                .map(|p| p.obs.clone())
                 .unwrap_or_default();
             let mut made = None;
             for (k0, i0) in candidates {
@@ -216,15 +268,17 @@ impl ServerMap {
             }
             let a = self.assoc.entry(owner).or_default();
             if let Some(p) = made {
-                a.client_to_server.insert(c, p);
+                a.client_to_server.insert(c, (p, a.newest));
                 a.pending.remove(&c);
                 created += 1;
             } else {
-                let list = a.pending.entry(c).or_default();
-                if list.len() >= MAX_PENDING_PER_POINT {
-                    list.remove(0);
+                let newest = a.newest;
+                let p = a.pending.entry(c).or_default();
+                p.seen = p.seen.max(newest);
+                if p.obs.len() >= MAX_PENDING_PER_POINT {
+                    p.obs.remove(0);
                 }
-                list.push((k, i as u32));
+                p.obs.push((k, i as u32));
             }
         }
         created
