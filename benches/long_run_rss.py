@@ -16,8 +16,8 @@ Two steps:
       Runs `SHOAL run --lockstep --dataset DATASET --out OUT ...` and samples, every S seconds
       (default 5), VmRSS of the launcher and each child (/proc/PID/status), and the mapper's
       map size and the tracker's frame count from their status files. Writes OUT/rss.csv and
-      OUT/rss_summary.json (per service: RSS at start / middle / end / max, MiB) and prints the
-      summary.
+      OUT/rss_summary.json (per service: RSS at start / middle / end / max, MiB, and the heap
+      the process holds, from `heap_in_use_bytes` in its status file) and prints the summary.
 """
 import csv
 import json
@@ -152,6 +152,10 @@ def run(shoal, dataset, out, every, extra):
         for name, pid in kids.items():
             row[name] = rss_kib(pid)
             names.add(name)
+            # Heap the process holds (glibc mallinfo2, written with its status file): RSS
+            # growth without heap growth is the allocator's, not the program's.
+            heap = status(out, name.replace(":", "_c")).get("heap_in_use_bytes")
+            row["heap:" + name] = None if heap is None else heap // 1024
         m = status(out, "mapper").get("counters", {})
         row["map_keyframes"] = m.get("keyframes")
         row["map_points"] = m.get("points")
@@ -163,7 +167,8 @@ def run(shoal, dataset, out, every, extra):
         time.sleep(every)
     raw.close()
     log = p.stdout.read().decode(errors="replace")
-    cols = ["t_s", "frames", "map_keyframes", "map_points", "launcher"] + sorted(names)
+    cols = (["t_s", "frames", "map_keyframes", "map_points", "launcher"] + sorted(names)
+            + ["heap:" + n for n in sorted(names)])
     with open(os.path.join(out, "rss.csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()
@@ -184,6 +189,13 @@ def run(shoal, dataset, out, every, extra):
             "end_mib": mib(pick(1.0).get(name)),
             "max_mib": mib(max(vals)) if vals else None,
         }
+        if name != "launcher":
+            h = "heap:" + name
+            summary["services"][name].update({
+                "heap_start_mib": mib(pick(0.1).get(h)),
+                "heap_middle_mib": mib(pick(0.5).get(h)),
+                "heap_end_mib": mib(pick(1.0).get(h)),
+            })
     for key in ["frames", "map_keyframes", "map_points"]:
         summary[key] = {"start": pick(0.1).get(key), "middle": pick(0.5).get(key),
                         "end": pick(1.0).get(key)}

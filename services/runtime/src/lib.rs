@@ -119,13 +119,27 @@ impl StatusFile {
         serde_json::from_str(&text).ok()
     }
 
-    /// Writes `status` now.
+    /// Writes `status` now, with the process's heap in use ([`heap_in_use_bytes`]) beside
+    /// it (`heap_in_use_bytes` in the file; memory figures of long runs).
     pub fn write(&mut self, status: &Status) -> std::io::Result<()> {
         self.last_write = std::time::Instant::now();
         let Some(path) = &self.path else {
             return Ok(());
         };
-        write_json_atomic(path, status)
+        #[derive(Serialize)]
+        struct OnDisk<'a> {
+            #[serde(flatten)]
+            status: &'a Status,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            heap_in_use_bytes: Option<u64>,
+        }
+        write_json_atomic(
+            path,
+            &OnDisk {
+                status,
+                heap_in_use_bytes: heap_in_use_bytes(),
+            },
+        )
     }
 
     /// Writes `status` if the last write is older than `period`.
@@ -154,6 +168,22 @@ pub fn write_json_atomic<T: Serialize>(path: &Path, value: &T) -> std::io::Resul
         f.write_all(b"\n")?;
     }
     std::fs::rename(&tmp, path)
+}
+
+/// Bytes of heap the process has allocated and not freed (glibc `mallinfo2`: `uordblks`
+/// + `hblkhd`), `None` where unavailable. Beside the resident size it separates memory the
+/// program holds from memory the allocator keeps (fragmentation, free lists).
+pub fn heap_in_use_bytes() -> Option<u64> {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: mallinfo2 only reads the allocator's statistics; no arguments.
+        let m = unsafe { libc::mallinfo2() };
+        Some((m.uordblks + m.hblkhd) as u64)
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    {
+        None
+    }
 }
 
 /// Tells the launcher this service is ready.
@@ -196,7 +226,24 @@ mod tests {
         assert_eq!(r.error_counts["corrupt_image"], 1);
         let other = resume_status(&f, "tracker:1");
         assert_eq!(other.starts, 1);
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        if cfg!(all(target_os = "linux", target_env = "gnu")) {
+            assert!(json["heap_in_use_bytes"].as_u64().unwrap() > 0, "{json}");
+        }
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    #[test]
+    fn heap_in_use_follows_allocations() {
+        let before = heap_in_use_bytes().unwrap();
+        let block = vec![1u8; 16 << 20];
+        let during = heap_in_use_bytes().unwrap();
+        assert!(during >= before + (16 << 20) - 4096, "{before} -> {during}");
+        drop(std::hint::black_box(block));
+        let after = heap_in_use_bytes().unwrap();
+        assert!(after + (15 << 20) < during, "{during} -> {after}");
     }
 }
 

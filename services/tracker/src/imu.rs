@@ -14,6 +14,11 @@ use shoal_runtime::Status;
 /// Gyro samples older than this before the newest frame are dropped, ns.
 const KEEP_NS: i64 = 2_000_000_000;
 
+/// Gyro samples older than this before the newest sample are dropped when samples arrive,
+/// ns: the buffer stays bounded when no frame asks for the rate (a global-shutter camera),
+/// and still covers frames that lag the IMU stream by seconds.
+const KEEP_BEHIND_NEWEST_NS: i64 = 10_000_000_000;
+
 /// State of the IMU stream of one client.
 #[derive(Debug, Default)]
 pub struct ImuInput {
@@ -73,13 +78,26 @@ impl ImuInput {
             status.add("imu_samples_received", 1);
             let w = Vector3::from(m.gyro);
             if w.iter().all(|v| v.is_finite()) {
-                self.gyro.push_back((m.t_ns, w));
+                self.push_gyro(m.t_ns, w);
             }
             if let Some(l) = log.as_mut() {
                 writeln!(l, "imu {} {}", m.meta.seq, m.t_ns)?;
             }
         }
         Ok(n)
+    }
+
+    /// Keeps gyro sample `w` (body frame, rad/s) at `t_ns` (after the last one), dropping
+    /// those more than [`KEEP_BEHIND_NEWEST_NS`] older.
+    fn push_gyro(&mut self, t_ns: i64, w: Vector3<f64>) {
+        self.gyro.push_back((t_ns, w));
+        while self
+            .gyro
+            .front()
+            .is_some_and(|s| s.0 < t_ns - KEEP_BEHIND_NEWEST_NS)
+        {
+            self.gyro.pop_front();
+        }
     }
 
     /// The IMU stream is live: samples were seen and it has not ended.
@@ -119,5 +137,30 @@ impl ImuInput {
             return None;
         }
         Some(q.inverse() * w_b)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 60 s of 200 Hz gyro with no frame asking for the rate (global shutter): the buffer
+    /// holds the last 10 s, not the whole stream, and a rolling-shutter frame at the end
+    /// still gets its rate.
+    #[test]
+    fn gyro_buffer_is_bounded_without_frames() {
+        let mut imu = ImuInput::default();
+        let w = Vector3::new(0.1, -0.2, 0.3);
+        for k in 0..12_000i64 {
+            imu.push_gyro(k * 5_000_000, w);
+        }
+        assert!(imu.gyro.len() <= 2_001, "{}", imu.gyro.len());
+        let h = FrameHeader {
+            t_mid_ns: 59_000_000_000,
+            readout_ns: 20_000_000,
+            ..Default::default()
+        };
+        let rate = imu.camera_rate(&h).expect("rate over the readout");
+        assert!((rate - w).norm() < 1e-9, "{rate}");
     }
 }
