@@ -676,6 +676,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         topics::MAX_KEYPOINTS,
     )?;
     let resync_sub = topics::subscriber(&topics::resync_service(&node)?)?;
+    let mut trimmer = shoal_runtime::HeapTrimmer::new(Duration::from_secs(5));
     let corr_sub = topics::slice_subscriber(
         &topics::corrections_service(&node)?,
         topics::CORRECTION_BUFFER,
@@ -719,6 +720,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             m.resync(&req, &loop_pub)?;
         }
         let _ = file.write_every(&m.status, Duration::from_millis(200));
+        if idle {
+            trimmer.maybe_trim();
+        }
         if idle && node.wait(Duration::from_millis(1)).is_err() {
             break;
         }

@@ -186,6 +186,41 @@ pub fn heap_in_use_bytes() -> Option<u64> {
     }
 }
 
+/// Gives free heap memory back to the system now and then (glibc `malloc_trim`: releases
+/// the free pages of every arena). Services with worker threads that allocate and free
+/// large transient buffers (keyframe messages, BA problems) otherwise keep resident memory
+/// the program no longer holds: on a 20-minute run the mapper's resident size grew 3× more
+/// than its heap in use (BENCHMARKS.md, "Long run").
+#[derive(Debug)]
+pub struct HeapTrimmer {
+    period: std::time::Duration,
+    last: std::time::Instant,
+}
+
+impl HeapTrimmer {
+    /// Trims at most once per `period`.
+    pub fn new(period: std::time::Duration) -> Self {
+        Self {
+            period,
+            last: std::time::Instant::now(),
+        }
+    }
+
+    /// Trims if the last trim is older than the period; returns whether it trimmed.
+    pub fn maybe_trim(&mut self) -> bool {
+        if self.last.elapsed() < self.period {
+            return false;
+        }
+        self.last = std::time::Instant::now();
+        #[cfg(all(target_os = "linux", target_env = "gnu"))]
+        // SAFETY: malloc_trim only returns free memory of the allocator's arenas.
+        unsafe {
+            libc::malloc_trim(0);
+        }
+        true
+    }
+}
+
 /// Tells the launcher this service is ready.
 pub fn signal_ready() {
     let mut out = std::io::stdout().lock();
@@ -244,6 +279,34 @@ mod tests {
         drop(std::hint::black_box(block));
         let after = heap_in_use_bytes().unwrap();
         assert!(after + (15 << 20) < during, "{during} -> {after}");
+    }
+
+    fn rss_bytes() -> u64 {
+        let statm = std::fs::read_to_string("/proc/self/statm").unwrap();
+        let pages: u64 = statm.split_whitespace().nth(1).unwrap().parse().unwrap();
+        pages * 4096
+    }
+
+    /// 80 MB of 4 KB blocks freed except the last one (which keeps the heap top in use, so
+    /// `free` cannot shrink the heap): resident until trimmed, given back by the trimmer.
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    #[test]
+    fn trimmer_gives_free_heap_back() {
+        let mut blocks: Vec<Vec<u8>> = (0..20_000).map(|_| vec![7u8; 4000]).collect();
+        let last = blocks.pop();
+        let full = rss_bytes();
+        drop(std::hint::black_box(blocks));
+        let freed = rss_bytes();
+        let mut t = HeapTrimmer::new(std::time::Duration::ZERO);
+        assert!(t.maybe_trim());
+        let trimmed = rss_bytes();
+        drop(last);
+        assert!(
+            trimmed + (40 << 20) < freed,
+            "resident {full} -> freed {freed} -> trimmed {trimmed}"
+        );
+        let mut slow = HeapTrimmer::new(std::time::Duration::from_secs(3600));
+        assert!(!slow.maybe_trim());
     }
 }
 
