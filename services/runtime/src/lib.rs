@@ -171,7 +171,7 @@ pub fn write_json_atomic<T: Serialize>(path: &Path, value: &T) -> std::io::Resul
 }
 
 /// Bytes of heap the process has allocated and not freed (glibc `mallinfo2`: `uordblks`
-/// + `hblkhd`), `None` where unavailable. Beside the resident size it separates memory the
+/// plus `hblkhd`), `None` where unavailable. Beside the resident size it separates memory the
 /// program holds from memory the allocator keeps (fragmentation, free lists).
 pub fn heap_in_use_bytes() -> Option<u64> {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
