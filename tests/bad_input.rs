@@ -124,3 +124,137 @@ fn a_pipeline_of_another_schema_version_is_refused() {
     );
     drop(out);
 }
+
+/// Waits until `OUT/status/NAME.json` exists and, if `counter` is given, that counter reached
+/// `min`.
+fn wait_status(out: &std::path::Path, file: &str, counter: Option<(&str, u64)>) {
+    let path = out.join("status").join(format!("{file}.json"));
+    let start = std::time::Instant::now();
+    loop {
+        if let Ok(text) = fs::read_to_string(&path) {
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
+                match counter {
+                    None => return,
+                    Some((c, min)) if v["counters"][c].as_u64().unwrap_or(0) >= min => return,
+                    _ => {}
+                }
+            }
+        }
+        assert!(
+            start.elapsed() < std::time::Duration::from_secs(120),
+            "{file} never got ready ({counter:?})"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
+/// A message of another schema version in the middle of a running pipeline (a frame and an
+/// IMU sample to the tracker, a keyframe to the mapper, from a foreign publisher on the same
+/// services): each is refused with a clear error naming the service and both versions,
+/// counted in report.json, and the run goes on: every real frame still gets through.
+#[test]
+fn messages_of_another_schema_version_are_counted_and_the_run_goes_on() {
+    use iceoryx2::prelude::*;
+    use shm_schema::topics;
+    use shm_schema::{FrameHeader, ImuMsg, KeyframeHeader, MsgMeta, SCHEMA_VERSION};
+    const FRAMES: u64 = 80;
+    let dir = tempdir();
+    let agent = synthetic(dir.path(), "loop", FRAMES as usize, None).remove(0);
+    let out = tempdir();
+    let pfx = prefix("foreign");
+    let mut child = shoal()
+        .args(["run", "--lockstep", "--quiet", "--max-seconds", "120"])
+        .arg("--dataset")
+        .arg(&agent)
+        .arg("--out")
+        .arg(out.path())
+        .arg("--ipc-prefix")
+        .arg(&pfx)
+        .arg("--tracker-arg=--no-vo")
+        .arg("--tracker-arg=--work-ms=40")
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    wait_status(out.path(), "mapper", None);
+    wait_status(out.path(), "tracker_c0", Some(("frames_received", 10)));
+
+    let foreign = {
+        let mut m = MsgMeta::new(0, 77, 1_000_000, 0);
+        m.schema_version = SCHEMA_VERSION + 1;
+        m
+    };
+    let config = topics::config_with_prefix(&pfx).unwrap();
+    let node = NodeBuilder::new()
+        .config(&config)
+        .create::<ipc::Service>()
+        .unwrap();
+    // A frame.
+    let frames = topics::frames_service(&node, 0).unwrap();
+    let frame_pub = topics::frame_publisher(&frames, 64, 0).unwrap();
+    let mut s = frame_pub.loan_slice(64).unwrap();
+    *s.user_header_mut() = FrameHeader {
+        meta: foreign,
+        width: 8,
+        height: 8,
+        stride: 8,
+        ..Default::default()
+    };
+    s.send().unwrap();
+    // An IMU sample.
+    let imu = topics::imu_service(&node, 0).unwrap();
+    let imu_pub = topics::publisher(&imu).unwrap();
+    imu_pub
+        .send_copy(ImuMsg {
+            meta: foreign,
+            ..Default::default()
+        })
+        .unwrap();
+    // A keyframe (no keypoints).
+    let kfs = topics::keyframes_service(&node, 0).unwrap();
+    let kf_pub = topics::keyframe_publisher(&kfs).unwrap();
+    let mut s = kf_pub.loan_slice(0).unwrap();
+    *s.user_header_mut() = KeyframeHeader {
+        meta: foreign,
+        keyframe_id: 1 << 40,
+        ..Default::default()
+    };
+    s.send().unwrap();
+
+    assert!(child.wait().unwrap().success(), "the run goes on");
+    drop((frame_pub, imu_pub, kf_pub, frames, imu, kfs, node));
+    let rep = report(out.path());
+    assert_eq!(
+        rep["error_counts"]["tracker:0/schema_version"], 2,
+        "frame and IMU sample counted: {:#}",
+        rep["errors"]
+    );
+    assert_eq!(
+        rep["error_counts"]["mapper/schema_version"], 1,
+        "keyframe counted: {:#}",
+        rep["errors"]
+    );
+    let details = errors_of(&rep, "schema_version");
+    assert_eq!(details.len(), 3, "{details:?}");
+    let expected = format!(
+        "schema version {}, this binary speaks version {SCHEMA_VERSION}",
+        SCHEMA_VERSION + 1
+    );
+    for d in &details {
+        assert!(d.contains(&expected), "names both versions: {d}");
+    }
+    assert!(details.iter().any(|d| d.starts_with("frame of client 0")));
+    assert!(details.iter().any(|d| d.starts_with("imu of client 0")));
+    assert!(details
+        .iter()
+        .any(|d| d.starts_with("keyframe of client 0")));
+    let c = &rep["clients"][0];
+    assert_eq!(c["frames_published"], FRAMES);
+    assert_eq!(
+        c["frames_received"], FRAMES,
+        "every real frame taken: {c:#}"
+    );
+    assert_eq!(c["frames_dropped"], 0);
+    for name in ["tracker:0", "mapper"] {
+        assert_eq!(rep["services"][name]["restarts"], 0, "{name} kept running");
+    }
+}
