@@ -1,6 +1,6 @@
 //! Replays a mapper journal (`OUT/mapper_journal.bin`) through fresh keyframe handlers and
 //! prints, every N keyframes, the size of the server map and of its client-point
-//! association tables: a diagnosis tool for the mapper's memory growth on long runs
+//! association tables, and the heap the replay holds beyond the journal entries not replayed yet: a diagnosis tool for the mapper's memory growth on long runs
 //! (BENCHMARKS.md, "Long run").
 //!
 //! `cargo run --release --example journal_growth -- OUT/mapper_journal.bin [EVERY]`
@@ -21,6 +21,22 @@ fn main() -> anyhow::Result<()> {
     let every: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(250);
     let bytes = std::fs::read(path)?;
     let contents = parse(&bytes);
+    drop(bytes);
+    // Heap held by the journal entries not replayed yet, so that the printed heap is the
+    // handlers' and maps' own.
+    let rec_bytes = |r: &Vec<shm_schema::KeypointRecord>| {
+        (r.capacity() * std::mem::size_of::<shm_schema::KeypointRecord>()
+            + std::mem::size_of::<shm_schema::KeyframeHeader>()) as i64
+    };
+    let mut pending_bytes: i64 = contents
+        .entries
+        .iter()
+        .map(|e| match e {
+            Entry::Keyframe { records, .. } => rec_bytes(records),
+            _ => 0,
+        })
+        .sum();
+    let heap0 = shoal_runtime::heap_in_use_bytes().unwrap_or(0) as i64 - pending_bytes;
     if let Some(p) = &contents.problem {
         eprintln!("journal: {p} (replaying the good prefix)");
     }
@@ -28,7 +44,9 @@ fn main() -> anyhow::Result<()> {
     let mut maps = ServerMaps::new();
     let mut n = 0usize;
     let mut client_points: HashSet<(u32, u64)> = HashSet::new();
-    println!("keyframes,map_keyframes,map_points,associations,pending,distinct_client_points");
+    println!(
+        "keyframes,map_keyframes,map_points,associations,pending,distinct_client_points,heap_mib"
+    );
     for e in contents.entries {
         match e {
             Entry::Keyframe {
@@ -36,6 +54,7 @@ fn main() -> anyhow::Result<()> {
                 header,
                 records,
             } => {
+                pending_bytes -= rec_bytes(&records);
                 let kf = match mapper::convert::server_keyframe(client, &header, &records) {
                     Ok(k) => k,
                     Err(e) => {
@@ -61,7 +80,14 @@ fn main() -> anyhow::Result<()> {
                         let (x, y) = m.association_count();
                         (a.0 + x, a.1 + y)
                     });
-                    println!("{n},{kfs},{pts},{assoc},{pending},{}", client_points.len());
+                    let heap = (shoal_runtime::heap_in_use_bytes().unwrap_or(0) as i64
+                        - pending_bytes
+                        - heap0) as f64
+                        / 1048576.0;
+                    println!(
+                        "{n},{kfs},{pts},{assoc},{pending},{},{heap:.1}",
+                        client_points.len()
+                    );
                 }
             }
             Entry::Idle { client, .. } => {

@@ -641,7 +641,16 @@ impl KeyframeHandler {
         if std::mem::take(&mut self.global_ba) {
             // Seed §3.4.2: global BA after a loop correction (the seed runs it on its own
             // thread; here it is the handler's next idle step, so keyframes wait for it).
-            let ba = global_bundle_adjustment(&mut map.map, &mut self.ba, &mut self.ba_problem);
+            // Its workspace is its own and freed afterwards: it scales with every
+            // observation of the map (≈ 27 MiB at 70 keyframes), and kept in the handler it
+            // only ever grew (BENCHMARKS.md, "Long run"); the local BA's stays bounded by
+            // its window. A global BA runs at most once per few seconds of data, so the
+            // allocation is noise beside its 100-250 ms.
+            let ba = global_bundle_adjustment(
+                &mut map.map,
+                &mut BundleAdjuster::new(),
+                &mut BaProblem::new(),
+            );
             return Some(IdleReport {
                 ba,
                 culled: Vec::new(),
