@@ -63,6 +63,9 @@ pub struct Supervised {
     /// Crashes in a row, each within [`STABLE_AFTER`] of its start being ready (sets the
     /// back-off; a process that ran longer resets it).
     pub quick_crashes: u32,
+    /// The current process was SIGKILLed by the launcher's own fault injection (`--kill`,
+    /// `--chaos`): its death is not a crash of the service and does not raise the back-off.
+    pub kill_injected: bool,
     /// CPU time (user + system, s) of this service's processes that were reaped, summed over
     /// all its starts (from `wait4`'s resource usage of each process).
     pub cpu_s: f64,
@@ -100,6 +103,7 @@ impl Supervised {
             ready_at: None,
             ends_by_itself,
             quick_crashes: 0,
+            kill_injected: false,
             cpu_s: 0.0,
             restart_snapshots: Vec::new(),
         }
@@ -115,6 +119,7 @@ impl Supervised {
             .append(true)
             .open(&self.log)?;
         writeln!(log, "--- start #{} of {} ---", self.restarts + 1, self.name)?;
+        self.kill_injected = false;
         let mut cmd = Command::new(exe);
         cmd.arg("service")
             .args(&self.args)
@@ -246,8 +251,14 @@ impl Supervised {
 
     /// Notes a crash of the current process; returns the back-off before its restart. A
     /// process that had been ready for [`STABLE_AFTER`] resets the back-off, so a service
-    /// that crashes now and then (chaos) is not restarted ever more slowly.
+    /// that crashes now and then is not restarted ever more slowly. A kill injected by the
+    /// launcher itself is no crash of the service: the first back-off, the count of crashes
+    /// in a row unchanged (under `--chaos` a service killed every few seconds used to be
+    /// restarted after up to 3.2 s).
     pub fn note_crash(&mut self) -> Duration {
+        if std::mem::take(&mut self.kill_injected) {
+            return Duration::from_millis(100);
+        }
         let stable = self
             .ready_at
             .is_some_and(|r| r > self.spawned_at && r.elapsed() >= STABLE_AFTER);
@@ -271,5 +282,35 @@ impl Supervised {
         }
         self.signal(libc::SIGKILL);
         self.reap(true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crashes_in_a_row_double_the_backoff_but_injected_kills_do_not() {
+        let dir = std::env::temp_dir();
+        let mut sv = Supervised::new("tracker:0", Vec::new(), &dir, false);
+        let ms = |d: Duration| d.as_millis();
+        assert_eq!(ms(sv.note_crash()), 100);
+        assert_eq!(ms(sv.note_crash()), 200);
+        assert_eq!(ms(sv.note_crash()), 400);
+        // The launcher's own SIGKILL (--kill, --chaos): first back-off, count unchanged.
+        sv.kill_injected = true;
+        assert_eq!(ms(sv.note_crash()), 100);
+        assert_eq!(sv.quick_crashes, 3);
+        assert!(!sv.kill_injected, "one kill, one exemption");
+        assert_eq!(ms(sv.note_crash()), 800);
+        // Ready for longer than STABLE_AFTER: the back-off starts again.
+        sv.spawned_at = Instant::now() - STABLE_AFTER * 3;
+        sv.ready_at = Some(Instant::now() - STABLE_AFTER * 2);
+        assert_eq!(ms(sv.note_crash()), 100);
+        sv.spawned_at = Instant::now(); // restarted, not ready yet
+        for _ in 0..10 {
+            sv.note_crash();
+        }
+        assert_eq!(ms(sv.backoff()), 3200, "capped");
     }
 }

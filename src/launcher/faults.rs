@@ -261,6 +261,7 @@ impl FaultInjector {
         let pid = sv.pid().unwrap_or(0);
         tracing::warn!("fault injection ({cause}): SIGKILL {} (pid {pid})", sv.name);
         sv.signal(libc::SIGKILL);
+        sv.kill_injected = true;
         self.events.push(FaultEvent {
             service: sv.name.clone(),
             cause,
