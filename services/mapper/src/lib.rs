@@ -324,6 +324,10 @@ impl Mapper {
         for (c, fig) in &o.figures {
             self.set_figures(*c, *fig);
         }
+        if let Some(m) = o.absorbed {
+            // Merged away: the `maps` / `keyframes` / `points` gauges count live maps only.
+            self.map_sizes.remove(&m);
+        }
         self.set_map_sizes(&o.maps);
         Ok(())
     }

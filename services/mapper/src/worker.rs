@@ -138,6 +138,8 @@ pub struct CorrectionOutcome {
     pub figures: Vec<(u32, MapFigures)>,
     /// Sizes of all maps of the group.
     pub maps: Vec<MapSize>,
+    /// The map a successful merge absorbed (it no longer exists).
+    pub absorbed: Option<MapId>,
     /// Time to apply it (merge or corrections, fusion, global BA), ms.
     pub apply_ms: f64,
 }
@@ -377,6 +379,10 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
                 }
                 dirty = true;
                 let clients: Vec<u32> = g.clients.keys().copied().collect();
+                let absorbed = match (&correction, &result) {
+                    (Correction::Merge { from, .. }, Ok(_)) => Some(*from),
+                    _ => None,
+                };
                 Report::Correction(Box::new(CorrectionOutcome {
                     id: correction.id(),
                     kind: match correction {
@@ -392,6 +398,7 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
                         .collect(),
                     figures: clients.iter().map(|c| (*c, g.figures(*c))).collect(),
                     maps: g.sizes(),
+                    absorbed,
                     apply_ms: t0.elapsed().as_secs_f64() * 1e3,
                 }))
             }
