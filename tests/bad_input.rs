@@ -125,29 +125,6 @@ fn a_pipeline_of_another_schema_version_is_refused() {
     drop(out);
 }
 
-/// Waits until `OUT/status/NAME.json` exists and, if `counter` is given, that counter reached
-/// `min`.
-fn wait_status(out: &std::path::Path, file: &str, counter: Option<(&str, u64)>) {
-    let path = out.join("status").join(format!("{file}.json"));
-    let start = std::time::Instant::now();
-    loop {
-        if let Ok(text) = fs::read_to_string(&path) {
-            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
-                match counter {
-                    None => return,
-                    Some((c, min)) if v["counters"][c].as_u64().unwrap_or(0) >= min => return,
-                    _ => {}
-                }
-            }
-        }
-        assert!(
-            start.elapsed() < std::time::Duration::from_secs(120),
-            "{file} never got ready ({counter:?})"
-        );
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
-}
-
 /// A message of another schema version in the middle of a running pipeline (a frame and an
 /// IMU sample to the tracker, a keyframe to the mapper, from a foreign publisher on the same
 /// services): each is refused with a clear error naming the service and both versions,
@@ -161,29 +138,25 @@ fn messages_of_another_schema_version_are_counted_and_the_run_goes_on() {
     let dir = tempdir();
     let agent = synthetic(dir.path(), "loop", FRAMES as usize, None).remove(0);
     let out = tempdir();
-    let pfx = prefix("foreign");
-    let mut child = shoal()
-        .args(["run", "--lockstep", "--quiet", "--max-seconds", "120"])
-        .arg("--dataset")
-        .arg(&agent)
-        .arg("--out")
-        .arg(out.path())
-        .arg("--ipc-prefix")
-        .arg(&pfx)
-        .arg("--tracker-arg=--no-vo")
-        .arg("--tracker-arg=--work-ms=40")
-        .stdout(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    wait_status(out.path(), "mapper", None);
-    wait_status(out.path(), "tracker_c0", Some(("frames_received", 10)));
+    let mut child = spawn_pipeline(
+        &agent,
+        out.path(),
+        "foreign",
+        &[
+            "--lockstep",
+            "--tracker-arg=--no-vo",
+            "--tracker-arg=--work-ms=40",
+        ],
+    );
+    wait_status(out.path(), "mapper", "keyframes", 0);
+    wait_status(out.path(), "tracker_c0", "frames_received", 10);
 
     let foreign = {
         let mut m = MsgMeta::new(0, 77, 1_000_000, 0);
         m.schema_version = SCHEMA_VERSION + 1;
         m
     };
-    let config = topics::config_with_prefix(&pfx).unwrap();
+    let config = topics::config_with_prefix(&prefix("foreign")).unwrap();
     let node = NodeBuilder::new()
         .config(&config)
         .create::<ipc::Service>()

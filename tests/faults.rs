@@ -2,36 +2,9 @@
 //! that dies while the ingest keeps publishing.
 mod common;
 
-use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use common::*;
-
-/// Waits until `OUT/status/NAME.json` exists with `counter >= min`; returns the status.
-fn wait_status(out: &std::path::Path, file: &str, counter: &str, min: u64) -> serde_json::Value {
-    let path = out.join("status").join(format!("{file}.json"));
-    let start = Instant::now();
-    loop {
-        if let Ok(text) = std::fs::read_to_string(&path) {
-            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
-                if v["counters"][counter].as_u64().unwrap_or(0) >= min {
-                    return v;
-                }
-            }
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(120),
-            "{file} never reached {counter} >= {min}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
-fn sigkill(pid: u64) {
-    // SAFETY: kill(2) on a pid read from our own run's status file.
-    let r = unsafe { libc::kill(pid as i32, libc::SIGKILL) };
-    assert_eq!(r, 0, "SIGKILL {pid}");
-}
 
 /// Real-time replay; the tracker (the frame consumer) is SIGKILLed mid-stream. The camera
 /// keeps publishing on schedule (safe overflow: a dead subscriber never blocks it), the
@@ -41,18 +14,12 @@ fn killed_consumer_never_blocks_the_ingest_and_resumes() {
     let dir = tempdir();
     let agents = synthetic(dir.path(), "loop", 120, None); // 6 s at 20 Hz
     let out = tempdir();
-    let mut child = shoal()
-        .args(["run", "--rate", "1.0", "--quiet", "--max-seconds", "120"])
-        .arg("--dataset")
-        .arg(&agents[0])
-        .arg("--out")
-        .arg(out.path())
-        .arg("--ipc-prefix")
-        .arg(prefix("kill"))
-        .arg("--tracker-arg=--no-vo")
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut child = spawn_pipeline(
+        &agents[0],
+        out.path(),
+        "kill",
+        &["--rate", "1.0", "--tracker-arg=--no-vo"],
+    );
     let st = wait_status(out.path(), "tracker_c0", "frames_received", 20);
     let before = st["counters"]["frames_received"].as_u64().unwrap();
     sigkill(st["pid"].as_u64().unwrap());
@@ -94,20 +61,17 @@ fn killed_ingest_is_restarted_and_resumes() {
     let agents = synthetic(dir.path(), "loop", 80, None);
     let out = tempdir();
     let log = out.path().join("frames_c{c}.log");
-    let mut child = shoal()
-        .args(["run", "--lockstep", "--quiet", "--max-seconds", "120"])
-        .arg("--dataset")
-        .arg(&agents[0])
-        .arg("--out")
-        .arg(out.path())
-        .arg("--ipc-prefix")
-        .arg(prefix("killcam"))
-        .arg(format!("--tracker-arg=--frame-log={}", log.display()))
-        .arg("--tracker-arg=--work-ms=20")
-        .arg("--tracker-arg=--no-vo")
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut child = spawn_pipeline(
+        &agents[0],
+        out.path(),
+        "killcam",
+        &[
+            "--lockstep",
+            &format!("--tracker-arg=--frame-log={}", log.display()),
+            "--tracker-arg=--work-ms=20",
+            "--tracker-arg=--no-vo",
+        ],
+    );
     let st = wait_status(out.path(), "camera_ingest_c0", "frames_published", 15);
     sigkill(st["pid"].as_u64().unwrap());
     assert!(child.wait().unwrap().success());
@@ -125,18 +89,8 @@ fn stale_state_of_a_killed_run_does_not_stop_the_next() {
     let dir = tempdir();
     let agents = synthetic(dir.path(), "loop", 60, None);
     let out = tempdir();
-    let pfx = prefix("stale");
-    let mut child = shoal()
-        .args(["run", "--rate", "1.0", "--quiet", "--max-seconds", "120"])
-        .arg("--dataset")
-        .arg(&agents[0])
-        .arg("--out")
-        .arg(out.path())
-        .arg("--ipc-prefix")
-        .arg(&pfx)
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
+    // Same prefix ("stale") for both runs.
+    let mut child = spawn_pipeline(&agents[0], out.path(), "stale", &["--rate", "1.0"]);
     wait_status(out.path(), "tracker_c0", "frames_received", 5);
     let mut pids = vec![];
     for f in [
@@ -245,18 +199,12 @@ fn realtime_ingest_outage_counts_the_missed_frames_as_dropped() {
     let dir = tempdir();
     let agents = synthetic(dir.path(), "loop", FRAMES as usize, None);
     let out = tempdir();
-    let mut child = shoal()
-        .args(["run", "--rate", "1.0", "--quiet", "--max-seconds", "120"])
-        .arg("--dataset")
-        .arg(&agents[0])
-        .arg("--out")
-        .arg(out.path())
-        .arg("--ipc-prefix")
-        .arg(prefix("outage"))
-        .arg("--tracker-arg=--no-vo")
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut child = spawn_pipeline(
+        &agents[0],
+        out.path(),
+        "outage",
+        &["--rate", "1.0", "--tracker-arg=--no-vo"],
+    );
     let st = wait_status(out.path(), "camera_ingest_c0", "frames_published", 20);
     let mut pid = st["pid"].as_u64().unwrap();
     for _ in 0..4 {

@@ -65,6 +65,56 @@ pub fn run_pipeline(datasets: &[&Path], out: &Path, test: &str, extra: &[&str]) 
     out
 }
 
+/// Starts `shoal run --quiet` on `dataset` into `out` in the background (stdout discarded,
+/// iceoryx2 prefix of `test`, at most 120 s) with `extra` arguments; the caller waits for it.
+pub fn spawn_pipeline(
+    dataset: &Path,
+    out: &Path,
+    test: &str,
+    extra: &[&str],
+) -> std::process::Child {
+    shoal()
+        .args(["run", "--quiet", "--max-seconds", "120"])
+        .arg("--dataset")
+        .arg(dataset)
+        .arg("--out")
+        .arg(out)
+        .arg("--ipc-prefix")
+        .arg(prefix(test))
+        .args(extra)
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .expect("spawn shoal run")
+}
+
+/// Waits until `OUT/status/NAME.json` exists with `counter >= min` (`min` 0: the service
+/// wrote its status); returns the status.
+pub fn wait_status(out: &Path, file: &str, counter: &str, min: u64) -> serde_json::Value {
+    let path = out.join("status").join(format!("{file}.json"));
+    let start = std::time::Instant::now();
+    loop {
+        if let Ok(text) = std::fs::read_to_string(&path) {
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
+                if v["counters"][counter].as_u64().unwrap_or(0) >= min {
+                    return v;
+                }
+            }
+        }
+        assert!(
+            start.elapsed() < std::time::Duration::from_secs(120),
+            "{file} never reached {counter} >= {min}"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
+/// SIGKILL of a process of our own run (pid from its status file).
+pub fn sigkill(pid: u64) {
+    // SAFETY: kill(2) on a pid read from our own run's status file.
+    let r = unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    assert_eq!(r, 0, "SIGKILL {pid}");
+}
+
 /// Reads `OUT/report.json`.
 pub fn report(out: &Path) -> serde_json::Value {
     let text = std::fs::read_to_string(out.join("report.json")).expect("report.json");

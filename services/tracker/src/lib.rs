@@ -41,6 +41,7 @@ fn new_vo(params: &Params, h: &shm_schema::FrameHeader) -> anyhow::Result<VoTrac
     let mut vp = VoParams {
         rolling_shutter: !params.no_rs,
         window: params.window.max(2),
+        local_mapping_thread: !params.inline_mapping,
         ..VoParams::default()
     };
     vp.orb.n_features = params.features;
@@ -210,6 +211,11 @@ pub struct Params {
     /// Wait at most this long (ms) for the gyro samples up to a frame's last row.
     #[arg(long, default_value_t = 40)]
     pub imu_wait_ms: u64,
+    /// Local mapping inline in the tracking thread (after each new keyframe) instead of its
+    /// own thread: slower per keyframe, but a lock-step replay then takes the same
+    /// decisions on every run and machine.
+    #[arg(long)]
+    pub inline_mapping: bool,
 }
 
 pub mod imu;
