@@ -1,7 +1,8 @@
 //! Replays a mapper journal (`OUT/mapper_journal.bin`) through fresh keyframe handlers and
 //! prints, every N keyframes, the size of the server map and of its client-point
-//! association tables, and the heap the replay holds beyond the journal entries not replayed yet: a diagnosis tool for the mapper's memory growth on long runs
-//! (BENCHMARKS.md, "Long run").
+//! association tables, and the heap the replay holds beyond the journal entries not replayed
+//! yet: a diagnosis tool for the mapper's memory growth on long runs (BENCHMARKS.md, "Long
+//! run").
 //!
 //! `cargo run --release --example journal_growth -- OUT/mapper_journal.bin [EVERY]`
 //!

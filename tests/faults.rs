@@ -2,7 +2,7 @@
 //! that dies while the ingest keeps publishing.
 mod common;
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use common::*;
 
@@ -169,22 +169,10 @@ fn kill_schedule_kills_and_every_service_recovers() {
 /// Waits until `OUT/status/NAME.json` names a process other than `old_pid` (the restarted
 /// service is up); returns its pid.
 fn wait_new_pid(out: &std::path::Path, file: &str, old_pid: u64) -> u64 {
-    let path = out.join("status").join(format!("{file}.json"));
-    let start = Instant::now();
-    loop {
-        if let Ok(text) = std::fs::read_to_string(&path) {
-            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
-                if let Some(p) = v["pid"].as_u64().filter(|p| *p != old_pid) {
-                    return p;
-                }
-            }
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(60),
-            "{file} was not restarted"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
+    let v = wait_status_until(out, file, "a new pid", |v| {
+        v["pid"].as_u64().is_some_and(|p| p != old_pid)
+    });
+    v["pid"].as_u64().unwrap_or_default()
 }
 
 /// Real-time replay; the camera ingest is SIGKILLed four times in a row, each time as soon

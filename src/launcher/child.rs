@@ -12,6 +12,9 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
 
+/// Back-off before the first restart (and after a kill the launcher injected itself).
+pub const FIRST_BACKOFF: Duration = Duration::from_millis(100);
+
 /// A process that ran this long after being ready resets the restart back-off.
 pub const STABLE_AFTER: Duration = Duration::from_secs(5);
 
@@ -246,7 +249,7 @@ impl Supervised {
 
     /// Back-off before the next restart: 100 ms doubling per crash in a row, at most 3.2 s.
     pub fn backoff(&self) -> Duration {
-        Duration::from_millis(100u64 << self.quick_crashes.min(5))
+        FIRST_BACKOFF * (1u32 << self.quick_crashes.min(5))
     }
 
     /// Notes a crash of the current process; returns the back-off before its restart. A
@@ -257,7 +260,7 @@ impl Supervised {
     /// restarted after up to 3.2 s).
     pub fn note_crash(&mut self) -> Duration {
         if std::mem::take(&mut self.kill_injected) {
-            return Duration::from_millis(100);
+            return FIRST_BACKOFF;
         }
         let stable = self
             .ready_at

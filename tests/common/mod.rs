@@ -90,21 +90,34 @@ pub fn spawn_pipeline(
 /// Waits until `OUT/status/NAME.json` exists with `counter >= min` (`min` 0: the service
 /// wrote its status); returns the status.
 pub fn wait_status(out: &Path, file: &str, counter: &str, min: u64) -> serde_json::Value {
+    wait_status_until(out, file, &format!("{counter} >= {min}"), |v| {
+        v["counters"][counter].as_u64().unwrap_or(0) >= min
+    })
+}
+
+/// Waits (at most 120 s) until `OUT/status/NAME.json` parses and `done` holds for it
+/// (`what` names the condition in the failure); returns the status.
+pub fn wait_status_until(
+    out: &Path,
+    file: &str,
+    what: &str,
+    done: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
     let path = out.join("status").join(format!("{file}.json"));
     let start = std::time::Instant::now();
     loop {
         if let Ok(text) = std::fs::read_to_string(&path) {
             if let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) {
-                if v["counters"][counter].as_u64().unwrap_or(0) >= min {
+                if done(&v) {
                     return v;
                 }
             }
         }
         assert!(
             start.elapsed() < std::time::Duration::from_secs(120),
-            "{file} never reached {counter} >= {min}"
+            "{file} never reached {what}"
         );
-        std::thread::sleep(std::time::Duration::from_millis(20));
+        std::thread::sleep(std::time::Duration::from_millis(5));
     }
 }
 
