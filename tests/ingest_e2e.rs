@@ -39,11 +39,13 @@ fn replay_and_check(dataset: &std::path::Path, test: &str, expect_imu: bool) {
     }
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/kitti07 (set SHOAL_DATA)"
+)]
 #[test]
 fn kitti07_lockstep_replay_is_exact() {
-    let Some(ds) = shared_dataset("kitti07") else {
-        return;
-    };
+    let ds = shared_dataset("kitti07");
     replay_and_check(&ds, "kitti", false);
 }
 
@@ -57,11 +59,13 @@ fn synthetic_lockstep_replay_is_exact() {
     assert!(ds.frames.iter().all(|f| f.readout_ns == 30_000_000));
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/phone_honorv10 (set SHOAL_DATA)"
+)]
 #[test]
 fn phone_frames_carry_rolling_shutter_readout() {
-    let Some(ds) = shared_dataset("phone_honorv10") else {
-        return;
-    };
+    let ds = shared_dataset("phone_honorv10");
     let out = tempdir();
     let log = out.path().join("frames_c{c}.log");
     let arg = format!("--tracker-arg=--frame-log={}", log.display());

@@ -50,11 +50,13 @@ fn fast_rs_compensation_beats_none() {
     );
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/kitti07 (set SHOAL_DATA)"
+)]
 #[test]
 fn kitti07_initialises_tracks_and_is_accurate() {
-    let Some(ds) = shared_dataset("kitti07") else {
-        return;
-    };
+    let ds = shared_dataset("kitti07");
     let tmp = tempdir();
     let out = tmp.path().join("out");
     let o = run_pipeline(&[&ds], &out, "kitti07_vo", &[]);
@@ -80,11 +82,13 @@ fn kitti07_initialises_tracks_and_is_accurate() {
     assert!(rmse <= 0.55 && pct <= 1.0, "ATE {rmse:.3} m ({pct:.3}%)");
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/phone_honorv10 (set SHOAL_DATA)"
+)]
 #[test]
 fn phone_clip_runs_without_error() {
-    let Some(ds) = shared_dataset("phone_honorv10") else {
-        return;
-    };
+    let ds = shared_dataset("phone_honorv10");
     let tmp = tempdir();
     let out = tmp.path().join("out");
     let o = run_pipeline(&[&ds], &out, "phone_vo", &[]);

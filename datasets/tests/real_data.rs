@@ -1,4 +1,5 @@
-//! Readers on the real data excerpts in `../shared/data` (skipped when absent).
+//! Readers on the real data excerpts in `../shared/data` (ignored when absent: see
+//! `build_support/shoal_data.rs`).
 
 mod common;
 
@@ -29,11 +30,13 @@ fn check_frame(path: &std::path::Path, w: u32, h: u32, sum: u64, hash: u64) {
     assert!(decode_gray_into(path, &mut buf[1..], w, h).is_err());
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/euroc_v101_static (set SHOAL_DATA)"
+)]
 #[test]
 fn euroc_v101_static() {
-    let Some(data) = data_dir("euroc_v101_static") else {
-        return;
-    };
+    let data = data_dir("euroc_v101_static");
     let ds = open(&data.join("euroc_v101_static")).expect("open");
     assert_eq!(ds.kind, DatasetKind::Euroc);
     assert!(ds.issues.is_empty(), "{:?}", ds.issues);
@@ -80,11 +83,13 @@ fn euroc_v101_static() {
     );
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/euroc_v102_imu_gt (set SHOAL_DATA)"
+)]
 #[test]
 fn euroc_v102_imu_and_gt_without_camera() {
-    let Some(data) = data_dir("euroc_v102_imu_gt") else {
-        return;
-    };
+    let data = data_dir("euroc_v102_imu_gt");
     let ds = open(&data.join("euroc_v102_imu_gt")).expect("open");
     assert_eq!(ds.kind, DatasetKind::Euroc);
     assert!(ds.issues.is_empty(), "{:?}", ds.issues);
@@ -104,11 +109,13 @@ fn euroc_v102_imu_and_gt_without_camera() {
     assert_eq!(ds2.imu.len(), 7999);
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/kitti07 (set SHOAL_DATA)"
+)]
 #[test]
 fn kitti07() {
-    let Some(data) = data_dir("kitti07") else {
-        return;
-    };
+    let data = data_dir("kitti07");
     let ds = open(&data.join("kitti07")).expect("open");
     assert_eq!(ds.kind, DatasetKind::Kitti);
     assert!(ds.issues.is_empty(), "{:?}", ds.issues);
@@ -139,11 +146,13 @@ fn kitti07() {
     );
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/phone_honorv10 (set SHOAL_DATA)"
+)]
 #[test]
 fn phone_honorv10() {
-    let Some(data) = data_dir("phone_honorv10") else {
-        return;
-    };
+    let data = data_dir("phone_honorv10");
     let ds = open(&data.join("phone_honorv10")).expect("open");
     assert_eq!(ds.kind, DatasetKind::Phone);
     assert!(ds.issues.is_empty(), "{:?}", ds.issues);
@@ -166,11 +175,13 @@ fn phone_honorv10() {
     check_frame(&f0.path, 720, 1280, 128_994_821, 0x17ce_8bd6_7b54_adcc);
 }
 
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/kitti06_frames (set SHOAL_DATA)"
+)]
 #[test]
 fn not_a_dataset_folder() {
-    let Some(data) = data_dir("not_a_dataset_folder") else {
-        return;
-    };
+    let data = data_dir("kitti06_frames");
     let err = open(&data.join("kitti06_frames")).map(|_| ()).unwrap_err();
     assert!(
         matches!(err, datasets::DatasetError::UnknownFormat { .. }),

@@ -31,6 +31,10 @@ pub struct TrackingArgs {
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
+    /// Write a latency plot (PNG): histogram of the per-frame tracking time and per-stage
+    /// bars.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
 }
 
 #[derive(Serialize)]
@@ -63,6 +67,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let mut h: [LatencyHist; 9] = Default::default();
     let mut tracked = 0;
+    let mut per_frame_ms = Vec::with_capacity(n);
     for rec in ds.frames.iter().take(n) {
         datasets::decode_gray_into(&rec.path, &mut img, cam.width, cam.height)?;
         let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize)?;
@@ -74,6 +79,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         })?;
         tracked += (out.state == VoState::Tracking) as usize;
         let t = out.times;
+        per_frame_ms.push(t.total as f64);
         let orb = t.pyramid + t.detect + t.describe;
         for (hist, ms) in h.iter_mut().zip([
             t.pyramid,
@@ -117,6 +123,9 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         total_ms: p(8),
         publish_to_pose_ms,
     };
+    if let Some(path) = &args.plot {
+        write_plot(&rep, per_frame_ms, path)?;
+    }
     if args.json {
         println!("{}", serde_json::to_string(&rep)?);
     } else {
@@ -143,5 +152,45 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             row("publish_to_pose", q);
         }
     }
+    Ok(())
+}
+
+/// The latency plot of `rep` and the per-frame times to `path`.
+fn write_plot(
+    rep: &TrackingReport,
+    per_frame_ms: Vec<f64>,
+    path: &std::path::Path,
+) -> anyhow::Result<()> {
+    let stage = |name: &str, q: &Percentiles| crate::plot::latency::Stage {
+        name: name.to_string(),
+        mean_ms: q.mean,
+        p90_ms: q.p90,
+    };
+    let name = std::path::Path::new(&rep.dataset)
+        .file_name()
+        .map_or_else(|| rep.dataset.clone(), |n| n.to_string_lossy().into_owned());
+    let plot = crate::plot::latency::LatencyPlot {
+        title: format!(
+            "shoal bench tracking: {name} ({}x{})",
+            rep.width, rep.height
+        ),
+        subtitle: format!(
+            "{} frames, {} tracked; one tracking thread, images decoded before timing",
+            rep.frames, rep.frames_tracked
+        ),
+        per_frame_ms,
+        stages: vec![
+            stage("pyramid", &rep.pyramid_ms),
+            stage("detect", &rep.detect_ms),
+            stage("describe", &rep.describe_ms),
+            stage("matching", &rep.match_ms),
+            stage("pose_opt", &rep.pose_opt_ms),
+            stage("local_map", &rep.local_map_ms),
+            stage("keyframe", &rep.keyframe_ms),
+            stage("total", &rep.total_ms),
+        ],
+    };
+    crate::plot::latency::write_latency(&plot, path)?;
+    eprintln!("latency plot: {}", path.display());
     Ok(())
 }

@@ -122,11 +122,42 @@ pub struct AteReport {
     pub plot: Option<String>,
 }
 
+/// A plot written beside an evaluation: its file, the first title line, and the run's loop
+/// closures and merges (marked where they touch `client`'s keyframes).
+struct PlotSpec<'a> {
+    path: std::path::PathBuf,
+    title: String,
+    client: u32,
+    events: &'a [crate::plot::events::CorrectionEvent],
+}
+
+impl<'a> PlotSpec<'a> {
+    /// `OUT/{name}_c{client}.png`, titled with the dataset, client and `name`.
+    fn new(
+        out: &Path,
+        ds: &datasets::Dataset,
+        name: &str,
+        client: usize,
+        events: &'a [crate::plot::events::CorrectionEvent],
+    ) -> Self {
+        let dataset = ds.root.file_name().map_or_else(
+            || ds.root.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        );
+        Self {
+            path: out.join(format!("{name}_c{client}.png")),
+            title: format!("{dataset} / client {client} / {name}"),
+            client: client as u32,
+            events,
+        }
+    }
+}
+
 /// Evaluates `traj` against the ground truth of `ds` (Sim(3) alignment) and plots it.
 fn evaluate_client(
     ds: &datasets::Dataset,
     traj: &[(i64, shm_schema::Pose)],
-    plot: &Path,
+    plot: &PlotSpec,
 ) -> Option<AteReport> {
     let to_iso = |p: &shm_schema::Pose| {
         let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
@@ -140,7 +171,7 @@ fn evaluate_client(
 }
 
 /// Evaluates the TUM trajectory file `path` like [`evaluate_client`].
-fn evaluate_file(ds: &datasets::Dataset, path: &Path, plot: &Path) -> Option<AteReport> {
+fn evaluate_file(ds: &datasets::Dataset, path: &Path, plot: &PlotSpec) -> Option<AteReport> {
     let traj = datasets::trajectory::read_tum(path).ok()?;
     let est_t: Vec<i64> = traj.poses.iter().map(|p| p.t_ns).collect();
     let est_p: Vec<_> = traj.poses.iter().map(|p| p.pose).collect();
@@ -152,7 +183,7 @@ fn evaluate_poses(
     ds: &datasets::Dataset,
     est_t: &[i64],
     est_p: &[nalgebra::Isometry3<f64>],
-    plot: &Path,
+    plot: &PlotSpec,
 ) -> Option<AteReport> {
     let gt = ds.ground_truth.as_ref()?;
     if est_t.len() < 3 {
@@ -171,18 +202,36 @@ fn evaluate_poses(
         .map(|(_, j)| r.alignment.transform_point(&est_p[*j].translation.vector))
         .collect();
     let gt_pts: Vec<_> = gt_p.iter().map(|g| g.translation.vector).collect();
-    let plot = crate::plot::top_view(&aligned, &gt_pts, plot)
-        .ok()
-        .map(|_| plot.display().to_string());
-    Some(AteReport {
+    let mut ate = AteReport {
         n: r.pairs.len(),
         rmse_m: r.ape.rmse,
         max_m: r.ape.max,
         path_length_m: r.ref_path_length_m,
         rmse_percent: 100.0 * r.ape.rmse / r.ref_path_length_m.max(1e-12),
         scale: r.alignment.scale,
-        plot,
-    })
+        plot: None,
+    };
+    let mut timed: Vec<(i64, nalgebra::Vector3<f64>)> = r
+        .pairs
+        .iter()
+        .zip(&aligned)
+        .map(|((_, j), p)| (est_t[*j], *p))
+        .collect();
+    timed.sort_by_key(|p| p.0);
+    let spec = crate::plot::TrajectoryPlot {
+        title: plot.title.clone(),
+        subtitle: format!(
+            "ATE {:.3} m ({:.2}% of {:.1} m), {} poses, Sim(3) scale {:.3}",
+            ate.rmse_m, ate.rmse_percent, ate.path_length_m, ate.n, ate.scale
+        ),
+        est: &aligned,
+        gt: &gt_pts,
+        marks: crate::plot::events::marks_for_client(plot.events, plot.client, &timed),
+    };
+    ate.plot = crate::plot::write_trajectory(&spec, &plot.path)
+        .ok()
+        .map(|_| plot.path.display().to_string());
+    Some(ate)
 }
 
 /// Per-service figures.
@@ -362,7 +411,10 @@ impl RunReport {
         let mapper = statuses.get("mapper");
         let journaled = journal_keyframes(&cfg.out.join(super::MAPPER_JOURNAL), datasets.len());
         let loop_closer = statuses.get("loop_closer");
+        let events =
+            crate::plot::events::corrections_from_journal(&cfg.out.join(super::MAPPER_JOURNAL));
         for (c, ds) in datasets.iter().enumerate() {
+            let plot_spec = |name: &str| PlotSpec::new(&cfg.out, ds, name, c, &events);
             let cam = format!("camera_ingest:{c}");
             let imu = format!("imu_ingest:{c}");
             let trk = format!("tracker:{c}");
@@ -381,7 +433,7 @@ impl RunReport {
             let mut trajectory = None;
             let mut ate = None;
             if !traj.is_empty() {
-                ate = evaluate_client(ds, &traj, &cfg.out.join(format!("trajectory_c{c}.png")));
+                ate = evaluate_client(ds, &traj, &plot_spec("trajectory"));
                 let path = cfg.out.join(format!("trajectory_c{c}.txt"));
                 write_tum(&path, &traj)?;
                 trajectory = Some(path.display().to_string());
@@ -407,17 +459,10 @@ impl RunReport {
             let m = |k: &str| mapper.map_or(0, |s| s.get(&format!("c{c}.{k}")));
             let out = &cfg.out;
             let ate_file = |name: &str| {
-                evaluate_file(
-                    ds,
-                    &out.join(format!("{name}_c{c}.txt")),
-                    &out.join(format!("{name}_c{c}.png")),
-                )
+                evaluate_file(ds, &out.join(format!("{name}_c{c}.txt")), &plot_spec(name))
             };
-            let ate_server_frames = evaluate_client(
-                ds,
-                &server_traj,
-                &out.join(format!("trajectory_server_c{c}.png")),
-            );
+            let ate_server_frames =
+                evaluate_client(ds, &server_traj, &plot_spec("trajectory_server"));
             let frames = &ds.frames[..(total as usize).min(ds.frames.len())];
             let data_s = match (frames.first(), frames.last()) {
                 (Some(a), Some(b)) if b.t_ns > a.t_ns => (b.t_ns - a.t_ns) as f64 * 1e-9,

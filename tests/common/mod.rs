@@ -10,27 +10,27 @@ pub fn shoal() -> Command {
     Command::new(env!("CARGO_BIN_EXE_shoal"))
 }
 
-/// `../shared/data` beside the checkout (or `$SHOAL_DATA`), if present.
-pub fn shared_data() -> Option<PathBuf> {
-    if let Ok(p) = std::env::var("SHOAL_DATA") {
-        let p = PathBuf::from(p);
-        if p.is_dir() {
-            return Some(p);
-        }
+/// The real-data folder: `$SHOAL_DATA` when set (no fallback: a path that does not exist
+/// means "no data"), else `../shared/data` beside the checkout; the rule of
+/// `build_support/shoal_data.rs`, whose `cfg(shoal_data)` ignores the real-data tests when
+/// the folder is absent.
+pub fn shared_data() -> PathBuf {
+    match std::env::var_os("SHOAL_DATA") {
+        Some(p) if !p.is_empty() => PathBuf::from(p),
+        _ => Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"),
     }
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    p.is_dir().then_some(p)
 }
 
-/// The shared data sub-folder `name`, or `None` after printing why the test skips.
-pub fn shared_dataset(name: &str) -> Option<PathBuf> {
-    match shared_data() {
-        Some(d) if d.join(name).is_dir() => Some(d.join(name)),
-        _ => {
-            eprintln!("SKIP: ../shared/data/{name} not found (set SHOAL_DATA to run this test)");
-            None
-        }
-    }
+/// The shared data sub-folder `name`. Panics, failing the test, when it is missing: a test
+/// that runs (the data folder exists) never passes without its data.
+pub fn shared_dataset(name: &str) -> PathBuf {
+    let d = shared_data().join(name);
+    assert!(
+        d.is_dir(),
+        "real data {} not found (set SHOAL_DATA to the data folder)",
+        d.display()
+    );
+    d
 }
 
 /// A unique iceoryx2 prefix for one test, so parallel tests never see each other.

@@ -3,22 +3,21 @@
 
 use std::path::PathBuf;
 
-/// The real-data folder: `$SHOAL_DATA`, else `<workspace>/../shared/data`. `None` (after
-/// printing a SKIP line naming `test`) when it is absent.
-pub fn data_dir(test: &str) -> Option<PathBuf> {
+/// The real-data folder: `$SHOAL_DATA` when set, else `<workspace>/../shared/data` (the
+/// rule of `build_support/shoal_data.rs`, which ignores the tests that call this when the
+/// folder is absent). Panics, failing the test, when the folder or its sub-folder `sub` is
+/// missing: a test that runs never passes without its data.
+pub fn data_dir(sub: &str) -> PathBuf {
     let dir = match std::env::var_os("SHOAL_DATA") {
-        Some(d) => PathBuf::from(d),
-        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"),
+        Some(d) if !d.is_empty() => PathBuf::from(d),
+        _ => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"),
     };
-    if dir.is_dir() {
-        Some(dir)
-    } else {
-        println!(
-            "SKIP {test}: real data folder {} not found (set SHOAL_DATA)",
-            dir.display()
-        );
-        None
-    }
+    assert!(
+        dir.join(sub).is_dir(),
+        "real data {} not found (set SHOAL_DATA to the data folder)",
+        dir.join(sub).display()
+    );
+    dir
 }
 
 /// FNV-1a 64 of a byte slice (for image checksums).
