@@ -165,12 +165,12 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
     let ate_server_handled = ate(world, &handled);
     let (h1, h2): (Vec<_>, Vec<_>) = handled.iter().partition(|p| p.0 < lap2_start);
     let (c1, c2): (Vec<_>, Vec<_>) = client_traj.iter().partition(|p| p.0 < lap2_start);
+    let (ate_h2, ate_c2) = (ate(world, &h2), ate(world, &c2));
     println!(
-        "per lap ATE (Sim3 per lap): handled server poses {:.4} / {:.4} m, client {:.4} / {:.4} m",
+        "per lap ATE (Sim3 per lap): handled server poses {:.4} / {ate_h2:.4} m, client {:.4} / \
+         {ate_c2:.4} m",
         ate(world, &h1),
-        ate(world, &h2),
         ate(world, &c1),
-        ate(world, &c2)
     );
     let growth = server_final as f64 / server_lap1 as f64 - 1.0;
     let (lmin, lmax) = lambdas
@@ -197,11 +197,24 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
         "server map grew {:.1}% on lap 2",
         100.0 * growth
     );
+    // What the design promises: the server map beats the client's keyframes, and on the
+    // revisits (lap 2, matched into the lap-1 map) the server's live poses beat the client's.
+    // Measured (seed 3, deterministic: the same figures on every run): client keyframes
+    // 0.0540 m, server map 0.0108 m (0.20x), server poses of the handled keyframes 0.0288 m
+    // (0.53x); lap 2 alone 0.0118 m vs the client's 0.0275 m (0.43x). The bounds leave
+    // about 1.5-2x of margin for changes of the VO, and fail for a server merely on par.
     assert!(
-        ate_server_map < ate_client,
-        "server {ate_server_map} vs client {ate_client}"
+        ate_server_map < 0.5 * ate_client,
+        "server map {ate_server_map} vs client {ate_client}: not 2x better"
     );
-    assert!(ate_server_handled < 2.0 * ate_client);
+    assert!(
+        ate_server_handled < 0.8 * ate_client,
+        "server poses {ate_server_handled} vs client {ate_client}"
+    );
+    assert!(
+        ate_h2 < 0.7 * ate_c2,
+        "revisits: server poses {ate_h2} vs client {ate_c2} on lap 2"
+    );
     assert!(
         h.stats().revisit_global_ba >= 1,
         "lap 2 revisits lap 1: a global BA was due"
@@ -228,6 +241,41 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
     assert!(
         ate_server_map < ate_no_revisit,
         "the revisit BA did not help: {ate_server_map} vs {ate_no_revisit}"
+    );
+    // Ablation: no revisit search either (lap 2 is not matched into the lap-1 map).
+    let mut h_blind = KeyframeHandler::new(
+        CLIENT,
+        HandlerParams {
+            revisit_min_points: 0,
+            spatial_keyframes: 0,
+            ..HandlerParams::default()
+        },
+    );
+    let mut maps_blind = ServerMaps::new();
+    let mut handled_blind = Vec::new();
+    for kf in kfs {
+        let r = h_blind.handle(&mut maps_blind, kf.clone()).expect("handle");
+        if let Some(t) = r.t_sk {
+            handled_blind.push((kf.t_ns, t));
+        }
+        h_blind.idle_step(&mut maps_blind);
+    }
+    let blind_lap2: Vec<_> = handled_blind
+        .iter()
+        .copied()
+        .filter(|p| p.0 >= lap2_start)
+        .collect();
+    let ate_blind_h2 = ate(world, &blind_lap2);
+    println!(
+        "without revisit search nor revisit BA: server poses {:.4} m, lap 2 {ate_blind_h2:.4} m \
+         (with: {ate_server_handled:.4} / {ate_h2:.4} m; client {ate_client:.4} / {ate_c2:.4} m)",
+        ate(world, &handled_blind)
+    );
+    // Measured 0.0427 m: lap 2 drifts on like the client's own poses when it is not matched
+    // into the lap-1 map.
+    assert!(
+        ate_h2 < 0.6 * ate_blind_h2,
+        "the revisit search did not help lap 2: {ate_h2} vs {ate_blind_h2}"
     );
 }
 

@@ -221,7 +221,7 @@ fn evaluate_poses(
     let spec = crate::plot::TrajectoryPlot {
         title: plot.title.clone(),
         subtitle: format!(
-            "ATE {:.3} m ({:.2}% of {:.1} m), {} poses, Sim(3) scale {:.3}",
+            "ATE {:.3} m ({:.2}% of {:.1} m), {} poses, Sim(3) aligned, scale {:.2}",
             ate.rmse_m, ate.rmse_percent, ate.path_length_m, ate.n, ate.scale
         ),
         est: &aligned,

@@ -320,8 +320,8 @@ pub fn render_trajectory(p: &TrajectoryPlot) -> anyhow::Result<image::RgbImage> 
     let pts: Vec<(f64, f64)> = all.iter().map(|q| v.px(q)).collect();
     let legend = draw_legend(&mut c, p, &pts);
     draw_scale_bar(&mut c, &v, &pts, legend);
-    c.text(PLOT.0, 12, &p.title, 2, BLACK);
-    c.text(PLOT.0, 36, &p.subtitle, 2, BLACK);
+    c.text(20, 12, &p.title, 2, BLACK);
+    c.text(20, 36, &p.subtitle, 2, BLACK);
     c.into_image()
 }
 
