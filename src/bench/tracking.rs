@@ -175,7 +175,7 @@ fn write_plot(
             rep.width, rep.height
         ),
         subtitle: format!(
-            "{} frames, {} tracked; one tracking thread, images decoded before timing",
+            "{} frames, {} tracked; in-process, one thread, decoding not timed",
             rep.frames, rep.frames_tracked
         ),
         per_frame_ms,

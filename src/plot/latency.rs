@@ -183,6 +183,15 @@ fn draw_stages(c: &mut Canvas, stages: &[Stage]) {
         let cy = (y + row / 2) as f64;
         c.line((x1 as f64, cy), (xp, cy), BLACK, 1);
         c.line((xp, cy - 6.0), (xp, cy + 6.0), BLACK, 2);
+        let label = format!("{:.2} / {:.2}", s.mean_ms, s.p90_ms);
+        let lw = text_width(&label, 2);
+        let ty = y + row / 2 - text_height(2) / 2;
+        if xp as i64 + 8 + lw < WIDTH as i64 {
+            c.text(xp as i64 + 8, ty, &label, 2, BLACK);
+        } else {
+            // No room right of the whisker: inside the bar, in white.
+            c.text(l + 6, ty, &label, 2, [255, 255, 255]);
+        }
     }
     c.line((l as f64, t as f64), (l as f64, bottom as f64), BLACK, 1);
     c.line(
@@ -206,8 +215,8 @@ pub fn render_latency(p: &LatencyPlot) -> anyhow::Result<image::RgbImage> {
     anyhow::ensure!(!p.per_frame_ms.is_empty(), "no frames to plot");
     let height = STAGES.1 + STAGES.3 * p.stages.len() as i64 + 70;
     let mut c = Canvas::new(WIDTH, height as u32);
-    c.text(HIST.0, 12, &p.title, 2, BLACK);
-    c.text(HIST.0, 36, &p.subtitle, 2, BLACK);
+    c.text(20, 12, &p.title, 2, BLACK);
+    c.text(20, 36, &p.subtitle, 2, BLACK);
     draw_histogram(&mut c, &p.per_frame_ms);
     draw_stages(&mut c, &p.stages);
     c.into_image()
@@ -256,7 +265,8 @@ mod tests {
         assert!(count(BLACK, 12..26) > 50, "title");
         // Three stage bars, longer for the slower stage.
         let bar_len = |k: u32| {
-            let y = STAGES.1 as u32 + STAGES.3 as u32 * k + STAGES.3 as u32 / 2;
+            // Above the value labels (drawn inside a bar without room right of it).
+            let y = STAGES.1 as u32 + STAGES.3 as u32 * k + 7;
             (0..WIDTH)
                 .filter(|x| img.get_pixel(*x, y).0 == STAGE_COLOUR)
                 .count()
