@@ -1,8 +1,10 @@
-//! The launcher: the one place that knows the whole topology. It starts every service as a
-//! child process (per client: camera_ingest, imu_ingest, tracker; per host: mapper,
-//! loop_closer), waits until they are ready, reaps and restarts crashed ones with back-off
-//! after cleaning their stale iceoryx2 resources, records poses and latencies, stops
-//! everything cleanly at the end of the data or on Ctrl-C, and writes `OUT/report.json`.
+//! The launcher: the one place that knows the whole topology ([`topology`]: per client
+//! camera_ingest, imu_ingest, tracker; per host mapper, loop_closer, each with its role). It
+//! starts every service as a child process, consumers before producers, waits until they are
+//! ready, reaps and restarts crashed ones with back-off after cleaning their stale iceoryx2
+//! resources, injects faults, records poses and latencies, stops everything in the reverse
+//! order at the end of the data or on Ctrl-C, writes `OUT/report.json` (with its
+//! [`provenance`]) and leaves nothing of the run in shared memory.
 pub mod child;
 pub mod faults;
 pub mod provenance;

@@ -201,6 +201,42 @@ mod tests {
         assert!(m.checksum.is_none() && m.error.is_some(), "{m:?}");
     }
 
+    /// The cost of the checksum on a real dataset, against FNV-1a 64 over the whole
+    /// content (the hand-rolled alternative): `SHOAL_CHECKSUM_BENCH=/path/to/dataset cargo
+    /// test --bin shoal checksum_cost -- --ignored --nocapture` (figures in BENCHMARKS.md).
+    #[test]
+    #[ignore = "benchmark: needs SHOAL_CHECKSUM_BENCH"]
+    fn checksum_cost() {
+        let Ok(dir) = std::env::var("SHOAL_CHECKSUM_BENCH") else {
+            panic!("set SHOAL_CHECKSUM_BENCH to a dataset folder");
+        };
+        let root = Path::new(&dir);
+        for round in 0..3 {
+            let t = Instant::now();
+            let sum = dataset_checksum(root);
+            let crc_s = t.elapsed().as_secs_f64();
+            let mut files = Vec::new();
+            list_files(root, "", &mut files).unwrap();
+            files.sort();
+            let t = Instant::now();
+            let mut h = 0u64;
+            for f in &files {
+                h ^= fnv1a64(&std::fs::read(root.join(f)).unwrap());
+            }
+            let fnv_s = t.elapsed().as_secs_f64();
+            let mb = sum.bytes as f64 / 1e6;
+            println!(
+                "round {round}: {} files, {mb:.1} MB: crc32 manifest {:.1} ms ({:.0} MB/s), \
+                 fnv1a64 of the content {:.1} ms ({:.0} MB/s) [{h:x}]",
+                sum.files,
+                crc_s * 1e3,
+                mb / crc_s,
+                fnv_s * 1e3,
+                mb / fnv_s
+            );
+        }
+    }
+
     #[test]
     fn fnv1a64_reference_values() {
         assert_eq!(fnv1a64(b""), 0xcbf2_9ce4_8422_2325);
