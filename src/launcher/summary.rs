@@ -80,15 +80,14 @@ fn replayed(cl: &ClientReport) -> u64 {
 fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
     let _ = writeln!(
         s,
-        "client {c}: {}/{} frames posed ({} tracked, {} backfilled; {} dropped, {} corrupt) \
-         of {}; keyframes {} sent, {} applied",
+        "client {c}: {}/{} frames posed ({} tracked, {} backfilled; {} dropped, {} corrupt); \
+         keyframes {} sent, {} applied",
         cl.frames_received.min(replayed(cl)),
         replayed(cl),
         cl.frames_tracked,
         cl.frames_backfilled,
         cl.frames_dropped,
         cl.frames_corrupt,
-        cl.dataset,
         cl.keyframes_sent,
         cl.keyframes_applied
     );
@@ -126,7 +125,7 @@ fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
     } else {
         cl.files.join(" ")
     };
-    let _ = writeln!(s, "  files: {files}");
+    let _ = writeln!(s, "  data {} -> files {files}", cl.dataset);
 }
 
 fn faults_line(s: &mut String, rep: &RunReport) {
