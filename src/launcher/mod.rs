@@ -325,7 +325,8 @@ fn provenance_of(
 
 /// Creates the output folder and removes what an earlier run in it left that this run's
 /// services would take for their own: status files (a crash of this run), the mapper
-/// journal and tracker spools (replayed at a restart), server outputs.
+/// journal and tracker spools (replayed at a restart), server outputs and trajectories (a
+/// run that writes none must not show an earlier run's).
 fn prepare_out_dir(out: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(out)
         .with_context(|| format!("creating output folder {}", out.display()))?;
@@ -335,9 +336,15 @@ fn prepare_out_dir(out: &Path) -> anyhow::Result<()> {
     if let Ok(rd) = std::fs::read_dir(out) {
         for e in rd.flatten() {
             let name = e.file_name().to_string_lossy().to_string();
-            if ["keyframes_server_c", "keyframes_client_c", "map_growth_c"]
-                .iter()
-                .any(|p| name.starts_with(p))
+            if [
+                "keyframes_server_c",
+                "keyframes_client_c",
+                "map_growth_c",
+                "trajectory_c",
+                "trajectory_server_c",
+            ]
+            .iter()
+            .any(|p| name.starts_with(p))
             {
                 let _ = std::fs::remove_file(e.path());
             }
