@@ -1,8 +1,8 @@
 //! `shoal demo`: generates a synthetic scene on the fly (no download) and runs the whole
 //! multi-process pipeline on it, then prints a short summary.
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use crate::launcher::{self, report::RunReport};
+use crate::launcher;
 
 /// Arguments of `shoal demo`.
 #[derive(clap::Args, Debug)]
@@ -60,52 +60,6 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         cfg.ipc_prefix = p;
     }
     let rep = launcher::run(&cfg)?;
-    print_summary(&rep, &args.out);
+    launcher::summary::print(&rep, &args.out);
     Ok(())
-}
-
-/// Prints what a run did (shared by `demo` and `run`).
-pub fn print_summary(rep: &RunReport, out: &Path) {
-    println!(
-        "shoal {} (schema v{}), {} replay",
-        rep.shoal_version, rep.schema_version, rep.mode
-    );
-    for (c, cl) in rep.clients.iter().enumerate() {
-        println!(
-            "client {c}: {} frames published, {} received by the tracker, {} tracked, {} dropped; \
-             {} IMU samples; keyframes sent/acked/applied {}/{}/{}",
-            cl.frames_published,
-            cl.frames_received,
-            cl.frames_tracked,
-            cl.frames_dropped,
-            cl.imu_samples_published,
-            cl.keyframes_sent,
-            cl.keyframes_acked,
-            cl.keyframes_applied
-        );
-    }
-    let l = &rep.latency_ms.publish_to_pose;
-    println!(
-        "frame publish -> pose publish: p50 {:.3} ms, p90 {:.3} ms, p99 {:.3} ms, max {:.3} ms ({} frames)",
-        l.p50, l.p90, l.p99, l.max, l.n
-    );
-    let f = &rep.faults_summary;
-    if f.kills > 0 {
-        let ms = |v: Option<f64>| v.map_or("-".to_string(), |s| format!("{:.0} ms", s * 1e3));
-        println!(
-            "faults: {} kills, {} recovered, recovery p50 {}, max {}",
-            f.kills,
-            f.recovered,
-            ms(f.recovery_p50_s),
-            ms(f.recovery_max_s)
-        );
-    }
-    let restarts: u32 = rep.services.values().map(|s| s.restarts).sum();
-    println!(
-        "{} services, {restarts} restarts, {} errors; wall time {:.1} s",
-        rep.services.len(),
-        rep.error_total(),
-        rep.wall_time_s
-    );
-    println!("report: {}", out.join("report.json").display());
 }

@@ -134,7 +134,7 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     cfg.chaos = args.chaos;
     cfg.progress = !args.quiet;
     let rep = launcher::run(&cfg)?;
-    demo::print_summary(&rep, &cfg.out);
+    launcher::summary::print(&rep, &cfg.out);
     Ok(())
 }
 

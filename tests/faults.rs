@@ -83,7 +83,8 @@ fn killed_ingest_is_restarted_and_resumes() {
 }
 
 /// A run left behind by SIGKILL of every process (stale shared memory, stale node files)
-/// does not stop the next run on the same prefix: it cleans up and starts.
+/// does not stop the next run on the same prefix: it cleans up and starts, and nothing of
+/// either run is left in /dev/shm after it.
 #[test]
 fn stale_state_of_a_killed_run_does_not_stop_the_next() {
     let dir = tempdir();
@@ -120,6 +121,8 @@ fn stale_state_of_a_killed_run_does_not_stop_the_next() {
         "the next run starts despite the stale state"
     );
     assert_eq!(report(out2.path())["clients"][0]["frames_received"], 60);
+    // The next run removed what the killed one left in shared memory, and left nothing.
+    assert_eq!(shm_entries("stale"), Vec::<String>::new());
 }
 
 /// `--kill` SIGKILLs the real child processes on schedule; each service is restarted, the

@@ -35,6 +35,8 @@ pub struct KillSpec {
     pub service: String,
     /// When.
     pub at: KillAt,
+    /// The entry as given on the command line (`mapper@f200`), quoted in the report.
+    pub text: String,
 }
 
 impl KillSpec {
@@ -79,6 +81,7 @@ impl FromStr for KillSpec {
         Ok(Self {
             service: service.to_string(),
             at,
+            text: s.to_string(),
         })
     }
 }
@@ -93,12 +96,14 @@ impl std::fmt::Display for KillSpec {
 }
 
 /// Chaos: `SEED:PERIOD`.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ChaosSpec {
     /// Seed of the choice of victims and of the gaps.
     pub seed: u64,
     /// Mean gap between kills, seconds.
     pub period_s: f64,
+    /// The entry as given on the command line (`7:2.0`), quoted in the report.
+    pub text: String,
 }
 
 impl FromStr for ChaosSpec {
@@ -116,7 +121,11 @@ impl FromStr for ChaosSpec {
         if !period_s.is_finite() || period_s <= 0.0 {
             return Err(format!("'{s}': the period must be > 0 seconds"));
         }
-        Ok(Self { seed, period_s })
+        Ok(Self {
+            seed,
+            period_s,
+            text: s.to_string(),
+        })
     }
 }
 
@@ -143,21 +152,34 @@ pub struct FaultEvent {
     killed_at: Option<Instant>,
 }
 
+/// A `--kill` entry, or `--chaos`, that killed nothing: the run ended before it was due,
+/// or its service was not running then, or does not exist.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct UnfiredFault {
+    /// The option as given: `--kill mapper@f99999`, `--chaos 7:100`.
+    pub spec: String,
+    /// Why it killed nothing.
+    pub reason: String,
+}
+
 /// Executes the kill schedule and chaos during a run.
 #[derive(Debug)]
 pub struct FaultInjector {
     /// Scheduled kills not done yet.
     schedule: Vec<KillSpec>,
     chaos: Option<(SplitMix64, f64, f64)>,
+    /// `--chaos` as given.
+    chaos_text: Option<String>,
     /// Kills so far.
     pub events: Vec<FaultEvent>,
-    /// Problems (a scheduled service that does not exist or was not running).
-    pub skipped: Vec<String>,
+    /// Scheduled kills that were due but found no running process of their service.
+    pub skipped: Vec<UnfiredFault>,
 }
 
 impl FaultInjector {
     /// A schedule (any order) and optional chaos.
     pub fn new(schedule: Vec<KillSpec>, chaos: Option<ChaosSpec>) -> Self {
+        let chaos_text = chaos.as_ref().map(|c| format!("--chaos {}", c.text));
         let chaos = chaos.map(|c| {
             let mut rng = SplitMix64::new(c.seed);
             let first = exp_gap(&mut rng, c.period_s);
@@ -166,6 +188,7 @@ impl FaultInjector {
         Self {
             schedule,
             chaos,
+            chaos_text,
             events: Vec::new(),
             skipped: Vec::new(),
         }
@@ -201,18 +224,24 @@ impl FaultInjector {
                     let f = frames_of(client_of(&sv.name));
                     self.kill(sv, "schedule", elapsed_s, f);
                 }
-                Some(sv) => self.skipped.push(format!(
-                    "{k} at {elapsed_s:.1} s: not running ({:?})",
-                    sv.phase
-                )),
-                None => self.skipped.push(format!(
-                    "{k}: no such service (names: {})",
-                    services
-                        .iter()
-                        .map(|s| s.name.as_str())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                )),
+                Some(sv) => self.skipped.push(UnfiredFault {
+                    spec: format!("--kill {}", k.text),
+                    reason: format!(
+                        "due at {elapsed_s:.1} s, {} was not running ({:?})",
+                        sv.name, sv.phase
+                    ),
+                }),
+                None => self.skipped.push(UnfiredFault {
+                    spec: format!("--kill {}", k.text),
+                    reason: format!(
+                        "no such service (names: {})",
+                        services
+                            .iter()
+                            .map(|s| s.name.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                }),
             }
         }
         let mut victim = None;
@@ -257,6 +286,39 @@ impl FaultInjector {
         }
     }
 
+    /// Everything that killed nothing, at the end of a run that lasted `elapsed_s` after
+    /// start-up with `frames[c]` distinct frames of client `c` posed: the scheduled kills
+    /// never due (the run ended first), those due when their service was not running or
+    /// that name no service, and `--chaos` when it killed nothing.
+    pub fn unfired(&self, elapsed_s: f64, frames: &[u64]) -> Vec<UnfiredFault> {
+        let mut out = self.skipped.clone();
+        for k in &self.schedule {
+            let now = match k.at {
+                KillAt::Seconds(_) => format!("it lasted {elapsed_s:.1} s after start-up"),
+                KillAt::Frame(_) => format!(
+                    "client {} had {} frames posed",
+                    k.client(),
+                    frames.get(k.client()).copied().unwrap_or(0)
+                ),
+            };
+            out.push(UnfiredFault {
+                spec: format!("--kill {}", k.text),
+                reason: format!("the run ended before it was due ({now})"),
+            });
+        }
+        let chaos_kills = self.events.iter().filter(|e| e.cause == "chaos").count();
+        if let (Some(text), Some((_, _, next)), 0) = (&self.chaos_text, &self.chaos, chaos_kills) {
+            out.push(UnfiredFault {
+                spec: text.clone(),
+                reason: format!(
+                    "killed nothing: the run lasted {elapsed_s:.1} s after start-up, the next \
+                     kill was due at {next:.1} s"
+                ),
+            });
+        }
+        out
+    }
+
     fn kill(&mut self, sv: &mut Supervised, cause: &'static str, at_s: f64, at_frame: u64) {
         let pid = sv.pid().unwrap_or(0);
         tracing::warn!("fault injection ({cause}): SIGKILL {} (pid {pid})", sv.name);
@@ -288,6 +350,8 @@ pub struct FaultsSummary {
     pub recovery_max_s: Option<f64>,
     /// Per service (`tracker:0`, `mapper`, ...): kills and recovery p50 / max.
     pub per_service: BTreeMap<String, ServiceFaults>,
+    /// `--kill` entries and `--chaos` that killed nothing (listed in `faults_unfired`).
+    pub unfired: usize,
 }
 
 /// Kills of one service.
@@ -333,6 +397,7 @@ impl FaultsSummary {
             recovery_p50_s: p50,
             recovery_max_s: max,
             per_service,
+            unfired: 0,
         }
     }
 }
@@ -397,6 +462,37 @@ mod tests {
             (3, Some(0.3), Some(0.5))
         );
         assert_eq!(s.per_service["tracker:0"].kills, 1);
+    }
+
+    #[test]
+    fn kills_never_due_are_reported_as_given() {
+        let kills = ["mapper@f99999", "tracker:0@1000.50", "trackr:1@0"]
+            .map(|k| k.parse::<KillSpec>().unwrap());
+        let chaos = "7:1000.0".parse::<ChaosSpec>().ok();
+        let mut inj = FaultInjector::new(kills.to_vec(), chaos);
+        inj.step(&mut [], 2.0, &[100]);
+        let unfired = inj.unfired(2.5, &[100]);
+        let specs: Vec<&str> = unfired.iter().map(|u| u.spec.as_str()).collect();
+        assert_eq!(
+            specs,
+            [
+                "--kill trackr:1@0",
+                "--kill mapper@f99999",
+                "--kill tracker:0@1000.50",
+                "--chaos 7:1000.0"
+            ]
+        );
+        assert!(unfired[0].reason.contains("no such service"), "{unfired:?}");
+        assert!(
+            unfired[1].reason.contains("client 0 had 100 frames posed"),
+            "{unfired:?}"
+        );
+        assert!(unfired[2].reason.contains("2.5 s"), "{unfired:?}");
+        assert!(unfired[3].reason.contains("killed nothing"), "{unfired:?}");
+        // Nothing scheduled: nothing unfired.
+        assert!(FaultInjector::new(Vec::new(), None)
+            .unfired(1.0, &[])
+            .is_empty());
     }
 
     #[test]

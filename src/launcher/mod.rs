@@ -1,12 +1,17 @@
-//! The launcher: the one place that knows the whole topology. It starts every service as a
-//! child process (per client: camera_ingest, imu_ingest, tracker; per host: mapper,
-//! loop_closer), waits until they are ready, reaps and restarts crashed ones with back-off
-//! after cleaning their stale iceoryx2 resources, records poses and latencies, stops
-//! everything cleanly at the end of the data or on Ctrl-C, and writes `OUT/report.json`.
+//! The launcher: the one place that knows the whole topology ([`topology`]: per client
+//! camera_ingest, imu_ingest, tracker; per host mapper, loop_closer, each with its role). It
+//! starts every service as a child process, consumers before producers, waits until they are
+//! ready, reaps and restarts crashed ones with back-off after cleaning their stale iceoryx2
+//! resources, injects faults, records poses and latencies, stops everything in the reverse
+//! order at the end of the data or on Ctrl-C, writes `OUT/report.json` (with its
+//! [`provenance`]) and leaves nothing of the run in shared memory.
 pub mod child;
 pub mod faults;
+pub mod provenance;
 pub mod recorder;
 pub mod report;
+pub mod summary;
+pub mod topology;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -21,16 +26,18 @@ use shoal_runtime::{ErrorRecord, ReplayMode};
 use child::{describe_exit, Phase, Supervised};
 use recorder::Recorder;
 
-/// Everything a run needs.
-#[derive(Debug, Clone)]
+/// Everything a run needs (recorded in full in the report's `provenance.config`).
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct RunConfig {
     /// One dataset per client.
+    #[serde(serialize_with = "ser::paths")]
     pub datasets: Vec<PathBuf>,
     /// Replay mode.
     pub mode: ReplayMode,
     /// Speed factor in real time.
     pub rate: f64,
     /// Output folder.
+    #[serde(serialize_with = "ser::path")]
     pub out: PathBuf,
     /// iceoryx2 resource prefix of the run.
     pub ipc_prefix: String,
@@ -45,15 +52,55 @@ pub struct RunConfig {
     /// Extra arguments for the loop closer.
     pub loop_closer_args: Vec<String>,
     /// Give up (stop everything, report) after this long.
+    #[serde(rename = "max_duration_s", serialize_with = "ser::seconds")]
     pub max_duration: Option<Duration>,
     /// Most restarts of a crash-looping service before it is given up: crashes in a row,
     /// each within `child::STABLE_AFTER` of being ready (a service that runs a while between
     /// kills, e.g. under `--chaos`, is always restarted).
     pub max_restarts: u32,
     /// Kill schedule (`--kill SERVICE@SECONDS`).
+    #[serde(serialize_with = "ser::kills")]
     pub kills: Vec<faults::KillSpec>,
     /// Chaos (`--chaos SEED:PERIOD`).
+    #[serde(serialize_with = "ser::chaos")]
     pub chaos: Option<faults::ChaosSpec>,
+}
+
+/// How [`RunConfig`]'s fields that are not plain data appear in the report: paths as text
+/// (lossy for non-UTF-8 names), durations in seconds, kill and chaos specs as given.
+mod ser {
+    use serde::Serializer;
+    use std::path::{Path, PathBuf};
+    use std::time::Duration;
+
+    pub fn path<S: Serializer>(p: &Path, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&p.display().to_string())
+    }
+
+    pub fn paths<S: Serializer>(p: &[PathBuf], s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(p.iter().map(|p| p.display().to_string()))
+    }
+
+    pub fn seconds<S: Serializer>(d: &Option<Duration>, s: S) -> Result<S::Ok, S::Error> {
+        match d {
+            Some(d) => s.serialize_some(&d.as_secs_f64()),
+            None => s.serialize_none(),
+        }
+    }
+
+    pub fn kills<S: Serializer>(k: &[super::faults::KillSpec], s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(k.iter().map(|k| k.text.as_str()))
+    }
+
+    pub fn chaos<S: Serializer>(
+        c: &Option<super::faults::ChaosSpec>,
+        s: S,
+    ) -> Result<S::Ok, S::Error> {
+        match c {
+            Some(c) => s.serialize_some(&c.text),
+            None => s.serialize_none(),
+        }
+    }
 }
 
 impl RunConfig {
@@ -126,259 +173,375 @@ pub const TRACKER_SPOOL: &str = "spool";
 /// How long the mapper may take at the end to finish its handlers' queues.
 const MAPPER_STOP_TIMEOUT: Duration = Duration::from_secs(60);
 
-fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
-    let n = cfg.datasets.len() as u32;
+/// The command-line arguments of `desc` after `shoal service` (`--status` is added by
+/// [`Supervised::spawn`]).
+fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) -> Vec<String> {
+    use topology::Kind;
     let out = &cfg.out;
-    let s = |v: &str| v.to_string();
-    let mut list = vec![
-        Supervised::new(
-            "mapper",
-            [
-                s("mapper"),
-                s("--clients"),
-                n.to_string(),
-                s("--journal"),
-                out.join(MAPPER_JOURNAL).display().to_string(),
-                s("--out"),
-                out.display().to_string(),
-            ]
-            .into_iter()
-            .chain(cfg.mapper_args.iter().cloned())
-            .collect(),
-            out,
-            false,
-        ),
-        Supervised::new(
-            "loop_closer",
-            std::iter::once(s("loop-closer"))
-                .chain(cfg.loop_closer_args.iter().cloned())
-                .collect(),
-            out,
-            false,
-        ),
-    ];
-    for (c, ds) in cfg.datasets.iter().enumerate() {
-        let mut targs = vec![
-            s("tracker"),
-            s("--client"),
-            c.to_string(),
-            s("--spool"),
-            out.join(TRACKER_SPOOL)
-                .join(format!("c{c}"))
-                .display()
-                .to_string(),
-        ];
-        targs.extend(
-            cfg.tracker_args
-                .iter()
-                .map(|a| a.replace("{c}", &c.to_string())),
-        );
-        list.push(Supervised::new(&format!("tracker:{c}"), targs, out, true));
-        for (svc, cli) in [
-            ("imu_ingest", "imu-ingest"),
-            ("camera_ingest", "camera-ingest"),
-        ] {
-            let mut args = vec![
-                s(cli),
-                s("--client"),
-                c.to_string(),
-                s("--dataset"),
-                ds.display().to_string(),
-                s("--mode"),
-                s(match cfg.mode {
-                    ReplayMode::Lockstep => "lockstep",
-                    ReplayMode::Realtime => "realtime",
-                }),
-                s("--rate"),
-                cfg.rate.to_string(),
-                s("--t0-mono-ns"),
-                t0_mono_ns.to_string(),
-            ];
+    let mut args = vec![desc.kind.subcommand().to_string()];
+    let c = desc.client.unwrap_or(0).to_string();
+    match desc.kind {
+        Kind::Mapper => {
+            args.extend(["--clients".to_string(), cfg.datasets.len().to_string()]);
+            args.extend(["--journal".to_string(), path_arg(&out.join(MAPPER_JOURNAL))]);
+            args.extend(["--out".to_string(), path_arg(out)]);
+            args.extend(cfg.mapper_args.iter().cloned());
+        }
+        Kind::LoopCloser => args.extend(cfg.loop_closer_args.iter().cloned()),
+        Kind::Tracker => {
+            let spool = out.join(TRACKER_SPOOL).join(format!("c{c}"));
+            args.extend(["--client".to_string(), c.clone()]);
+            args.extend(["--spool".to_string(), path_arg(&spool)]);
+            args.extend(cfg.tracker_args.iter().map(|a| a.replace("{c}", &c)));
+        }
+        Kind::ImuIngest | Kind::CameraIngest => {
+            let ds = &cfg.datasets[desc.client.unwrap_or(0) as usize];
+            let mode = match cfg.mode {
+                ReplayMode::Lockstep => "lockstep",
+                ReplayMode::Realtime => "realtime",
+            };
+            args.extend(["--client".to_string(), c.clone()]);
+            args.extend(["--dataset".to_string(), path_arg(ds)]);
+            args.extend(["--mode".to_string(), mode.to_string()]);
+            args.extend(["--rate".to_string(), cfg.rate.to_string()]);
+            args.extend(["--t0-mono-ns".to_string(), t0_mono_ns.to_string()]);
             if let Some(m) = cfg.max_frames {
-                args.extend([s("--max-frames"), m.to_string()]);
+                args.extend(["--max-frames".to_string(), m.to_string()]);
             }
-            list.push(Supervised::new(&format!("{svc}:{c}"), args, out, true));
         }
     }
-    for sv in list.iter_mut() {
-        sv.env
-            .push((topics::ENV_IPC_PREFIX.to_string(), cfg.ipc_prefix.clone()));
-    }
-    list
+    args
+}
+
+fn path_arg(p: &Path) -> String {
+    p.display().to_string()
+}
+
+/// The supervised processes of the run, one per descriptor of `topology`, in its order.
+fn services_for(
+    cfg: &RunConfig,
+    topology: &[topology::ServiceDesc],
+    t0_mono_ns: i64,
+) -> Vec<Supervised> {
+    topology
+        .iter()
+        .map(|desc| {
+            let ends_by_itself = desc.role() != topology::Role::Server;
+            let args = service_args(cfg, desc, t0_mono_ns);
+            let mut sv = Supervised::new(&desc.name(), args, &cfg.out, ends_by_itself);
+            sv.env
+                .push((topics::ENV_IPC_PREFIX.to_string(), cfg.ipc_prefix.clone()));
+            sv
+        })
+        .collect()
 }
 
 /// Runs the pipeline; returns the report (also written to `OUT/report.json`).
 pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
-    std::fs::create_dir_all(&cfg.out)
-        .with_context(|| format!("creating output folder {}", cfg.out.display()))?;
-    // Fresh status files: a status left by an earlier run in the same folder must not be
-    // taken for a crash of this one.
-    let _ = std::fs::remove_dir_all(cfg.out.join("status"));
-    let _ = std::fs::remove_file(cfg.out.join(MAPPER_JOURNAL));
-    let _ = std::fs::remove_dir_all(cfg.out.join(TRACKER_SPOOL));
-    // Server outputs of an earlier run in the same folder.
-    if let Ok(rd) = std::fs::read_dir(&cfg.out) {
-        for e in rd.flatten() {
-            let name = e.file_name().to_string_lossy().to_string();
-            if ["keyframes_server_c", "keyframes_client_c", "map_growth_c"]
-                .iter()
-                .any(|p| name.starts_with(p))
-            {
-                let _ = std::fs::remove_file(e.path());
-            }
+    // Hashing the datasets overlaps the start-up.
+    let checksums = {
+        let paths = cfg.datasets.clone();
+        std::thread::spawn(move || provenance::dataset_checksums(&paths))
+    };
+    prepare_out_dir(&cfg.out)?;
+    let datasets = match open_datasets(&cfg.datasets) {
+        Ok(d) => d,
+        Err((e, errors)) => {
+            let mut rep = report::RunReport::failed(cfg, errors, started.elapsed());
+            rep.provenance = provenance_of(cfg, checksums);
+            rep.write(&cfg.out.join("report.json"))?;
+            anyhow::bail!("{e}");
         }
-    }
-    let mut launcher_errors: Vec<ErrorRecord> = Vec::new();
-    let mut datasets = Vec::new();
-    for path in &cfg.datasets {
-        match datasets::open(path) {
-            Ok(d) => datasets.push(d),
-            Err(e) => {
-                launcher_errors.push(ErrorRecord {
-                    service: "launcher".into(),
-                    kind: "dataset".into(),
-                    detail: e.to_string(),
-                });
-                let rep = report::RunReport::failed(cfg, launcher_errors, started.elapsed());
-                rep.write(&cfg.out.join("report.json"))?;
-                anyhow::bail!("{e}");
-            }
-        }
-    }
+    };
     let exe = std::env::current_exe().context("locating the shoal binary")?;
-
-    // Stale state of a run killed earlier must not stop this one.
-    let cleaned = cleanup_dead_nodes(&cfg.ipc_prefix)?;
-    if cleaned > 0 {
-        tracing::info!("removed stale iceoryx2 resources of {cleaned} dead node(s)");
-    }
-    let others = foreign_live_nodes(&cfg.ipc_prefix)?;
-    if !others.is_empty() {
-        anyhow::bail!(
-            "another shoal run is active on iceoryx2 prefix '{}' ({}); stop it or pass \
-             --ipc-prefix",
-            cfg.ipc_prefix,
-            others.join(", ")
-        );
-    }
-    topics::check_foreign_versions(&cfg.ipc_prefix)?;
+    claim_prefix(&cfg.ipc_prefix)?;
+    // Dropped last (after the node and the recorder's ports): removes what the run leaves in
+    // shared memory once no node of the prefix is left.
+    let _ipc_cleanup = IpcCleanup(cfg.ipc_prefix.clone());
     let node = topics::create_node("launcher", &cfg.ipc_prefix)?;
     let mut recorder = Recorder::new(&node, cfg.datasets.len() as u32)?;
 
-    // Consumers first, then the sensors, all on one stream origin a little in the future.
+    // All sensors on one stream origin a little in the future.
     let t0 = monotonic_ns() + 2_000_000_000;
-    let mut services = services_for(cfg, t0);
-    let consumers = services
-        .iter()
-        .filter(|s| !s.name.contains("ingest"))
-        .count();
-    for sv in services.iter_mut().take(consumers) {
-        sv.spawn(&exe)
-            .with_context(|| format!("starting {}", sv.name))?;
-    }
-    wait_ready(&mut services[..consumers], Duration::from_secs(30))?;
-    for sv in services.iter_mut().skip(consumers) {
-        sv.spawn(&exe)
-            .with_context(|| format!("starting {}", sv.name))?;
-    }
-    wait_ready(&mut services[consumers..], Duration::from_secs(30))?;
+    let topology = topology::topology(cfg.datasets.len() as u32);
+    let mut services = services_for(cfg, &topology, t0);
+    start_services(&mut services, &topology, &exe)?;
     tracing::info!("all {} services ready", services.len());
 
-    let mut injector = faults::FaultInjector::new(cfg.kills.clone(), cfg.chaos);
-    let ready_at = Instant::now();
+    let mut watch = Watch {
+        services,
+        injector: faults::FaultInjector::new(cfg.kills.clone(), cfg.chaos.clone()),
+        errors: Vec::new(),
+        ready_at: Instant::now(),
+    };
     let progress = report::Progress::new(cfg.progress, &datasets, cfg.max_frames);
-    let mut interrupted = false;
-    let mut timed_out = false;
-    loop {
-        recorder.drain()?;
-        progress.update(&recorder);
-        supervise(&mut services, &exe, cfg, &mut launcher_errors)?;
-        if !injector.is_empty() {
-            injector.step(
-                &mut services,
-                ready_at.elapsed().as_secs_f64(),
-                &recorder.frames_posed(),
-            );
-        }
-        let clients_done = (0..cfg.datasets.len()).all(|c| {
-            let finished = |svc: &str| {
-                services
-                    .iter()
-                    .filter(|s| s.name == format!("{svc}:{c}"))
-                    .all(|s| matches!(s.phase, Phase::Done | Phase::Failed))
-            };
-            finished("camera_ingest") && finished("tracker")
-                || services
-                    .iter()
-                    .any(|s| s.name == format!("camera_ingest:{c}") && s.phase == Phase::Failed)
-        });
-        if clients_done {
-            break;
-        }
-        if cfg.max_duration.is_some_and(|d| started.elapsed() > d) {
-            timed_out = true;
-            launcher_errors.push(ErrorRecord {
-                service: "launcher".into(),
-                kind: "timeout".into(),
-                detail: format!("run stopped after {:?}", started.elapsed()),
-            });
-            break;
-        }
-        if node.wait(Duration::from_millis(5)).is_err() {
-            interrupted = true;
-            break;
-        }
-    }
+    let end = watch.until_done(cfg, &exe, &node, &mut recorder, &progress, started)?;
     // The trackers are done and the mapper has acknowledged every keyframe, but the loop
     // closer may still be querying the last ones and a correction may be on its way: stop
     // the server side only once it is quiet, so that a loop found at the very end is applied.
-    if !interrupted && !timed_out {
-        wait_server_quiet(&services, SERVER_QUIET_TIMEOUT);
+    if end == RunEnd::Done {
+        wait_server_quiet(&watch.services, SERVER_QUIET_TIMEOUT);
     }
-    // Stop in order: sensors, trackers, then the server side.
-    for prefix in [
-        "camera_ingest",
-        "imu_ingest",
-        "tracker",
-        "mapper",
-        "loop_closer",
-    ] {
-        for sv in services.iter_mut().filter(|s| s.name.starts_with(prefix)) {
-            if sv.child.is_some() {
-                let timeout = if sv.name == "mapper" {
-                    MAPPER_STOP_TIMEOUT
-                } else {
-                    Duration::from_secs(5)
-                };
-                sv.stop(timeout);
-            }
-        }
-        recorder.drain()?;
-    }
+    stop_services(&mut watch.services, &topology, &mut recorder)?;
     progress.finish();
-    injector.note_recoveries(&services);
-    for s in &injector.skipped {
-        launcher_errors.push(ErrorRecord {
+    let elapsed_s = watch.ready_at.elapsed().as_secs_f64();
+    let unfired = watch.injector.unfired(elapsed_s, &recorder.frames_posed());
+    watch.injector.note_recoveries(&watch.services);
+    for s in &unfired {
+        watch.errors.push(ErrorRecord {
             service: "launcher".into(),
-            kind: "kill_skipped".into(),
-            detail: s.clone(),
+            kind: "kill_unfired".into(),
+            detail: format!("{}: {}", s.spec, s.reason),
         });
     }
     let mut rep = report::RunReport::collect(
         cfg,
         &datasets,
-        &services,
+        &watch.services,
         &recorder,
-        launcher_errors,
+        watch.errors,
         started.elapsed(),
-        interrupted,
-        timed_out,
+        end == RunEnd::Interrupted,
+        end == RunEnd::TimedOut,
     )?;
-    rep.faults_summary = faults::FaultsSummary::of(&injector.events);
-    rep.faults = injector.events;
+    rep.faults_summary = faults::FaultsSummary::of(&watch.injector.events);
+    rep.faults_summary.unfired = unfired.len();
+    rep.faults = watch.injector.events;
+    rep.faults_unfired = unfired;
+    rep.provenance = provenance_of(cfg, checksums);
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
+}
+
+/// The provenance of the run of `cfg`, with the dataset checksums the thread computed.
+fn provenance_of(
+    cfg: &RunConfig,
+    checksums: std::thread::JoinHandle<Vec<provenance::DatasetChecksum>>,
+) -> provenance::Provenance {
+    let config = serde_json::to_value(cfg).unwrap_or_else(|e| serde_json::json!(e.to_string()));
+    provenance::Provenance::of(config, checksums.join().unwrap_or_default())
+}
+
+/// Creates the output folder and removes what an earlier run in it left that this run's
+/// services would take for their own: status files (a crash of this run), the mapper
+/// journal and tracker spools (replayed at a restart), server outputs and trajectories (a
+/// run that writes none must not show an earlier run's).
+fn prepare_out_dir(out: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("creating output folder {}", out.display()))?;
+    let _ = std::fs::remove_dir_all(out.join("status"));
+    let _ = std::fs::remove_file(out.join(MAPPER_JOURNAL));
+    let _ = std::fs::remove_dir_all(out.join(TRACKER_SPOOL));
+    if let Ok(rd) = std::fs::read_dir(out) {
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            if [
+                "keyframes_server_c",
+                "keyframes_client_c",
+                "map_growth_c",
+                "trajectory_c",
+                "trajectory_server_c",
+            ]
+            .iter()
+            .any(|p| name.starts_with(p))
+            {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Opens every dataset; on failure the error and the launcher's error record.
+fn open_datasets(
+    paths: &[PathBuf],
+) -> Result<Vec<datasets::Dataset>, (datasets::DatasetError, Vec<ErrorRecord>)> {
+    paths
+        .iter()
+        .map(|path| {
+            datasets::open(path).map_err(|e| {
+                let record = ErrorRecord {
+                    service: "launcher".into(),
+                    kind: "dataset".into(),
+                    detail: e.to_string(),
+                };
+                (e, vec![record])
+            })
+        })
+        .collect()
+}
+
+/// Makes the iceoryx2 prefix this run's: removes what dead nodes (a run killed earlier)
+/// left, refuses to start beside a live run or a pipeline of another schema version.
+fn claim_prefix(prefix: &str) -> anyhow::Result<()> {
+    let cleaned = cleanup_dead_nodes(prefix)?;
+    if cleaned > 0 {
+        tracing::info!("removed stale iceoryx2 resources of {cleaned} dead node(s)");
+    }
+    let others = foreign_live_nodes(prefix)?;
+    if !others.is_empty() {
+        anyhow::bail!(
+            "another shoal run is active on iceoryx2 prefix '{prefix}' ({}); stop it or pass \
+             --ipc-prefix",
+            others.join(", ")
+        );
+    }
+    topics::check_foreign_versions(prefix)?;
+    Ok(())
+}
+
+/// Starts the services in the topology's phases (consumers, then producers), each phase
+/// ready before the next starts.
+fn start_services(
+    services: &mut [Supervised],
+    topology: &[topology::ServiceDesc],
+    exe: &Path,
+) -> anyhow::Result<()> {
+    for phase in topology::start_phases(topology) {
+        for &i in &phase {
+            let sv = &mut services[i];
+            sv.spawn(exe)
+                .with_context(|| format!("starting {}", sv.name))?;
+        }
+        wait_ready_among(services, &phase, Duration::from_secs(30))?;
+    }
+    Ok(())
+}
+
+/// Stops the services in the topology's stop order (producers first), taking the poses
+/// that arrive meanwhile.
+fn stop_services(
+    services: &mut [Supervised],
+    topology: &[topology::ServiceDesc],
+    recorder: &mut Recorder,
+) -> anyhow::Result<()> {
+    for i in topology::stop_order(topology) {
+        let sv = &mut services[i];
+        if sv.child.is_some() {
+            let timeout = if sv.name == "mapper" {
+                MAPPER_STOP_TIMEOUT
+            } else {
+                Duration::from_secs(5)
+            };
+            sv.stop(timeout);
+        }
+        recorder.drain()?;
+    }
+    Ok(())
+}
+
+/// How the watched part of a run ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum RunEnd {
+    /// Every client's data went through.
+    Done,
+    /// SIGINT / SIGTERM.
+    Interrupted,
+    /// `--max-seconds`.
+    TimedOut,
+}
+
+/// The running services, the fault injector and the launcher's own error records.
+struct Watch {
+    services: Vec<Supervised>,
+    injector: faults::FaultInjector,
+    errors: Vec<ErrorRecord>,
+    /// When every service was ready (fault times count from here).
+    ready_at: Instant,
+}
+
+impl Watch {
+    /// Records poses, supervises and injects faults until every client is done, the run is
+    /// interrupted, or `--max-seconds` is over.
+    fn until_done(
+        &mut self,
+        cfg: &RunConfig,
+        exe: &Path,
+        node: &Node<Ipc>,
+        recorder: &mut Recorder,
+        progress: &report::Progress,
+        started: Instant,
+    ) -> anyhow::Result<RunEnd> {
+        loop {
+            recorder.drain()?;
+            progress.update(recorder);
+            supervise(&mut self.services, exe, cfg, &mut self.errors)?;
+            if !self.injector.is_empty() {
+                self.injector.step(
+                    &mut self.services,
+                    self.ready_at.elapsed().as_secs_f64(),
+                    &recorder.frames_posed(),
+                );
+            }
+            if (0..cfg.datasets.len()).all(|c| client_done(&self.services, c)) {
+                return Ok(RunEnd::Done);
+            }
+            if cfg.max_duration.is_some_and(|d| started.elapsed() > d) {
+                self.errors.push(ErrorRecord {
+                    service: "launcher".into(),
+                    kind: "timeout".into(),
+                    detail: format!("run stopped after {:?}", started.elapsed()),
+                });
+                return Ok(RunEnd::TimedOut);
+            }
+            if node.wait(Duration::from_millis(5)).is_err() {
+                return Ok(RunEnd::Interrupted);
+            }
+        }
+    }
+}
+
+/// True when client `c`'s camera ingest and tracker have ended, or its camera ingest failed
+/// for good.
+fn client_done(services: &[Supervised], c: usize) -> bool {
+    let finished = |svc: &str| {
+        services
+            .iter()
+            .filter(|s| s.name == format!("{svc}:{c}"))
+            .all(|s| matches!(s.phase, Phase::Done | Phase::Failed))
+    };
+    finished("camera_ingest") && finished("tracker")
+        || services
+            .iter()
+            .any(|s| s.name == format!("camera_ingest:{c}") && s.phase == Phase::Failed)
+}
+
+/// Removes the iceoryx2 resources a run leaves in shared memory when dropped: the prefix's
+/// node-id counter segment (`/dev/shm/{prefix}…node.{version}.global_mgmt`, 16 bytes, which
+/// iceoryx2 creates with the first node and never removes), once no node of the prefix is
+/// left, alive or dead. Nodes' own resources go with the nodes (or, after a SIGKILL, with
+/// the next run's [`cleanup_dead_nodes`]).
+struct IpcCleanup(String);
+
+impl Drop for IpcCleanup {
+    fn drop(&mut self) {
+        match remove_prefix_leftovers(&self.0) {
+            Ok(true) => tracing::debug!("removed the node counter segment of '{}'", self.0),
+            Ok(false) => {}
+            Err(e) => tracing::warn!("iceoryx2 clean-up of prefix '{}': {e:#}", self.0),
+        }
+    }
+}
+
+/// Removes the node-id counter segment of `prefix` when no node of the prefix exists; true
+/// when it was removed.
+pub fn remove_prefix_leftovers(prefix: &str) -> anyhow::Result<bool> {
+    let config = topics::config_with_prefix(prefix)?;
+    let mut nodes = 0;
+    Node::<Ipc>::list(&config, |_| {
+        nodes += 1;
+        CallbackProgression::Continue
+    })
+    .map_err(|e| anyhow::anyhow!("listing iceoryx2 nodes: {e:?}"))?;
+    if nodes > 0 {
+        return Ok(false);
+    }
+    // SAFETY: no node of this prefix exists, so no process uses its counter segment; a node
+    // created meanwhile by a run starting on the same prefix keeps its unique id (the id
+    // also holds its process id and creation time) and opens a fresh segment next time.
+    unsafe { iceoryx2::testing::remove_global_mgmt_segment::<Ipc>(&config) }
+        .map_err(|e| anyhow::anyhow!("removing the node counter segment: {e:?}"))
 }
 
 /// How long the end of a run waits at most for the mapper and loop closer to be quiet.
@@ -424,11 +587,18 @@ fn wait_server_quiet(services: &[Supervised], timeout: Duration) {
     tracing::warn!("the mapper and loop closer were still busy after {timeout:?}; stopping them");
 }
 
-fn wait_ready(services: &mut [Supervised], timeout: Duration) -> anyhow::Result<()> {
+/// Waits until the services `among` (indices into `services`) are ready; fails when one
+/// exits during start-up or `timeout` passes.
+fn wait_ready_among(
+    services: &mut [Supervised],
+    among: &[usize],
+    timeout: Duration,
+) -> anyhow::Result<()> {
     let start = Instant::now();
     loop {
         let mut all = true;
-        for sv in services.iter_mut() {
+        for &i in among {
+            let sv = &mut services[i];
             sv.poll_ready();
             if sv.phase == Phase::Starting {
                 if let Some(st) = sv.try_reap() {
@@ -446,8 +616,9 @@ fn wait_ready(services: &mut [Supervised], timeout: Duration) -> anyhow::Result<
             return Ok(());
         }
         if start.elapsed() > timeout {
-            let late: Vec<_> = services
+            let late: Vec<_> = among
                 .iter()
+                .map(|&i| &services[i])
                 .filter(|s| s.phase == Phase::Starting)
                 .map(|s| &s.name)
                 .collect();

@@ -82,6 +82,8 @@ pub struct ClientRecord {
     pub ended: bool,
     /// Messages of another schema version.
     pub bad_messages: u64,
+    /// Frame publish → pose publish of this client's frames.
+    pub publish_to_pose: LatencyHist,
 }
 
 impl ClientRecord {
@@ -133,6 +135,7 @@ impl Recorder {
                 server_trajectory: Vec::new(),
                 ended: false,
                 bad_messages: 0,
+                publish_to_pose: LatencyHist::new(),
             });
         }
         Ok(Self {
@@ -173,8 +176,9 @@ impl Recorder {
                 }
                 rec.poses += 1;
                 rec.mark_posed(p.dataset_index);
-                self.publish_to_pose
-                    .record_ns(p.meta.publish_mono_ns - p.frame_publish_mono_ns);
+                let latency_ns = p.meta.publish_mono_ns - p.frame_publish_mono_ns;
+                self.publish_to_pose.record_ns(latency_ns);
+                rec.publish_to_pose.record_ns(latency_ns);
                 self.publish_to_receive
                     .record_ns(p.frame_receive_mono_ns - p.frame_publish_mono_ns);
                 self.tracker_total

@@ -101,6 +101,10 @@ pub struct ClientReport {
     pub trajectory: Option<String>,
     /// Accuracy of the trajectory against the dataset's ground truth, if both exist.
     pub ate: Option<AteReport>,
+    /// Frame publish → pose publish of this client's frames, ms.
+    pub latency_ms_publish_to_pose: Percentiles,
+    /// The client's output files in the output folder (`*_c{i}.*`), names only.
+    pub files: Vec<String>,
 }
 
 /// Absolute trajectory error after Sim(3) alignment (as `shoal eval --align sim3`).
@@ -118,6 +122,9 @@ pub struct AteReport {
     pub rmse_percent: f64,
     /// Scale of the alignment (monocular scale).
     pub scale: f64,
+    /// RPE (translation part, between consecutive associated poses, after the alignment),
+    /// RMSE, m: the figure of `shoal eval --align sim3`.
+    pub rpe_rmse_m: Option<f64>,
     /// Top-view plot written.
     pub plot: Option<String>,
 }
@@ -209,6 +216,7 @@ fn evaluate_poses(
         path_length_m: r.ref_path_length_m,
         rmse_percent: 100.0 * r.ape.rmse / r.ref_path_length_m.max(1e-12),
         scale: r.alignment.scale,
+        rpe_rmse_m: r.rpe.map(|e| e.rmse),
         plot: None,
     };
     let mut timed: Vec<(i64, nalgebra::Vector3<f64>)> = r
@@ -312,6 +320,12 @@ pub struct RunReport {
     pub faults: Vec<super::faults::FaultEvent>,
     /// Kills per service and recovery times (p50 / max).
     pub faults_summary: super::faults::FaultsSummary,
+    /// `--kill` entries and `--chaos` that killed nothing, quoted as given, with the reason
+    /// (the run ended before they were due, their service was not running or does not exist).
+    pub faults_unfired: Vec<super::faults::UnfiredFault>,
+    /// What produced the run: command line, version and commit, configuration, dataset
+    /// checksums.
+    pub provenance: super::provenance::Provenance,
 }
 
 /// Distinct keyframes (session, id) per client in the mapper journal at `path`.
@@ -339,6 +353,25 @@ fn self_cpu_s() -> f64 {
     }
     let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
     tv(u.ru_utime) + tv(u.ru_stime)
+}
+
+/// Names of the files of client `c` in the output folder `out` (`*_c{c}.*`), sorted.
+fn client_files(out: &Path, c: usize) -> Vec<String> {
+    let suffix = format!("_c{c}");
+    let mut names: Vec<String> = std::fs::read_dir(out)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| {
+            Path::new(n)
+                .file_stem()
+                .is_some_and(|s| s.to_string_lossy().ends_with(&suffix))
+        })
+        .collect();
+    names.sort();
+    names
 }
 
 /// The status file at `path` (default when missing or unreadable).
@@ -515,7 +548,12 @@ impl RunReport {
                 ate_server_frames,
                 trajectory,
                 ate,
+                latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
+                files: Vec::new(),
             });
+        }
+        for (c, cl) in rep.clients.iter_mut().enumerate() {
+            cl.files = client_files(&cfg.out, c);
         }
         let g = |k: &str| mapper.map_or(0, |s| s.get(k));
         rep.mapper = MapperReport {

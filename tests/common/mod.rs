@@ -216,3 +216,17 @@ pub fn assert_frames_match(dataset: &Path, frames: &[FrameLine]) {
         assert_eq!(f.checksum, fnv1a(&buf), "pixel checksum of frame {k}");
     }
 }
+
+/// Names of the entries of `/dev/shm` that start with the iceoryx2 prefix of `test` (what
+/// a run on that prefix has in shared memory), sorted.
+pub fn shm_entries(test: &str) -> Vec<String> {
+    let p = prefix(test);
+    let mut names: Vec<String> = std::fs::read_dir("/dev/shm")
+        .expect("list /dev/shm")
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(&p))
+        .collect();
+    names.sort();
+    names
+}

@@ -1,0 +1,146 @@
+//! The end-of-run summary on the terminal (shared by `shoal run` and `shoal demo`): per
+//! client what got a pose, the keyframes, the accuracy against ground truth when the dataset
+//! has it, the latency and the files written; then the server, the faults and where the
+//! report is. Warnings (a `--kill` that never fired) go to stderr.
+use std::fmt::Write as _;
+use std::path::Path;
+
+use super::report::{AteReport, ClientReport, RunReport};
+
+/// Prints the summary of `rep` (output folder `out`) to stdout and its warnings to stderr.
+pub fn print(rep: &RunReport, out: &Path) {
+    print!("{}", text(rep, out));
+    for w in warnings(rep) {
+        eprintln!("warning: {w}");
+    }
+}
+
+/// The warnings of a run: every fault injection that killed nothing.
+pub fn warnings(rep: &RunReport) -> Vec<String> {
+    rep.faults_unfired
+        .iter()
+        .map(|u| format!("{} never fired: {}", u.spec, u.reason))
+        .collect()
+}
+
+/// The summary text (every line ends with a newline).
+pub fn text(rep: &RunReport, out: &Path) -> String {
+    let p = &rep.provenance;
+    let mut s = String::new();
+    let commit: String = p.git_commit.chars().take(12).collect();
+    let dirty = if p.git_dirty == Some(true) {
+        "+dirty"
+    } else {
+        ""
+    };
+    let _ = writeln!(
+        s,
+        "shoal {} ({commit}{dirty}, schema v{}), {} replay, {} client(s), wall time {:.1} s{}",
+        rep.shoal_version,
+        rep.schema_version,
+        rep.mode,
+        rep.clients.len(),
+        rep.wall_time_s,
+        end_note(rep)
+    );
+    for (c, cl) in rep.clients.iter().enumerate() {
+        client_lines(&mut s, c, cl);
+    }
+    let m = &rep.mapper;
+    let _ = writeln!(
+        s,
+        "server: {} map(s), {} keyframes, {} points; {} loop(s), {} merge(s), {} correction(s) applied",
+        m.maps, m.keyframes, m.points, rep.loops, rep.merges, rep.corrections_applied
+    );
+    faults_line(&mut s, rep);
+    let restarts: u32 = rep.services.values().map(|s| s.restarts).sum();
+    let _ = writeln!(
+        s,
+        "{} services, {restarts} restarts, {} errors",
+        rep.services.len(),
+        rep.error_total()
+    );
+    let _ = writeln!(s, "report: {}", out.join("report.json").display());
+    s
+}
+
+fn end_note(rep: &RunReport) -> &'static str {
+    match (rep.interrupted, rep.timed_out) {
+        (true, _) => " (interrupted)",
+        (_, true) => " (stopped by --max-seconds)",
+        _ => "",
+    }
+}
+
+/// Replayed frames: those that got a pose, were dropped, or were corrupt.
+fn replayed(cl: &ClientReport) -> u64 {
+    cl.frames_received + cl.frames_dropped + cl.frames_corrupt
+}
+
+fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
+    let _ = writeln!(
+        s,
+        "client {c}: {}/{} frames posed ({} tracked, {} backfilled; {} dropped, {} corrupt); \
+         keyframes {} sent, {} applied",
+        cl.frames_received.min(replayed(cl)),
+        replayed(cl),
+        cl.frames_tracked,
+        cl.frames_backfilled,
+        cl.frames_dropped,
+        cl.frames_corrupt,
+        cl.keyframes_sent,
+        cl.keyframes_applied
+    );
+    let acc = |name: &str, a: &Option<AteReport>| {
+        a.as_ref().map(|a| {
+            let rpe = a
+                .rpe_rmse_m
+                .map_or(String::new(), |r| format!(", RPE {r:.4} m"));
+            format!(
+                "{name} ATE {:.4} m ({:.2}% of {:.1} m, {} poses, scale {:.3}){rpe}",
+                a.rmse_m, a.rmse_percent, a.path_length_m, a.n, a.scale
+            )
+        })
+    };
+    let accuracy: Vec<String> = [
+        acc("frames", &cl.ate),
+        acc("server keyframes", &cl.ate_server_keyframes),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    if accuracy.is_empty() {
+        let _ = writeln!(s, "  accuracy: no ground truth or too few poses");
+    } else {
+        let _ = writeln!(s, "  {}", accuracy.join("; "));
+    }
+    let l = &cl.latency_ms_publish_to_pose;
+    let _ = writeln!(
+        s,
+        "  frame publish -> pose: p50 {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms ({} frames)",
+        l.p50, l.p90, l.p99, l.max, l.n
+    );
+    let files = if cl.files.is_empty() {
+        "none".to_string()
+    } else {
+        cl.files.join(" ")
+    };
+    let _ = writeln!(s, "  data {} -> files {files}", cl.dataset);
+}
+
+fn faults_line(s: &mut String, rep: &RunReport) {
+    let f = &rep.faults_summary;
+    if f.kills == 0 && rep.faults_unfired.is_empty() {
+        return;
+    }
+    let ms = |v: Option<f64>| v.map_or("-".to_string(), |s| format!("{:.0} ms", s * 1e3));
+    let _ = writeln!(
+        s,
+        "faults: {} kills, {} recovered, recovery p50 {}, max {}; {} never fired",
+        f.kills,
+        f.recovered,
+        ms(f.recovery_p50_s),
+        ms(f.recovery_max_s),
+        rep.faults_unfired.len()
+    );
+}
