@@ -130,6 +130,12 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
     let n = cfg.datasets.len() as u32;
     let out = &cfg.out;
     let s = |v: &str| v.to_string();
+    // Every service knows the replay mode: in lock-step the tracker, mapper and loop closer
+    // synchronise so that a run is reproducible.
+    let mode = s(match cfg.mode {
+        ReplayMode::Lockstep => "lockstep",
+        ReplayMode::Realtime => "realtime",
+    });
     let mut list = vec![
         Supervised::new(
             "mapper",
@@ -141,6 +147,8 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
                 out.join(MAPPER_JOURNAL).display().to_string(),
                 s("--out"),
                 out.display().to_string(),
+                s("--mode"),
+                mode.clone(),
             ]
             .into_iter()
             .chain(cfg.mapper_args.iter().cloned())
@@ -150,7 +158,8 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
         ),
         Supervised::new(
             "loop_closer",
-            std::iter::once(s("loop-closer"))
+            [s("loop-closer"), s("--mode"), mode.clone()]
+                .into_iter()
                 .chain(cfg.loop_closer_args.iter().cloned())
                 .collect(),
             out,
@@ -162,6 +171,8 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
             s("tracker"),
             s("--client"),
             c.to_string(),
+            s("--mode"),
+            mode.clone(),
             s("--spool"),
             out.join(TRACKER_SPOOL)
                 .join(format!("c{c}"))
@@ -185,10 +196,7 @@ fn services_for(cfg: &RunConfig, t0_mono_ns: i64) -> Vec<Supervised> {
                 s("--dataset"),
                 ds.display().to_string(),
                 s("--mode"),
-                s(match cfg.mode {
-                    ReplayMode::Lockstep => "lockstep",
-                    ReplayMode::Realtime => "realtime",
-                }),
+                mode.clone(),
                 s("--rate"),
                 cfg.rate.to_string(),
                 s("--t0-mono-ns"),
