@@ -97,9 +97,18 @@ fn lockstep_runs_with_mapping_thread_are_identical() {
         assert_eq!(c["frames_received"], FRAMES as u64, "run {r}");
         // The server took part: keyframes were sent, kept and forwarded to loop closing,
         // and pose feedback reached the tracker during the run.
-        assert!(c["keyframes_kept"].as_u64().unwrap_or(0) >= 10, "run {r}: {c}");
-        assert!(c["loop_keyframes_received"].as_u64().unwrap_or(0) >= 10, "run {r}");
-        assert!(c["frames_server_pose"].as_u64().unwrap_or(0) >= 50, "run {r}");
+        assert!(
+            c["keyframes_kept"].as_u64().unwrap_or(0) >= 10,
+            "run {r}: {c}"
+        );
+        assert!(
+            c["loop_keyframes_received"].as_u64().unwrap_or(0) >= 10,
+            "run {r}"
+        );
+        assert!(
+            c["frames_server_pose"].as_u64().unwrap_or(0) >= 50,
+            "run {r}"
+        );
         let ate = c["ate"]["rmse_m"].as_f64().expect("ATE");
         assert!(ate < 0.05, "run {r}: ATE {ate} m");
         let mut counters = BTreeMap::new();
@@ -108,7 +117,11 @@ fn lockstep_runs_with_mapping_thread_are_identical() {
     }
     let (first, first_counters) = &runs[0];
     for (out, counters) in &runs[1..] {
-        for f in ["trajectory_c0.txt", "keyframes_server_c0.txt", "trajectory_server_c0.txt"] {
+        for f in [
+            "trajectory_c0.txt",
+            "keyframes_server_c0.txt",
+            "trajectory_server_c0.txt",
+        ] {
             assert!(
                 read(&first.join(f)) == read(&out.join(f)),
                 "{f} differs between {} and {}",

@@ -456,8 +456,16 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         seq: 0,
         done: false,
     };
-    resync.ask(&resync_pub, 0)?;
     let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
+    if sync && status.starts == 1 {
+        // Lock-step, first start of the run: the maps are empty (the launcher starts the
+        // mapper and loop closer before any tracker), nothing to resynchronise. Asking
+        // anyway races with the mapper's start (a lost request is repeated 2 s later and
+        // then re-sends keyframes already forwarded live), which would make runs differ.
+        resync.done = true;
+    } else {
+        resync.ask(&resync_pub, 0)?;
+    }
     shoal_runtime::signal_ready();
     loop {
         let mut idle = true;

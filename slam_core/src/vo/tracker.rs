@@ -191,6 +191,10 @@ pub struct VoTracker {
     sync_waits: usize,
     /// Of those, waits that ran into [`LOCAL_MAPPING_SYNC_TIMEOUT`].
     sync_timeouts: usize,
+    /// The last frame became this keyframe and the local-mapping thread maps it: with
+    /// [`VoParams::sync_local_mapping`] the next frame takes its new points as the last
+    /// frame's (as inline mapping does at once).
+    mapped_last_kf: Option<KfId>,
     /// Relocalisation: where the round over the map's keyframes continues.
     reloc_cursor: Option<usize>,
     /// Successful relocalisations.
@@ -254,6 +258,7 @@ impl VoTracker {
             culled_inline: 0,
             sync_waits: 0,
             sync_timeouts: 0,
+            mapped_last_kf: None,
             reloc_cursor: None,
             relocalized: 0,
             pnp: crate::pnp::PnpSolver::new(),
@@ -358,6 +363,7 @@ impl VoTracker {
         let shared = Arc::clone(&self.shared);
         let mut guard = lock(&shared);
         std::mem::swap(&mut self.map, &mut *guard);
+        self.adopt_mapped_points();
         let res = match self.state {
             VoState::NotInitialized | VoState::Initializing => {
                 self.try_initialize(frame, &feats, &mut out);
@@ -422,6 +428,30 @@ impl VoTracker {
         self.sync_waits += 1;
         if !m.wait_idle(timeout) {
             self.sync_timeouts += 1;
+        }
+    }
+
+    /// With [`VoParams::sync_local_mapping`]: the last frame became a keyframe that local
+    /// mapping (now finished) gave new points and culled points of: the last frame sees
+    /// the same points as its keyframe, as after inline mapping, so the thread and inline
+    /// mapping take the same decisions.
+    fn adopt_mapped_points(&mut self) {
+        let Some(k) = self.mapped_last_kf.take() else {
+            return;
+        };
+        let (Some(last), Some(kf)) = (self.last.as_mut(), self.map.keyframes.get(&k)) else {
+            return;
+        };
+        if kf.t_ns != last.t_ns || kf.points.len() != last.points.len() {
+            return;
+        }
+        for (p, q) in last.points.iter_mut().zip(&kf.points) {
+            if p.is_none() {
+                *p = *q;
+            }
+            if p.is_some_and(|id| !self.map.points.contains_key(&id)) {
+                *p = None;
+            }
         }
     }
 
