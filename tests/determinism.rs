@@ -27,6 +27,8 @@ fn sequence(dir: &Path) -> PathBuf {
 /// comparison. `frames_resent` / `frames_duplicate`: the camera ingest re-sends a frame
 /// whose acknowledgement has not come within 1 s (the recovery timer for a restarted
 /// tracker), which a slow machine may hit; the re-send is acknowledged and not re-tracked.
+/// `outcome`: whether a service ended by itself (`done`) or was stopped by the launcher at
+/// the end of the run a moment before (`stopped`), a race at shutdown.
 fn is_timing(key: &str) -> bool {
     let leaf = key.rsplit('.').next().unwrap_or(key);
     let leaf = leaf.split('[').next().unwrap_or(leaf);
@@ -43,6 +45,7 @@ fn is_timing(key: &str) -> bool {
         || leaf == "recovery_s"
         || leaf == "frames_resent"
         || leaf == "frames_duplicate"
+        || leaf == "outcome"
 }
 
 /// The report flattened to `path = value` (paths of the output folder made relative).

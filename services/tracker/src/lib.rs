@@ -484,6 +484,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     // frame's jump past it also covers frames that process handled after that write.
     let mut first_after_restart = status.starts > 1;
     let mut imu_in = imu::ImuInput::default();
+    // Lock-step: a frame waited in vain for the IMU stream's first sample.
+    let mut imu_never_came = false;
     let mut ack_seq = 0u64;
     let mut ended = false;
     // After the frames' end of stream, wait this long at most for the IMU's.
@@ -636,18 +638,28 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 } else {
                     let need = h.t_mid_ns + h.readout_ns / 2;
                     let deadline = monotonic_ns() + params.imu_wait_ns();
-                    while imu_in.live()
-                        && imu_in.newest_ns().is_some_and(|t| t < need)
-                        && monotonic_ns() < deadline
-                    {
+                    // Lock-step: also before the first IMU sample (whether it is in before
+                    // the first frames would otherwise change the initialisation).
+                    let missing = |imu: &imu::ImuInput| {
+                        let short = imu.newest_ns().is_none_or(|t| t < need);
+                        if sync && !imu_never_came {
+                            short && !imu.ended
+                        } else {
+                            short && imu.live()
+                        }
+                    };
+                    while missing(&imu_in) && monotonic_ns() < deadline {
                         if imu_in.drain(&imu_sub, &mut status, c, log.as_mut())? == 0
                             && node.wait(Duration::from_micros(200)).is_err()
                         {
                             break;
                         }
                     }
-                    if sync && imu_in.live() && imu_in.newest_ns().is_some_and(|t| t < need) {
+                    if sync && missing(&imu_in) {
                         status.add("lockstep_imu_timeouts", 1);
+                        // No IMU at all (e.g. its ingest keeps failing): wait no more for
+                        // its start.
+                        imu_never_came |= imu_in.newest_ns().is_none();
                     }
                     imu_in.camera_rate(&h)
                 };
