@@ -165,3 +165,74 @@ fn relocalises_at_a_known_place() {
     assert!(err < 0.1 + 2.0 * gt_move, "place error {err}");
     assert!(rot < 2.0 + 20.0 * gt_move, "rotation error {rot} deg");
 }
+
+/// Poses (`t_ns`, `T_cw`) and keyframe ids the VO gives for the first `frames` frames of
+/// `scenario` (seed 3), in frame order.
+fn vo_poses(
+    scenario: Scenario,
+    frames: usize,
+    params: VoParams,
+) -> Vec<(i64, Option<nalgebra::Isometry3<f64>>, Option<u64>)> {
+    let mut p = SimParams::new(scenario);
+    p.frames = Some(frames);
+    p.seed = 3;
+    let world = SimWorld::new(p).unwrap();
+    let cal = world.calib();
+    let cam = cal.model;
+    let mut vo = VoTracker::new(params, cam).unwrap();
+    let mut img = vec![0u8; (cam.width * cam.height) as usize];
+    let mut out = Vec::new();
+    for k in 0..world.n_frames() {
+        world.render_frame_into(k, &mut img).unwrap();
+        let t = world.frame_time_ns(k);
+        let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize).unwrap();
+        let o = vo
+            .process(&VoFrame {
+                image,
+                t_ns: t,
+                readout_ns: cal.readout_ns,
+                angular_velocity: None,
+            })
+            .unwrap();
+        out.push((t, o.t_cw, o.keyframe));
+    }
+    assert_eq!(vo.local_mapping_sync_timeouts(), 0);
+    out
+}
+
+/// With `sync_local_mapping` (lock-step replay) the local-mapping thread is waited for
+/// before a frame uses the map and the frame after a keyframe sees its new points: the
+/// tracker takes exactly the decisions and poses of inline local mapping, so they no longer
+/// depend on the thread's timing. (Without the synchronisation the keyframe rule asks
+/// whether local mapping is idle, and the poses differ from inline mapping's.)
+#[test]
+fn mapping_thread_with_sync_matches_inline_mapping() {
+    let frames = 200;
+    let inline = vo_poses(
+        Scenario::Loop,
+        frames,
+        VoParams {
+            local_mapping_thread: false,
+            ..VoParams::default()
+        },
+    );
+    let threaded = vo_poses(
+        Scenario::Loop,
+        frames,
+        VoParams {
+            local_mapping_thread: true,
+            sync_local_mapping: true,
+            ..VoParams::default()
+        },
+    );
+    let keyframes = inline.iter().filter(|f| f.2.is_some()).count();
+    assert!(
+        keyframes >= 10,
+        "{keyframes} keyframes: local mapping barely ran"
+    );
+    assert_eq!(inline.len(), threaded.len());
+    for (a, b) in inline.iter().zip(&threaded) {
+        assert_eq!(a.2, b.2, "keyframe decision at t = {} ns", a.0);
+        assert_eq!(a.1, b.1, "pose at t = {} ns", a.0);
+    }
+}

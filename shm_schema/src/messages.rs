@@ -15,6 +15,11 @@ pub const FLAG_BACKFILL: u32 = 1 << 2;
 /// searched for loops); with [`FLAG_END_OF_STREAM`] and no keypoints, the end of the
 /// resynchronisation.
 pub const FLAG_RESYNC: u32 = 1 << 3;
+/// `MsgMeta::flags` bit of a [`Feedback`] in lock-step replay: the server has finished this
+/// keyframe (handled it, and the loop closer has searched it and any correction it found is
+/// applied). The tracker waits for it, so the server's answers reach it at the same point
+/// of the stream on every run.
+pub const FLAG_HANDLED: u32 = 1 << 4;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
@@ -526,6 +531,11 @@ pub struct ResyncRequest {
 pub const CORRECTION_MERGE: u32 = 1;
 /// [`CorrectionHeader::kind`]: per-keyframe pose-graph corrections of map `into_map`.
 pub const CORRECTION_POSE_GRAPH: u32 = 2;
+/// [`CorrectionHeader::kind`] in lock-step replay: no correction, the loop closer has
+/// finished the loop keyframe `query_kf` (`meta.seq`: that keyframe message's `meta.seq`);
+/// sent after any correction it found, on the same topic, so the mapper knows when the
+/// keyframe is settled. No records.
+pub const CORRECTION_DONE: u32 = 3;
 /// [`CorrectionRecord::kind`]: keyframe `a` moves by the similarity `delta`.
 pub const RECORD_KEYFRAME_DELTA: u32 = 1;
 /// [`CorrectionRecord::kind`]: point `a` is the same 3-D point as `b` (fuse `a` into `b`).

@@ -178,6 +178,12 @@ const MAPPER_STOP_TIMEOUT: Duration = Duration::from_secs(60);
 fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) -> Vec<String> {
     use topology::Kind;
     let out = &cfg.out;
+    // Every service knows the replay mode: in lock-step the tracker, mapper and loop closer
+    // synchronise so that a run is reproducible.
+    let mode = match cfg.mode {
+        ReplayMode::Lockstep => "lockstep",
+        ReplayMode::Realtime => "realtime",
+    };
     let mut args = vec![desc.kind.subcommand().to_string()];
     let c = desc.client.unwrap_or(0).to_string();
     match desc.kind {
@@ -185,21 +191,22 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) 
             args.extend(["--clients".to_string(), cfg.datasets.len().to_string()]);
             args.extend(["--journal".to_string(), path_arg(&out.join(MAPPER_JOURNAL))]);
             args.extend(["--out".to_string(), path_arg(out)]);
+            args.extend(["--mode".to_string(), mode.to_string()]);
             args.extend(cfg.mapper_args.iter().cloned());
         }
-        Kind::LoopCloser => args.extend(cfg.loop_closer_args.iter().cloned()),
+        Kind::LoopCloser => {
+            args.extend(["--mode".to_string(), mode.to_string()]);
+            args.extend(cfg.loop_closer_args.iter().cloned());
+        }
         Kind::Tracker => {
             let spool = out.join(TRACKER_SPOOL).join(format!("c{c}"));
             args.extend(["--client".to_string(), c.clone()]);
+            args.extend(["--mode".to_string(), mode.to_string()]);
             args.extend(["--spool".to_string(), path_arg(&spool)]);
             args.extend(cfg.tracker_args.iter().map(|a| a.replace("{c}", &c)));
         }
         Kind::ImuIngest | Kind::CameraIngest => {
             let ds = &cfg.datasets[desc.client.unwrap_or(0) as usize];
-            let mode = match cfg.mode {
-                ReplayMode::Lockstep => "lockstep",
-                ReplayMode::Realtime => "realtime",
-            };
             args.extend(["--client".to_string(), c.clone()]);
             args.extend(["--dataset".to_string(), path_arg(ds)]);
             args.extend(["--mode".to_string(), mode.to_string()]);

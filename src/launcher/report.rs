@@ -97,6 +97,17 @@ pub struct ClientReport {
     /// ATE of the per-frame poses in the client's final server map, as reported live
     /// (`trajectory_server_c{i}.txt`).
     pub ate_server_frames: Option<AteReport>,
+    /// Where the client VO's local mapping ran: `"thread"` (its own thread, the default) or
+    /// `"inline"` (in the tracking thread, `--tracker-arg=--inline-mapping`); `"none"` when
+    /// the tracker ran no VO.
+    pub local_mapping: String,
+    /// Lock-step synchronisation was on (lock-step replay without `--no-lockstep-sync`):
+    /// the tracker waited for its local-mapping thread before each frame used the map and
+    /// for the server's handling of each keyframe it sent, so the run is reproducible.
+    pub lockstep_sync: bool,
+    /// Waits of that synchronisation that timed out (tracker: local mapping, server
+    /// handling, gyro samples); 0 in a reproducible run.
+    pub lockstep_sync_timeouts: u64,
     /// Trajectory file written, if any.
     pub trajectory: Option<String>,
     /// Accuracy of the trajectory against the dataset's ground truth, if both exist.
@@ -546,6 +557,15 @@ impl RunReport {
                 ate_client_keyframes: ate_file("keyframes_client"),
                 ate_server_keyframes: ate_file("keyframes_server"),
                 ate_server_frames,
+                local_mapping: statuses
+                    .get(&trk)
+                    .and_then(|s| s.counters.get("local_mapping_thread"))
+                    .map_or("none", |&t| if t > 0 { "thread" } else { "inline" })
+                    .to_string(),
+                lockstep_sync: get(&trk, "lockstep_sync") > 0,
+                lockstep_sync_timeouts: get(&trk, "local_mapping_sync_timeouts")
+                    + get(&trk, "lockstep_server_timeouts")
+                    + get(&trk, "lockstep_imu_timeouts"),
                 trajectory,
                 ate,
                 latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),

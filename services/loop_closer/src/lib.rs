@@ -29,7 +29,7 @@ use shm_schema::{
     RECORD_POINT_PAIR,
 };
 use shoal_runtime::wire::{iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint};
-use shoal_runtime::{Status, StatusFile};
+use shoal_runtime::{ReplayMode, Status, StatusFile};
 use slam_core::features::OrbFeatures;
 use slam_core::loop_closing::{LoopDetector, LoopDetectorParams, LoopMatch};
 use slam_core::pgo::{
@@ -63,6 +63,15 @@ pub struct Params {
     /// Detect and report loops but send no correction.
     #[arg(long)]
     pub detect_only: bool,
+    /// Replay mode of the run (the launcher passes it). In lock-step the loop closer tells
+    /// the mapper when it has finished each loop keyframe ([`shm_schema::CORRECTION_DONE`],
+    /// after any correction it found), so corrections land at the same point of the
+    /// keyframe stream on every run.
+    #[arg(long, default_value = "realtime")]
+    pub mode: ReplayMode,
+    /// In lock-step, do not synchronise (as in real time; for benchmarks).
+    #[arg(long)]
+    pub no_lockstep_sync: bool,
 }
 
 /// The service's name in reports.
@@ -361,6 +370,27 @@ fn send(
 
 /// Keyframes asked of the mapper per resynchronisation batch (fewer than the loop
 /// keyframe topic's buffer, so a batch never overflows it).
+/// Lock-step: tells the mapper that loop keyframe message `h` is finished (a
+/// [`shm_schema::CORRECTION_DONE`] marker on the corrections topic, behind any correction).
+fn send_done(
+    publisher: &Publisher<Ipc, [CorrectionRecord], CorrectionHeader>,
+    h: &LoopKeyframeHeader,
+) -> anyhow::Result<()> {
+    send(
+        publisher,
+        &Outgoing {
+            header: CorrectionHeader {
+                meta: MsgMeta::new(h.meta.client_id, 0, h.meta.seq, monotonic_ns()),
+                kind: shm_schema::CORRECTION_DONE,
+                query_kf: h.kf_id,
+                ..CorrectionHeader::default()
+            },
+            records: Vec::new(),
+            summary: String::new(),
+        },
+    )
+}
+
 const RESYNC_BATCH: u32 = 32;
 
 /// Rebuilding the keyframe database from the mapper at start-up (DESIGN.md: a restarted
@@ -426,7 +456,16 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         seq: 0,
         done: false,
     };
-    resync.ask(&resync_pub, 0)?;
+    let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
+    if sync && status.starts == 1 {
+        // Lock-step, first start of the run: the maps are empty (the launcher starts the
+        // mapper and loop closer before any tracker), nothing to resynchronise. Asking
+        // anyway races with the mapper's start (a lost request is repeated 2 s later and
+        // then re-sends keyframes already forwarded live), which would make runs differ.
+        resync.done = true;
+    } else {
+        resync.ask(&resync_pub, 0)?;
+    }
     shoal_runtime::signal_ready();
     loop {
         let mut idle = true;
@@ -470,6 +509,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 Ok(kf) => kf,
                 Err(e) => {
                     status.error("bad_keyframe", e);
+                    if sync {
+                        send_done(&publisher, &h)?;
+                    }
                     continue;
                 }
             };
@@ -503,6 +545,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     }
                 }
                 Err(e) => status.error("loop", e),
+            }
+            if sync {
+                send_done(&publisher, &h)?;
             }
         }
         let _ = file.write_every(&status, Duration::from_millis(200));

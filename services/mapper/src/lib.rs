@@ -23,6 +23,7 @@
 #![deny(missing_docs)]
 
 pub mod convert;
+pub mod lockstep;
 pub mod worker;
 
 use std::collections::{BTreeMap, HashSet};
@@ -38,7 +39,7 @@ use shm_schema::{
     CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeypointRecord,
     LoopKeyframeHeader, LoopKeypointRecord, MsgMeta,
 };
-use shoal_runtime::{Status, StatusFile};
+use shoal_runtime::{ReplayMode, Status, StatusFile};
 use slam_core::server::{HandlerParams, KeyframeStatus, MapId};
 
 use convert::Correction;
@@ -83,6 +84,14 @@ pub struct Params {
     /// At the end, wait at most this long (s) for the handlers to finish their queues.
     #[arg(long, default_value_t = 50.0)]
     pub drain_seconds: f64,
+    /// Replay mode of the run (the launcher passes it). In lock-step the mapper runs the
+    /// idle step after every keyframe and tells the tracker when a keyframe is finished
+    /// ([`lockstep`]), so the server maps are the same on every run.
+    #[arg(long, default_value = "realtime")]
+    pub mode: ReplayMode,
+    /// In lock-step, do not synchronise (as in real time; for benchmarks).
+    #[arg(long)]
+    pub no_lockstep_sync: bool,
 }
 
 /// The service's name in reports.
@@ -121,6 +130,8 @@ struct Mapper {
     out: Option<PathBuf>,
     results_tx: crossbeam_channel::Sender<Report>,
     status: Status,
+    /// Lock-step synchronisation (`None`: free-running).
+    sync: Option<lockstep::LockstepSync>,
 }
 
 impl Mapper {
@@ -210,6 +221,9 @@ impl Mapper {
         }) {
             anyhow::bail!("a handler thread is gone");
         }
+        if let Some(s) = self.sync.as_mut() {
+            s.correction_dispatched();
+        }
         Ok(())
     }
 
@@ -219,6 +233,13 @@ impl Mapper {
         h: &CorrectionHeader,
         records: &[CorrectionRecord],
     ) -> anyhow::Result<()> {
+        if h.kind == shm_schema::CORRECTION_DONE {
+            // Lock-step: the loop closer finished a loop keyframe (not a correction).
+            if let Some(s) = self.sync.as_mut() {
+                s.loop_done(h.meta.seq);
+            }
+            return Ok(());
+        }
         self.status.add("corrections_received", 1);
         let corr = match convert::correction(h, records) {
             Ok(c) => c,
@@ -248,6 +269,11 @@ impl Mapper {
     ) -> anyhow::Result<()> {
         self.status.add("resync_requests", 1);
         if req.next == 0 {
+            // A restarted loop closer: what it missed is in the snapshot.
+            let next_seq = self.loop_seq;
+            if let Some(s) = self.sync.as_mut() {
+                s.loop_closer_restarted(next_seq);
+            }
             self.resync.clear();
             for w in &self.workers {
                 let (tx, rx) = crossbeam_channel::bounded(1);
@@ -296,6 +322,9 @@ impl Mapper {
         o: CorrectionOutcome,
         fbs: &[Publisher<Ipc, Feedback, ()>],
     ) -> anyhow::Result<()> {
+        if let Some(s) = self.sync.as_mut() {
+            s.correction_finished();
+        }
         match &o.result {
             Ok(summary) => {
                 self.status
@@ -397,6 +426,45 @@ impl Mapper {
         Ok(())
     }
 
+    /// Lock-step: tells the trackers which keyframes are finished ([`lockstep`]): a
+    /// [`shm_schema::FLAG_HANDLED`] feedback with the pose feedback after the keyframe.
+    fn send_finished(&mut self, fbs: &[Publisher<Ipc, Feedback, ()>]) -> anyhow::Result<()> {
+        let Some(sync) = self.sync.as_mut() else {
+            return Ok(());
+        };
+        for (k, timed_out) in sync.take_finished(Instant::now()) {
+            if timed_out {
+                self.status.add("lockstep_loop_timeouts", 1);
+            }
+            let (Some(fb), Some(cl)) = (
+                fbs.get(k.client as usize),
+                self.clients.get_mut(k.client as usize),
+            ) else {
+                continue;
+            };
+            let mut meta = MsgMeta::new(k.client, k.session, cl.fb_seq, monotonic_ns());
+            meta.flags |= shm_schema::FLAG_HANDLED;
+            let (map_id, t_sk, lambda) =
+                k.pose.unwrap_or((0, nalgebra::Isometry3::identity(), 1.0));
+            fb.send_copy(Feedback {
+                meta,
+                acked_keyframe_id: k.kf_id,
+                acked_session_id: k.session,
+                has_pose: k.pose.is_some() as u32,
+                server_pose: convert::wire_from_iso(&t_sk),
+                scale_ratio: lambda,
+                server_map_id: map_id,
+            })?;
+            cl.fb_seq += 1;
+            let c = k.client;
+            self.status.add(&format!("c{c}.keyframes_finished"), 1);
+            if k.pose.is_some() {
+                self.status.add(&format!("c{c}.pose_feedback_sent"), 1);
+            }
+        }
+        Ok(())
+    }
+
     /// Rebuilds the maps from the journal's entries (before any new keyframe is taken).
     fn replay(&mut self, entries: Vec<Entry>) -> anyhow::Result<usize> {
         let idle: HashSet<(u32, u32, u64)> = entries
@@ -492,7 +560,9 @@ impl Mapper {
                         c,
                         Job::Keyframe {
                             kf,
-                            idle: None,
+                            // Lock-step: the idle step after every keyframe, whatever
+                            // the queue (the live default idles when the queue is empty).
+                            idle: self.sync.is_some().then_some(true),
                             replay: false,
                         },
                     )?;
@@ -536,6 +606,7 @@ impl Mapper {
         }
         let s = &mut self.status;
         let cl = &mut self.clients[c as usize];
+        let mut loop_seq = None;
         match &o.result {
             Err(e) => {
                 s.error("handler", format!("client {c} keyframe {}: {e}", o.kf_id));
@@ -572,6 +643,7 @@ impl Mapper {
                         let mut out = out.write_from_slice(&recs);
                         *out.user_header_mut() = lh;
                         out.send()?;
+                        loop_seq = Some(self.loop_seq);
                         self.loop_seq += 1;
                         s.add(&format!("c{c}.keyframes_forwarded"), 1);
                     }
@@ -584,7 +656,17 @@ impl Mapper {
         }
         s.add(&format!("c{c}.handle_us"), (o.handle_ms * 1e3) as u64);
         s.add(&format!("c{c}.idle_us"), (o.idle_ms * 1e3) as u64);
-        if let Some(f) = &o.feedback {
+        if let Some(sync) = self.sync.as_mut() {
+            // Lock-step: the feedback goes out once the keyframe is finished.
+            sync.push(lockstep::Settling {
+                client: c,
+                session: o.session,
+                kf_id: o.kf_id,
+                pose: o.feedback.as_ref().and_then(|f| f.pose),
+                loop_seq,
+                since: Instant::now(),
+            });
+        } else if let Some(f) = &o.feedback {
             self.send_feedback(f, fb)?;
         }
         self.set_figures(c, o.figures);
@@ -610,6 +692,7 @@ fn drain_outcomes(
         }
         n += 1;
     }
+    m.send_finished(fbs)?;
     Ok(n)
 }
 
@@ -648,6 +731,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         out,
         results_tx,
         status,
+        sync: (params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync)
+            .then(|| lockstep::LockstepSync::new(lockstep::LOOP_SYNC_TIMEOUT)),
     };
     // Rebuild the maps from the journal before taking new keyframes.
     if let Some(path) = &params.journal {

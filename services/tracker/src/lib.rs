@@ -28,7 +28,7 @@ use shm_schema::topics;
 use shm_schema::{
     stage, FrameAck, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL, FLAG_END_OF_STREAM,
 };
-use shoal_runtime::{Status, StatusFile};
+use shoal_runtime::{ReplayMode, Status, StatusFile};
 use slam_core::features::GrayImage;
 use slam_core::vo::{VoFrame, VoOutput, VoParams, VoState, VoTracker};
 
@@ -42,6 +42,7 @@ fn new_vo(params: &Params, h: &shm_schema::FrameHeader) -> anyhow::Result<VoTrac
         rolling_shutter: !params.no_rs,
         window: params.window.max(2),
         local_mapping_thread: !params.inline_mapping,
+        sync_local_mapping: params.lockstep_sync(),
         ..VoParams::default()
     };
     vp.orb.n_features = params.features;
@@ -216,6 +217,129 @@ pub struct Params {
     /// decisions on every run and machine.
     #[arg(long)]
     pub inline_mapping: bool,
+    /// Replay mode of the run (the launcher passes it): in lock-step the tracker
+    /// synchronises with its local-mapping thread and with the server (see
+    /// [`Params::lockstep_sync`]).
+    #[arg(long, default_value = "realtime")]
+    pub mode: ReplayMode,
+    /// In lock-step, do not synchronise (free-running threads and server, as in real time:
+    /// faster, but not reproducible; for benchmarks).
+    #[arg(long)]
+    pub no_lockstep_sync: bool,
+}
+
+impl Params {
+    /// Lock-step synchronisation: each frame waits for local mapping to finish before it
+    /// uses the map (its ORB extraction overlaps the mapping), and a frame that sent
+    /// keyframes waits, before its pose is published and acknowledged, until the server has
+    /// finished them ([`shm_schema::FLAG_HANDLED`]); the gyro wait has no short deadline.
+    /// So no decision depends on thread timing: a lock-step replay is reproducible.
+    pub fn lockstep_sync(&self) -> bool {
+        self.mode == ReplayMode::Lockstep && !self.no_lockstep_sync
+    }
+
+    /// How long a frame waits for the gyro samples up to its last row.
+    fn imu_wait_ns(&self) -> i64 {
+        if self.lockstep_sync() {
+            IMU_SYNC_TIMEOUT.as_nanos() as i64
+        } else {
+            self.imu_wait_ms as i64 * 1_000_000
+        }
+    }
+}
+
+/// Lock-step: longest wait for the server to finish a keyframe ([`shm_schema::FLAG_HANDLED`])
+/// or for the gyro samples of a frame; a longer wait is counted in `lockstep_sync_timeouts`
+/// and the tracker goes on.
+const SERVER_SYNC_TIMEOUT: Duration = Duration::from_secs(30);
+const IMU_SYNC_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// What the tracker knows from the server's feedback.
+#[derive(Default)]
+struct ServerState {
+    /// Client index.
+    client: u32,
+    /// Lock-step synchronisation on (else `handled` stays empty).
+    sync: bool,
+    /// The last usable pose feedback.
+    server_ref: Option<ServerRef>,
+    /// Lock-step: keyframes (session, id) the server has finished and no frame waited for
+    /// yet.
+    handled: std::collections::HashSet<(u32, u64)>,
+}
+
+type FeedbackSub = iceoryx2::port::subscriber::Subscriber<topics::Ipc, shm_schema::Feedback, ()>;
+type KeyframePub = iceoryx2::port::publisher::Publisher<
+    topics::Ipc,
+    [shm_schema::KeypointRecord],
+    shm_schema::KeyframeHeader,
+>;
+
+/// Takes the mapper's feedback of client `c`: acknowledgements (outbox), pose feedback and,
+/// in lock-step, which keyframes the server has finished. Returns the messages taken.
+fn take_feedback(
+    sub: &FeedbackSub,
+    outbox: &mut outbox::Outbox,
+    server: &mut ServerState,
+    status: &mut Status,
+) -> anyhow::Result<usize> {
+    let (mut n, c) = (0, server.client);
+    while let Some(fb) = sub.receive()? {
+        n += 1;
+        let f = *fb.payload();
+        if f.meta.check().is_err() {
+            status.error("schema_version", format!("feedback of client {c}"));
+            continue;
+        }
+        status.add("feedback_received", 1);
+        outbox.ack(f.acked_session_id, f.acked_keyframe_id);
+        if f.has_pose != 0 {
+            match ServerRef::from_feedback(&f, outbox) {
+                Some(r) => {
+                    outbox.forget_sent_before(f.acked_session_id, f.acked_keyframe_id);
+                    server.server_ref = Some(r);
+                    status.add("pose_feedback_used", 1);
+                }
+                None => status.add("pose_feedback_unusable", 1),
+            }
+        }
+        if server.sync && f.meta.flags & shm_schema::FLAG_HANDLED != 0 {
+            server
+                .handled
+                .insert((f.acked_session_id, f.acked_keyframe_id));
+        }
+    }
+    Ok(n)
+}
+
+/// Lock-step: waits until the server has finished keyframe `key` (session, id), taking
+/// feedback meanwhile and re-sending keyframes left unacknowledged (a restarted mapper);
+/// after [`SERVER_SYNC_TIMEOUT`] it gives up and counts `lockstep_sync_timeouts`.
+fn wait_handled(
+    key: (u32, u64),
+    node: &iceoryx2::node::Node<topics::Ipc>,
+    sub: &FeedbackSub,
+    kf_pub: &KeyframePub,
+    outbox: &mut outbox::Outbox,
+    server: &mut ServerState,
+    status: &mut Status,
+) -> anyhow::Result<()> {
+    let start = std::time::Instant::now();
+    loop {
+        take_feedback(sub, outbox, server, status)?;
+        if server.handled.remove(&key) {
+            server.handled.clear();
+            return Ok(());
+        }
+        if start.elapsed() > SERVER_SYNC_TIMEOUT {
+            status.add("lockstep_server_timeouts", 1);
+            return Ok(());
+        }
+        outbox.resend_stale(kf_pub, 2_000_000_000)?;
+        if node.wait(Duration::from_micros(200)).is_err() {
+            return Ok(());
+        }
+    }
 }
 
 pub mod imu;
@@ -343,7 +467,15 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     // Newest keyframe written to the spool: (VO session, id).
     let mut spooled: Option<(u32, u64)> = None;
     kf_counts.sync(&outbox, &mut status, &mut file);
-    let mut server_ref: Option<ServerRef> = None;
+    let sync = params.lockstep_sync();
+    let mut server = ServerState {
+        client: c,
+        sync,
+        ..ServerState::default()
+    };
+    status.counters.insert("lockstep_sync".into(), sync as u64);
+    // Waits of the VO's local-mapping synchronisation that timed out, before this start.
+    let vo_timeouts_base = status.get("local_mapping_sync_timeouts");
     let mut vo: Option<VoTracker> = None;
     shoal_runtime::signal_ready();
 
@@ -352,6 +484,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     // frame's jump past it also covers frames that process handled after that write.
     let mut first_after_restart = status.starts > 1;
     let mut imu_in = imu::ImuInput::default();
+    // Lock-step: a frame waited in vain for the IMU stream's first sample.
+    let mut imu_never_came = false;
     let mut ack_seq = 0u64;
     let mut ended = false;
     // After the frames' end of stream, wait this long at most for the IMU's.
@@ -368,25 +502,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         if imu_in.drain(&imu_sub, &mut status, c, log.as_mut())? > 0 {
             idle = false;
         }
-        while let Some(fb) = feedback_sub.receive()? {
+        if take_feedback(&feedback_sub, &mut outbox, &mut server, &mut status)? > 0 {
             idle = false;
-            let f = *fb.payload();
-            if f.meta.check().is_ok() {
-                status.add("feedback_received", 1);
-                outbox.ack(f.acked_session_id, f.acked_keyframe_id);
-                if f.has_pose != 0 {
-                    match ServerRef::from_feedback(&f, &outbox) {
-                        Some(r) => {
-                            outbox.forget_sent_before(f.acked_session_id, f.acked_keyframe_id);
-                            server_ref = Some(r);
-                            status.add("pose_feedback_used", 1);
-                        }
-                        None => status.add("pose_feedback_unusable", 1),
-                    }
-                }
-            } else {
-                status.error("schema_version", format!("feedback of client {c}"));
-            }
         }
         outbox.resend_stale(&kf_pub, 2_000_000_000)?;
         kf_counts.sync(&outbox, &mut status, &mut file);
@@ -419,6 +536,21 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                         outbox.send(&kf_pub, &kf, sess)?;
                         if let Some(sp) = spool.as_mut() {
                             sp.sent(sess, kf.id);
+                        }
+                        // Lock-step: one at a time, so the server handles the window's
+                        // keyframes on the same schedule on every run.
+                        if sync {
+                            kf_counts.sync(&outbox, &mut status, &mut file);
+                            let (sub, st) = (&feedback_sub, &mut status);
+                            wait_handled(
+                                (sess, kf.id),
+                                &node,
+                                sub,
+                                &kf_pub,
+                                &mut outbox,
+                                &mut server,
+                                st,
+                            )?;
                         }
                     }
                     kf_counts.sync(&outbox, &mut status, &mut file);
@@ -494,6 +626,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     // Keyframe ids stay unique per client across restarts of this process
                     // (the server names keyframes by them): each life gets its own range.
                     v.start_keyframe_ids_at(u64::from(session_base >> 16) << KF_ID_BITS_PER_START);
+                    status
+                        .counters
+                        .insert("local_mapping_thread".into(), !params.inline_mapping as u64);
                     vo = Some(v);
                 }
                 // Rolling shutter: the gyro over the frame's readout, waiting a little for
@@ -502,16 +637,29 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     None
                 } else {
                     let need = h.t_mid_ns + h.readout_ns / 2;
-                    let deadline = monotonic_ns() + params.imu_wait_ms as i64 * 1_000_000;
-                    while imu_in.live()
-                        && imu_in.newest_ns().is_some_and(|t| t < need)
-                        && monotonic_ns() < deadline
-                    {
+                    let deadline = monotonic_ns() + params.imu_wait_ns();
+                    // Lock-step: also before the first IMU sample (whether it is in before
+                    // the first frames would otherwise change the initialisation).
+                    let missing = |imu: &imu::ImuInput| {
+                        let short = imu.newest_ns().is_none_or(|t| t < need);
+                        if sync && !imu_never_came {
+                            short && !imu.ended
+                        } else {
+                            short && imu.live()
+                        }
+                    };
+                    while missing(&imu_in) && monotonic_ns() < deadline {
                         if imu_in.drain(&imu_sub, &mut status, c, log.as_mut())? == 0
                             && node.wait(Duration::from_micros(200)).is_err()
                         {
                             break;
                         }
+                    }
+                    if sync && missing(&imu_in) {
+                        status.add("lockstep_imu_timeouts", 1);
+                        // No IMU at all (e.g. its ingest keeps failing): wait no more for
+                        // its start.
+                        imu_never_came |= imu_in.newest_ns().is_none();
                     }
                     imu_in.camera_rate(&h)
                 };
@@ -554,6 +702,20 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                                 }
                             }
                             kf_counts.sync(&outbox, &mut status, &mut file);
+                            // Lock-step: the server's answers to these keyframes (pose
+                            // feedback) are in before this frame's server pose.
+                            if let (true, Some(last)) = (sync, o.evicted.last()) {
+                                let (sub, st) = (&feedback_sub, &mut status);
+                                wait_handled(
+                                    (sess, last.id),
+                                    &node,
+                                    sub,
+                                    &kf_pub,
+                                    &mut outbox,
+                                    &mut server,
+                                    st,
+                                )?;
+                            }
                             vo_session = session_base | v.session_id();
                             // Keyframes enter the VO map only with a frame that reports one
                             // (two at initialisation): no map lock on the other frames.
@@ -595,7 +757,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             }
             // Pose in the server map from the last feedback (eq. 3.1, 3.4), same VO session.
             let server_pose = t_cf.and_then(|t| {
-                server_ref
+                server
+                    .server_ref
                     .as_ref()
                     .filter(|r| r.session == vo_session)
                     .map(|r| (r.frame_pose(&t), r.map_id))
@@ -626,6 +789,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             if let Some(v) = vo.as_ref() {
                 status.set_value("vo_relocalizations", v.relocalizations() as f64);
                 status.set_value("keyframes_culled", v.keyframes_culled() as f64);
+                status.counters.insert(
+                    "local_mapping_sync_timeouts".into(),
+                    vo_timeouts_base + v.local_mapping_sync_timeouts() as u64,
+                );
             }
             let _ = file.write_every(&status, Duration::from_millis(200));
         }

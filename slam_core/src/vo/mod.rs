@@ -16,4 +16,6 @@ pub mod tracker;
 pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
 pub use kf_culling::{cull_redundant_keyframes, KfCullingParams};
 pub use map::{ClientMap, Keyframe, KfId, MapPoint, PointId};
-pub use tracker::{StageTimes, VoFrame, VoOutput, VoParams, VoState, VoTracker};
+pub use tracker::{
+    StageTimes, VoFrame, VoOutput, VoParams, VoState, VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,
+};

@@ -44,6 +44,12 @@ pub struct VoParams {
     /// Run local mapping (triangulation with neighbours, culling, local BA) in its own
     /// thread (seed §3.3); `false` runs it inline at keyframe creation (deterministic).
     pub local_mapping_thread: bool,
+    /// With the local-mapping thread: every frame waits, after its ORB extraction (which
+    /// overlaps the mapping) and before it reads the map, until local mapping has finished
+    /// every keyframe given to it (at most [`LOCAL_MAPPING_SYNC_TIMEOUT`]). Tracking and the
+    /// keyframe decision then never depend on thread timing: a lock-step replay gives the
+    /// same result on every run. `false`: free-running (real time).
+    pub sync_local_mapping: bool,
     /// Neighbour keyframes of local mapping (triangulation and local BA).
     pub mapping_neighbours: usize,
     /// Keyframes tried per frame when relocalising.
@@ -73,11 +79,18 @@ impl Default for VoParams {
             local_ba: true,
             init_feature_factor: 2,
             local_mapping_thread: true,
+            sync_local_mapping: false,
             mapping_neighbours: 10,
             reloc_candidates: 8,
         }
     }
 }
+
+/// Longest a frame waits for the local-mapping thread with
+/// [`VoParams::sync_local_mapping`]; a longer wait is counted
+/// ([`VoTracker::local_mapping_sync_timeouts`]) and the frame goes on (the run is then no
+/// longer guaranteed to be reproducible).
+pub const LOCAL_MAPPING_SYNC_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// State of the tracker after a frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -174,6 +187,14 @@ pub struct VoTracker {
     mapping: Option<local_mapper::LocalMappingThread>,
     /// Keyframes culled by inline local mapping.
     culled_inline: usize,
+    /// Frames that waited for the local-mapping thread ([`VoParams::sync_local_mapping`]).
+    sync_waits: usize,
+    /// Of those, waits that ran into [`LOCAL_MAPPING_SYNC_TIMEOUT`].
+    sync_timeouts: usize,
+    /// The last frame became this keyframe and the local-mapping thread maps it: with
+    /// [`VoParams::sync_local_mapping`] the next frame takes its new points as the last
+    /// frame's (as inline mapping does at once).
+    mapped_last_kf: Option<KfId>,
     /// Relocalisation: where the round over the map's keyframes continues.
     reloc_cursor: Option<usize>,
     /// Successful relocalisations.
@@ -235,6 +256,9 @@ impl VoTracker {
             shared: Arc::clone(&shared),
             mapping,
             culled_inline: 0,
+            sync_waits: 0,
+            sync_timeouts: 0,
+            mapped_last_kf: None,
             reloc_cursor: None,
             relocalized: 0,
             pnp: crate::pnp::PnpSolver::new(),
@@ -332,11 +356,14 @@ impl VoTracker {
             backfill: Vec::new(),
             times,
         };
+        // Lock-step: local mapping of earlier keyframes has finished before the map is used.
+        self.sync_with_local_mapping(LOCAL_MAPPING_SYNC_TIMEOUT);
         // The map is locked (and swapped into `self.map`) for the rest of the frame; the
         // local-mapping thread works between frames.
         let shared = Arc::clone(&self.shared);
         let mut guard = lock(&shared);
         std::mem::swap(&mut self.map, &mut *guard);
+        self.adopt_mapped_points();
         let res = match self.state {
             VoState::NotInitialized | VoState::Initializing => {
                 self.try_initialize(frame, &feats, &mut out);
@@ -370,6 +397,62 @@ impl VoTracker {
     /// Keyframes culled as redundant by local mapping so far.
     pub fn keyframes_culled(&self) -> usize {
         self.culled_inline + self.mapping.as_ref().map_or(0, |m| m.culled())
+    }
+
+    /// Frames that waited for the local-mapping thread to be idle
+    /// ([`VoParams::sync_local_mapping`]; 0 without the thread).
+    pub fn local_mapping_sync_waits(&self) -> usize {
+        self.sync_waits
+    }
+
+    /// Waits for the local-mapping thread that timed out (the frame went on while local
+    /// mapping was still busy: that run's decisions may depend on timing).
+    pub fn local_mapping_sync_timeouts(&self) -> usize {
+        self.sync_timeouts
+    }
+
+    /// With [`VoParams::sync_local_mapping`] and the local-mapping thread: waits (at most
+    /// `timeout`) until it has mapped every keyframe given to it, counting the wait and
+    /// whether it timed out.
+    fn sync_with_local_mapping(&mut self, timeout: std::time::Duration) {
+        let Some(m) = self
+            .mapping
+            .as_ref()
+            .filter(|_| self.params.sync_local_mapping)
+        else {
+            return;
+        };
+        if m.idle() {
+            return;
+        }
+        self.sync_waits += 1;
+        if !m.wait_idle(timeout) {
+            self.sync_timeouts += 1;
+        }
+    }
+
+    /// With [`VoParams::sync_local_mapping`]: the last frame became a keyframe that local
+    /// mapping (now finished) gave new points and culled points of: the last frame sees
+    /// the same points as its keyframe, as after inline mapping, so the thread and inline
+    /// mapping take the same decisions.
+    fn adopt_mapped_points(&mut self) {
+        let Some(k) = self.mapped_last_kf.take() else {
+            return;
+        };
+        let (Some(last), Some(kf)) = (self.last.as_mut(), self.map.keyframes.get(&k)) else {
+            return;
+        };
+        if kf.t_ns != last.t_ns || kf.points.len() != last.points.len() {
+            return;
+        }
+        for (p, q) in last.points.iter_mut().zip(&kf.points) {
+            if p.is_none() {
+                *p = *q;
+            }
+            if p.is_some_and(|id| !self.map.points.contains_key(&id)) {
+                *p = None;
+            }
+        }
     }
 
     /// Successful relocalisations so far.

@@ -383,7 +383,12 @@ impl VoTracker {
         // local-mapping thread (or inline).
         create_points_with_neighbours(&mut self.map, id, 1);
         match &self.mapping {
-            Some(m) => m.submit(id),
+            Some(m) => {
+                m.submit(id);
+                if self.params.sync_local_mapping {
+                    self.mapped_last_kf = Some(id);
+                }
+            }
             None => {
                 let p = self.params.local_mapping();
                 self.culled_inline += super::local_mapper::map_keyframe_inline(
