@@ -32,7 +32,7 @@ fn sequence(dir: &Path) -> PathBuf {
 fn is_timing(key: &str) -> bool {
     let leaf = key.rsplit('.').next().unwrap_or(key);
     let leaf = leaf.split('[').next().unwrap_or(leaf);
-    key.starts_with("latency_ms")
+    key.split('.').any(|seg| seg.starts_with("latency_ms"))
         || key.contains("cpu_s")
         || leaf.ends_with("_s")
         || leaf.ends_with("_us")
@@ -48,8 +48,14 @@ fn is_timing(key: &str) -> bool {
         || leaf == "outcome"
 }
 
-/// The report flattened to `path = value` (paths of the output folder made relative).
-fn flatten(v: &serde_json::Value, path: &str, out_dir: &str, acc: &mut BTreeMap<String, String>) {
+/// The report flattened to `path = value`, each `(run-specific text, placeholder)` of `subst`
+/// replaced in the values (the output folder, the iceoryx2 prefix: they differ by design).
+fn flatten(
+    v: &serde_json::Value,
+    path: &str,
+    subst: &[(String, &str)],
+    acc: &mut BTreeMap<String, String>,
+) {
     match v {
         serde_json::Value::Object(m) => {
             for (k, x) in m {
@@ -58,17 +64,20 @@ fn flatten(v: &serde_json::Value, path: &str, out_dir: &str, acc: &mut BTreeMap<
                 } else {
                     format!("{path}.{k}")
                 };
-                flatten(x, &p, out_dir, acc);
+                flatten(x, &p, subst, acc);
             }
         }
         serde_json::Value::Array(a) => {
             for (i, x) in a.iter().enumerate() {
-                flatten(x, &format!("{path}[{i}]"), out_dir, acc);
+                flatten(x, &format!("{path}[{i}]"), subst, acc);
             }
         }
         _ => {
             if !is_timing(path) {
-                acc.insert(path.to_string(), v.to_string().replace(out_dir, "OUT"));
+                let text = subst
+                    .iter()
+                    .fold(v.to_string(), |t, (from, to)| t.replace(from.as_str(), to));
+                acc.insert(path.to_string(), text);
             }
         }
     }
@@ -112,7 +121,12 @@ fn lockstep_runs_with_mapping_thread_are_identical() {
         let ate = c["ate"]["rmse_m"].as_f64().expect("ATE");
         assert!(ate < 0.05, "run {r}: ATE {ate} m");
         let mut counters = BTreeMap::new();
-        flatten(&rep, "", &out.display().to_string(), &mut counters);
+        let prefix = rep["provenance"]["config"]["ipc_prefix"]
+            .as_str()
+            .expect("provenance.config.ipc_prefix")
+            .to_string();
+        let subst = [(out.display().to_string(), "OUT"), (prefix, "PREFIX")];
+        flatten(&rep, "", &subst, &mut counters);
         runs.push((out, counters));
     }
     let (first, first_counters) = &runs[0];
