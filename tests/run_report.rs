@@ -71,8 +71,17 @@ fn summary_prints_accuracy_latency_and_files() {
     eprintln!("{stdout}");
     let rep = report(&out);
     let c = &rep["clients"][0];
-    let posed = c["frames_received"].as_u64().unwrap();
-    assert!(posed >= 90, "{c:#}");
+    // Every replayed frame is posed or has a stated reason (issue 15, part 2), and at least
+    // 98% are posed.
+    let posed = c["frames_posed"].as_u64().unwrap();
+    let unposed = &c["frames_unposed"];
+    assert_eq!(posed + unposed["total"].as_u64().unwrap(), 100, "{c:#}");
+    let reasons: u64 = ["before_init", "lost", "corrupt", "dropped"]
+        .iter()
+        .map(|k| unposed[*k].as_u64().unwrap())
+        .sum();
+    assert_eq!(reasons, unposed["total"].as_u64().unwrap(), "{unposed:#}");
+    assert!(posed >= 98, "{c:#}");
     assert!(
         stdout.contains(&format!("client 0: {posed}/100 frames posed")),
         "{stdout}"

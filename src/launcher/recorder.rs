@@ -57,6 +57,25 @@ impl LatencyHist {
     }
 }
 
+/// What became of one frame of a client, as the recorder saw it (the reason of an unposed
+/// frame in `frames_unposed`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FrameFate {
+    /// No pose message for it (not replayed, dropped, or corrupt).
+    #[default]
+    Unseen,
+    /// Handled before the VO session's map existed and never given a pose later.
+    BeforeInit,
+    /// Handled while tracking was lost (relocalisation failed).
+    Lost,
+    /// A valid pose: tracked, or found later (backfill / backward tracking).
+    Posed,
+}
+
+/// Largest dataset index the recorder keeps per-frame state for (2^27 frames: 128 MiB of
+/// states at most, 77 days at 20 Hz): a bogus index must not make it allocate more.
+const MAX_FRAME_INDEX: u64 = 1 << 27;
+
 /// What the recorder keeps of one client.
 pub struct ClientRecord {
     subscriber: iceoryx2::port::subscriber::Subscriber<Ipc, TrackedPose, ()>,
@@ -68,6 +87,11 @@ pub struct ClientRecord {
     pub frames_posed: u64,
     /// Which dataset indices have a pose (bit set).
     posed: Vec<u64>,
+    /// What became of each frame (dataset index).
+    fates: Vec<FrameFate>,
+    /// Frame time → dataset index of the frames handled without a valid pose, to place the
+    /// late poses of backfilled frames (which carry only their time).
+    unposed_at: std::collections::HashMap<i64, u64>,
     /// Frames with a valid pose when they were tracked.
     pub tracked: u64,
     /// Frames given a pose later, when the VO initialised (`FLAG_BACKFILL`).
@@ -90,8 +114,8 @@ impl ClientRecord {
     /// Notes a pose of frame `index`; counts it once.
     fn mark_posed(&mut self, index: u64) {
         // The ingest sets indices below the dataset's length; a bogus one must not make the
-        // launcher allocate gigabytes (2^27 frames: 16 MiB of bits, 77 days at 20 Hz).
-        if index >= 1 << 27 {
+        // launcher allocate gigabytes.
+        if index >= MAX_FRAME_INDEX {
             return;
         }
         let (word, bit) = ((index / 64) as usize, 1u64 << (index % 64));
@@ -102,6 +126,49 @@ impl ClientRecord {
             self.posed[word] |= bit;
             self.frames_posed += 1;
         }
+    }
+
+    /// Notes the state a frame was handled in; a valid pose is final.
+    fn note_fate(&mut self, index: u64, t_ns: i64, state: Option<TrackState>) {
+        if index >= MAX_FRAME_INDEX {
+            return;
+        }
+        let i = index as usize;
+        if i >= self.fates.len() {
+            self.fates.resize(i + 1, FrameFate::Unseen);
+        }
+        let fate = match state {
+            Some(TrackState::Tracking) => FrameFate::Posed,
+            Some(TrackState::Lost) => FrameFate::Lost,
+            _ => FrameFate::BeforeInit,
+        };
+        if self.fates[i] == FrameFate::Posed {
+            return;
+        }
+        self.fates[i] = fate;
+        if fate == FrameFate::Posed {
+            self.unposed_at.remove(&t_ns);
+        } else {
+            self.unposed_at.insert(t_ns, index);
+        }
+    }
+
+    /// A late pose of the frame at `t_ns` (backfill, backward tracking).
+    fn note_late_pose(&mut self, t_ns: i64) {
+        if let Some(i) = self.unposed_at.remove(&t_ns) {
+            self.fates[i as usize] = FrameFate::Posed;
+        }
+    }
+
+    /// Frames with a valid pose, and of the frames handled without one: (before the
+    /// initialisation, while lost).
+    pub fn fate_counts(&self) -> (u64, u64, u64) {
+        let n = |f: FrameFate| self.fates.iter().filter(|&&x| x == f).count() as u64;
+        (
+            n(FrameFate::Posed),
+            n(FrameFate::BeforeInit),
+            n(FrameFate::Lost),
+        )
     }
 }
 
@@ -128,6 +195,8 @@ impl Recorder {
                 poses: 0,
                 frames_posed: 0,
                 posed: Vec::new(),
+                fates: Vec::new(),
+                unposed_at: std::collections::HashMap::new(),
                 tracked: 0,
                 tracked_server: 0,
                 backfilled: 0,
@@ -171,11 +240,13 @@ impl Recorder {
                     if TrackState::from_u32(p.state) == Some(TrackState::Tracking) {
                         rec.backfilled += 1;
                         rec.trajectory.push((p.t_ns, p.pose));
+                        rec.note_late_pose(p.t_ns);
                     }
                     continue;
                 }
                 rec.poses += 1;
                 rec.mark_posed(p.dataset_index);
+                rec.note_fate(p.dataset_index, p.t_ns, TrackState::from_u32(p.state));
                 let latency_ns = p.meta.publish_mono_ns - p.frame_publish_mono_ns;
                 self.publish_to_pose.record_ns(latency_ns);
                 rec.publish_to_pose.record_ns(latency_ns);

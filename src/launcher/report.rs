@@ -26,8 +26,15 @@ pub struct ClientReport {
     pub frames_received: u64,
     /// Frames with a valid pose when they were tracked.
     pub frames_tracked: u64,
-    /// Frames seen while the VO initialised, given a pose once the map existed.
+    /// Frames seen while the VO initialised, given a pose once the map existed: between the
+    /// two-view reference and the initialising frame, and before the reference (tracked
+    /// backwards against the initial map).
     pub frames_backfilled: u64,
+    /// Distinct frames with a valid pose (tracked or backfilled), what evaluation tools count.
+    pub frames_posed: u64,
+    /// The replayed frames without a pose, by reason: `frames_posed + frames_unposed.total`
+    /// is every frame the camera went through.
+    pub frames_unposed: FramesUnposed,
     /// Frames of the replayed part of the dataset that got no pose, corrupt images (errors,
     /// never published) not counted: frames published while the tracker was down or that it
     /// never took (real time: a killed tracker drops the frames published until its restart
@@ -253,6 +260,34 @@ fn evaluate_poses(
     Some(ate)
 }
 
+/// Why frames of a client got no pose.
+#[derive(Debug, Clone, Default, Serialize, PartialEq, Eq)]
+pub struct FramesUnposed {
+    /// Sum of the reasons below.
+    pub total: u64,
+    /// Handled before the VO session's map existed (two-view initialisation not reached, or
+    /// not tracked backwards from it).
+    pub before_init: u64,
+    /// Handled while tracking was lost (relocalisation failed, before a new session).
+    pub lost: u64,
+    /// Corrupt images (reported as errors, never published).
+    pub corrupt: u64,
+    /// Never handled by a tracker (`frames_dropped`).
+    pub dropped: u64,
+}
+
+impl FramesUnposed {
+    fn new(before_init: u64, lost: u64, corrupt: u64, dropped: u64) -> Self {
+        Self {
+            total: before_init + lost + corrupt + dropped,
+            before_init,
+            lost,
+            corrupt,
+            dropped,
+        }
+    }
+}
+
 /// Per-service figures.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct ServiceReport {
@@ -466,6 +501,7 @@ impl RunReport {
             let published = get(&cam, "frames_published");
             let rec = &recorder.clients[c];
             let received = rec.frames_posed;
+            let (posed, before_init, lost) = rec.fate_counts();
             // Frames the camera went through (published, skipped late, or corrupt): all of
             // them unless the run was stopped early.
             let offered = (value(&cam, "next_index") as u64).min(total);
@@ -520,6 +556,13 @@ impl RunReport {
                 frames_received: received,
                 frames_tracked: rec.tracked,
                 frames_backfilled: rec.backfilled,
+                frames_posed: posed,
+                frames_unposed: FramesUnposed::new(
+                    before_init,
+                    lost,
+                    corrupt,
+                    offered.saturating_sub(received + corrupt),
+                ),
                 frames_dropped: offered.saturating_sub(received + corrupt),
                 frames_skipped_late: get(&cam, "frames_skipped_late"),
                 frames_corrupt: corrupt,

@@ -80,14 +80,16 @@ fn replayed(cl: &ClientReport) -> u64 {
 fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
     let _ = writeln!(
         s,
-        "client {c}: {}/{} frames posed ({} tracked, {} backfilled; {} dropped, {} corrupt); \
-         keyframes {} sent, {} applied",
-        cl.frames_received.min(replayed(cl)),
+        "client {c}: {}/{} frames posed ({} tracked, {} backfilled); unposed: {} before \
+         initialisation, {} lost, {} dropped, {} corrupt; keyframes {} sent, {} applied",
+        cl.frames_posed,
         replayed(cl),
         cl.frames_tracked,
         cl.frames_backfilled,
-        cl.frames_dropped,
-        cl.frames_corrupt,
+        cl.frames_unposed.before_init,
+        cl.frames_unposed.lost,
+        cl.frames_unposed.dropped,
+        cl.frames_unposed.corrupt,
         cl.keyframes_sent,
         cl.keyframes_applied
     );

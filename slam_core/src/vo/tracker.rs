@@ -141,8 +141,10 @@ pub struct VoOutput {
     pub new_session: bool,
     /// Keyframes evicted from the window (oldest first), to be sent to the server.
     pub evicted: Vec<Keyframe>,
-    /// Poses `(frame time, T_cw)` of earlier frames found when the map was initialised with
-    /// this frame: the reference frame and the frames between it and this one.
+    /// Poses `(frame time, T_cw)` of earlier frames found late: when the map was
+    /// initialised with this frame, the reference frame and the frames between it and this
+    /// one; once the map has a few keyframes, the frames before the reference, tracked
+    /// backwards (newest first, `backward.rs`).
     pub backfill: Vec<(i64, Isometry3<f64>)>,
     /// Stage times.
     pub times: StageTimes,
@@ -205,6 +207,8 @@ pub struct VoTracker {
     session_id: u32,
     next_kf_id: KfId,
     init: Option<init::InitState>,
+    /// Frames seen while initialising, tracked backwards once the map exists.
+    pre_init: backward::PreInitBuffer,
     init_matches: Vec<crate::features::Match>,
     /// Extractor of the initialisation (more features, as ORB-SLAM's monocular initialiser).
     init_extractor: OrbExtractor,
@@ -266,6 +270,7 @@ impl VoTracker {
             session_id: 1,
             next_kf_id: 0,
             init: None,
+            pre_init: backward::PreInitBuffer::default(),
             init_matches: Vec::new(),
             init_extractor: OrbExtractor::new(
                 OrbParams {
@@ -367,10 +372,18 @@ impl VoTracker {
         let res = match self.state {
             VoState::NotInitialized | VoState::Initializing => {
                 self.try_initialize(frame, &feats, &mut out);
+                match out.backfill.first() {
+                    // Initialised: the reference and the frames after it are posed.
+                    Some(&(t_ref, _)) => self.pre_init.keep_before(t_ref),
+                    None => self.pre_init.push(frame.t_ns, frame.readout_ns, &feats),
+                }
                 Ok(())
             }
             VoState::Tracking | VoState::Lost => self.track(frame, &feats, &mut out),
         };
+        if self.state == VoState::Tracking {
+            self.maybe_track_backwards(&mut out);
+        }
         std::mem::swap(&mut self.map, &mut *guard);
         drop(guard);
         res?;
@@ -491,6 +504,7 @@ impl VoTracker {
         self.map = ClientMap::new(self.session_id, next_point);
         self.state = VoState::NotInitialized;
         self.init = None;
+        self.pre_init.clear();
         self.last = None;
         self.velocity = None;
         self.ref_kf = None;
@@ -546,6 +560,7 @@ pub fn se3_log(t: &Isometry3<f64>) -> nalgebra::Vector6<f64> {
     nalgebra::Vector6::new(rho.x, rho.y, rho.z, phi.x, phi.y, phi.z)
 }
 
+mod backward;
 mod init;
 mod local_mapper;
 mod reloc;

@@ -89,7 +89,7 @@ impl VoTracker {
                     self.frame_points[i] = Some(p);
                 }
             }
-            let Some((pose, inl)) = self.optimize(frame, feats, &res.t_cw, None) else {
+            let Some((pose, inl)) = self.optimize(frame.readout_ns, feats, &res.t_cw, None) else {
                 continue;
             };
             if inl >= MIN_MATCHES {

@@ -56,7 +56,9 @@ impl VoTracker {
             out.times.matching += m0.elapsed().as_secs_f32() * 1e3;
             if n >= 20 {
                 let p0 = Instant::now();
-                if let Some((pose, inl)) = self.optimize(frame, feats, &t_cw, vel.as_ref()) {
+                if let Some((pose, inl)) =
+                    self.optimize(frame.readout_ns, feats, &t_cw, vel.as_ref())
+                {
                     ok = inl >= 10;
                     t_cw = pose;
                 }
@@ -72,7 +74,9 @@ impl VoTracker {
             if n >= 15 {
                 let p1 = Instant::now();
                 let guess = self.last.as_ref().map_or(pred, |l| l.t_cw);
-                if let Some((pose, inl)) = self.optimize(frame, feats, &guess, vel.as_ref()) {
+                if let Some((pose, inl)) =
+                    self.optimize(frame.readout_ns, feats, &guess, vel.as_ref())
+                {
                     ok = inl >= 10;
                     t_cw = pose;
                 }
@@ -107,7 +111,7 @@ impl VoTracker {
         self.search(&t_cw, feats, &ProjSearchParams::local_map());
         out.times.matching += m2.elapsed().as_secs_f32() * 1e3;
         let p2 = Instant::now();
-        let tracked = match self.optimize(frame, feats, &t_cw, vel.as_ref()) {
+        let tracked = match self.optimize(frame.readout_ns, feats, &t_cw, vel.as_ref()) {
             Some((pose, inl)) => {
                 t_cw = pose;
                 inl
@@ -184,21 +188,12 @@ impl VoTracker {
 
     fn gather_last_frame_candidates(&mut self) {
         self.cands.clear();
-        let Some(last) = &self.last else { return };
-        for (i, p) in last.points.iter().enumerate() {
-            let Some(mp) = p.and_then(|p| self.map.points.get(&p)) else {
-                continue;
-            };
-            self.cands.push(ProjCandidate {
-                p_w: mp.p_w,
-                descriptor: mp.descriptor,
-                octave: last.features.keypoints[i].octave,
-                tag: mp.id,
-            });
+        if let Some(last) = &self.last {
+            push_frame_candidates(&mut self.cands, &self.map, last);
         }
     }
 
-    fn gather_local_map_candidates(&mut self) {
+    pub(super) fn gather_local_map_candidates(&mut self) {
         self.cands.clear();
         let Some(r) = self.ref_kf else { return };
         self.local_kfs.clear();
@@ -231,7 +226,7 @@ impl VoTracker {
     }
 
     /// Projection search of `self.cands` into the frame; fills the free `frame_points`.
-    fn search(
+    pub(super) fn search(
         &mut self,
         t_cw: &Isometry3<f64>,
         feats: &OrbFeatures,
@@ -258,7 +253,7 @@ impl VoTracker {
         self.frame_points.iter().filter(|x| x.is_some()).count()
     }
 
-    fn match_reference_keyframe(&mut self, feats: &OrbFeatures) -> usize {
+    pub(super) fn match_reference_keyframe(&mut self, feats: &OrbFeatures) -> usize {
         let Some(kf) = self.ref_kf.and_then(|k| self.map.keyframes.get(&k)) else {
             return 0;
         };
@@ -286,10 +281,11 @@ impl VoTracker {
         n
     }
 
-    /// Pose-only optimisation over the frame's matched points; outliers are unmatched.
+    /// Pose-only optimisation over the frame's matched points (rows read out over
+    /// `readout_ns`); outliers are unmatched.
     pub(super) fn optimize(
         &mut self,
-        frame: &VoFrame<'_>,
+        readout_ns: i64,
         feats: &OrbFeatures,
         guess: &Isometry3<f64>,
         vel: Option<&Velocity>,
@@ -306,7 +302,7 @@ impl VoTracker {
                 point_w: mp.p_w,
                 pixel: Vector2::new(kp.x as f64, kp.y as f64),
                 inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
-                dt: crate::rolling_shutter::row_offset_s(frame.readout_ns, kp.y as f64, rows),
+                dt: crate::rolling_shutter::row_offset_s(readout_ns, kp.y as f64, rows),
             });
             self.obs_kp.push(k);
         }
@@ -416,5 +412,25 @@ impl VoTracker {
         self.ref_kf = Some(id);
         self.frames_since_kf = 0;
         id
+    }
+}
+
+/// Appends the map points matched in `frame` to `cands` (the motion-model search's
+/// candidates, forwards from the last frame or backwards from the next one).
+pub(super) fn push_frame_candidates(
+    cands: &mut Vec<ProjCandidate>,
+    map: &crate::vo::map::ClientMap,
+    frame: &LastFrame,
+) {
+    for (i, p) in frame.points.iter().enumerate() {
+        let Some(mp) = p.and_then(|p| map.points.get(&p)) else {
+            continue;
+        };
+        cands.push(ProjCandidate {
+            p_w: mp.p_w,
+            descriptor: mp.descriptor,
+            octave: frame.features.keypoints[i].octave,
+            tag: mp.id,
+        });
     }
 }
