@@ -107,6 +107,13 @@ impl VoTracker {
             .collect();
         kfs.sort_unstable();
         if let [(t_ref, first), (t_later, second), ..] = kfs[..] {
+            if std::env::var_os("SHOAL_DEBUG_INIT").is_some() {
+                let before = frames.0.iter().filter(|f| f.t_ns < t_ref).count();
+                eprintln!(
+                    "backward: {before} of {} kept frames before the oldest keyframe (t {t_ref} ns)",
+                    frames.0.len()
+                );
+            }
             let mut next = self.last_from_kf(first);
             let t_cw_later = self.map.keyframes[&second].t_cw;
             let mut motion = BackwardMotion {
@@ -117,6 +124,14 @@ impl VoTracker {
                 let dt_s = (next.t_ns - f.t_ns) as f64 * 1e-9;
                 let guess = motion.predict(&next.t_cw, dt_s);
                 let Some(t_cw) = self.track_one_backwards(f, &next, &guess) else {
+                    if std::env::var_os("SHOAL_DEBUG_INIT").is_some() {
+                        eprintln!(
+                            "backward: {} frames kept, stopped at t {} ns ({} inliers)",
+                            frames.0.len(),
+                            f.t_ns,
+                            self.inliers.iter().filter(|&&i| i).count()
+                        );
+                    }
                     break;
                 };
                 out.backfill.push((f.t_ns, t_cw));
