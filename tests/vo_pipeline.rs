@@ -4,7 +4,9 @@
 //!   least 30% lower than without, and ≤ 1% of the distance;
 //! - ../shared/data/kitti07: initialises within the first 15 frames, ≥ 95% of the frames
 //!   tracked, ATE after Sim(3) alignment ≤ 1% of the distance (≤ 0.55 m);
-//! - the phone clip runs through without error.
+//! - the phone clip runs through without error, every frame unposed before initialisation
+//!   (it cannot initialise monocularly);
+//! - a KITTI 07 stretch starting elsewhere (frame 40): every frame posed (backward tracking).
 mod common;
 
 use common::{report, run_pipeline, shared_dataset, synthetic, tempdir};
@@ -87,7 +89,12 @@ fn kitti07_initialises_tracks_and_is_accurate() {
     ignore = "needs ../shared/data/phone_honorv10 (set SHOAL_DATA)"
 )]
 #[test]
-fn phone_clip_runs_without_error() {
+fn phone_clip_gives_no_pose_and_says_why() {
+    // The clip is 0.8 s of hand-held motion, nearly pure rotation: with SHOAL_DEBUG_INIT=1
+    // the two-view initialiser rejects every frame against the first one (parallax 0.1-0.2
+    // deg < 1 deg, or homography and essential matrix ambiguous), so the monocular VO cannot
+    // initialise; the visual-inertial initialisation (chapter 5) is what can. Every frame
+    // is accounted for as unposed before initialisation, none as lost or dropped.
     let ds = shared_dataset("phone_honorv10");
     let tmp = tempdir();
     let out = tmp.path().join("out");
@@ -98,8 +105,68 @@ fn phone_clip_runs_without_error() {
     assert_eq!(c["frames_received"].as_u64(), Some(25));
     let errors = rep["errors"].as_array().map_or(0, |a| a.len());
     assert_eq!(errors, 0, "no errors: {}", rep["errors"]);
-    eprintln!(
-        "phone: {} tracked, {} backfilled of 25",
-        c["frames_tracked"], c["frames_backfilled"]
+    assert_eq!(c["frames_posed"], 0, "{c:#}");
+    let unposed = &c["frames_unposed"];
+    assert_eq!(unposed["before_init"], 25, "{unposed:#}");
+    assert_eq!(unposed["total"], 25, "{unposed:#}");
+    assert_eq!(c["keyframes_sent"], 0);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout.contains("0/25 frames posed") && stdout.contains("25 before initialisation"),
+        "{stdout}"
     );
+}
+
+/// A stretch of KITTI 07 the other tests do not start at (frames 40-99): the initialiser
+/// replaces its reference while the car drives forward, so the first 12 frames came
+/// before the reference and had no pose (48/60). Tracked backwards once the map has a few
+/// keyframes, every frame has a pose, and the frames posed before keep their accuracy.
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/kitti07 (set SHOAL_DATA)"
+)]
+#[test]
+fn kitti07_from_frame_40_poses_every_frame() {
+    let tmp = tempdir();
+    let ds = kitti_stretch(&shared_dataset("kitti07"), 40, &tmp.path().join("k07_40"));
+    let out = tmp.path().join("out");
+    let o = run_pipeline(&[&ds], &out, "k07_40", &[]);
+    assert!(o.status.success());
+    let rep = report(&out);
+    let c = client(&rep);
+    let posed = c["frames_posed"].as_u64().unwrap();
+    eprintln!(
+        "KITTI 07 from frame 40: {posed}/60 posed, unposed {}, ATE {}",
+        c["frames_unposed"], c["ate"]["rmse_m"]
+    );
+    assert!(posed * 100 >= 60 * 98, "{posed}/60 frames posed: {c:#}");
+    assert_eq!(posed + c["frames_unposed"]["total"].as_u64().unwrap(), 60);
+    // 0.0325 m over the 60 frames (the 48 frames posed without backward tracking: 0.0223 m,
+    // unchanged); 1% of the 44.5 m driven is the KITTI target.
+    assert!(
+        ate_percent(c) <= 0.15,
+        "ATE {}% of the path",
+        ate_percent(c)
+    );
+}
+
+/// A KITTI odometry folder of the frames `first..` of `src` (images linked, times and poses
+/// cut) at `dst`.
+fn kitti_stretch(src: &std::path::Path, first: usize, dst: &std::path::Path) -> std::path::PathBuf {
+    std::fs::create_dir_all(dst.join("image_0")).unwrap();
+    std::fs::copy(src.join("calib.txt"), dst.join("calib.txt")).unwrap();
+    for name in ["times.txt", "poses.txt"] {
+        let text = std::fs::read_to_string(src.join(name)).unwrap();
+        let kept: Vec<&str> = text.lines().skip(first).collect();
+        std::fs::write(dst.join(name), kept.join("\n") + "\n").unwrap();
+    }
+    let n = std::fs::read_dir(src.join("image_0")).unwrap().count();
+    for i in first..n {
+        std::os::unix::fs::symlink(
+            src.join(format!("image_0/{i:06}.png")),
+            dst.join(format!("image_0/{:06}.png", i - first)),
+        )
+        .unwrap();
+    }
+    dst.to_path_buf()
 }
