@@ -147,6 +147,26 @@ impl Similarity {
         }
     }
 
+    /// The inverse similarity: `x ↦ s⁻¹ Rᵀ (x - t)`.
+    pub fn inverse(&self) -> Self {
+        let r_inv = self.rotation.inverse();
+        let s_inv = 1.0 / self.scale;
+        Self {
+            rotation: r_inv,
+            translation: -(r_inv * self.translation) * s_inv,
+            scale: s_inv,
+        }
+    }
+
+    /// `self ∘ other`: `other` first, then `self`.
+    pub fn compose(&self, other: &Self) -> Self {
+        Self {
+            rotation: self.rotation * other.rotation,
+            translation: self.transform_point(&other.translation),
+            scale: self.scale * other.scale,
+        }
+    }
+
     /// Applies the similarity to a point: `s R x + t`.
     pub fn transform_point(&self, x: &Vector3<f64>) -> Vector3<f64> {
         self.rotation * x * self.scale + self.translation

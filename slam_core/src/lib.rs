@@ -15,6 +15,7 @@ pub mod pnp;
 pub mod ransac;
 pub mod rolling_shutter;
 pub mod server;
+pub mod sessions;
 pub mod twoview;
 pub mod vo;
 

@@ -10,6 +10,7 @@ pub mod faults;
 pub mod provenance;
 pub mod recorder;
 pub mod report;
+pub mod sessions;
 pub mod summary;
 pub mod topology;
 

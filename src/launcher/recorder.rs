@@ -100,6 +100,8 @@ pub struct ClientRecord {
     pub tracked_server: u64,
     /// Valid poses, in arrival order (backfilled ones arrive late): (t_ns, pose).
     pub trajectory: Vec<(i64, shm_schema::Pose)>,
+    /// The VO session of each pose of `trajectory` (its map frame).
+    pub trajectory_sessions: Vec<u32>,
     /// Valid server-map poses: (t_ns, pose, server map id).
     pub server_trajectory: Vec<(i64, shm_schema::Pose, u64)>,
     /// True once the tracker sent its end of stream.
@@ -201,6 +203,7 @@ impl Recorder {
                 tracked_server: 0,
                 backfilled: 0,
                 trajectory: Vec::new(),
+                trajectory_sessions: Vec::new(),
                 server_trajectory: Vec::new(),
                 ended: false,
                 bad_messages: 0,
@@ -240,6 +243,7 @@ impl Recorder {
                     if TrackState::from_u32(p.state) == Some(TrackState::Tracking) {
                         rec.backfilled += 1;
                         rec.trajectory.push((p.t_ns, p.pose));
+                        rec.trajectory_sessions.push(p.meta.session_id);
                         rec.note_late_pose(p.t_ns);
                     }
                     continue;
@@ -257,6 +261,7 @@ impl Recorder {
                 if TrackState::from_u32(p.state) == Some(TrackState::Tracking) {
                     rec.tracked += 1;
                     rec.trajectory.push((p.t_ns, p.pose));
+                    rec.trajectory_sessions.push(p.meta.session_id);
                     if p.has_server_pose != 0 {
                         rec.tracked_server += 1;
                         rec.server_trajectory

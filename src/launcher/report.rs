@@ -101,9 +101,13 @@ pub struct ClientReport {
     /// ATE of the server keyframes of the client's current server map
     /// (`keyframes_server_c{i}.txt`).
     pub ate_server_keyframes: Option<AteReport>,
-    /// ATE of the per-frame poses in the client's final server map, as reported live
-    /// (`trajectory_server_c{i}.txt`).
+    /// ATE of the per-frame poses in the client's final server map
+    /// (`trajectory_server_c{i}.txt`): each frame relative to its session's keyframes' final
+    /// server poses (`sessions.frames_server_from_keyframes`), else as reported live.
     pub ate_server_frames: Option<AteReport>,
+    /// The client's VO sessions: which were re-expressed into one frame in
+    /// `trajectory_c{i}.txt`, which could not be, and why.
+    pub sessions: super::sessions::SessionsReport,
     /// Where the client VO's local mapping ran: `"thread"` (its own thread, the default) or
     /// `"inline"` (in the tracking thread, `--tracker-arg=--inline-mapping`); `"none"` when
     /// the tracker ran no VO.
@@ -506,10 +510,11 @@ impl RunReport {
             // them unless the run was stopped early.
             let offered = (value(&cam, "next_index") as u64).min(total);
             let corrupt = errors_of(&cam, "corrupt_image");
-            // Backfilled poses arrive after later frames: order by time.
-            let mut traj = rec.trajectory.clone();
-            traj.sort_by_key(|p| p.0);
-            traj.dedup_by_key(|p| p.0);
+            // Backfilled poses arrive after later frames: ordered by time, every VO session
+            // in one frame (the server's merges tie them), and in the server map.
+            let one =
+                super::sessions::one_frame(&cfg.out, c, &rec.trajectory, &rec.trajectory_sessions);
+            let traj = one.trajectory;
             let mut trajectory = None;
             let mut ate = None;
             if !traj.is_empty() {
@@ -530,6 +535,11 @@ impl RunReport {
             let server_frames_other_maps = (rec.server_trajectory.len() - server_traj.len()) as u64;
             server_traj.sort_by_key(|p| p.0);
             server_traj.dedup_by_key(|p| p.0);
+            // Every frame relative to its session's keyframes' final server poses when the
+            // server map has them (the live poses cover only frames tracked after feedback).
+            if let Some(s) = one.server {
+                server_traj = s;
+            }
             if !server_traj.is_empty() {
                 write_tum(
                     &cfg.out.join(format!("trajectory_server_c{c}.txt")),
@@ -600,6 +610,7 @@ impl RunReport {
                 ate_client_keyframes: ate_file("keyframes_client"),
                 ate_server_keyframes: ate_file("keyframes_server"),
                 ate_server_frames,
+                sessions: one.report,
                 local_mapping: statuses
                     .get(&trk)
                     .and_then(|s| s.counters.get("local_mapping_thread"))
