@@ -209,6 +209,9 @@ pub struct VoTracker {
     init: Option<init::InitState>,
     /// Frames seen while initialising, tracked backwards once the map exists.
     pre_init: backward::PreInitBuffer,
+    /// Tracking backwards: the map's point statistics (`found`) are left alone, so the map
+    /// evolves as without it.
+    backward: bool,
     init_matches: Vec<crate::features::Match>,
     /// Extractor of the initialisation (more features, as ORB-SLAM's monocular initialiser).
     init_extractor: OrbExtractor,
@@ -271,6 +274,7 @@ impl VoTracker {
             next_kf_id: 0,
             init: None,
             pre_init: backward::PreInitBuffer::default(),
+            backward: false,
             init_matches: Vec::new(),
             init_extractor: OrbExtractor::new(
                 OrbParams {

@@ -99,6 +99,7 @@ impl VoTracker {
             return;
         }
         let mut frames = std::mem::take(&mut self.pre_init);
+        self.backward = true;
         let mut kfs: Vec<(i64, KfId)> = self
             .map
             .keyframes
@@ -149,6 +150,7 @@ impl VoTracker {
         }
         frames.clear();
         self.pre_init = frames;
+        self.backward = false;
     }
 
     /// Poses one earlier frame: the points of `next` (the next later frame) searched around

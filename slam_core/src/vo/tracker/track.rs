@@ -326,7 +326,9 @@ impl VoTracker {
         for (j, &k) in self.obs_kp.iter().enumerate() {
             if !self.inliers[j] {
                 self.frame_points[k] = None;
-            } else if let Some(mp) = self.frame_points[k].and_then(|p| self.map.points.get_mut(&p))
+            } else if let Some(mp) = self.frame_points[k]
+                .filter(|_| !self.backward)
+                .and_then(|p| self.map.points.get_mut(&p))
             {
                 mp.found += 1;
             }
