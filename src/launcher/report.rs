@@ -188,14 +188,11 @@ fn evaluate_client(
     traj: &[(i64, shm_schema::Pose)],
     plot: &PlotSpec,
 ) -> Option<AteReport> {
-    let to_iso = |p: &shm_schema::Pose| {
-        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-            p.q[3], p.q[0], p.q[1], p.q[2],
-        ));
-        nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(p.t[0], p.t[1], p.t[2]), q)
-    };
     let est_t: Vec<i64> = traj.iter().map(|(t, _)| *t).collect();
-    let est_p: Vec<_> = traj.iter().map(|(_, p)| to_iso(p)).collect();
+    let est_p: Vec<_> = traj
+        .iter()
+        .map(|(_, p)| super::sessions::to_iso(p))
+        .collect();
     evaluate_poses(ds, &est_t, &est_p, plot)
 }
 

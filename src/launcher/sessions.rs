@@ -62,7 +62,8 @@ pub struct OneFrame {
     pub report: SessionsReport,
 }
 
-fn to_iso(p: &shm_schema::Pose) -> Isometry3<f64> {
+/// A wire pose (`q` as `[x, y, z, w]`) as an isometry.
+pub fn to_iso(p: &shm_schema::Pose) -> Isometry3<f64> {
     let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
         p.q[3], p.q[0], p.q[1], p.q[2],
     ));
