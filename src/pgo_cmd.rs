@@ -108,6 +108,85 @@ struct PgoJson {
     stages: Vec<StageJson>,
 }
 
+/// The optimised graph: kind, method, report, vertex and edge counts, TUM text.
+struct Optimised {
+    kind: &'static str,
+    method: String,
+    report: PgoReport,
+    vertices: usize,
+    edges: usize,
+    tum: String,
+}
+
+/// Optimises the graph of `args` (SE(3) by LM, Sim(3) by `--method`).
+fn optimise(args: &PgoArgs, graph: AnyGraph, params: &PgoParams) -> anyhow::Result<Optimised> {
+    Ok(match graph {
+        AnyGraph::Se3(mut g) => {
+            let report = optimize_se3(&mut g, params).context("SE(3) optimisation")?;
+            Optimised {
+                kind: "se3",
+                method: "lm-se3".into(),
+                report,
+                vertices: g.vertices.len(),
+                edges: g.edges.len(),
+                tum: write_tum(g.vertices.iter().map(|v| (v.id, &v.pose))),
+            }
+        }
+        AnyGraph::Sim3(mut g) => {
+            anyhow::ensure!(
+                args.init == Init::Odometry,
+                "--init chordal is only implemented for SE(3) graphs"
+            );
+            let report =
+                optimize_sim3(&mut g, args.method.into(), params).context("Sim(3) optimisation")?;
+            let poses: Vec<_> = g
+                .vertices
+                .iter()
+                .map(|v| (v.id, v.pose.to_isometry()))
+                .collect();
+            let method = serde_json::to_value(args.method)?;
+            Optimised {
+                kind: "sim3",
+                method: method.as_str().unwrap_or("?").to_string(),
+                report,
+                vertices: g.vertices.len(),
+                edges: g.edges.len(),
+                tum: write_tum(poses.iter().map(|(id, p)| (*id, p))),
+            }
+        }
+    })
+}
+
+/// Prints the result as text.
+fn print_text(out: &PgoJson, init: Init) {
+    println!(
+        "{} ({} graph, {} vertices, {} edges), method {}, init {:?}",
+        out.graph, out.kind, out.vertices, out.edges, out.method, init
+    );
+    if out.repaired_information > 0 {
+        println!(
+            "  {} edges have an information matrix that is not positive definite: \
+             using GTSAM's effective information (R^T R of Eigen's partial LLT)",
+            out.repaired_information
+        );
+    }
+    for s in &out.stages {
+        println!(
+            "  {:<28} {:>4} iterations  E {:.9e} -> {:.9e}  {:.4} s{}",
+            s.name,
+            s.iterations,
+            s.initial_cost,
+            s.final_cost,
+            s.time_s,
+            if s.converged { "" } else { "  (not converged)" }
+        );
+    }
+    println!(
+        "iterations {}  initial E {:.9e}  final E {:.9e}  solve time {:.4} s",
+        out.iterations, out.initial_cost, out.final_cost, out.solve_time_s
+    );
+}
+
 /// Runs `shoal pgo`.
 pub fn run(args: &PgoArgs) -> anyhow::Result<()> {
     let text = std::fs::read_to_string(&args.graph)
@@ -119,96 +198,37 @@ pub fn run(args: &PgoArgs) -> anyhow::Result<()> {
         Init::Odometry => PgoInit::Odometry,
         Init::Chordal => PgoInit::Chordal,
     };
-    let (kind, method, report, nv, ne, tum): (_, String, PgoReport, _, _, _) = match graph {
-        AnyGraph::Se3(mut g) => {
-            let r = optimize_se3(&mut g, &params).context("SE(3) optimisation")?;
-            let tum = write_tum(g.vertices.iter().map(|v| (v.id, &v.pose)));
-            (
-                "se3",
-                "lm-se3".into(),
-                r,
-                g.vertices.len(),
-                g.edges.len(),
-                tum,
-            )
-        }
-        AnyGraph::Sim3(mut g) => {
-            anyhow::ensure!(
-                args.init == Init::Odometry,
-                "--init chordal is only implemented for SE(3) graphs"
-            );
-            let r = optimize_sim3(&mut g, args.method.into(), &params)
-                .context("Sim(3) optimisation")?;
-            let poses: Vec<_> = g
-                .vertices
-                .iter()
-                .map(|v| (v.id, v.pose.to_isometry()))
-                .collect();
-            let tum = write_tum(poses.iter().map(|(id, p)| (*id, p)));
-            let name = serde_json::to_value(args.method)?
-                .as_str()
-                .unwrap_or("?")
-                .to_string();
-            ("sim3", name, r, g.vertices.len(), g.edges.len(), tum)
-        }
-    };
+    let o = optimise(args, graph, &params)?;
     if let Some(out) = &args.out {
-        std::fs::write(out, tum).with_context(|| format!("writing {}", out.display()))?;
+        std::fs::write(out, &o.tum).with_context(|| format!("writing {}", out.display()))?;
     }
+    let r = &o.report;
+    let stage = |s: &slam_core::pgo::StageReport| StageJson {
+        name: s.name,
+        iterations: s.iterations,
+        initial_cost: s.initial_cost,
+        final_cost: s.final_cost,
+        time_s: s.time_s,
+        converged: s.converged,
+    };
     let out = PgoJson {
         graph: args.graph.display().to_string(),
-        kind,
-        method,
+        kind: o.kind,
+        method: o.method.clone(),
         init: args.init,
-        vertices: nv,
-        edges: ne,
-        iterations: report.iterations,
-        initial_cost: report.initial_cost,
-        final_cost: report.final_cost,
-        solve_time_s: report.solve_time_s,
-        repaired_information: report.repaired_information,
-        stages: report
-            .stages
-            .iter()
-            .map(|s| StageJson {
-                name: s.name,
-                iterations: s.iterations,
-                initial_cost: s.initial_cost,
-                final_cost: s.final_cost,
-                time_s: s.time_s,
-                converged: s.converged,
-            })
-            .collect(),
+        vertices: o.vertices,
+        edges: o.edges,
+        iterations: r.iterations,
+        initial_cost: r.initial_cost,
+        final_cost: r.final_cost,
+        solve_time_s: r.solve_time_s,
+        repaired_information: r.repaired_information,
+        stages: r.stages.iter().map(stage).collect(),
     };
     if args.json {
         println!("{}", serde_json::to_string(&out)?);
     } else {
-        println!(
-            "{} ({} graph, {} vertices, {} edges), method {}, init {:?}",
-            out.graph, kind, nv, ne, out.method, args.init
-        );
-        if out.repaired_information > 0 {
-            println!(
-                "  {} edges have an information matrix that is not positive definite: \
-                 using GTSAM's effective information (R^T R of Eigen's partial LLT)",
-                out.repaired_information
-            );
-        }
-        for s in &out.stages {
-            println!(
-                "  {:<28} {:>4} iterations  E {:.9e} -> {:.9e}  {:.4} s{}",
-                s.name,
-                s.iterations,
-                s.initial_cost,
-                s.final_cost,
-                s.time_s,
-                if s.converged { "" } else { "  (not converged)" }
-            );
-        }
-        println!(
-            "iterations {}  initial E {:.9e}  final E {:.9e}  solve time {:.4} s",
-            out.iterations, out.initial_cost, out.final_cost, out.solve_time_s
-        );
+        print_text(&out, args.init);
     }
     Ok(())
 }

@@ -130,8 +130,8 @@ fn synthetic_frames(
     Ok(())
 }
 
-fn train(a: &TrainArgs) -> anyhow::Result<()> {
-    let t0 = Instant::now();
+/// The PNG files under `a.images`, sorted, thinned evenly to `--max-images`.
+fn training_images(a: &TrainArgs) -> anyhow::Result<Vec<std::path::PathBuf>> {
     let mut paths = Vec::new();
     for d in &a.images {
         collect_pngs(d, &mut paths)?;
@@ -143,6 +143,47 @@ fn train(a: &TrainArgs) -> anyhow::Result<()> {
             paths = (0..m).map(|i| paths[i * n / m].clone()).collect();
         }
     }
+    Ok(paths)
+}
+
+/// ORB descriptors of `a.synthetic` frames of the synthetic scenes (a third of them of
+/// the `loop` room, the rest of the two agents' room), appended to `images`.
+fn synthetic_descriptors(
+    a: &TrainArgs,
+    ex: &mut Extractors,
+    images: &mut Vec<Vec<Descriptor>>,
+) -> anyhow::Result<()> {
+    let third = a.synthetic / 3;
+    let loop_scene = std::sync::Arc::new(Scene::room(a.seed + 100));
+    let n_loop = a.synthetic - 2 * third;
+    synthetic_frames(
+        Scenario::Loop,
+        0,
+        &loop_scene,
+        a.seed + 100,
+        n_loop,
+        ex,
+        images,
+    )?;
+    let two_scene = std::sync::Arc::new(Scene::room(a.seed + 101));
+    for agent in 0..2 {
+        let seed = a.seed + 101;
+        synthetic_frames(
+            Scenario::TwoAgents,
+            agent,
+            &two_scene,
+            seed,
+            third,
+            ex,
+            images,
+        )?;
+    }
+    Ok(())
+}
+
+fn train(a: &TrainArgs) -> anyhow::Result<()> {
+    let t0 = Instant::now();
+    let paths = training_images(a)?;
     if paths.is_empty() && a.synthetic == 0 {
         anyhow::bail!("no image: give --images folders with PNG files and/or --synthetic N");
     }
@@ -164,29 +205,7 @@ fn train(a: &TrainArgs) -> anyhow::Result<()> {
     }
     let n_real = images.len();
     if a.synthetic > 0 {
-        let third = a.synthetic / 3;
-        let loop_scene = std::sync::Arc::new(Scene::room(a.seed + 100));
-        synthetic_frames(
-            Scenario::Loop,
-            0,
-            &loop_scene,
-            a.seed + 100,
-            a.synthetic - 2 * third,
-            &mut ex,
-            &mut images,
-        )?;
-        let two_scene = std::sync::Arc::new(Scene::room(a.seed + 101));
-        for agent in 0..2 {
-            synthetic_frames(
-                Scenario::TwoAgents,
-                agent,
-                &two_scene,
-                a.seed + 101,
-                third,
-                &mut ex,
-                &mut images,
-            )?;
-        }
+        synthetic_descriptors(a, &mut ex, &mut images)?;
     }
     let n_desc: usize = images.iter().map(Vec::len).sum();
     let t_extract = t0.elapsed();

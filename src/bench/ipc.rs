@@ -108,103 +108,177 @@ fn event_service(
         .map_err(|e| anyhow::anyhow!("{e:?}"))
 }
 
+/// One measurement: a subscriber process for `method` at `w` x `h`, `args.frames` frames.
+fn measure(
+    args: &IpcArgs,
+    node: &Node<Ipc>,
+    prefix: &str,
+    (w, h): (u32, u32),
+    method: &str,
+) -> anyhow::Result<IpcResult> {
+    let bytes = (w * h) as usize;
+    let socket = std::env::temp_dir().join(format!("shoal_bench_{}.sock", std::process::id()));
+    let _ = std::fs::remove_file(&socket);
+    let listener = if method == "uds_copy" {
+        Some(UnixListener::bind(&socket)?)
+    } else {
+        None
+    };
+    let frames = topics::frames_service(node, bench_client(w))?;
+    let publisher = topics::frame_publisher(&frames, bytes, bench_client(w))?;
+    let events = event_service(node, w)?;
+    let notifier = events
+        .notifier_builder()
+        .create()
+        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let mut child = Command::new(std::env::current_exe()?)
+        .args(["bench", "ipc-peer", "--method", method])
+        .args(["--width", &w.to_string(), "--height", &h.to_string()])
+        .args(["--frames", &args.frames.to_string(), "--prefix", prefix])
+        .args(["--socket", &socket.display().to_string()])
+        .stdout(Stdio::piped())
+        .spawn()
+        .context("starting the subscriber process")?;
+    let mut lines = BufReader::new(child.stdout.take().context("child stdout")?).lines();
+    let first = lines.next().context("subscriber ended early")??;
+    anyhow::ensure!(
+        first.trim() == "READY",
+        "unexpected subscriber line: {first}"
+    );
+    let mut stream = match &listener {
+        Some(l) => Some(l.accept()?.0),
+        None => None,
+    };
+    std::thread::sleep(Duration::from_millis(50));
+    let sender = Sender {
+        publisher: &publisher,
+        notifier: &notifier,
+        size: (w, h),
+    };
+    match stream.as_mut() {
+        Some(s) => sender.stream_uds(args, s)?,
+        None => {
+            sender.publish(args, method == "iceoryx2_event")?;
+            sender.end_of_stream(args.frames)?;
+        }
+    }
+    let result_line = lines.next().context("subscriber gave no result")??;
+    let _ = child.wait();
+    let _ = std::fs::remove_file(&socket);
+    Ok(serde_json::from_str(&result_line)?)
+}
+
+/// The publisher side of one measurement.
+struct Sender<'a> {
+    publisher: &'a iceoryx2::port::publisher::Publisher<Ipc, [u8], FrameHeader>,
+    notifier: &'a iceoryx2::port::notifier::Notifier<Ipc>,
+    size: (u32, u32),
+}
+
+impl Sender<'_> {
+    fn image(&self) -> Vec<u8> {
+        let bytes = (self.size.0 * self.size.1) as usize;
+        (0..bytes).map(|i| (i * 31 % 251) as u8).collect()
+    }
+
+    /// Sleeps (not spins) until `next`, so the subscriber has a core of its own.
+    fn pace(next: i64) {
+        let left = next - monotonic_ns();
+        if left > 0 {
+            std::thread::sleep(Duration::from_nanos(left as u64));
+        }
+    }
+
+    /// The frames through a Unix socket: a copy per frame, stamp first.
+    fn stream_uds(&self, args: &IpcArgs, s: &mut UnixStream) -> anyhow::Result<()> {
+        let image = self.image();
+        let mut wire = vec![0u8; 8 + image.len()];
+        for _ in 0..args.frames {
+            let next = monotonic_ns() + args.period_us as i64 * 1000;
+            wire[8..].copy_from_slice(&image);
+            wire[..8].copy_from_slice(&monotonic_ns().to_le_bytes());
+            s.write_all(&wire)?;
+            Self::pace(next);
+        }
+        Ok(())
+    }
+
+    /// The frames through iceoryx2 (with an event notification per frame if `notify`).
+    fn publish(&self, args: &IpcArgs, notify: bool) -> anyhow::Result<()> {
+        let image = self.image();
+        let (w, h) = self.size;
+        for k in 0..args.frames {
+            let next = monotonic_ns() + args.period_us as i64 * 1000;
+            let mut sample = self.publisher.loan_slice(image.len())?;
+            sample.payload_mut().copy_from_slice(&image);
+            let meta = MsgMeta::new(0, 0, k as u64, monotonic_ns());
+            *sample.user_header_mut() = FrameHeader {
+                meta,
+                width: w,
+                height: h,
+                stride: w,
+                ..Default::default()
+            };
+            sample.send()?;
+            if notify {
+                self.notifier
+                    .notify()
+                    .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+            }
+            Self::pace(next);
+        }
+        Ok(())
+    }
+
+    /// End of stream, a few times: the subscriber stops at the first it sees.
+    fn end_of_stream(&self, frames: usize) -> anyhow::Result<()> {
+        let bytes = (self.size.0 * self.size.1) as usize;
+        for _ in 0..5 {
+            let mut sample = self.publisher.loan_slice(bytes)?;
+            let mut meta = MsgMeta::new(0, 0, frames as u64, monotonic_ns());
+            meta.flags = shm_schema::FLAG_END_OF_STREAM;
+            *sample.user_header_mut() = FrameHeader {
+                meta,
+                ..Default::default()
+            };
+            sample.send()?;
+            self.notifier
+                .notify()
+                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        Ok(())
+    }
+}
+
+/// Prints zero-copy vs socket-copy per size.
+fn print_summary(report: &IpcReport) {
+    for (w, h) in [(752u32, 480u32), (1280, 720)] {
+        let get = |m: &str| {
+            report
+                .results
+                .iter()
+                .find(|r| r.width == w && r.height == h && r.method == m)
+        };
+        if let (Some(a), Some(b)) = (get("iceoryx2_poll"), get("uds_copy")) {
+            println!(
+                "{w}x{h}: zero-copy p50 {:.1} µs vs Unix-socket copy p50 {:.1} µs ({:.0}x lower)",
+                a.p50_us,
+                b.p50_us,
+                b.p50_us / a.p50_us.max(1e-3)
+            );
+        }
+    }
+}
+
 /// Runs the benchmark (publisher side).
 pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
-    let exe = std::env::current_exe()?;
     let prefix = format!("shoal_bench_{}_", std::process::id());
     let node = topics::create_node("bench_ipc_pub", &prefix)?;
     let mut results = Vec::new();
-    for (w, h) in [(752u32, 480u32), (1280, 720)] {
-        let bytes = (w * h) as usize;
-        let image: Vec<u8> = (0..bytes).map(|i| (i * 31 % 251) as u8).collect();
+    for size in [(752u32, 480u32), (1280, 720)] {
         for method in args.methods.split(',').map(str::trim) {
-            let socket =
-                std::env::temp_dir().join(format!("shoal_bench_{}.sock", std::process::id()));
-            let _ = std::fs::remove_file(&socket);
-            let listener = if method == "uds_copy" {
-                Some(UnixListener::bind(&socket)?)
-            } else {
-                None
-            };
-            let frames = topics::frames_service(&node, bench_client(w))?;
-            let publisher = topics::frame_publisher(&frames, bytes, bench_client(w))?;
-            let events = event_service(&node, w)?;
-            let notifier = events
-                .notifier_builder()
-                .create()
-                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-            let mut child = Command::new(&exe)
-                .args(["bench", "ipc-peer", "--method", method])
-                .args(["--width", &w.to_string(), "--height", &h.to_string()])
-                .args(["--frames", &args.frames.to_string(), "--prefix", &prefix])
-                .args(["--socket", &socket.display().to_string()])
-                .stdout(Stdio::piped())
-                .spawn()
-                .context("starting the subscriber process")?;
-            let mut lines = BufReader::new(child.stdout.take().context("child stdout")?).lines();
-            let first = lines.next().context("subscriber ended early")??;
-            anyhow::ensure!(
-                first.trim() == "READY",
-                "unexpected subscriber line: {first}"
-            );
-            let mut stream = match &listener {
-                Some(l) => Some(l.accept()?.0),
-                None => None,
-            };
-            std::thread::sleep(Duration::from_millis(50));
-            let mut wire = vec![0u8; 8 + bytes];
-            for k in 0..args.frames {
-                let next = monotonic_ns() + args.period_us as i64 * 1000;
-                match method {
-                    "uds_copy" => {
-                        let s = stream.as_mut().context("socket")?;
-                        wire[8..].copy_from_slice(&image);
-                        let t = monotonic_ns();
-                        wire[..8].copy_from_slice(&t.to_le_bytes());
-                        s.write_all(&wire)?;
-                    }
-                    _ => {
-                        let mut sample = publisher.loan_slice(bytes)?;
-                        sample.payload_mut().copy_from_slice(&image);
-                        let meta = MsgMeta::new(0, 0, k as u64, monotonic_ns());
-                        *sample.user_header_mut() = FrameHeader {
-                            meta,
-                            width: w,
-                            height: h,
-                            stride: w,
-                            ..Default::default()
-                        };
-                        sample.send()?;
-                        if method == "iceoryx2_event" {
-                            notifier.notify().map_err(|e| anyhow::anyhow!("{e:?}"))?;
-                        }
-                    }
-                }
-                // Sleep (not spin) between frames so the subscriber has a core of its own.
-                let left = next - monotonic_ns();
-                if left > 0 {
-                    std::thread::sleep(Duration::from_nanos(left as u64));
-                }
-            }
-            if method != "uds_copy" {
-                // End of stream (a few times: the subscriber stops at the first it sees).
-                for _ in 0..5 {
-                    let mut sample = publisher.loan_slice(bytes)?;
-                    let mut meta = MsgMeta::new(0, 0, args.frames as u64, monotonic_ns());
-                    meta.flags = shm_schema::FLAG_END_OF_STREAM;
-                    *sample.user_header_mut() = FrameHeader {
-                        meta,
-                        ..Default::default()
-                    };
-                    sample.send()?;
-                    notifier.notify().map_err(|e| anyhow::anyhow!("{e:?}"))?;
-                    std::thread::sleep(Duration::from_millis(2));
-                }
-            }
-            let result_line = lines.next().context("subscriber gave no result")??;
-            let _ = child.wait();
-            let _ = std::fs::remove_file(&socket);
-            let r: IpcResult = serde_json::from_str(&result_line)?;
+            let r = measure(args, &node, &prefix, size, method)?;
             if !args.json {
                 eprintln!(
                     "{:>4}x{:<4} {:<15} n={:<6} p50 {:>9.1} µs  p90 {:>9.1} µs  p99 {:>9.1} µs  max {:>9.1} µs",
@@ -218,24 +292,100 @@ pub fn run(args: &IpcArgs) -> anyhow::Result<()> {
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {
-        for (w, h) in [(752u32, 480u32), (1280, 720)] {
-            let get = |m: &str| {
-                report
-                    .results
-                    .iter()
-                    .find(|r| r.width == w && r.height == h && r.method == m)
-            };
-            if let (Some(a), Some(b)) = (get("iceoryx2_poll"), get("uds_copy")) {
-                println!(
-                    "{w}x{h}: zero-copy p50 {:.1} µs vs Unix-socket copy p50 {:.1} µs ({:.0}x lower)",
-                    a.p50_us,
-                    b.p50_us,
-                    b.p50_us / a.p50_us.max(1e-3)
-                );
-            }
-        }
+        print_summary(&report);
     }
     Ok(())
+}
+
+/// The subscriber's side of one method: fills `hist` until the end of stream.
+struct Receiver<'a> {
+    args: &'a PeerArgs,
+    subscriber: &'a iceoryx2::port::subscriber::Subscriber<Ipc, [u8], FrameHeader>,
+    hist: LatencyHistNs,
+    /// Frames seen (the first [`WARMUP`] are not recorded).
+    k: usize,
+}
+
+impl Receiver<'_> {
+    fn bytes(&self) -> usize {
+        (self.args.width * self.args.height) as usize
+    }
+
+    /// A frame taken at `now` with stamp `t` and `probe`, a pixel read from it.
+    fn record(&mut self, now: i64, t: i64, probe: u8) {
+        if self.k >= WARMUP {
+            self.hist.record(now - t, probe);
+        }
+        self.k += 1;
+    }
+
+    fn uds(&mut self, ready: &mut impl Write) -> anyhow::Result<()> {
+        writeln!(ready, "READY")?;
+        ready.flush()?;
+        let mut s = UnixStream::connect(&self.args.socket)?;
+        let bytes = self.bytes();
+        let mut buf = vec![0u8; 8 + bytes];
+        for _ in 0..self.args.frames {
+            s.read_exact(&mut buf)?;
+            let now = monotonic_ns();
+            let t = i64::from_le_bytes(buf[..8].try_into()?);
+            self.record(now, t, buf[8 + bytes / 2]);
+        }
+        Ok(())
+    }
+
+    /// Takes every waiting sample; `true` at the end of stream.
+    fn drain(&mut self) -> anyhow::Result<bool> {
+        let mid = self.bytes() / 2;
+        while let Some(sample) = self.subscriber.receive()? {
+            let now = monotonic_ns();
+            if sample.user_header().meta.is_end_of_stream() {
+                return Ok(true);
+            }
+            let t = sample.user_header().meta.publish_mono_ns;
+            self.record(now, t, sample.payload()[mid]);
+        }
+        Ok(false)
+    }
+
+    fn poll(&mut self, ready: &mut impl Write) -> anyhow::Result<()> {
+        writeln!(ready, "READY")?;
+        ready.flush()?;
+        while !self.drain()? {
+            std::hint::spin_loop();
+        }
+        Ok(())
+    }
+
+    fn event(
+        &mut self,
+        ready: &mut impl Write,
+        listener: &iceoryx2::port::listener::Listener<Ipc>,
+    ) -> anyhow::Result<()> {
+        let waitset = WaitSetBuilder::new()
+            .create::<Ipc>()
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        let guard = waitset
+            .attach_notification(listener)
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        writeln!(ready, "READY")?;
+        ready.flush()?;
+        let mut done = false;
+        while !done {
+            let mut result = Ok(false);
+            waitset
+                .wait_and_process_once(|id| {
+                    if id.has_event_from(&guard) {
+                        let _ = listener.try_wait(|_| {});
+                        result = self.drain();
+                    }
+                    CallbackProgression::Continue
+                })
+                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+            done = result.context("receive")?;
+        }
+        Ok(())
+    }
 }
 
 /// The subscriber process: receives `frames` frames and prints one JSON result line.
@@ -248,94 +398,20 @@ pub fn peer(args: &PeerArgs) -> anyhow::Result<()> {
         .listener_builder()
         .create()
         .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let mut hist = LatencyHistNs::default();
-    let bytes = (args.width * args.height) as usize;
     let mut out = std::io::stdout().lock();
+    let mut rx = Receiver {
+        args,
+        subscriber: &subscriber,
+        hist: LatencyHistNs::default(),
+        k: 0,
+    };
     match args.method.as_str() {
-        "uds_copy" => {
-            writeln!(out, "READY")?;
-            out.flush()?;
-            let mut s = UnixStream::connect(&args.socket)?;
-            let mut buf = vec![0u8; 8 + bytes];
-            for k in 0..args.frames {
-                s.read_exact(&mut buf)?;
-                let now = monotonic_ns();
-                let t = i64::from_le_bytes(buf[..8].try_into()?);
-                if k >= WARMUP {
-                    hist.record(now - t, buf[8 + bytes / 2]);
-                }
-            }
-        }
-        "iceoryx2_poll" => {
-            writeln!(out, "READY")?;
-            out.flush()?;
-            let mut k = 0;
-            loop {
-                if let Some(sample) = subscriber.receive()? {
-                    let now = monotonic_ns();
-                    if sample.user_header().meta.is_end_of_stream() {
-                        break;
-                    }
-                    let t = sample.user_header().meta.publish_mono_ns;
-                    if k >= WARMUP {
-                        hist.record(now - t, sample.payload()[bytes / 2]);
-                    }
-                    k += 1;
-                } else {
-                    std::hint::spin_loop();
-                }
-            }
-        }
-        "iceoryx2_event" => {
-            let waitset = WaitSetBuilder::new()
-                .create::<Ipc>()
-                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-            let guard = waitset
-                .attach_notification(&listener)
-                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-            writeln!(out, "READY")?;
-            out.flush()?;
-            let mut k = 0;
-            let mut done = false;
-            while !done {
-                let mut err = None;
-                waitset
-                    .wait_and_process_once(|id| {
-                        if id.has_event_from(&guard) {
-                            let _ = listener.try_wait(|_| {});
-                            loop {
-                                match subscriber.receive() {
-                                    Ok(Some(sample)) => {
-                                        let now = monotonic_ns();
-                                        if sample.user_header().meta.is_end_of_stream() {
-                                            done = true;
-                                            break;
-                                        }
-                                        let t = sample.user_header().meta.publish_mono_ns;
-                                        if k >= WARMUP {
-                                            hist.record(now - t, sample.payload()[bytes / 2]);
-                                        }
-                                        k += 1;
-                                    }
-                                    Ok(None) => break,
-                                    Err(e) => {
-                                        err = Some(format!("{e:?}"));
-                                        break;
-                                    }
-                                }
-                            }
-                        }
-                        CallbackProgression::Continue
-                    })
-                    .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-                if let Some(e) = err {
-                    anyhow::bail!("receive: {e}");
-                }
-            }
-        }
+        "uds_copy" => rx.uds(&mut out)?,
+        "iceoryx2_poll" => rx.poll(&mut out)?,
+        "iceoryx2_event" => rx.event(&mut out, &listener)?,
         m => anyhow::bail!("unknown method '{m}'"),
     }
-    let p = hist.hist.percentiles();
+    let p = rx.hist.hist.percentiles();
     let us = |ms: f64| ms * 1000.0;
     let r = IpcResult {
         width: args.width,
@@ -348,7 +424,7 @@ pub fn peer(args: &PeerArgs) -> anyhow::Result<()> {
         max_us: us(p.max),
     };
     writeln!(out, "{}", serde_json::to_string(&r)?)?;
-    std::hint::black_box(hist.touched);
+    std::hint::black_box(rx.hist.touched);
     Ok(())
 }
 

@@ -429,6 +429,238 @@ pub fn load_status(path: &Path) -> Status {
         .unwrap_or_default()
 }
 
+/// The services' status files, by service name, with the launcher's CPU figures.
+struct Statuses<'a> {
+    map: BTreeMap<String, Status>,
+    services: &'a [Supervised],
+}
+
+impl<'a> Statuses<'a> {
+    fn load(services: &'a [Supervised]) -> Self {
+        let map = services
+            .iter()
+            .map(|s| (s.name.clone(), load_status(&s.status)))
+            .collect();
+        Self { map, services }
+    }
+
+    /// Counter `key` of service `svc` (0 when absent).
+    fn get(&self, svc: &str, key: &str) -> u64 {
+        self.map.get(svc).map_or(0, |s| s.get(key))
+    }
+
+    /// Value `key` of service `svc` (0 when absent).
+    fn value(&self, svc: &str, key: &str) -> f64 {
+        let v = self.map.get(svc).and_then(|s| s.values.get(key).copied());
+        v.unwrap_or(0.0)
+    }
+
+    /// Errors of `kind` met by service `svc`.
+    fn errors_of(&self, svc: &str, kind: &str) -> u64 {
+        let n = self
+            .map
+            .get(svc)
+            .and_then(|s| s.error_counts.get(kind).copied());
+        n.unwrap_or(0)
+    }
+
+    /// CPU time of service `svc` over all its starts, s.
+    fn cpu_of(&self, svc: &str) -> f64 {
+        let sv = self.services.iter().find(|s| s.name == svc);
+        sv.map_or(0.0, |s| s.cpu_s + s.running_cpu_s())
+    }
+
+    /// The mapper's per-client counter `c{c}.{key}`.
+    fn mapper_client(&self, c: usize, key: &str) -> u64 {
+        self.get("mapper", &format!("c{c}.{key}"))
+    }
+}
+
+/// What a run wrote for one client, and the evaluations of it against ground truth.
+struct ClientOutputs {
+    /// `trajectory_c{i}.txt`, when the tracker posed frames.
+    trajectory: Option<String>,
+    ate: Option<AteReport>,
+    ate_client_keyframes: Option<AteReport>,
+    ate_server_keyframes: Option<AteReport>,
+    ate_server_frames: Option<AteReport>,
+    /// Live server poses left out because they are in a map later merged into another.
+    server_frames_other_maps: u64,
+    sessions: super::sessions::SessionsReport,
+}
+
+impl ClientOutputs {
+    /// Writes client `c`'s per-frame trajectories (every VO session in one frame; the
+    /// server-map poses) and evaluates them and the mapper's keyframe files, with plots.
+    fn write(
+        out: &Path,
+        ds: &datasets::Dataset,
+        c: usize,
+        rec: &super::recorder::ClientRecord,
+        st: &Statuses,
+        events: &[crate::plot::events::CorrectionEvent],
+    ) -> anyhow::Result<Self> {
+        let plot_spec = |name: &str| PlotSpec::new(out, ds, name, c, events);
+        // Backfilled poses arrive after later frames: ordered by time, every VO session in
+        // one frame (the server's merges tie them), and in the server map.
+        let one = super::sessions::one_frame(out, c, &rec.trajectory, &rec.trajectory_sessions);
+        let (mut trajectory, mut ate) = (None, None);
+        if !one.trajectory.is_empty() {
+            ate = evaluate_client(ds, &one.trajectory, &plot_spec("trajectory"));
+            let path = out.join(format!("trajectory_c{c}.txt"));
+            write_tum(&path, &one.trajectory)?;
+            trajectory = Some(path.display().to_string());
+        }
+        let final_map = st
+            .map
+            .get("mapper")
+            .and_then(|s| s.counters.get(&format!("c{c}.map_id")));
+        let (live, other_maps) = live_server_poses(rec, final_map.copied());
+        // Every frame relative to its session's keyframes' final server poses when the
+        // server map has them (the live poses cover only frames tracked after feedback).
+        let server_traj = one.server.unwrap_or(live);
+        if !server_traj.is_empty() {
+            write_tum(
+                &out.join(format!("trajectory_server_c{c}.txt")),
+                &server_traj,
+            )?;
+        }
+        let ate_file =
+            |name: &str| evaluate_file(ds, &out.join(format!("{name}_c{c}.txt")), &plot_spec(name));
+        Ok(Self {
+            trajectory,
+            ate,
+            ate_client_keyframes: ate_file("keyframes_client"),
+            ate_server_keyframes: ate_file("keyframes_server"),
+            ate_server_frames: evaluate_client(ds, &server_traj, &plot_spec("trajectory_server")),
+            server_frames_other_maps: other_maps,
+            sessions: one.report,
+        })
+    }
+}
+
+/// The per-frame server poses reported live in the client's final map (poses reported in a
+/// map later merged into another are in a different frame), by time; and how many were in
+/// other maps.
+fn live_server_poses(
+    rec: &super::recorder::ClientRecord,
+    final_map: Option<u64>,
+) -> (Vec<(i64, shm_schema::Pose)>, u64) {
+    let mut traj: Vec<(i64, shm_schema::Pose)> = rec
+        .server_trajectory
+        .iter()
+        .filter(|p| final_map.is_none_or(|m| p.2 == m))
+        .map(|p| (p.0, p.1))
+        .collect();
+    let other_maps = (rec.server_trajectory.len() - traj.len()) as u64;
+    traj.sort_by_key(|p| p.0);
+    traj.dedup_by_key(|p| p.0);
+    (traj, other_maps)
+}
+
+/// Client `c`'s figures from the status files, the recorder and what was written (pure).
+fn client_report(
+    cfg: &RunConfig,
+    ds: &datasets::Dataset,
+    c: usize,
+    rec: &super::recorder::ClientRecord,
+    st: &Statuses,
+    journaled_applied: Option<u64>,
+    o: ClientOutputs,
+) -> ClientReport {
+    let (cam, imu, trk) = (
+        format!("camera_ingest:{c}"),
+        format!("imu_ingest:{c}"),
+        format!("tracker:{c}"),
+    );
+    let total = cfg.max_frames.unwrap_or(usize::MAX).min(ds.frames.len()) as u64;
+    let received = rec.frames_posed;
+    let (posed, before_init, lost) = rec.fate_counts();
+    // Frames the camera went through (published, skipped late, or corrupt): all of them
+    // unless the run was stopped early.
+    let offered = (st.value(&cam, "next_index") as u64).min(total);
+    let corrupt = st.errors_of(&cam, "corrupt_image");
+    let dropped = offered.saturating_sub(received + corrupt);
+    let m = |k: &str| st.mapper_client(c, k);
+    let t = |k: &str| st.get(&trk, k);
+    ClientReport {
+        dataset: ds.root.display().to_string(),
+        frames_total: total,
+        frames_published: st.get(&cam, "frames_published"),
+        frames_received: received,
+        frames_tracked: rec.tracked,
+        frames_backfilled: rec.backfilled,
+        frames_posed: posed,
+        frames_unposed: FramesUnposed::new(before_init, lost, corrupt, dropped),
+        frames_dropped: dropped,
+        frames_skipped_late: st.get(&cam, "frames_skipped_late"),
+        frames_corrupt: corrupt,
+        frames_resent: st.get(&cam, "frames_resent"),
+        imu_samples_published: st.get(&imu, "imu_samples_published"),
+        imu_samples_received: t("imu_samples_received"),
+        imu_samples_dropped: t("imu_samples_dropped") + st.get(&imu, "imu_samples_skipped_late"),
+        keyframes_sent: t("keyframes_sent"),
+        keyframes_acked: t("keyframes_acked_seen"),
+        keyframes_unacked_at_crash: t("keyframes_unacked_at_crash"),
+        keyframes_recovered: t("keyframes_recovered"),
+        keyframes_applied: journaled_applied.unwrap_or_else(|| m("keyframes_applied")),
+        keyframes_received: m("keyframes_received"),
+        keyframes_kept: m("keyframes_kept"),
+        server_keyframes: m("server_keyframes"),
+        server_maps: m("maps"),
+        keyframes_forwarded: m("keyframes_forwarded"),
+        loop_keyframes_received: st.get("loop_closer", &format!("c{c}.keyframes_received")),
+        cpu_s: BTreeMap::from([
+            ("tracker".to_string(), st.cpu_of(&trk)),
+            ("camera_ingest".to_string(), st.cpu_of(&cam)),
+            ("imu_ingest".to_string(), st.cpu_of(&imu)),
+            (
+                "mapper_handler".to_string(),
+                (m("handle_us") + m("idle_us")) as f64 * 1e-6,
+            ),
+        ]),
+        keyframe_bytes_per_s: keyframe_rate(ds, total, m("keyframe_bytes")),
+        frames_server_pose: rec.tracked_server,
+        frames_server_pose_other_maps: o.server_frames_other_maps,
+        ate_client_keyframes: o.ate_client_keyframes,
+        ate_server_keyframes: o.ate_server_keyframes,
+        ate_server_frames: o.ate_server_frames,
+        sessions: o.sessions,
+        local_mapping: local_mapping(st, &trk).to_string(),
+        lockstep_sync: t("lockstep_sync") > 0,
+        lockstep_sync_timeouts: t("local_mapping_sync_timeouts")
+            + t("lockstep_server_timeouts")
+            + t("lockstep_imu_timeouts"),
+        trajectory: o.trajectory,
+        ate: o.ate,
+        latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
+        files: Vec::new(),
+    }
+}
+
+/// Keyframe bytes sent per second of data over the first `total` frames.
+fn keyframe_rate(ds: &datasets::Dataset, total: u64, bytes: u64) -> f64 {
+    let frames = &ds.frames[..(total as usize).min(ds.frames.len())];
+    let data_s = match (frames.first(), frames.last()) {
+        (Some(a), Some(b)) if b.t_ns > a.t_ns => (b.t_ns - a.t_ns) as f64 * 1e-9,
+        _ => 0.0,
+    };
+    if data_s > 0.0 {
+        bytes as f64 / data_s
+    } else {
+        0.0
+    }
+}
+
+/// How the tracker ran local mapping: `thread`, `inline`, or `none` (no VO ran).
+fn local_mapping(st: &Statuses, trk: &str) -> &'static str {
+    let t = st
+        .map
+        .get(trk)
+        .and_then(|s| s.counters.get("local_mapping_thread"));
+    t.map_or("none", |&t| if t > 0 { "thread" } else { "inline" })
+}
+
 impl RunReport {
     /// A report for a run that could not start.
     pub fn failed(cfg: &RunConfig, errors: Vec<ErrorRecord>, wall: Duration) -> Self {
@@ -450,7 +682,8 @@ impl RunReport {
         }
     }
 
-    /// Aggregates the services' status files and the recorder; writes trajectories.
+    /// Aggregates the services' status files and the recorder, after writing each client's
+    /// trajectories and plots ([`ClientOutputs::write`]).
     #[allow(clippy::too_many_arguments)]
     pub fn collect(
         cfg: &RunConfig,
@@ -462,193 +695,57 @@ impl RunReport {
         interrupted: bool,
         timed_out: bool,
     ) -> anyhow::Result<Self> {
+        let st = Statuses::load(services);
+        let journal = cfg.out.join(super::MAPPER_JOURNAL);
+        let journaled = journal_keyframes(&journal, datasets.len());
+        let events = crate::plot::events::corrections_from_journal(&journal);
+        let mut outputs = Vec::with_capacity(datasets.len());
+        for (c, ds) in datasets.iter().enumerate() {
+            let rec = &recorder.clients[c];
+            outputs.push(ClientOutputs::write(&cfg.out, ds, c, rec, &st, &events)?);
+        }
         let mut rep = Self::failed(cfg, launcher_errors, wall);
         rep.interrupted = interrupted;
         rep.timed_out = timed_out;
-        let statuses: BTreeMap<String, Status> = services
-            .iter()
-            .map(|s| (s.name.clone(), load_status(&s.status)))
-            .collect();
-        let get = |svc: &str, key: &str| statuses.get(svc).map_or(0, |s| s.get(key));
-        let value = |svc: &str, key: &str| {
-            statuses
-                .get(svc)
-                .and_then(|s| s.values.get(key).copied())
-                .unwrap_or(0.0)
-        };
-        let errors_of = |svc: &str, kind: &str| {
-            statuses
-                .get(svc)
-                .and_then(|s| s.error_counts.get(kind).copied())
-                .unwrap_or(0)
-        };
-        let cpu_of = |svc: &str| {
-            services
-                .iter()
-                .find(|s| s.name == svc)
-                .map_or(0.0, |s| s.cpu_s + s.running_cpu_s())
-        };
-        let mapper = statuses.get("mapper");
-        let journaled = journal_keyframes(&cfg.out.join(super::MAPPER_JOURNAL), datasets.len());
-        let loop_closer = statuses.get("loop_closer");
-        let events =
-            crate::plot::events::corrections_from_journal(&cfg.out.join(super::MAPPER_JOURNAL));
-        for (c, ds) in datasets.iter().enumerate() {
-            let plot_spec = |name: &str| PlotSpec::new(&cfg.out, ds, name, c, &events);
-            let cam = format!("camera_ingest:{c}");
-            let imu = format!("imu_ingest:{c}");
-            let trk = format!("tracker:{c}");
-            let total = cfg.max_frames.unwrap_or(usize::MAX).min(ds.frames.len()) as u64;
-            let published = get(&cam, "frames_published");
-            let rec = &recorder.clients[c];
-            let received = rec.frames_posed;
-            let (posed, before_init, lost) = rec.fate_counts();
-            // Frames the camera went through (published, skipped late, or corrupt): all of
-            // them unless the run was stopped early.
-            let offered = (value(&cam, "next_index") as u64).min(total);
-            let corrupt = errors_of(&cam, "corrupt_image");
-            // Backfilled poses arrive after later frames: ordered by time, every VO session
-            // in one frame (the server's merges tie them), and in the server map.
-            let one =
-                super::sessions::one_frame(&cfg.out, c, &rec.trajectory, &rec.trajectory_sessions);
-            let traj = one.trajectory;
-            let mut trajectory = None;
-            let mut ate = None;
-            if !traj.is_empty() {
-                ate = evaluate_client(ds, &traj, &plot_spec("trajectory"));
-                let path = cfg.out.join(format!("trajectory_c{c}.txt"));
-                write_tum(&path, &traj)?;
-                trajectory = Some(path.display().to_string());
-            }
-            // Per-frame server poses of the client's final map: the poses reported in a map
-            // that was later merged into another are in a different frame.
-            let final_map = mapper.and_then(|s| s.counters.get(&format!("c{c}.map_id")).copied());
-            let mut server_traj: Vec<(i64, shm_schema::Pose)> = rec
-                .server_trajectory
-                .iter()
-                .filter(|p| final_map.is_none_or(|m| p.2 == m))
-                .map(|p| (p.0, p.1))
-                .collect();
-            let server_frames_other_maps = (rec.server_trajectory.len() - server_traj.len()) as u64;
-            server_traj.sort_by_key(|p| p.0);
-            server_traj.dedup_by_key(|p| p.0);
-            // Every frame relative to its session's keyframes' final server poses when the
-            // server map has them (the live poses cover only frames tracked after feedback).
-            if let Some(s) = one.server {
-                server_traj = s;
-            }
-            if !server_traj.is_empty() {
-                write_tum(
-                    &cfg.out.join(format!("trajectory_server_c{c}.txt")),
-                    &server_traj,
-                )?;
-            }
-            let m = |k: &str| mapper.map_or(0, |s| s.get(&format!("c{c}.{k}")));
-            let out = &cfg.out;
-            let ate_file = |name: &str| {
-                evaluate_file(ds, &out.join(format!("{name}_c{c}.txt")), &plot_spec(name))
-            };
-            let ate_server_frames =
-                evaluate_client(ds, &server_traj, &plot_spec("trajectory_server"));
-            let frames = &ds.frames[..(total as usize).min(ds.frames.len())];
-            let data_s = match (frames.first(), frames.last()) {
-                (Some(a), Some(b)) if b.t_ns > a.t_ns => (b.t_ns - a.t_ns) as f64 * 1e-9,
-                _ => 0.0,
-            };
-            let kf_bytes = m("keyframe_bytes") as f64;
-            rep.clients.push(ClientReport {
-                dataset: ds.root.display().to_string(),
-                frames_total: total,
-                frames_published: published,
-                frames_received: received,
-                frames_tracked: rec.tracked,
-                frames_backfilled: rec.backfilled,
-                frames_posed: posed,
-                frames_unposed: FramesUnposed::new(
-                    before_init,
-                    lost,
-                    corrupt,
-                    offered.saturating_sub(received + corrupt),
-                ),
-                frames_dropped: offered.saturating_sub(received + corrupt),
-                frames_skipped_late: get(&cam, "frames_skipped_late"),
-                frames_corrupt: corrupt,
-                frames_resent: get(&cam, "frames_resent"),
-                imu_samples_published: get(&imu, "imu_samples_published"),
-                imu_samples_received: get(&trk, "imu_samples_received"),
-                imu_samples_dropped: get(&trk, "imu_samples_dropped")
-                    + get(&imu, "imu_samples_skipped_late"),
-                keyframes_sent: get(&trk, "keyframes_sent"),
-                keyframes_acked: get(&trk, "keyframes_acked_seen"),
-                keyframes_unacked_at_crash: get(&trk, "keyframes_unacked_at_crash"),
-                keyframes_recovered: get(&trk, "keyframes_recovered"),
-                keyframes_applied: journaled
-                    .as_ref()
-                    .map_or_else(|| m("keyframes_applied"), |j| j[c]),
-                keyframes_received: m("keyframes_received"),
-                keyframes_kept: m("keyframes_kept"),
-                server_keyframes: m("server_keyframes"),
-                server_maps: m("maps"),
-                keyframes_forwarded: m("keyframes_forwarded"),
-                loop_keyframes_received: loop_closer
-                    .map_or(0, |s| s.get(&format!("c{c}.keyframes_received"))),
-                cpu_s: BTreeMap::from([
-                    ("tracker".to_string(), cpu_of(&trk)),
-                    ("camera_ingest".to_string(), cpu_of(&cam)),
-                    ("imu_ingest".to_string(), cpu_of(&imu)),
-                    (
-                        "mapper_handler".to_string(),
-                        (m("handle_us") + m("idle_us")) as f64 * 1e-6,
-                    ),
-                ]),
-                keyframe_bytes_per_s: if data_s > 0.0 { kf_bytes / data_s } else { 0.0 },
-                frames_server_pose: rec.tracked_server,
-                frames_server_pose_other_maps: server_frames_other_maps,
-                ate_client_keyframes: ate_file("keyframes_client"),
-                ate_server_keyframes: ate_file("keyframes_server"),
-                ate_server_frames,
-                sessions: one.report,
-                local_mapping: statuses
-                    .get(&trk)
-                    .and_then(|s| s.counters.get("local_mapping_thread"))
-                    .map_or("none", |&t| if t > 0 { "thread" } else { "inline" })
-                    .to_string(),
-                lockstep_sync: get(&trk, "lockstep_sync") > 0,
-                lockstep_sync_timeouts: get(&trk, "local_mapping_sync_timeouts")
-                    + get(&trk, "lockstep_server_timeouts")
-                    + get(&trk, "lockstep_imu_timeouts"),
-                trajectory,
-                ate,
-                latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
-                files: Vec::new(),
-            });
-        }
-        for (c, cl) in rep.clients.iter_mut().enumerate() {
+        for (c, (ds, o)) in datasets.iter().zip(outputs).enumerate() {
+            let applied = journaled.as_ref().map(|j| j[c]);
+            let mut cl = client_report(cfg, ds, c, &recorder.clients[c], &st, applied, o);
             cl.files = client_files(&cfg.out, c);
+            rep.clients.push(cl);
         }
-        let g = |k: &str| mapper.map_or(0, |s| s.get(k));
-        rep.mapper = MapperReport {
-            maps: g("maps"),
-            keyframes: g("keyframes"),
-            points: g("points"),
-        };
-        rep.loops = loop_closer.map_or(0, |s| s.get("loops"));
-        rep.merges = loop_closer.map_or(0, |s| s.get("merges"));
-        rep.corrections_applied =
-            g("corrections_applied_merge") + g("corrections_applied_pose_graph");
+        rep.add_server(&st);
         rep.launcher_cpu_s = self_cpu_s();
         rep.latency_ms = LatencyReport {
             publish_to_pose: recorder.publish_to_pose.percentiles(),
             publish_to_receive: recorder.publish_to_receive.percentiles(),
             tracker_total: recorder.tracker_total.percentiles(),
         };
+        rep.add_services(services, &st);
+        Ok(rep)
+    }
+
+    /// The mapper's and loop closer's figures.
+    fn add_server(&mut self, st: &Statuses) {
+        let g = |k: &str| st.get("mapper", k);
+        self.mapper = MapperReport {
+            maps: g("maps"),
+            keyframes: g("keyframes"),
+            points: g("points"),
+        };
+        self.loops = st.get("loop_closer", "loops");
+        self.merges = st.get("loop_closer", "merges");
+        self.corrections_applied =
+            g("corrections_applied_merge") + g("corrections_applied_pose_graph");
+    }
+
+    /// Every service's errors, restarts, outcome, CPU time and counters.
+    fn add_services(&mut self, services: &[Supervised], st: &Statuses) {
         for sv in services {
-            let st = statuses.get(&sv.name).cloned().unwrap_or_default();
-            for e in &st.errors {
-                rep.errors.push(e.clone());
-            }
-            for (kind, n) in &st.error_counts {
-                *rep.error_counts
+            let status = st.map.get(&sv.name).cloned().unwrap_or_default();
+            self.errors.extend(status.errors.iter().cloned());
+            for (kind, n) in &status.error_counts {
+                *self
+                    .error_counts
                     .entry(format!("{}/{kind}", sv.name))
                     .or_insert(0) += n;
             }
@@ -657,18 +754,15 @@ impl RunReport {
                 super::child::Phase::Failed => "failed",
                 _ => "stopped",
             };
-            rep.services.insert(
-                sv.name.clone(),
-                ServiceReport {
-                    restarts: sv.restarts,
-                    outcome: outcome.to_string(),
-                    recovery_s: sv.recoveries_s.clone(),
-                    cpu_s: sv.cpu_s + sv.running_cpu_s(),
-                    counters: st.counters.clone(),
-                },
-            );
+            let service = ServiceReport {
+                restarts: sv.restarts,
+                outcome: outcome.to_string(),
+                recovery_s: sv.recoveries_s.clone(),
+                cpu_s: sv.cpu_s + sv.running_cpu_s(),
+                counters: status.counters,
+            };
+            self.services.insert(sv.name.clone(), service);
         }
-        Ok(rep)
     }
 
     /// Total number of errors.

@@ -22,10 +22,8 @@ use iceoryx2::prelude::*;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::FLAG_RESEND;
-use shm_schema::{
-    FrameAck, FrameHeader, Intrinsics, MsgMeta, PixelFormat, Pose, FLAG_END_OF_STREAM,
-};
-use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status, StatusFile};
+use shm_schema::{FrameAck, FrameHeader, MsgMeta, PixelFormat, FLAG_END_OF_STREAM};
+use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, ServiceStart, Status};
 
 /// Parameters of the camera ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -56,70 +54,147 @@ pub fn main_with(params: Params) -> i32 {
     shoal_runtime::exit_code(&service_name(params.replay.client), run(&params))
 }
 
-/// Replays the dataset; returns the final status. Stops early (without error) on
-/// SIGINT/SIGTERM.
-pub fn run(params: &Params) -> anyhow::Result<Status> {
-    let name = service_name(params.replay.client);
-    let mut file = StatusFile::new(params.replay.status.clone());
-    let mut status = shoal_runtime::resume_status(&file, &name);
-    let dataset = datasets::open(&params.replay.dataset)?;
-    if status.starts == 1 {
-        // Problems the reader met and skipped (the IMU ingest reports the IMU files').
-        for issue in dataset
-            .issues
-            .iter()
-            .filter(|i| !shoal_runtime::is_imu_file(&i.path))
+/// The replay of one dataset's frames: what stays fixed over the run.
+struct Replay<'a> {
+    params: &'a Params,
+    dataset: datasets::Dataset,
+    n_frames: usize,
+    /// Header fields shared by every frame (intrinsics, `T_BS`, size).
+    template: FrameHeader,
+    clock: ReplayClock,
+    period_ns: i64,
+    node: Node<Ipc>,
+    publisher: iceoryx2::port::publisher::Publisher<Ipc, [u8], FrameHeader>,
+    acks: iceoryx2::port::subscriber::Subscriber<Ipc, FrameAck, ()>,
+}
+
+/// What the pacing says of the next frame.
+enum Pace {
+    /// Publish it now.
+    Go,
+    /// Missed (real time, far too late): counted and skipped.
+    Skip,
+    /// SIGINT/SIGTERM while waiting.
+    Stop,
+}
+
+impl Replay<'_> {
+    fn frame_bytes(&self) -> usize {
+        (self.template.width as usize * self.template.height as usize).max(1)
+    }
+
+    /// Real time: waits until frame `k` is due; lock-step: at once.
+    fn pace(&self, k: usize, status: &mut Status) -> Pace {
+        if self.params.replay.mode != ReplayMode::Realtime {
+            return Pace::Go;
+        }
+        let due = self.clock.due_mono_ns(self.dataset.frames[k].t_ns);
+        let now = monotonic_ns();
+        // Late by more than a frame period and 250 ms: missed while this service was down (a
+        // restart resumes "now"), not a scheduling hiccup of a loaded machine. Counted,
+        // never silently skipped.
+        if now > due + self.period_ns.max(250_000_000) {
+            status.add("frames_skipped_late", 1);
+            return Pace::Skip;
+        }
+        if due > now
+            && self
+                .node
+                .wait(Duration::from_nanos((due - now) as u64))
+                .is_err()
         {
-            status.error(
-                &issue.kind,
-                format!("{}:{}: {}", issue.path.display(), issue.line, issue.detail),
-            );
+            return Pace::Stop;
+        }
+        Pace::Go
+    }
+
+    /// The header of frame `k` (publish stamp and flags set when sent).
+    fn header(&self, k: usize, session_id: u32) -> FrameHeader {
+        let rec = &self.dataset.frames[k];
+        FrameHeader {
+            meta: MsgMeta::new(self.params.replay.client, session_id, k as u64, 0),
+            dataset_index: k as u64,
+            t_mid_ns: rec.t_ns,
+            readout_ns: rec.readout_ns,
+            exposure_ns: rec.exposure_ns,
+            ..self.template
         }
     }
-    let cam = &dataset.camera;
-    let (width, height) = (cam.model.width, cam.model.height);
-    let n_frames = params
-        .replay
-        .max_frames
-        .unwrap_or(usize::MAX)
-        .min(dataset.frames.len());
-    status.set_value("frames_total", n_frames as f64);
-    let prefix = params
-        .replay
-        .ipc_prefix
-        .clone()
-        .unwrap_or_else(topics::prefix_from_env);
-    topics::check_foreign_versions(&prefix)?;
-    let node = topics::create_node(&format!("camera_ingest_c{}", params.replay.client), &prefix)?;
-    let frames = topics::frames_service(&node, params.replay.client)?;
-    let frame_bytes = (width as usize * height as usize).max(1);
-    let publisher = topics::frame_publisher(&frames, frame_bytes, params.replay.client)?;
-    let acks = topics::frame_ack_service(&node, params.replay.client)?;
-    let ack_sub = topics::subscriber(&acks)?;
-    shoal_runtime::signal_ready();
 
-    let intrinsics = Intrinsics {
-        pinhole: [cam.model.fx, cam.model.fy, cam.model.cx, cam.model.cy],
-        distortion: [
-            cam.model.k1,
-            cam.model.k2,
-            cam.model.p1,
-            cam.model.p2,
-            cam.model.k3,
-        ],
-    };
-    let t_bs = {
-        let q = cam.t_bs.rotation.quaternion();
-        let t = cam.t_bs.translation.vector;
-        Pose {
-            t: [t.x, t.y, t.z],
-            q: [q.i, q.j, q.k, q.w],
+    /// Decodes frame `k` straight into a loaned sample and publishes it with `header`
+    /// (stamped now). A corrupt image is an error to count, not to stop on.
+    fn send(&self, k: usize, mut header: FrameHeader) -> anyhow::Result<Result<(), String>> {
+        let (w, h) = (self.template.width, self.template.height);
+        let mut sample = self
+            .publisher
+            .loan_slice(self.frame_bytes())
+            .context("loan frame sample")?;
+        let path = &self.dataset.frames[k].path;
+        if let Err(e) = datasets::decode_gray_into(path, sample.payload_mut(), w, h) {
+            return Ok(Err(e.to_string()));
         }
+        header.meta.publish_mono_ns = monotonic_ns();
+        *sample.user_header_mut() = header;
+        sample.send().context("send frame")?;
+        Ok(Ok(()))
+    }
+
+    /// Lock-step: waits for the tracker's acknowledgement of frame `k`, re-sending it when
+    /// none comes (a restarted tracker). Returns `false` on SIGINT/SIGTERM.
+    fn lockstep_ack(
+        &self,
+        k: usize,
+        header: FrameHeader,
+        acked: &mut Option<u64>,
+        status: &mut Status,
+    ) -> anyhow::Result<bool> {
+        let resend = || {
+            let mut h = header;
+            h.meta.flags |= FLAG_RESEND;
+            self.send(k, h)?.map_err(anyhow::Error::msg)
+        };
+        match wait_for_ack(&self.node, &self.acks, k as u64, acked, self.params, resend)? {
+            AckWait::Acked => {}
+            AckWait::Resent(n) => status.add("frames_resent", n),
+            AckWait::TimedOut => {
+                let ms = self.params.ack_timeout_ms;
+                status.error(
+                    "ack_timeout",
+                    format!("no consumer took frame {k} within {ms} ms"),
+                );
+                status.add("frames_unacked", 1);
+            }
+            AckWait::Stopped => return Ok(false),
+        }
+        Ok(true)
+    }
+}
+
+/// Opens the dataset and the ports; reports the reader's problems on a first start.
+fn open<'a>(
+    params: &'a Params,
+    status: &mut Status,
+    node: Node<Ipc>,
+) -> anyhow::Result<Replay<'a>> {
+    let dataset = datasets::open(&params.replay.dataset)?;
+    shoal_runtime::report_dataset_issues(status, &dataset, false);
+    let cam = &dataset.camera;
+    let n_frames = (params.replay.max_frames.unwrap_or(usize::MAX)).min(dataset.frames.len());
+    status.set_value("frames_total", n_frames as f64);
+    let (width, height) = (cam.model.width, cam.model.height);
+    let template = FrameHeader {
+        width,
+        height,
+        stride: width,
+        pixel_format: PixelFormat::Gray8 as u32,
+        time_offset_ns: cam.time_offset_ns,
+        intrinsics: shoal_runtime::wire::intrinsics_from_camera(&cam.model).0,
+        t_bs: shoal_runtime::wire::wire_from_iso(&cam.t_bs),
+        ..FrameHeader::default()
     };
-    let t_origin = shoal_runtime::replay_origin_ns(&dataset);
     let clock = ReplayClock {
         t0_mono_ns: params.replay.t0_mono_ns.unwrap_or_else(monotonic_ns),
-        t_origin_ns: t_origin,
+        t_origin_ns: shoal_runtime::replay_origin_ns(&dataset),
         rate: params.replay.rate,
     };
     let period_ns = if cam.rate_hz > 0.0 {
@@ -127,96 +202,72 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     } else {
         100_000_000
     };
+    let c = params.replay.client;
+    let frames = topics::frames_service(&node, c)?;
+    let frame_bytes = (width as usize * height as usize).max(1);
+    let publisher = topics::frame_publisher(&frames, frame_bytes, c)?;
+    let acks = topics::subscriber(&topics::frame_ack_service(&node, c)?)?;
+    Ok(Replay {
+        params,
+        dataset,
+        n_frames,
+        template,
+        clock,
+        period_ns,
+        node,
+        publisher,
+        acks,
+    })
+}
+
+/// Replays the dataset; returns the final status. Stops early (without error) on
+/// SIGINT/SIGTERM.
+pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let c = params.replay.client;
+    let start = ServiceStart::open(
+        &service_name(c),
+        &format!("camera_ingest_c{c}"),
+        params.replay.status.clone(),
+        params.replay.ipc_prefix.clone(),
+    )?;
+    let (mut file, mut status) = (start.file, start.status);
+    let replay = open(params, &mut status, start.node)?;
+    shoal_runtime::signal_ready();
     let session_id = status.starts as u32;
     let mut next = status.values.get("next_index").copied().unwrap_or(0.0) as usize;
     let mut acked: Option<u64> = None;
-
-    while next < n_frames {
-        let rec = &dataset.frames[next];
-        if params.replay.mode == ReplayMode::Realtime {
-            let due = clock.due_mono_ns(rec.t_ns);
-            let now = monotonic_ns();
-            // Late by more than a frame period and 250 ms: missed while this service was
-            // down (a restart resumes "now"), not a scheduling hiccup of a loaded machine.
-            if now > due + period_ns.max(250_000_000) {
-                // Missed while this service was down (or hopelessly late): counted, never
-                // silently skipped.
-                status.add("frames_skipped_late", 1);
-                next += 1;
-                status.set_value("next_index", next as f64);
-                continue;
-            }
-            if due > now && node.wait(Duration::from_nanos((due - now) as u64)).is_err() {
-                break;
-            }
-        }
-        let mut header = FrameHeader {
-            meta: MsgMeta::new(params.replay.client, session_id, next as u64, 0),
-            width,
-            height,
-            stride: width,
-            pixel_format: PixelFormat::Gray8 as u32,
-            dataset_index: next as u64,
-            t_mid_ns: rec.t_ns,
-            readout_ns: rec.readout_ns,
-            exposure_ns: rec.exposure_ns,
-            time_offset_ns: cam.time_offset_ns,
-            intrinsics,
-            t_bs,
-        };
-        let mut sample = publisher
-            .loan_slice(frame_bytes)
-            .context("loan frame sample")?;
-        if let Err(e) = datasets::decode_gray_into(&rec.path, sample.payload_mut(), width, height) {
-            status.error("corrupt_image", e.to_string());
-            next += 1;
-            status.set_value("next_index", next as f64);
-            continue;
-        }
-        header.meta.publish_mono_ns = monotonic_ns();
-        *sample.user_header_mut() = header;
-        sample.send().context("send frame")?;
-        status.add("frames_published", 1);
-
-        if params.replay.mode == ReplayMode::Lockstep {
-            match wait_for_ack(&node, &ack_sub, next as u64, &mut acked, params, || {
-                let mut s = publisher.loan_slice(frame_bytes)?;
-                datasets::decode_gray_into(&rec.path, s.payload_mut(), width, height)
-                    .map_err(anyhow::Error::from)?;
-                let mut h = header;
-                h.meta.flags |= FLAG_RESEND;
-                h.meta.publish_mono_ns = monotonic_ns();
-                *s.user_header_mut() = h;
-                s.send()?;
-                Ok(())
-            })? {
-                AckWait::Acked => {}
-                AckWait::Resent(n) => status.add("frames_resent", n),
-                AckWait::TimedOut => {
-                    status.error(
-                        "ack_timeout",
-                        format!(
-                            "no consumer took frame {next} within {} ms",
-                            params.ack_timeout_ms
-                        ),
-                    );
-                    status.add("frames_unacked", 1);
+    while next < replay.n_frames {
+        match replay.pace(next, &mut status) {
+            Pace::Stop => break,
+            Pace::Skip => {}
+            Pace::Go => {
+                let header = replay.header(next, session_id);
+                match replay.send(next, header)? {
+                    Err(e) => status.error("corrupt_image", e),
+                    Ok(()) => {
+                        status.add("frames_published", 1);
+                        let lockstep = params.replay.mode == ReplayMode::Lockstep;
+                        if lockstep
+                            && !replay.lockstep_ack(next, header, &mut acked, &mut status)?
+                        {
+                            break;
+                        }
+                    }
                 }
-                AckWait::Stopped => break,
             }
         }
         next += 1;
         status.set_value("next_index", next as f64);
         let _ = file.write_every(&status, Duration::from_millis(200));
     }
-
-    if next >= n_frames {
+    if next >= replay.n_frames {
+        let r = &replay;
         send_end_of_stream(
-            &node,
-            &publisher,
-            &ack_sub,
+            &r.node,
+            &r.publisher,
+            &r.acks,
             params,
-            n_frames as u64,
+            next as u64,
             session_id,
         )?;
         status.finished = true;

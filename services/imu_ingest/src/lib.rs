@@ -17,10 +17,11 @@
 
 use std::time::Duration;
 
+use iceoryx2::node::Node;
 use shm_schema::time::monotonic_ns;
-use shm_schema::topics;
+use shm_schema::topics::{self, Ipc};
 use shm_schema::{FrameAck, ImuMsg, MsgMeta, FLAG_END_OF_STREAM};
-use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status, StatusFile};
+use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, ServiceStart, Status};
 
 /// Parameters of the IMU ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -47,37 +48,67 @@ pub fn main_with(params: Params) -> i32 {
     shoal_runtime::exit_code(&service_name(params.replay.client), run(&params))
 }
 
-/// Replays the IMU samples; returns the final status. Stops early on SIGINT/SIGTERM.
-pub fn run(params: &Params) -> anyhow::Result<Status> {
-    let name = service_name(params.replay.client);
-    let mut file = StatusFile::new(params.replay.status.clone());
-    let mut status = shoal_runtime::resume_status(&file, &name);
-    let dataset = datasets::open(&params.replay.dataset)?;
-    if status.starts == 1 {
-        for issue in dataset
-            .issues
-            .iter()
-            .filter(|i| shoal_runtime::is_imu_file(&i.path))
-        {
-            status.error(
-                &issue.kind,
-                format!("{}:{}: {}", issue.path.display(), issue.line, issue.detail),
-            );
-        }
-    }
-    let prefix = params
-        .replay
-        .ipc_prefix
-        .clone()
-        .unwrap_or_else(topics::prefix_from_env);
-    topics::check_foreign_versions(&prefix)?;
-    let node = topics::create_node(&format!("imu_ingest_c{}", params.replay.client), &prefix)?;
-    let imu_service = topics::imu_service(&node, params.replay.client)?;
-    let publisher = topics::publisher(&imu_service)?;
-    let acks = topics::frame_ack_service(&node, params.replay.client)?;
-    let ack_sub = topics::subscriber(&acks)?;
-    shoal_runtime::signal_ready();
+/// The pacing of the samples: lock-step on the tracker's frame acknowledgements, else the
+/// replay clock.
+struct Pacer {
+    lockstep: bool,
+    clock: ReplayClock,
+    lookahead_ns: i64,
+    /// Lock-step horizon: samples with `t <= horizon` may be published.
+    horizon_ns: i64,
+    /// A restarted ingest: samples due while it was down are skipped (and counted).
+    restarted: bool,
+}
 
+/// What the pacing says of the next sample.
+enum Pace {
+    Go,
+    Skip,
+    Stop,
+}
+
+impl Pacer {
+    /// Waits until the sample at `t_ns` may be published.
+    fn wait(&mut self, t_ns: i64, node: &Node<Ipc>, acks: &AckSub) -> anyhow::Result<Pace> {
+        if self.lockstep {
+            return self.wait_for_ack(t_ns, node, acks);
+        }
+        let due = self.clock.due_mono_ns(t_ns);
+        let now = monotonic_ns();
+        if self.restarted && now > due + 50_000_000 {
+            return Ok(Pace::Skip);
+        }
+        if due > now && node.wait(Duration::from_nanos((due - now) as u64)).is_err() {
+            return Ok(Pace::Stop);
+        }
+        Ok(Pace::Go)
+    }
+
+    /// Lock-step: until a frame acknowledgement moves the horizon past `t_ns`.
+    fn wait_for_ack(&mut self, t_ns: i64, node: &Node<Ipc>, acks: &AckSub) -> anyhow::Result<Pace> {
+        while t_ns > self.horizon_ns {
+            while let Some(a) = acks.receive()? {
+                let a: FrameAck = *a.payload();
+                if a.meta.check().is_ok() {
+                    let h = a.frame_t_ns.saturating_add(self.lookahead_ns);
+                    self.horizon_ns = self.horizon_ns.max(h);
+                }
+            }
+            if t_ns <= self.horizon_ns {
+                break;
+            }
+            if node.wait(Duration::from_micros(100)).is_err() {
+                return Ok(Pace::Stop);
+            }
+        }
+        Ok(Pace::Go)
+    }
+}
+
+type AckSub = iceoryx2::port::subscriber::Subscriber<Ipc, FrameAck, ()>;
+
+/// The pacing of `dataset` for `params`, and how many samples to replay.
+fn pacer(params: &Params, dataset: &datasets::Dataset, status: &Status) -> (Pacer, usize) {
     // Samples after the last frame replayed are not needed.
     let t_end = match params.replay.max_frames {
         Some(n) if n < dataset.frames.len() => dataset.frames[n].t_ns,
@@ -86,76 +117,68 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let n = dataset.imu.partition_point(|s| s.t_ns < t_end);
     let clock = ReplayClock {
         t0_mono_ns: params.replay.t0_mono_ns.unwrap_or_else(monotonic_ns),
-        t_origin_ns: shoal_runtime::replay_origin_ns(&dataset),
+        t_origin_ns: shoal_runtime::replay_origin_ns(dataset),
         rate: params.replay.rate,
     };
-    let lockstep = params.replay.mode == ReplayMode::Lockstep && !dataset.frames.is_empty();
     let first_frame_t = dataset.frames.first().map_or(i64::MIN, |f| f.t_ns);
-    let lookahead = params.lookahead_ms as i64 * 1_000_000;
+    let lookahead_ns = params.lookahead_ms as i64 * 1_000_000;
+    let pacer = Pacer {
+        lockstep: params.replay.mode == ReplayMode::Lockstep && !dataset.frames.is_empty(),
+        clock,
+        lookahead_ns,
+        horizon_ns: first_frame_t.saturating_add(lookahead_ns),
+        restarted: status.starts > 1,
+    };
+    (pacer, n)
+}
+
+/// Replays the IMU samples; returns the final status. Stops early on SIGINT/SIGTERM.
+pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let c = params.replay.client;
+    let start = ServiceStart::open(
+        &service_name(c),
+        &format!("imu_ingest_c{c}"),
+        params.replay.status.clone(),
+        params.replay.ipc_prefix.clone(),
+    )?;
+    let (mut file, mut status, node) = (start.file, start.status, start.node);
+    let dataset = datasets::open(&params.replay.dataset)?;
+    shoal_runtime::report_dataset_issues(&mut status, &dataset, true);
+    let publisher = topics::publisher(&topics::imu_service(&node, c)?)?;
+    let acks = topics::subscriber(&topics::frame_ack_service(&node, c)?)?;
+    shoal_runtime::signal_ready();
+    let (mut pacer, n) = pacer(params, &dataset, &status);
     let session_id = status.starts as u32;
     let mut next = status.values.get("next_index").copied().unwrap_or(0.0) as usize;
-    // Lock-step horizon: samples with t <= horizon may be published.
-    let mut horizon = first_frame_t.saturating_add(lookahead);
-    let mut stopped = false;
-
     while next < n {
         let s = dataset.imu[next];
-        if lockstep {
-            while s.t_ns > horizon {
-                while let Some(a) = ack_sub.receive()? {
-                    let a: FrameAck = *a.payload();
-                    if a.meta.check().is_ok() {
-                        horizon = horizon.max(a.frame_t_ns.saturating_add(lookahead));
-                    }
-                }
-                if s.t_ns <= horizon {
-                    break;
-                }
-                if node.wait(Duration::from_micros(100)).is_err() {
-                    stopped = true;
-                    break;
-                }
-            }
-        } else {
-            let due = clock.due_mono_ns(s.t_ns);
-            let now = monotonic_ns();
-            if status.starts > 1 && now > due + 50_000_000 {
-                status.add("imu_samples_skipped_late", 1);
-                next += 1;
-                status.set_value("next_index", next as f64);
-                continue;
-            }
-            if due > now && node.wait(Duration::from_nanos((due - now) as u64)).is_err() {
-                stopped = true;
+        match pacer.wait(s.t_ns, &node, &acks)? {
+            Pace::Stop => break,
+            Pace::Skip => status.add("imu_samples_skipped_late", 1),
+            Pace::Go => {
+                let meta = MsgMeta::new(c, session_id, next as u64, monotonic_ns());
+                let (t_ns, gyro, accel) = (s.t_ns, s.gyro, s.accel);
+                publisher.send_copy(ImuMsg {
+                    meta,
+                    t_ns,
+                    gyro,
+                    accel,
+                })?;
+                status.add("imu_samples_published", 1);
             }
         }
-        if stopped {
-            break;
-        }
-        let msg = ImuMsg {
-            meta: MsgMeta::new(
-                params.replay.client,
-                session_id,
-                next as u64,
-                monotonic_ns(),
-            ),
-            t_ns: s.t_ns,
-            gyro: s.gyro,
-            accel: s.accel,
-        };
-        publisher.send_copy(msg)?;
-        status.add("imu_samples_published", 1);
         next += 1;
         status.set_value("next_index", next as f64);
         let _ = file.write_every(&status, Duration::from_millis(200));
     }
     if next >= n {
-        let mut meta = MsgMeta::new(params.replay.client, session_id, n as u64, monotonic_ns());
+        let mut meta = MsgMeta::new(c, session_id, n as u64, monotonic_ns());
         meta.flags = FLAG_END_OF_STREAM;
-        publisher.send_copy(ImuMsg {
+        let eos = ImuMsg {
             meta,
             ..ImuMsg::default()
-        })?;
+        };
+        publisher.send_copy(eos)?;
         status.finished = true;
     }
     file.write(&status)?;

@@ -29,7 +29,7 @@ use shm_schema::{
     RECORD_POINT_PAIR,
 };
 use shoal_runtime::wire::{iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint};
-use shoal_runtime::{ReplayMode, Status, StatusFile};
+use shoal_runtime::{ReplayMode, ServiceStart, Status};
 use slam_core::features::OrbFeatures;
 use slam_core::loop_closing::{LoopDetector, LoopDetectorParams, LoopMatch};
 use slam_core::pgo::{
@@ -357,41 +357,19 @@ impl Closer {
     }
 }
 
-fn send(
-    publisher: &Publisher<Ipc, [CorrectionRecord], CorrectionHeader>,
-    out: &Outgoing,
-) -> anyhow::Result<()> {
-    let sample = publisher.loan_slice_uninit(out.records.len())?;
-    let mut sample = sample.write_from_slice(&out.records);
-    *sample.user_header_mut() = out.header;
-    sample.send()?;
-    Ok(())
-}
-
 /// Keyframes asked of the mapper per resynchronisation batch (fewer than the loop
 /// keyframe topic's buffer, so a batch never overflows it).
-/// Lock-step: tells the mapper that loop keyframe message `h` is finished (a
-/// [`shm_schema::CORRECTION_DONE`] marker on the corrections topic, behind any correction).
-fn send_done(
-    publisher: &Publisher<Ipc, [CorrectionRecord], CorrectionHeader>,
-    h: &LoopKeyframeHeader,
-) -> anyhow::Result<()> {
-    send(
-        publisher,
-        &Outgoing {
-            header: CorrectionHeader {
-                meta: MsgMeta::new(h.meta.client_id, 0, h.meta.seq, monotonic_ns()),
-                kind: shm_schema::CORRECTION_DONE,
-                query_kf: h.kf_id,
-                ..CorrectionHeader::default()
-            },
-            records: Vec::new(),
-            summary: String::new(),
-        },
-    )
-}
-
 const RESYNC_BATCH: u32 = 32;
+
+/// A message the loop closer publishes.
+#[derive(Debug, Clone)]
+pub enum Out {
+    /// A correction (or, in lock-step, a [`shm_schema::CORRECTION_DONE`] marker) to the
+    /// mapper.
+    Correction(Outgoing),
+    /// A request for a batch of the mapper's keyframes (resynchronisation).
+    Resync(shm_schema::ResyncRequest),
+}
 
 /// Rebuilding the keyframe database from the mapper at start-up (DESIGN.md: a restarted
 /// loop closer resynchronises from the mapper): batches of [`RESYNC_BATCH`] keyframes are
@@ -399,163 +377,257 @@ const RESYNC_BATCH: u32 = 32;
 struct Resync {
     received: u64,
     asked: u64,
-    asked_at: Instant,
+    asked_at_ns: i64,
     seq: u64,
     done: bool,
 }
 
 impl Resync {
-    fn ask(
-        &mut self,
-        publisher: &Publisher<Ipc, shm_schema::ResyncRequest, ()>,
-        next: u64,
-    ) -> anyhow::Result<()> {
-        publisher.send_copy(shm_schema::ResyncRequest {
-            meta: MsgMeta::new(0, 0, self.seq, monotonic_ns()),
+    fn ask(&mut self, next: u64, now_ns: i64) -> Out {
+        let req = shm_schema::ResyncRequest {
+            meta: MsgMeta::new(0, 0, self.seq, now_ns),
             next,
             max: RESYNC_BATCH,
             reserved: 0,
-        })?;
+        };
         self.seq += 1;
         self.asked = next;
-        self.asked_at = Instant::now();
-        Ok(())
+        self.asked_at_ns = now_ns;
+        Out::Resync(req)
     }
 }
 
-/// Receives keyframes until SIGINT/SIGTERM; detects loops and sends corrections.
-pub fn run(params: &Params) -> anyhow::Result<Status> {
-    let mut file = StatusFile::new(params.status.clone());
-    let mut status = shoal_runtime::resume_status(&file, SERVICE_NAME);
-    let vocabulary = match &params.vocabulary {
+/// The loop closer without its ports: loop keyframe messages in ([`LoopCloserCore::on_keyframe`]),
+/// corrections, lock-step markers and resync requests out ([`Out`]).
+pub struct LoopCloserCore {
+    closer: Closer,
+    resync: Resync,
+    /// Lock-step synchronisation with the mapper.
+    sync: bool,
+    detect_only: bool,
+    /// Counters and errors.
+    pub status: Status,
+}
+
+impl LoopCloserCore {
+    /// A core resuming `status`; its first outputs (a resync request, unless this is the
+    /// first start of a lock-step run) are in the returned list.
+    pub fn new(closer: Closer, params: &Params, status: Status, now_ns: i64) -> (Self, Vec<Out>) {
+        let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
+        let mut core = Self {
+            closer,
+            resync: Resync {
+                received: 0,
+                asked: 0,
+                asked_at_ns: now_ns,
+                seq: 0,
+                done: false,
+            },
+            sync,
+            detect_only: params.detect_only,
+            status,
+        };
+        let mut out = vec![];
+        if sync && core.status.starts == 1 {
+            // Lock-step, first start of the run: the maps are empty (the launcher starts the
+            // mapper and loop closer before any tracker), nothing to resynchronise. Asking
+            // anyway races with the mapper's start (a lost request is repeated 2 s later and
+            // then re-sends keyframes already forwarded live), which would make runs differ.
+            core.resync.done = true;
+        } else {
+            out.push(core.resync.ask(0, now_ns));
+        }
+        (core, out)
+    }
+
+    /// Periodic work: a resynchronisation without progress for 2 s (mapper not up yet, or
+    /// a lost batch) is asked again from where it is.
+    pub fn on_tick(&mut self, now_ns: i64) -> Vec<Out> {
+        let r = &mut self.resync;
+        if !r.done && now_ns - r.asked_at_ns > 2_000_000_000 {
+            let next = r.received;
+            return vec![r.ask(next, now_ns)];
+        }
+        vec![]
+    }
+
+    /// One loop keyframe message of the mapper (live, or of a resynchronisation).
+    pub fn on_keyframe(
+        &mut self,
+        h: &LoopKeyframeHeader,
+        records: &[LoopKeypointRecord],
+        now_ns: i64,
+    ) -> Vec<Out> {
+        if let Err(e) = h.meta.check() {
+            self.status
+                .error("schema_version", format!("loop keyframe: {e}"));
+            return vec![];
+        }
+        if h.meta.flags & shm_schema::FLAG_RESYNC != 0 {
+            return self.on_resync_keyframe(h, records, now_ns);
+        }
+        let c = h.meta.client_id;
+        self.status.add(&format!("c{c}.keyframes_received"), 1);
+        let mut out = vec![];
+        match keyframe_from_wire(h, records) {
+            Ok(kf) => self.search(kf, &mut out),
+            Err(e) => self.status.error("bad_keyframe", e),
+        }
+        if self.sync {
+            out.push(Out::Correction(done_marker(h, now_ns)));
+        }
+        out
+    }
+
+    fn on_resync_keyframe(
+        &mut self,
+        h: &LoopKeyframeHeader,
+        records: &[LoopKeypointRecord],
+        now_ns: i64,
+    ) -> Vec<Out> {
+        let r = &mut self.resync;
+        if r.done {
+            return vec![];
+        }
+        if h.meta.flags & shm_schema::FLAG_END_OF_STREAM != 0 {
+            r.done = true;
+            let n = r.received;
+            self.status.counters.insert("resync_keyframes".into(), n);
+            return vec![];
+        }
+        match keyframe_from_wire(h, records) {
+            Ok(kf) => self.closer.insert(kf),
+            Err(e) => self.status.error("bad_keyframe", format!("resync: {e}")),
+        }
+        let r = &mut self.resync;
+        r.received += 1;
+        if r.received >= r.asked + u64::from(RESYNC_BATCH) {
+            let next = r.received;
+            return vec![r.ask(next, now_ns)];
+        }
+        vec![]
+    }
+
+    /// Searches a loop for a live keyframe; a verified one gives a correction.
+    fn search(&mut self, kf: KeptKeyframe, out: &mut Vec<Out>) {
+        let t0 = Instant::now();
+        let result = self.closer.add(kf);
+        let s = &mut self.status;
+        s.add("detect_us", t0.elapsed().as_micros() as u64);
+        let n = self.closer.keyframes() as u64;
+        s.counters.insert("database_keyframes".into(), n);
+        let c = match result {
+            Ok(None) => return,
+            Ok(Some(c)) => c,
+            Err(e) => return s.error("loop", e),
+        };
+        let kind = if c.header.kind == CORRECTION_MERGE {
+            "merges"
+        } else {
+            "loops"
+        };
+        s.add(kind, 1);
+        eprintln!("loop_closer: {}", c.summary);
+        if self.detect_only {
+            return;
+        }
+        if c.records.len() > topics::MAX_CORRECTION_RECORDS {
+            let detail = format!("{} records exceed the message", c.records.len());
+            s.error("correction", detail);
+        } else {
+            out.push(Out::Correction(c));
+            s.add("corrections_sent", 1);
+        }
+    }
+}
+
+/// Lock-step: loop keyframe message `h` is finished (a [`shm_schema::CORRECTION_DONE`]
+/// marker on the corrections topic, behind any correction).
+fn done_marker(h: &LoopKeyframeHeader, now_ns: i64) -> Outgoing {
+    Outgoing {
+        header: CorrectionHeader {
+            meta: MsgMeta::new(h.meta.client_id, 0, h.meta.seq, now_ns),
+            kind: shm_schema::CORRECTION_DONE,
+            query_kf: h.kf_id,
+            ..CorrectionHeader::default()
+        },
+        records: Vec::new(),
+        summary: String::new(),
+    }
+}
+
+/// Publishes the core's outputs, in order.
+fn publish(
+    corrections: &Publisher<Ipc, [CorrectionRecord], CorrectionHeader>,
+    resync: &Publisher<Ipc, shm_schema::ResyncRequest, ()>,
+    out: Vec<Out>,
+) -> anyhow::Result<()> {
+    for o in out {
+        match o {
+            Out::Correction(c) => {
+                let sample = corrections.loan_slice_uninit(c.records.len())?;
+                let mut sample = sample.write_from_slice(&c.records);
+                *sample.user_header_mut() = c.header;
+                sample.send()?;
+            }
+            Out::Resync(r) => {
+                resync.send_copy(r)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The vocabulary of `--vocabulary`, else the shipped one.
+fn vocabulary(params: &Params) -> anyhow::Result<Vocabulary> {
+    Ok(match &params.vocabulary {
         Some(p) => Vocabulary::load(p)
             .with_context(|| format!("loading the vocabulary {}", p.display()))?,
         None => Vocabulary::from_bytes(SHIPPED_VOCABULARY)
             .context("the built-in vocabulary is corrupt")?,
-    };
-    let mut closer = Closer::new(vocabulary, params.method);
-    let prefix = params
-        .ipc_prefix
-        .clone()
-        .unwrap_or_else(topics::prefix_from_env);
-    topics::check_foreign_versions(&prefix)?;
-    let node = topics::create_node("loop_closer", &prefix)?;
-    let sub = topics::slice_subscriber(
-        &topics::loop_keyframes_service(&node)?,
+    })
+}
+
+/// Receives keyframes until SIGINT/SIGTERM; detects loops and sends corrections.
+pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let closer = Closer::new(vocabulary(params)?, params.method);
+    let mut start = ServiceStart::open(
+        SERVICE_NAME,
+        "loop_closer",
+        params.status.clone(),
+        params.ipc_prefix.clone(),
+    )?;
+    let node = &start.node;
+    let keyframes = topics::slice_subscriber(
+        &topics::loop_keyframes_service(node)?,
         topics::KEYFRAME_BUFFER,
     )?;
-    let publisher = topics::slice_publisher(
-        &topics::corrections_service(&node)?,
+    let corrections = topics::slice_publisher(
+        &topics::corrections_service(node)?,
         topics::MAX_CORRECTION_RECORDS,
     )?;
-    let resync_pub = topics::publisher(&topics::resync_service(&node)?)?;
-    let mut resync = Resync {
-        received: 0,
-        asked: 0,
-        asked_at: Instant::now(),
-        seq: 0,
-        done: false,
-    };
-    let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
-    if sync && status.starts == 1 {
-        // Lock-step, first start of the run: the maps are empty (the launcher starts the
-        // mapper and loop closer before any tracker), nothing to resynchronise. Asking
-        // anyway races with the mapper's start (a lost request is repeated 2 s later and
-        // then re-sends keyframes already forwarded live), which would make runs differ.
-        resync.done = true;
-    } else {
-        resync.ask(&resync_pub, 0)?;
-    }
+    let resync = topics::publisher(&topics::resync_service(node)?)?;
+    let status = std::mem::take(&mut start.status);
+    let (mut core, out) = LoopCloserCore::new(closer, params, status, monotonic_ns());
+    publish(&corrections, &resync, out)?;
     shoal_runtime::signal_ready();
     loop {
+        publish(&corrections, &resync, core.on_tick(monotonic_ns()))?;
         let mut idle = true;
-        if !resync.done && resync.asked_at.elapsed() > Duration::from_secs(2) {
-            // No progress (mapper not up yet, or a lost batch): ask again from where we are.
-            let next = resync.received;
-            resync.ask(&resync_pub, next)?;
-        }
-        while let Some(msg) = sub.receive()? {
+        while let Some(msg) = keyframes.receive()? {
             idle = false;
-            let h = *msg.user_header();
-            if let Err(e) = h.meta.check() {
-                status.error("schema_version", format!("loop keyframe: {e}"));
-                continue;
-            }
-            if h.meta.flags & shm_schema::FLAG_RESYNC != 0 {
-                if resync.done {
-                    continue;
-                }
-                if h.meta.flags & shm_schema::FLAG_END_OF_STREAM != 0 {
-                    resync.done = true;
-                    status
-                        .counters
-                        .insert("resync_keyframes".into(), resync.received);
-                    continue;
-                }
-                match keyframe_from_wire(&h, msg.payload()) {
-                    Ok(kf) => closer.insert(kf),
-                    Err(e) => status.error("bad_keyframe", format!("resync: {e}")),
-                }
-                resync.received += 1;
-                if resync.received >= resync.asked + u64::from(RESYNC_BATCH) {
-                    let next = resync.received;
-                    resync.ask(&resync_pub, next)?;
-                }
-                continue;
-            }
-            let c = h.meta.client_id;
-            status.add(&format!("c{c}.keyframes_received"), 1);
-            let kf = match keyframe_from_wire(&h, msg.payload()) {
-                Ok(kf) => kf,
-                Err(e) => {
-                    status.error("bad_keyframe", e);
-                    if sync {
-                        send_done(&publisher, &h)?;
-                    }
-                    continue;
-                }
-            };
+            let out = core.on_keyframe(msg.user_header(), msg.payload(), monotonic_ns());
             drop(msg);
-            let t0 = Instant::now();
-            let result = closer.add(kf);
-            status.add("detect_us", t0.elapsed().as_micros() as u64);
-            status
-                .counters
-                .insert("database_keyframes".into(), closer.keyframes() as u64);
-            match result {
-                Ok(None) => {}
-                Ok(Some(out)) => {
-                    let kind = if out.header.kind == CORRECTION_MERGE {
-                        "merges"
-                    } else {
-                        "loops"
-                    };
-                    status.add(kind, 1);
-                    eprintln!("loop_closer: {}", out.summary);
-                    if !params.detect_only {
-                        if out.records.len() > topics::MAX_CORRECTION_RECORDS {
-                            status.error(
-                                "correction",
-                                format!("{} records exceed the message", out.records.len()),
-                            );
-                        } else {
-                            send(&publisher, &out)?;
-                            status.add("corrections_sent", 1);
-                        }
-                    }
-                }
-                Err(e) => status.error("loop", e),
-            }
-            if sync {
-                send_done(&publisher, &h)?;
-            }
+            publish(&corrections, &resync, out)?;
         }
-        let _ = file.write_every(&status, Duration::from_millis(200));
+        let _ = start
+            .file
+            .write_every(&core.status, Duration::from_millis(200));
         if idle && node.wait(Duration::from_millis(1)).is_err() {
             break;
         }
     }
-    status.finished = true;
-    file.write(&status)?;
-    Ok(status)
+    core.status.finished = true;
+    start.file.write(&core.status)?;
+    Ok(core.status)
 }

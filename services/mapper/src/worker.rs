@@ -311,6 +311,70 @@ impl Group {
     }
 }
 
+impl Group {
+    /// Every kept keyframe of the group's maps (a restarted loop closer's resync).
+    fn snapshot(&self) -> Vec<slam_core::server::KeptKeyframe> {
+        let max_client = slam_core::server::types::MAX_CLIENT_KF_ID;
+        self.maps
+            .values()
+            .flat_map(|m| {
+                let kfs = m.map.keyframes.keys();
+                kfs.filter_map(move |k| m.kept_summary(*k, *k & max_client))
+            })
+            .collect()
+    }
+}
+
+/// Applies a correction, then the global BA it asks for (live and in replays); with an
+/// output folder, a pose-graph correction's map is written before and after.
+fn correct(
+    g: &mut Group,
+    out: Option<&std::path::Path>,
+    correction: Correction,
+    replay: bool,
+) -> CorrectionOutcome {
+    let t0 = Instant::now();
+    let snapshot = |g: &Group, when: &str| {
+        if let (Some(out), Correction::PoseGraph { id, map, .. }) = (out, &correction) {
+            if let Some(m) = g.maps.get(map) {
+                let path = out.join(format!("correction_{id}_{when}.txt"));
+                let _ = write_tum(&path, &m.trajectory());
+            }
+        }
+    };
+    snapshot(g, "before");
+    let result = g.apply(&correction);
+    if result.is_ok() {
+        for cs in g.clients.values_mut() {
+            while cs.h.idle_step(&mut g.maps).is_some() {}
+        }
+        snapshot(g, "after");
+    }
+    let clients: Vec<u32> = g.clients.keys().copied().collect();
+    let absorbed = match (&correction, &result) {
+        (Correction::Merge { from, .. }, Ok(_)) => Some(*from),
+        _ => None,
+    };
+    CorrectionOutcome {
+        id: correction.id(),
+        kind: match correction {
+            Correction::Merge { .. } => "merge",
+            Correction::PoseGraph { .. } => "pose_graph",
+        },
+        result,
+        replay,
+        feedback: g
+            .clients
+            .values()
+            .filter_map(|cs| cs.h.feedback(&g.maps))
+            .collect(),
+        figures: clients.iter().map(|c| (*c, g.figures(*c))).collect(),
+        maps: g.sizes(),
+        absorbed,
+        apply_ms: t0.elapsed().as_secs_f64() * 1e3,
+    }
+}
+
 fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results: Sender<Report>) {
     let mut g = Group::default();
     let mut dirty = false;
@@ -335,16 +399,7 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
                 return;
             }
             Job::Snapshot { reply } => {
-                let all = g
-                    .maps
-                    .values()
-                    .flat_map(|m| {
-                        m.map.keyframes.keys().filter_map(|k| {
-                            m.kept_summary(*k, *k & slam_core::server::types::MAX_CLIENT_KF_ID)
-                        })
-                    })
-                    .collect();
-                let _ = reply.send(all);
+                let _ = reply.send(g.snapshot());
                 continue;
             }
             Job::TakeOver { from } => {
@@ -355,52 +410,13 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
                 continue;
             }
             Job::Correction { correction, replay } => {
-                let t0 = Instant::now();
-                let snapshot = |g: &Group, when: &str| {
-                    if let (Some(out), Correction::PoseGraph { id, map, .. }) =
-                        (out.as_deref(), &correction)
-                    {
-                        if let Some(m) = g.maps.get(map) {
-                            let _ = write_tum(
-                                &out.join(format!("correction_{id}_{when}.txt")),
-                                &m.trajectory(),
-                            );
-                        }
-                    }
-                };
-                snapshot(&g, "before");
-                let result = g.apply(&correction);
-                // The global BA the correction asked for, at once (live and in replays).
-                if result.is_ok() {
-                    for cs in g.clients.values_mut() {
-                        while cs.h.idle_step(&mut g.maps).is_some() {}
-                    }
-                    snapshot(&g, "after");
-                }
                 dirty = true;
-                let clients: Vec<u32> = g.clients.keys().copied().collect();
-                let absorbed = match (&correction, &result) {
-                    (Correction::Merge { from, .. }, Ok(_)) => Some(*from),
-                    _ => None,
-                };
-                Report::Correction(Box::new(CorrectionOutcome {
-                    id: correction.id(),
-                    kind: match correction {
-                        Correction::Merge { .. } => "merge",
-                        Correction::PoseGraph { .. } => "pose_graph",
-                    },
-                    result,
+                Report::Correction(Box::new(correct(
+                    &mut g,
+                    out.as_deref(),
+                    correction,
                     replay,
-                    feedback: g
-                        .clients
-                        .values()
-                        .filter_map(|cs| cs.h.feedback(&g.maps))
-                        .collect(),
-                    figures: clients.iter().map(|c| (*c, g.figures(*c))).collect(),
-                    maps: g.sizes(),
-                    absorbed,
-                    apply_ms: t0.elapsed().as_secs_f64() * 1e3,
-                }))
+                )))
             }
             Job::Keyframe { kf, idle, replay } => {
                 dirty = true;

@@ -242,6 +242,61 @@ pub fn resume_status(file: &StatusFile, service: &str) -> Status {
     }
 }
 
+/// On a service's first start, the problems the dataset reader met and skipped (file and
+/// line), as errors: the IMU files' (`imu`) or the others' (the camera ingest's), so each
+/// is reported once.
+pub fn report_dataset_issues(status: &mut Status, dataset: &datasets::Dataset, imu: bool) {
+    if status.starts != 1 {
+        return;
+    }
+    for i in dataset
+        .issues
+        .iter()
+        .filter(|i| is_imu_file(&i.path) == imu)
+    {
+        let detail = format!("{}:{}: {}", i.path.display(), i.line, i.detail);
+        status.error(&i.kind, detail);
+    }
+}
+
+/// The start of every service process, in the one order they share: resume the status a
+/// killed predecessor left (counting this start), refuse to run beside services of another
+/// schema version on the same IPC prefix, open the iceoryx2 node. The service then opens its
+/// ports, calls [`signal_ready`], runs its event loop and writes its final status.
+pub struct ServiceStart {
+    /// The status file.
+    pub file: StatusFile,
+    /// The status resumed (or a fresh one).
+    pub status: Status,
+    /// The IPC prefix in use.
+    pub prefix: String,
+    /// The service's iceoryx2 node.
+    pub node: iceoryx2::node::Node<shm_schema::topics::Ipc>,
+}
+
+impl ServiceStart {
+    /// Resumes service `service` from `status_path`, checks the prefix (`ipc_prefix`, else
+    /// `$SHOAL_IPC_PREFIX` or the default) and creates node `node_name`.
+    pub fn open(
+        service: &str,
+        node_name: &str,
+        status_path: Option<PathBuf>,
+        ipc_prefix: Option<String>,
+    ) -> anyhow::Result<Self> {
+        let file = StatusFile::new(status_path);
+        let status = resume_status(&file, service);
+        let prefix = ipc_prefix.unwrap_or_else(shm_schema::topics::prefix_from_env);
+        shm_schema::topics::check_foreign_versions(&prefix)?;
+        let node = shm_schema::topics::create_node(node_name, &prefix)?;
+        Ok(Self {
+            file,
+            status,
+            prefix,
+            node,
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

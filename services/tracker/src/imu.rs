@@ -3,11 +3,8 @@
 //! shutter can be compensated with the gyro rate over its readout (rotated into the camera
 //! with the frame's `T_BS`).
 use std::collections::VecDeque;
-use std::io::Write;
 
-use iceoryx2::port::subscriber::Subscriber;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
-use shm_schema::topics::Ipc;
 use shm_schema::{FrameHeader, ImuMsg};
 use shoal_runtime::Status;
 
@@ -33,58 +30,44 @@ pub struct ImuInput {
 }
 
 impl ImuInput {
-    /// Takes every waiting sample; returns how many messages were taken.
-    pub fn drain(
-        &mut self,
-        sub: &Subscriber<Ipc, ImuMsg, ()>,
-        status: &mut Status,
-        client: u32,
-        mut log: Option<&mut impl Write>,
-    ) -> anyhow::Result<usize> {
-        let mut n = 0;
-        while let Some(s) = sub.receive()? {
-            n += 1;
-            let m = *s.payload();
-            if let Err(e) = m.meta.check() {
-                status.error("schema_version", format!("imu of client {client}: {e}"));
-                continue;
+    /// Takes one sample of the stream: checks its schema, sequence (gaps counted as
+    /// dropped, repeats as duplicates) and time (non-monotonic ones are errors), and keeps
+    /// its gyro rate. Returns whether the sample was accepted.
+    pub fn on_sample(&mut self, m: &ImuMsg, status: &mut Status, client: u32) -> bool {
+        if let Err(e) = m.meta.check() {
+            status.error("schema_version", format!("imu of client {client}: {e}"));
+            return false;
+        }
+        if m.meta.is_end_of_stream() {
+            self.ended = true;
+            return false;
+        }
+        if let Some((seq, t)) = self.last {
+            if m.meta.seq <= seq {
+                // A restarted IMU ingest resumes from its last status write and publishes
+                // again samples its predecessor had sent: already taken.
+                status.add("imu_samples_duplicate", 1);
+                return false;
             }
-            if m.meta.is_end_of_stream() {
-                self.ended = true;
-                continue;
+            if m.meta.seq > seq + 1 {
+                status.add("imu_samples_dropped", m.meta.seq - seq - 1);
             }
-            if let Some((seq, t)) = self.last {
-                if m.meta.seq <= seq {
-                    // A restarted IMU ingest resumes from its last status write and
-                    // publishes again samples its predecessor had sent: already taken.
-                    status.add("imu_samples_duplicate", 1);
-                    continue;
-                }
-                if m.meta.seq > seq + 1 {
-                    status.add("imu_samples_dropped", m.meta.seq - seq - 1);
-                }
-                if m.t_ns <= t {
-                    status.error(
-                        "non_monotonic",
-                        format!(
-                            "imu sample {} at {} ns not after {} ns",
-                            m.meta.seq, m.t_ns, t
-                        ),
-                    );
-                    continue;
-                }
-            }
-            self.last = Some((m.meta.seq, m.t_ns));
-            status.add("imu_samples_received", 1);
-            let w = Vector3::from(m.gyro);
-            if w.iter().all(|v| v.is_finite()) {
-                self.push_gyro(m.t_ns, w);
-            }
-            if let Some(l) = log.as_mut() {
-                writeln!(l, "imu {} {}", m.meta.seq, m.t_ns)?;
+            if m.t_ns <= t {
+                let (seq, t_ns) = (m.meta.seq, m.t_ns);
+                status.error(
+                    "non_monotonic",
+                    format!("imu sample {seq} at {t_ns} ns not after {t} ns"),
+                );
+                return false;
             }
         }
-        Ok(n)
+        self.last = Some((m.meta.seq, m.t_ns));
+        status.add("imu_samples_received", 1);
+        let w = Vector3::from(m.gyro);
+        if w.iter().all(|v| v.is_finite()) {
+            self.push_gyro(m.t_ns, w);
+        }
+        true
     }
 
     /// Keeps gyro sample `w` (body frame, rad/s) at `t_ns` (after the last one), dropping

@@ -2,20 +2,36 @@
 //! eviction, new session, end of stream) is published as a keyframe message and kept until
 //! the mapper acknowledges it on the feedback service; unacknowledged ones are re-sent
 //! (e.g. to a restarted mapper). Nothing is dropped while it is unacknowledged.
+//!
+//! Pure bookkeeping: it decides what to (re-)send and hands the messages to its caller, which
+//! publishes them ([`KeyframeMsg`]); times are the caller's `now_ns`.
 use std::collections::BTreeMap;
 
-use iceoryx2::port::publisher::Publisher;
-use shm_schema::time::monotonic_ns;
-use shm_schema::topics::{Ipc, MAX_KEYPOINTS};
+use shm_schema::topics::MAX_KEYPOINTS;
 use shm_schema::{
     Intrinsics, KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT,
 };
 use slam_core::vo::Keyframe;
 
+/// A keyframe message (header and keypoint records) as it goes on the wire.
+#[derive(Debug, Clone)]
+pub struct KeyframeMsg {
+    /// Header: session, id, pose, intrinsics.
+    pub header: KeyframeHeader,
+    /// One record per keypoint.
+    pub records: Vec<KeypointRecord>,
+}
+
+impl KeyframeMsg {
+    /// The keyframe's (VO session, id).
+    pub fn key(&self) -> (u32, u64) {
+        (self.header.meta.session_id, self.header.keyframe_id)
+    }
+}
+
 /// One keyframe message, ready to (re-)send.
 struct Pending {
-    header: KeyframeHeader,
-    records: Vec<KeypointRecord>,
+    msg: KeyframeMsg,
     /// 0 while queued (not sent yet).
     last_sent_ns: i64,
 }
@@ -47,11 +63,7 @@ pub fn wire_pose(t_cw: &nalgebra::Isometry3<f64>) -> Pose {
 
 /// The keyframe message of `kf` of VO session `session` (seed §3.3: its pose in the client
 /// map, keypoints, descriptors and client map-point ids); `meta.seq` is set when sent.
-pub fn keyframe_message(
-    client: u32,
-    kf: &Keyframe,
-    session: u32,
-) -> (KeyframeHeader, Vec<KeypointRecord>) {
+pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg {
     let c = &kf.camera;
     let n = kf.features.len().min(MAX_KEYPOINTS);
     let records: Vec<KeypointRecord> = (0..n)
@@ -83,7 +95,7 @@ pub fn keyframe_message(
         n_keypoints: n as u32,
         reserved: 0,
     };
-    (header, records)
+    KeyframeMsg { header, records }
 }
 
 impl Outbox {
@@ -113,65 +125,41 @@ impl Outbox {
             .count()
     }
 
-    /// Converts and publishes `kf` of VO session `session`, keeping it until acknowledged.
-    pub fn send(
-        &mut self,
-        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
-        kf: &Keyframe,
-        session: u32,
-    ) -> anyhow::Result<()> {
-        let (header, records) = keyframe_message(self.client, kf, session);
-        self.send_message(publisher, header, records)
-    }
-
-    /// Publishes a keyframe message built by [`keyframe_message`] (e.g. one recovered from
-    /// the spool of a killed predecessor), keeping it until acknowledged. Its session and id
-    /// are the header's; the sequence number is this outbox's.
-    pub fn send_message(
-        &mut self,
-        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
-        mut header: KeyframeHeader,
-        records: Vec<KeypointRecord>,
-    ) -> anyhow::Result<()> {
-        let session = header.meta.session_id;
-        header.meta = MsgMeta::new(self.client, session, self.next_seq, 0);
+    /// Queues a keyframe message built by [`keyframe_message`] (or recovered from the spool
+    /// of a killed predecessor), keeps it until acknowledged and appends to `out` what is to
+    /// be published now. Its session and id are the header's; the sequence number is this
+    /// outbox's.
+    pub fn send(&mut self, mut msg: KeyframeMsg, now_ns: i64, out: &mut Vec<KeyframeMsg>) {
+        let session = msg.header.meta.session_id;
+        msg.header.meta = MsgMeta::new(self.client, session, self.next_seq, 0);
         self.next_seq += 1;
-        let key = (session, header.keyframe_id);
-        if let Some(t_ck) = shoal_runtime::wire::iso_from_wire(&header.pose_ck) {
+        let key = msg.key();
+        if let Some(t_ck) = shoal_runtime::wire::iso_from_wire(&msg.header.pose_ck) {
             self.sent_poses.insert(key, t_ck);
         }
         self.pending.insert(
             key,
             Pending {
-                header,
-                records,
+                msg,
                 last_sent_ns: 0,
             },
         );
-        self.pump(publisher)
+        self.pump(now_ns, out);
     }
 
     /// Sends queued keyframes while fewer than [`MAX_IN_FLIGHT`] are unacknowledged.
-    pub fn pump(
-        &mut self,
-        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
-    ) -> anyhow::Result<()> {
-        let mut in_flight = self
-            .pending
-            .values()
-            .filter(|p| p.last_sent_ns != 0)
-            .count();
+    fn pump(&mut self, now_ns: i64, out: &mut Vec<KeyframeMsg>) {
+        let mut in_flight = self.in_flight();
         for p in self.pending.values_mut() {
             if in_flight >= MAX_IN_FLIGHT {
                 break;
             }
             if p.last_sent_ns == 0 {
-                publish(publisher, p, false)?;
+                out.push(stamp(p, now_ns, false));
                 self.sent += 1;
                 in_flight += 1;
             }
         }
-        Ok(())
     }
 
     /// The client pose `T_ck` of keyframe `id` of `session` as it was sent (the client map
@@ -199,36 +187,75 @@ impl Outbox {
     }
 
     /// Re-sends keyframes unacknowledged for longer than `after_ns` (and sends queued ones).
-    pub fn resend_stale(
-        &mut self,
-        publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
-        after_ns: i64,
-    ) -> anyhow::Result<()> {
-        let now = monotonic_ns();
+    pub fn resend_stale(&mut self, now_ns: i64, after_ns: i64, out: &mut Vec<KeyframeMsg>) {
         for p in self.pending.values_mut() {
-            if p.last_sent_ns != 0 && now - p.last_sent_ns > after_ns {
-                publish(publisher, p, true)?;
+            if p.last_sent_ns != 0 && now_ns - p.last_sent_ns > after_ns {
+                out.push(stamp(p, now_ns, true));
                 self.resent += 1;
             }
         }
-        self.pump(publisher)
+        self.pump(now_ns, out);
     }
 }
 
-fn publish(
-    publisher: &Publisher<Ipc, [KeypointRecord], KeyframeHeader>,
-    p: &mut Pending,
-    resend: bool,
-) -> anyhow::Result<()> {
-    let sample = publisher.loan_slice_uninit(p.records.len())?;
-    let mut sample = sample.write_from_slice(&p.records);
-    let mut h = p.header;
+/// The message of `p` as published at `now_ns` (a re-send flagged [`FLAG_RESEND`]).
+fn stamp(p: &mut Pending, now_ns: i64, resend: bool) -> KeyframeMsg {
+    let mut msg = p.msg.clone();
     if resend {
-        h.meta.flags |= FLAG_RESEND;
+        msg.header.meta.flags |= FLAG_RESEND;
     }
-    p.last_sent_ns = monotonic_ns();
-    h.meta.publish_mono_ns = p.last_sent_ns;
-    *sample.user_header_mut() = h;
-    sample.send()?;
-    Ok(())
+    p.last_sent_ns = now_ns;
+    msg.header.meta.publish_mono_ns = now_ns;
+    msg
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn msg(session: u32, id: u64) -> KeyframeMsg {
+        let mut header = KeyframeHeader::default();
+        header.meta.session_id = session;
+        header.keyframe_id = id;
+        header.pose_ck = Pose::IDENTITY;
+        KeyframeMsg {
+            header,
+            records: vec![KeypointRecord::default(); 3],
+        }
+    }
+
+    /// A burst beyond the in-flight limit is paced; acknowledgements let the rest out; an
+    /// unacknowledged keyframe is re-sent after the timeout, flagged, and counted.
+    #[test]
+    fn paces_bursts_and_resends_stale() {
+        let mut ob = Outbox::new(2);
+        let mut out = vec![];
+        for id in 0..(MAX_IN_FLIGHT as u64 + 5) {
+            ob.send(msg(7, id), 1_000, &mut out);
+        }
+        assert_eq!(out.len(), MAX_IN_FLIGHT);
+        assert_eq!((ob.sent, ob.pending(), ob.in_flight()), (32, 37, 32));
+        assert!(out
+            .iter()
+            .enumerate()
+            .all(|(i, m)| m.header.meta.seq == i as u64
+                && m.header.meta.client_id == 2
+                && m.header.meta.publish_mono_ns == 1_000));
+        for id in 0..5 {
+            ob.ack(7, id);
+        }
+        ob.ack(7, 0); // a second acknowledgement counts once
+        out.clear();
+        ob.resend_stale(2_000, 10_000, &mut out);
+        assert_eq!(out.len(), 5, "the queued five go out");
+        assert_eq!((ob.acked, ob.sent, ob.resent), (5, 37, 0));
+        out.clear();
+        ob.resend_stale(20_000, 10_000, &mut out);
+        assert_eq!(out.len(), 32);
+        assert!(out.iter().all(|m| m.header.meta.flags & FLAG_RESEND != 0));
+        assert_eq!(ob.resent, 32);
+        assert!(ob.sent_pose(7, 6).is_some());
+        ob.forget_sent_before(7, 6);
+        assert!(ob.sent_pose(7, 5).is_none() && ob.sent_pose(7, 6).is_some());
+    }
 }

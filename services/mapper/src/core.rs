@@ -1,0 +1,651 @@
+//! The mapper's core: the main thread's state and decisions without the iceoryx2 ports.
+//! Keyframes, corrections, resync requests and the handlers' outcomes go in; the messages to
+//! publish (feedback to each client, keyframes to the loop closer) come out as [`Out`], in
+//! order, taken by the ports with [`Mapper::take_out`]. The handlers run on their own
+//! threads ([`crate::worker`]).
+use std::collections::{BTreeMap, HashSet};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use crossbeam_channel::Receiver;
+use shm_schema::time::monotonic_ns;
+use shm_schema::{
+    CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeypointRecord,
+    LoopKeyframeHeader, LoopKeypointRecord, MsgMeta,
+};
+use shoal_runtime::journal::{Entry, Journal};
+use shoal_runtime::{ReplayMode, Status};
+use slam_core::server::{HandlerParams, KeyframeStatus, MapId};
+
+use crate::convert::{self, Correction};
+use crate::worker::{CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker};
+use crate::{lockstep, Params};
+
+/// A message the mapper publishes.
+#[derive(Debug, Clone)]
+pub enum Out {
+    /// Feedback to the client of `meta.client_id` (acknowledgement, pose, lock-step
+    /// "finished").
+    Feedback(Feedback),
+    /// A kept keyframe (or a resync snapshot's keyframe or end marker) to the loop closer.
+    LoopKeyframe(LoopKeyframeHeader, Vec<LoopKeypointRecord>),
+}
+
+type KfKey = (u32, u64);
+
+/// Per-client state of the main thread.
+struct Client {
+    /// Index of the worker hosting the client's handler (and the maps it created).
+    worker: Option<usize>,
+    /// Applied (journaled) keyframes: (session, id).
+    applied: HashSet<KfKey>,
+    /// Messages of applied keyframes waiting for their outcome (to forward kept ones).
+    waiting: BTreeMap<KfKey, (KeyframeHeader, Vec<KeypointRecord>)>,
+    fb_seq: u64,
+    figures: MapFigures,
+}
+
+/// The main thread's state apart from the iceoryx2 ports.
+pub struct Mapper {
+    handler_params: HandlerParams,
+    /// Keyframes of all maps for a restarted loop closer (taken on its first request).
+    resync: Vec<slam_core::server::KeptKeyframe>,
+    clients: Vec<Client>,
+    /// The handler threads.
+    pub workers: Vec<Worker>,
+    /// Latest size of every server map.
+    map_sizes: BTreeMap<MapId, MapSize>,
+    loop_seq: u64,
+    /// The journal of applied keyframes and corrections.
+    pub journal: Option<Journal>,
+    out_dir: Option<PathBuf>,
+    results_tx: crossbeam_channel::Sender<Report>,
+    /// Counters and errors.
+    pub status: Status,
+    /// Lock-step synchronisation (`None`: free-running).
+    sync: Option<lockstep::LockstepSync>,
+    /// Messages to publish, in order.
+    out: Vec<Out>,
+}
+
+impl Mapper {
+    /// A mapper for `params`' clients resuming `status`; the handlers report on `results_tx`.
+    pub fn new(
+        params: &Params,
+        status: Status,
+        results_tx: crossbeam_channel::Sender<Report>,
+    ) -> Self {
+        let out_dir = params.out.clone().or_else(|| {
+            let journal_dir = params.journal.as_ref().and_then(|j| j.parent());
+            journal_dir.map(|p| p.to_path_buf())
+        });
+        let client = || Client {
+            worker: None,
+            applied: HashSet::new(),
+            waiting: BTreeMap::new(),
+            fb_seq: 0,
+            figures: MapFigures::default(),
+        };
+        let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
+        Self {
+            resync: Vec::new(),
+            handler_params: HandlerParams {
+                spatial_keyframes: params.spatial_keyframes,
+                revisit_min_points: params.revisit_points,
+                assoc_horizon_kfs: params.assoc_horizon,
+                ..HandlerParams::default()
+            },
+            workers: Vec::new(),
+            map_sizes: BTreeMap::new(),
+            loop_seq: 0,
+            clients: (0..params.clients).map(|_| client()).collect(),
+            journal: None,
+            out_dir,
+            results_tx,
+            status,
+            sync: sync.then(|| lockstep::LockstepSync::new(lockstep::LOOP_SYNC_TIMEOUT)),
+            out: Vec::new(),
+        }
+    }
+
+    /// Opens the journal at `path` and rebuilds the maps from it (before any new keyframe).
+    pub fn open_journal(&mut self, path: &std::path::Path) -> anyhow::Result<()> {
+        let (j, contents) = Journal::open(path)
+            .with_context(|| format!("opening the journal {}", path.display()))?;
+        if let Some(p) = contents.problem {
+            self.status
+                .error("journal", format!("{}: {p}", path.display()));
+        }
+        let n = self.replay(contents.entries)?;
+        self.status
+            .set_value("journal_keyframes_on_start", n as f64);
+        self.journal = Some(j);
+        Ok(())
+    }
+
+    /// Queues a keyframe for its client's handler, starting the handler on first use.
+    fn queue(&mut self, c: u32, job: Job) -> anyhow::Result<()> {
+        let w = match self.clients[c as usize].worker {
+            Some(w) => w,
+            None => {
+                self.workers.push(
+                    Worker::spawn(
+                        c,
+                        self.handler_params.clone(),
+                        self.out_dir.clone(),
+                        self.results_tx.clone(),
+                    )
+                    .context("starting a handler thread")?,
+                );
+                self.status.add("handlers_started", 1);
+                let w = self.workers.len() - 1;
+                self.clients[c as usize].worker = Some(w);
+                w
+            }
+        };
+        if !self.workers[w].send(job) {
+            anyhow::bail!("the handler thread of client {c} is gone");
+        }
+        Ok(())
+    }
+
+    /// The worker hosting map `m`: the one hosting the client that created it (groups only
+    /// ever join, so a map stays with its creator's handler).
+    fn host_of(&self, m: MapId) -> Option<usize> {
+        self.clients.get((m >> 32) as usize)?.worker
+    }
+
+    /// Sends a correction to the worker hosting its map(s); for a merge of maps hosted by
+    /// two workers, the `from` worker first hands its whole group over to the `into` one.
+    fn dispatch(&mut self, corr: Correction, replay: bool) -> anyhow::Result<()> {
+        let (w, from) = match &corr {
+            Correction::Merge { from, into, .. } => {
+                let (Some(wf), Some(wi)) = (self.host_of(*from), self.host_of(*into)) else {
+                    self.status.add("corrections_refused", 1);
+                    self.status.error(
+                        "correction",
+                        format!(
+                            "correction {}: merge of map {from:#x} into {into:#x}: a map has no handler",
+                            corr.id()
+                        ),
+                    );
+                    return Ok(());
+                };
+                if wf != wi {
+                    let (tx, rx) = crossbeam_channel::bounded(1);
+                    if !self.workers[wf].send(Job::HandOver { to: tx })
+                        || !self.workers[wi].send(Job::TakeOver { from: rx })
+                    {
+                        anyhow::bail!("a handler thread is gone");
+                    }
+                    self.workers[wf].close();
+                    for cl in &mut self.clients {
+                        if cl.worker == Some(wf) {
+                            cl.worker = Some(wi);
+                        }
+                    }
+                    self.status.add("handler_groups_joined", 1);
+                }
+                (wi, Some(*from))
+            }
+            Correction::PoseGraph { map, .. } => {
+                let Some(w) = self.host_of(*map) else {
+                    self.status.add("corrections_refused", 1);
+                    self.status.error(
+                        "correction",
+                        format!("correction {}: map {map:#x} has no handler", corr.id()),
+                    );
+                    return Ok(());
+                };
+                (w, None)
+            }
+        };
+        if let Some(f) = from {
+            self.map_sizes.remove(&f);
+        }
+        if !self.workers[w].send(Job::Correction {
+            correction: corr,
+            replay,
+        }) {
+            anyhow::bail!("a handler thread is gone");
+        }
+        if let Some(s) = self.sync.as_mut() {
+            s.correction_dispatched();
+        }
+        Ok(())
+    }
+
+    /// A correction message from the loop closer: decode, journal, dispatch.
+    pub fn receive_correction(
+        &mut self,
+        h: &CorrectionHeader,
+        records: &[CorrectionRecord],
+    ) -> anyhow::Result<()> {
+        if h.kind == shm_schema::CORRECTION_DONE {
+            // Lock-step: the loop closer finished a loop keyframe (not a correction).
+            if let Some(s) = self.sync.as_mut() {
+                s.loop_done(h.meta.seq);
+            }
+            return Ok(());
+        }
+        self.status.add("corrections_received", 1);
+        let corr = match convert::correction(h, records) {
+            Ok(c) => c,
+            Err(e) => {
+                self.status.add("corrections_refused", 1);
+                self.status.error("bad_correction", e);
+                return Ok(());
+            }
+        };
+        if let Some(j) = self.journal.as_mut() {
+            j.append(&Entry::Correction {
+                header: Box::new(*h),
+                records: records.to_vec(),
+            })
+            .context("writing the journal")?;
+        }
+        self.dispatch(corr, false)
+    }
+
+    /// A resynchronisation request of the loop closer: keyframes `next..next + max` of the
+    /// snapshot of all maps (a new snapshot when `next` is 0), then, after the last one,
+    /// an end marker.
+    pub fn resync(&mut self, req: &shm_schema::ResyncRequest) {
+        self.status.add("resync_requests", 1);
+        if req.next == 0 {
+            // A restarted loop closer: what it missed is in the snapshot.
+            let next_seq = self.loop_seq;
+            if let Some(s) = self.sync.as_mut() {
+                s.loop_closer_restarted(next_seq);
+            }
+            self.resync.clear();
+            for w in &self.workers {
+                let (tx, rx) = crossbeam_channel::bounded(1);
+                if w.send(Job::Snapshot { reply: tx }) {
+                    // A worker finishes its queue first; a handed-over one answers nothing.
+                    if let Ok(kfs) = rx.recv_timeout(Duration::from_secs(20)) {
+                        self.resync.extend(kfs);
+                    }
+                }
+            }
+            self.resync.sort_by_key(|k| k.kf_id);
+        }
+        let from = (req.next as usize).min(self.resync.len());
+        let to = (from + req.max as usize).min(self.resync.len());
+        for k in &self.resync[from..to] {
+            let client = (k.kf_id >> 40) as u32;
+            let mut meta = MsgMeta::new(client, 0, self.loop_seq, monotonic_ns());
+            meta.flags |= shm_schema::FLAG_RESYNC;
+            let (intr, w, h) = shoal_runtime::wire::intrinsics_from_camera(&k.camera);
+            let (lh, recs) = convert::loop_keyframe(k, meta, &intr, w, h);
+            self.out.push(Out::LoopKeyframe(lh, recs));
+            self.loop_seq += 1;
+            self.status.add("resync_keyframes_sent", 1);
+        }
+        if to == self.resync.len() {
+            let mut meta = MsgMeta::new(0, 0, self.loop_seq, monotonic_ns());
+            meta.flags |= shm_schema::FLAG_RESYNC | shm_schema::FLAG_END_OF_STREAM;
+            let end = LoopKeyframeHeader {
+                meta,
+                ..LoopKeyframeHeader::default()
+            };
+            self.out.push(Out::LoopKeyframe(end, vec![]));
+            self.loop_seq += 1;
+        }
+    }
+
+    /// A worker applied (or refused) a correction: publish the moved poses, update figures.
+    fn correction_outcome(&mut self, o: CorrectionOutcome) {
+        if let Some(s) = self.sync.as_mut() {
+            s.correction_finished();
+        }
+        match &o.result {
+            Ok(summary) => {
+                self.status
+                    .add(&format!("corrections_applied_{}", o.kind), 1);
+                if o.replay {
+                    self.status.add("corrections_replayed", 1);
+                }
+                self.status
+                    .add("correction_apply_us", (o.apply_ms * 1e3) as u64);
+                eprintln!(
+                    "mapper: correction {}: {summary} ({:.1} ms)",
+                    o.id, o.apply_ms
+                );
+            }
+            Err(e) => {
+                self.status.add("corrections_refused", 1);
+                self.status
+                    .error("correction", format!("correction {}: {e}", o.id));
+            }
+        }
+        for f in &o.feedback {
+            self.send_feedback(f);
+        }
+        for (c, fig) in &o.figures {
+            self.set_figures(*c, *fig);
+        }
+        if let Some(m) = o.absorbed {
+            // Merged away: the `maps` / `keyframes` / `points` gauges count live maps only.
+            self.map_sizes.remove(&m);
+        }
+        self.set_map_sizes(&o.maps);
+    }
+
+    fn set_map_sizes(&mut self, maps: &[MapSize]) {
+        for m in maps {
+            self.map_sizes.insert(m.id, *m);
+        }
+        let (n, kfs, pts) = self.map_sizes.values().fold((0, 0, 0), |a, m| {
+            (a.0 + 1, a.1 + m.keyframes as u64, a.2 + m.points as u64)
+        });
+        let c = &mut self.status.counters;
+        c.insert("maps".into(), n);
+        c.insert("keyframes".into(), kfs);
+        c.insert("points".into(), pts);
+    }
+
+    fn set_figures(&mut self, c: u32, f: MapFigures) {
+        let s = &mut self.status;
+        let mut set = |k: String, v: u64| {
+            s.counters.insert(k, v);
+        };
+        set(format!("c{c}.keyframes_kept"), f.stats.kept);
+        set(format!("c{c}.keyframes_discarded"), f.stats.discarded);
+        set(format!("c{c}.keyframes_culled"), f.stats.culled);
+        set(format!("c{c}.revisit_global_ba"), f.stats.revisit_global_ba);
+        set(
+            format!("c{c}.kept_at_session_end"),
+            f.stats.kept_at_session_end,
+        );
+        set(format!("c{c}.maps"), f.stats.maps);
+        set(format!("c{c}.server_keyframes"), f.keyframes as u64);
+        if let Some(m) = f.map_id {
+            set(format!("c{c}.map_id"), m);
+        }
+        s.set_value(&format!("c{c}.lambda"), f.lambda);
+        if let Some(cl) = self.clients.get_mut(c as usize) {
+            cl.figures = f;
+        }
+    }
+
+    /// Publishes pose feedback (server pose of the last keyframe, λ, map id) to a client.
+    fn send_feedback(&mut self, f: &slam_core::server::ServerFeedback) {
+        let Some((map_id, t_sk, lambda)) = f.pose else {
+            return;
+        };
+        let c = f.client_id;
+        let Some(cl) = self.clients.get_mut(c as usize) else {
+            return;
+        };
+        let msg = Feedback {
+            meta: MsgMeta::new(c, f.acked_session_id, cl.fb_seq, monotonic_ns()),
+            acked_keyframe_id: f.acked_keyframe_id,
+            acked_session_id: f.acked_session_id,
+            has_pose: 1,
+            server_pose: convert::wire_from_iso(&t_sk),
+            scale_ratio: lambda,
+            server_map_id: map_id,
+        };
+        self.out.push(Out::Feedback(msg));
+        cl.fb_seq += 1;
+        self.status.add(&format!("c{c}.pose_feedback_sent"), 1);
+    }
+
+    /// Lock-step: tells the trackers which keyframes are finished ([`lockstep`]): a
+    /// [`shm_schema::FLAG_HANDLED`] feedback with the pose feedback after the keyframe.
+    fn send_finished(&mut self) {
+        let Some(sync) = self.sync.as_mut() else {
+            return;
+        };
+        for (k, timed_out) in sync.take_finished(Instant::now()) {
+            if timed_out {
+                self.status.add("lockstep_loop_timeouts", 1);
+            }
+            let Some(cl) = self.clients.get_mut(k.client as usize) else {
+                continue;
+            };
+            let mut meta = MsgMeta::new(k.client, k.session, cl.fb_seq, monotonic_ns());
+            meta.flags |= shm_schema::FLAG_HANDLED;
+            let (map_id, t_sk, lambda) =
+                k.pose.unwrap_or((0, nalgebra::Isometry3::identity(), 1.0));
+            self.out.push(Out::Feedback(Feedback {
+                meta,
+                acked_keyframe_id: k.kf_id,
+                acked_session_id: k.session,
+                has_pose: k.pose.is_some() as u32,
+                server_pose: convert::wire_from_iso(&t_sk),
+                scale_ratio: lambda,
+                server_map_id: map_id,
+            }));
+            cl.fb_seq += 1;
+            let c = k.client;
+            self.status.add(&format!("c{c}.keyframes_finished"), 1);
+            if k.pose.is_some() {
+                self.status.add(&format!("c{c}.pose_feedback_sent"), 1);
+            }
+        }
+    }
+
+    /// Rebuilds the maps from the journal's entries (before any new keyframe is taken).
+    pub fn replay(&mut self, entries: Vec<Entry>) -> anyhow::Result<usize> {
+        let idle: HashSet<(u32, u32, u64)> = entries
+            .iter()
+            .filter_map(|e| match e {
+                Entry::Idle {
+                    client,
+                    session,
+                    kf_id,
+                } => Some((*client, *session, *kf_id)),
+                _ => None,
+            })
+            .collect();
+        let mut n = 0;
+        for e in entries {
+            let (client, header, records) = match e {
+                Entry::Keyframe {
+                    client,
+                    header,
+                    records,
+                } => (client, header, records),
+                Entry::Correction { header, records } => {
+                    match convert::correction(&header, &records) {
+                        Ok(c) => self.dispatch(c, true)?,
+                        Err(e) => self.status.error("journal", e),
+                    }
+                    continue;
+                }
+                Entry::Idle { .. } => continue,
+            };
+            if client as usize >= self.clients.len() {
+                self.status.error(
+                    "journal",
+                    format!("keyframe of client {client} in the journal, serving fewer"),
+                );
+                continue;
+            }
+            let key = (header.meta.session_id, header.keyframe_id);
+            match convert::server_keyframe(client, &header, &records) {
+                Ok(kf) => {
+                    self.clients[client as usize].applied.insert(key);
+                    let job = Job::Keyframe {
+                        kf,
+                        idle: Some(idle.contains(&(client, key.0, key.1))),
+                        replay: true,
+                    };
+                    self.queue(client, job)?;
+                    n += 1;
+                }
+                Err(e) => self.status.error("journal", e),
+            }
+        }
+        Ok(n)
+    }
+
+    /// One keyframe message of client `c`: journal, queue, acknowledge.
+    pub fn receive(
+        &mut self,
+        c: u32,
+        h: &KeyframeHeader,
+        records: &[KeypointRecord],
+    ) -> anyhow::Result<()> {
+        let s = &mut self.status;
+        s.add(&format!("c{c}.keyframes_received"), 1);
+        s.add(
+            &format!("c{c}.keyframe_bytes"),
+            (std::mem::size_of::<KeyframeHeader>() + std::mem::size_of_val(records)) as u64,
+        );
+        let key = (h.meta.session_id, h.keyframe_id);
+        if self.clients[c as usize].applied.contains(&key) {
+            s.add(&format!("c{c}.keyframes_duplicate"), 1);
+        } else {
+            match convert::server_keyframe(c, h, records) {
+                Err(e) => {
+                    // Acknowledged (a re-send would not be better) but not applied.
+                    s.error("bad_keyframe", format!("client {c}: {e}"));
+                }
+                Ok(kf) => {
+                    if let Some(j) = self.journal.as_mut() {
+                        j.append(&Entry::Keyframe {
+                            client: c,
+                            header: Box::new(*h),
+                            records: records.to_vec(),
+                        })
+                        .context("writing the journal")?;
+                    }
+                    let cl = &mut self.clients[c as usize];
+                    cl.applied.insert(key);
+                    cl.waiting.insert(key, (*h, records.to_vec()));
+                    s.add(&format!("c{c}.keyframes_applied"), 1);
+                    self.queue(
+                        c,
+                        Job::Keyframe {
+                            kf,
+                            // Lock-step: the idle step after every keyframe, whatever
+                            // the queue (the live default idles when the queue is empty).
+                            idle: self.sync.is_some().then_some(true),
+                            replay: false,
+                        },
+                    )?;
+                }
+            }
+        }
+        let cl = &mut self.clients[c as usize];
+        let ack = Feedback {
+            meta: MsgMeta::new(c, h.meta.session_id, cl.fb_seq, monotonic_ns()),
+            acked_keyframe_id: h.keyframe_id,
+            acked_session_id: h.meta.session_id,
+            has_pose: 0,
+            scale_ratio: 1.0,
+            ..Feedback::default()
+        };
+        self.out.push(Out::Feedback(ack));
+        cl.fb_seq += 1;
+        self.status.add(&format!("c{c}.keyframes_acked"), 1);
+        Ok(())
+    }
+
+    /// A handler's outcome: journal the idle step, forward kept keyframes, publish feedback,
+    /// update the figures.
+    fn outcome(&mut self, o: Outcome) -> anyhow::Result<()> {
+        let c = o.client;
+        let key = (o.session, o.kf_id);
+        if o.idled && !o.replay {
+            if let Some(j) = self.journal.as_mut() {
+                j.append(&Entry::Idle {
+                    client: c,
+                    session: o.session,
+                    kf_id: o.kf_id,
+                })
+                .context("writing the journal")?;
+            }
+        }
+        let s = &mut self.status;
+        let cl = &mut self.clients[c as usize];
+        let mut loop_seq = None;
+        match &o.result {
+            Err(e) => {
+                s.error("handler", format!("client {c} keyframe {}: {e}", o.kf_id));
+                cl.waiting.remove(&key);
+            }
+            Ok(r) => {
+                let name = match r.status {
+                    KeyframeStatus::First => "first",
+                    KeyframeStatus::MapCreated => "map_created",
+                    KeyframeStatus::Kept => "kept",
+                    KeyframeStatus::Discarded => "discarded",
+                    KeyframeStatus::Duplicate => "duplicate",
+                };
+                s.add(&format!("c{c}.handled_{name}"), 1);
+                if o.replay {
+                    s.add(&format!("c{c}.keyframes_replayed"), 1);
+                }
+                for k in &r.kept {
+                    // Usually of this outcome's session; the previous session's last keyframe
+                    // when it was inserted at the session's end (client keyframe ids are
+                    // unique per client across sessions and tracker restarts).
+                    let wkey = cl
+                        .waiting
+                        .keys()
+                        .rev()
+                        .find(|w| w.1 == k.client_kf_id)
+                        .copied();
+                    if let Some((h, _)) = wkey.and_then(|w| cl.waiting.remove(&w)) {
+                        let session = wkey.map_or(o.session, |w| w.0);
+                        let meta = MsgMeta::new(c, session, self.loop_seq, monotonic_ns());
+                        let (lh, recs) =
+                            convert::loop_keyframe(k, meta, &h.intrinsics, h.width, h.height);
+                        self.out.push(Out::LoopKeyframe(lh, recs));
+                        loop_seq = Some(self.loop_seq);
+                        self.loop_seq += 1;
+                        s.add(&format!("c{c}.keyframes_forwarded"), 1);
+                    }
+                }
+                // The first keyframe of a session waits for the second (map creation); the
+                // newest discarded one for the session's end (it may be inserted then).
+                let keep = matches!(r.status, KeyframeStatus::First | KeyframeStatus::Discarded);
+                cl.waiting.retain(|k, _| *k > key || (keep && *k == key));
+            }
+        }
+        s.add(&format!("c{c}.handle_us"), (o.handle_ms * 1e3) as u64);
+        s.add(&format!("c{c}.idle_us"), (o.idle_ms * 1e3) as u64);
+        if let Some(sync) = self.sync.as_mut() {
+            // Lock-step: the feedback goes out once the keyframe is finished.
+            sync.push(lockstep::Settling {
+                client: c,
+                session: o.session,
+                kf_id: o.kf_id,
+                pose: o.feedback.as_ref().and_then(|f| f.pose),
+                loop_seq,
+                since: Instant::now(),
+            });
+        } else if let Some(f) = &o.feedback {
+            self.send_feedback(f);
+        }
+        self.set_figures(c, o.figures);
+        self.set_map_sizes(&o.maps);
+        Ok(())
+    }
+}
+
+impl Mapper {
+    /// Takes the handlers' outcomes waiting on `rx`; returns how many.
+    pub fn drain_outcomes(&mut self, rx: &Receiver<Report>) -> anyhow::Result<usize> {
+        let mut n = 0;
+        while let Ok(r) = rx.try_recv() {
+            match r {
+                Report::Keyframe(o) => self.outcome(*o)?,
+                Report::Correction(o) => self.correction_outcome(*o),
+            }
+            n += 1;
+        }
+        self.send_finished();
+        Ok(n)
+    }
+
+    /// The messages to publish, in order (taken).
+    pub fn take_out(&mut self) -> std::vec::Drain<'_, Out> {
+        self.out.drain(..)
+    }
+}

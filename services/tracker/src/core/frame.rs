@@ -1,0 +1,362 @@
+//! A frame through the tracker core: admission (schema, end of stream, duplicates, gaps),
+//! the VO with the gyro over the readout (rolling shutter), the keyframes leaving the VO
+//! window, and the frame's outputs (backfilled poses, acknowledgement, tracked pose with its
+//! server-map pose, seed eq. 3.1, 3.4).
+use nalgebra::{Isometry3, Vector3};
+use shm_schema::{
+    stage, FrameAck, FrameHeader, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL,
+};
+use slam_core::features::GrayImage;
+use slam_core::vo::{VoFrame, VoOutput, VoState};
+
+use super::{KeyframeKey, Out, TrackerCore};
+use crate::outbox::{keyframe_message, wire_pose};
+
+/// One frame as the ports took it from shared memory.
+pub struct FrameIn<'a> {
+    /// Its header.
+    pub header: FrameHeader,
+    /// Its pixels, in place in the shared-memory sample.
+    pub pixels: &'a [u8],
+    /// When it was taken (CLOCK_MONOTONIC), ns.
+    pub recv_ns: i64,
+    /// Now, ns (keyframe send stamps).
+    pub now_ns: i64,
+}
+
+/// What [`TrackerCore::track`] made of a frame.
+pub enum FrameStep {
+    /// Nothing more to do: a rejected frame, or a duplicate (its acknowledgement in here).
+    Done(Vec<Out>),
+    /// The end of stream: send [`TrackerCore::take_window`], then
+    /// [`TrackerCore::end_of_stream`].
+    EndOfStream(FrameHeader),
+    /// A frame handled: carry out its outputs, in lock-step wait until the server finished
+    /// [`Tracked::await_handled`], then [`TrackerCore::publish_frame`].
+    Tracked(Tracked),
+}
+
+/// A frame tracked, its pose not published yet.
+pub struct Tracked {
+    /// Keyframes that left the VO window with this frame, to publish now.
+    pub out: Vec<Out>,
+    /// Lock-step: the last of them, whose feedback (pose) must be in before the frame's
+    /// server pose is computed.
+    pub await_handled: Option<KeyframeKey>,
+    header: FrameHeader,
+    recv_ns: i64,
+    state: TrackState,
+    /// World-to-camera pose `T_cw` of a tracked frame.
+    t_cw: Option<Isometry3<f64>>,
+    tracked: u32,
+    is_keyframe: bool,
+    vo_session: u32,
+    stage_ms: [f32; stage::COUNT],
+    /// Poses of frames seen while initialising, `(t_ns, T_cw)`.
+    backfill: Vec<(i64, Isometry3<f64>)>,
+}
+
+impl Tracked {
+    fn untracked(header: FrameHeader, recv_ns: i64, session: u32) -> Self {
+        Self {
+            out: vec![],
+            await_handled: None,
+            header,
+            recv_ns,
+            state: TrackState::NotInitialized,
+            t_cw: None,
+            tracked: 0,
+            is_keyframe: false,
+            vo_session: session,
+            stage_ms: [0.0; stage::COUNT],
+            backfill: vec![],
+        }
+    }
+
+    /// The VO's result for the frame (not its keyframes).
+    fn take_vo_output(&mut self, o: &mut VoOutput) {
+        self.state = match o.state {
+            VoState::NotInitialized => TrackState::NotInitialized,
+            VoState::Initializing => TrackState::Initializing,
+            VoState::Tracking => TrackState::Tracking,
+            VoState::Lost => TrackState::Lost,
+        };
+        if self.state == TrackState::Tracking {
+            self.t_cw = o.t_cw;
+        }
+        self.tracked = o.tracked as u32;
+        self.is_keyframe = o.keyframe.is_some();
+        let (t, s) = (&o.times, &mut self.stage_ms);
+        s[stage::PYRAMID] = t.pyramid;
+        s[stage::DETECT] = t.detect;
+        s[stage::DESCRIBE] = t.describe;
+        s[stage::MATCH] = t.matching;
+        s[stage::POSE_OPT] = t.pose_opt;
+        s[stage::LOCAL_MAP] = t.local_map;
+        s[stage::KEYFRAME] = t.keyframe;
+        self.backfill = std::mem::take(&mut o.backfill);
+    }
+}
+
+impl TrackerCore {
+    /// How long a frame may wait for the gyro samples up to its last row, ns.
+    pub fn imu_wait_ns(&self, realtime_wait_ns: i64) -> i64 {
+        if self.cfg.lockstep_sync {
+            5_000_000_000
+        } else {
+            realtime_wait_ns
+        }
+    }
+
+    /// The time up to which frame `h` (with `payload_len` bytes) needs gyro samples before
+    /// it is tracked (its last row), or `None` when it will not use the gyro.
+    pub fn imu_needed_ns(&self, h: &FrameHeader, payload_len: usize) -> Option<i64> {
+        let admitted = h.meta.check().is_ok()
+            && !h.meta.is_end_of_stream()
+            && self.last_seq.is_none_or(|l| h.meta.seq > l);
+        let rs = !self.cfg.no_rs && h.readout_ns != 0;
+        (admitted && rs && self.trackable(h, payload_len)).then(|| h.t_mid_ns + h.readout_ns / 2)
+    }
+
+    /// Whether gyro samples up to `need_ns` are still to come (in lock-step also before the
+    /// stream's first sample: whether it is in before the first frames would otherwise
+    /// change the initialisation).
+    pub fn imu_missing(&self, need_ns: i64) -> bool {
+        let short = self.imu.newest_ns().is_none_or(|t| t < need_ns);
+        if self.cfg.lockstep_sync && !self.imu_never_came {
+            short && !self.imu.ended
+        } else {
+            short && self.imu.live()
+        }
+    }
+
+    fn trackable(&self, h: &FrameHeader, payload_len: usize) -> bool {
+        !self.cfg.no_vo && payload_len >= h.payload_len() && h.width > 0
+    }
+
+    /// Takes a frame (after the ports waited for its gyro samples, see
+    /// [`TrackerCore::imu_needed_ns`]): checks it and runs the VO on it.
+    pub fn track(&mut self, f: FrameIn) -> anyhow::Result<FrameStep> {
+        let h = f.header;
+        if let Some(step) = self.admit(&h, f.now_ns) {
+            return Ok(step);
+        }
+        if f.pixels.len() != h.payload_len() {
+            let (seq, n, want) = (h.meta.seq, f.pixels.len(), h.payload_len());
+            let detail = format!("frame {seq}: {n} bytes, header says {want}");
+            self.status.error("bad_frame", detail);
+        }
+        let mut t = Tracked::untracked(h, f.recv_ns, self.session_id());
+        if self.trackable(&h, f.pixels.len()) {
+            self.run_vo(&f, &mut t)?;
+        }
+        Ok(FrameStep::Tracked(t))
+    }
+
+    /// Schema, end of stream, re-sends and gaps: `Some` when the frame goes no further.
+    fn admit(&mut self, h: &FrameHeader, now_ns: i64) -> Option<FrameStep> {
+        let c = self.cfg.client;
+        if let Err(e) = h.meta.check() {
+            self.status
+                .error("schema_version", format!("frame of client {c}: {e}"));
+            return Some(FrameStep::Done(vec![]));
+        }
+        if h.meta.is_end_of_stream() {
+            return Some(FrameStep::EndOfStream(*h));
+        }
+        if self.last_seq.is_some_and(|l| h.meta.seq <= l) {
+            // A re-send of a frame already handled (e.g. the camera restarted): ack again.
+            self.status.add("frames_duplicate", 1);
+            let ack = self.ack(h, now_ns);
+            return Some(FrameStep::Done(vec![ack]));
+        }
+        let expected = self.last_seq.map_or(0, |l| l + 1);
+        if h.meta.seq > expected {
+            let gap = if self.first_after_restart {
+                "frames_gap_at_restart"
+            } else {
+                "frames_gap"
+            };
+            self.status.add(gap, h.meta.seq - expected);
+        }
+        self.first_after_restart = false;
+        self.last_seq = Some(h.meta.seq);
+        None
+    }
+
+    /// The acknowledgement of frame `h` (the next in this start's sequence).
+    fn ack(&mut self, h: &FrameHeader, now_ns: i64) -> Out {
+        let ack = FrameAck {
+            meta: MsgMeta::new(self.cfg.client, self.session_id(), self.ack_seq, now_ns),
+            frame_seq: h.meta.seq,
+            frame_t_ns: h.t_mid_ns,
+        };
+        self.ack_seq += 1;
+        Out::Ack(ack)
+    }
+
+    /// Rolling shutter: the camera's mean gyro rate over the frame's readout, from the
+    /// samples in (lock-step: a frame that waited in vain is counted).
+    fn gyro_rate(&mut self, h: &FrameHeader) -> Option<Vector3<f64>> {
+        if self.cfg.no_rs || h.readout_ns == 0 {
+            return None;
+        }
+        let need = h.t_mid_ns + h.readout_ns / 2;
+        if self.cfg.lockstep_sync && self.imu_missing(need) {
+            self.status.add("lockstep_imu_timeouts", 1);
+            // No IMU at all (e.g. its ingest keeps failing): wait no more for its start.
+            self.imu_never_came |= self.imu.newest_ns().is_none();
+        }
+        let omega = self.imu.camera_rate(h);
+        if omega.is_some() {
+            self.status.add("frames_gyro_rs", 1);
+        }
+        omega
+    }
+
+    /// Runs the VO on the frame and sends the keyframes that left its window.
+    fn run_vo(&mut self, f: &FrameIn, t: &mut Tracked) -> anyhow::Result<()> {
+        let h = &f.header;
+        if self.vo.is_none() {
+            self.vo = Some(self.new_vo(h)?);
+        }
+        let angular_velocity = self.gyro_rate(h);
+        let Some(v) = self.vo.as_mut() else {
+            return Ok(());
+        };
+        let (w, ht, stride) = (h.width as usize, h.height as usize, h.stride as usize);
+        let result = GrayImage::new(f.pixels, w, ht, stride)
+            .map_err(anyhow::Error::from)
+            .and_then(|image| {
+                let frame = VoFrame {
+                    image,
+                    t_ns: h.t_mid_ns,
+                    readout_ns: h.readout_ns,
+                    angular_velocity,
+                };
+                Ok(v.process(&frame)?)
+            });
+        let mut o = match result {
+            Ok(o) => o,
+            Err(e) => {
+                self.status
+                    .error("vo", format!("frame {}: {e}", h.meta.seq));
+                return Ok(());
+            }
+        };
+        // Evicted keyframes belong to the session they were made in.
+        let sess = self.session_base | v.session_id().saturating_sub(o.new_session as u32);
+        t.vo_session = self.session_base | v.session_id();
+        t.take_vo_output(&mut o);
+        if o.new_session {
+            self.status.add("vo_sessions_started", 1);
+        }
+        let client = self.cfg.client;
+        for kf in &o.evicted {
+            let msg = keyframe_message(client, kf, sess);
+            t.out.extend(self.send_keyframe(msg, f.now_ns));
+        }
+        // Lock-step: the server's answers to these keyframes (pose feedback) are in before
+        // this frame's server pose.
+        if self.cfg.lockstep_sync {
+            t.await_handled = o.evicted.last().map(|k| (sess, k.id));
+        }
+        Ok(())
+    }
+
+    /// The frame's outputs once the server had its say: new keyframes to the spool, the
+    /// backfilled poses of frames seen while initialising, the acknowledgement and the
+    /// tracked pose (with its server-map pose from the last feedback, eq. 3.1, 3.4).
+    pub fn publish_frame(&mut self, t: Tracked, now_ns: i64) -> Vec<Out> {
+        let mut out = vec![];
+        // Keyframes enter the VO map only with a frame that reports one (two at
+        // initialisation): no map lock on the other frames.
+        if self.cfg.spool && t.is_keyframe {
+            self.spool_new_keyframes(t.vo_session, &mut out);
+        }
+        let (c, h) = (self.cfg.client, &t.header);
+        for (t_ns, t_cw) in &t.backfill {
+            let mut meta = MsgMeta::new(c, t.vo_session, h.meta.seq, now_ns);
+            meta.flags = FLAG_BACKFILL;
+            out.push(Out::Pose(TrackedPose {
+                meta,
+                t_ns: *t_ns,
+                pose: wire_pose(t_cw),
+                state: TrackState::Tracking as u32,
+                ..TrackedPose::default()
+            }));
+            self.status.add("frames_backfilled", 1);
+        }
+        out.push(self.ack(h, now_ns));
+        out.push(Out::Pose(self.tracked_pose(&t, now_ns)));
+        self.count_frame(&t);
+        out
+    }
+
+    /// The frame's [`TrackedPose`].
+    fn tracked_pose(&mut self, t: &Tracked, now_ns: i64) -> TrackedPose {
+        let h = &t.header;
+        let server_pose = t
+            .t_cw
+            .and_then(|t_cw| self.server.frame_pose(t.vo_session, &t_cw.inverse()));
+        if server_pose.is_some() {
+            self.status.add("frames_server_pose", 1);
+        }
+        let mut stage_ms = t.stage_ms;
+        stage_ms[stage::TOTAL] = (now_ns - t.recv_ns) as f32 * 1e-6;
+        TrackedPose {
+            meta: MsgMeta::new(self.cfg.client, t.vo_session, h.meta.seq, now_ns),
+            t_ns: h.t_mid_ns,
+            dataset_index: h.dataset_index,
+            pose: t.t_cw.map_or(Pose::IDENTITY, |t_cw| wire_pose(&t_cw)),
+            server_pose: server_pose.map_or(Pose::IDENTITY, |p| p.0),
+            server_map_id: server_pose.map_or(0, |p| p.1),
+            state: t.state as u32,
+            has_server_pose: server_pose.is_some() as u32,
+            tracked_points: t.tracked,
+            is_keyframe: t.is_keyframe as u32,
+            frame_publish_mono_ns: h.meta.publish_mono_ns,
+            frame_receive_mono_ns: t.recv_ns,
+            stage_ms,
+        }
+    }
+
+    /// The per-frame counters and the VO's figures.
+    fn count_frame(&mut self, t: &Tracked) {
+        let s = &mut self.status;
+        s.add("frames_received", 1);
+        if t.state == TrackState::Tracking {
+            s.add("frames_tracked", 1);
+        }
+        s.add("poses_published", 1);
+        s.set_value("last_frame_seq", t.header.meta.seq as f64);
+        if let Some(v) = self.vo.as_ref() {
+            s.set_value("vo_relocalizations", v.relocalizations() as f64);
+            s.set_value("keyframes_culled", v.keyframes_culled() as f64);
+            let timeouts = self.vo_timeouts_base + v.local_mapping_sync_timeouts() as u64;
+            s.counters
+                .insert("local_mapping_sync_timeouts".into(), timeouts);
+        }
+    }
+
+    /// The keyframes of the VO map newer than the last spooled one (of session `session`),
+    /// as spool writes.
+    fn spool_new_keyframes(&mut self, session: u32, out: &mut Vec<Out>) {
+        let Some(v) = self.vo.as_ref() else {
+            return;
+        };
+        let after = self.spooled.filter(|l| l.0 == session).map(|l| l.1);
+        let client = self.cfg.client;
+        let new: Vec<_> = v.with_map(|m| {
+            m.keyframes
+                .range(after.map_or(0, |a| a + 1)..)
+                .map(|(id, kf)| (*id, keyframe_message(client, kf, session)))
+                .collect()
+        });
+        for (id, msg) in new {
+            out.push(Out::SpoolWrite(msg));
+            self.spooled = Some((session, id));
+            self.status.add("keyframes_spooled", 1);
+        }
+    }
+}

@@ -1,0 +1,291 @@
+//! The tracker's core: everything the service decides, with typed inputs and outputs and no
+//! IPC, file or clock access of its own (times come in as arguments), so that it is tested
+//! in-process by feeding it recorded frames, IMU samples and feedback (`tests.rs`).
+//!
+//! Inputs: [`TrackerCore::on_imu`], [`TrackerCore::on_feedback`], [`TrackerCore::on_tick`],
+//! the frame in two steps ([`TrackerCore::track`], then, after a lock-step wait for the
+//! server, [`TrackerCore::publish_frame`]), the end of stream ([`TrackerCore::take_window`],
+//! [`TrackerCore::end_of_stream`]) and the spool's recovered keyframes
+//! ([`TrackerCore::recover_keyframe`]). Outputs: [`Out`] messages, in the order the ports
+//! must carry them out. Counters and errors go to the core's [`Status`].
+use shm_schema::{
+    Feedback, FrameAck, FrameHeader, ImuMsg, MsgMeta, TrackedPose, FLAG_END_OF_STREAM,
+};
+use shoal_runtime::Status;
+use slam_core::vo::{VoParams, VoTracker};
+
+use crate::imu::ImuInput;
+use crate::outbox::{keyframe_message, KeyframeMsg, Outbox};
+
+mod frame;
+mod server;
+#[cfg(test)]
+mod tests;
+
+pub use frame::{FrameIn, FrameStep, Tracked};
+pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
+
+/// Keyframe ids of one life of the tracker process: `start << KF_ID_BITS_PER_START` on
+/// (2^28 keyframes per life, 4096 lives within the server's 40-bit client keyframe ids).
+const KF_ID_BITS_PER_START: u32 = 28;
+
+/// A keyframe unacknowledged for this long is sent again (e.g. to a restarted mapper), ns.
+pub const RESEND_AFTER_NS: i64 = 2_000_000_000;
+
+/// What the ports must do, in order.
+#[derive(Debug, Clone)]
+pub enum Out {
+    /// Publish a frame acknowledgement (lock-step pacing of the ingests).
+    Ack(FrameAck),
+    /// Publish a tracked pose (a frame's, a backfilled one, or the end of stream).
+    Pose(TrackedPose),
+    /// Publish a keyframe message to the mapper (first send or re-send).
+    Keyframe(KeyframeMsg),
+    /// Write a keyframe of the VO map to the spool (it survives a SIGKILL there).
+    SpoolWrite(KeyframeMsg),
+    /// A keyframe left the VO map and was sent: drop it from the spool.
+    SpoolSent(KeyframeKey),
+}
+
+/// The tracker's settings that the core uses (from the service's parameters).
+#[derive(Debug, Clone)]
+pub struct CoreConfig {
+    /// Client index.
+    pub client: u32,
+    /// Run no VO (transport only).
+    pub no_vo: bool,
+    /// Rolling-shutter compensation off.
+    pub no_rs: bool,
+    /// Most keyframes in the client map.
+    pub window: usize,
+    /// ORB features per frame.
+    pub features: usize,
+    /// Local mapping inline in the tracking thread.
+    pub inline_mapping: bool,
+    /// Lock-step synchronisation with local mapping and the server.
+    pub lockstep_sync: bool,
+    /// A keyframe spool is kept (the core asks for spool writes).
+    pub spool: bool,
+}
+
+impl CoreConfig {
+    /// The core's settings from the service's parameters.
+    pub fn from_params(p: &crate::Params) -> Self {
+        Self {
+            client: p.client,
+            no_vo: p.no_vo,
+            no_rs: p.no_rs,
+            window: p.window,
+            features: p.features,
+            inline_mapping: p.inline_mapping,
+            lockstep_sync: p.lockstep_sync(),
+            spool: p.spool.is_some(),
+        }
+    }
+}
+
+/// The tracker of one client, without its ports.
+pub struct TrackerCore {
+    cfg: CoreConfig,
+    status: Status,
+    /// Start count in the high 16 bits: a restarted tracker's VO sessions are new ones.
+    session_base: u32,
+    vo: Option<VoTracker>,
+    outbox: Outbox,
+    kf_counts: KeyframeCounts,
+    server: ServerState,
+    imu: ImuInput,
+    /// Lock-step: a frame waited in vain for the IMU stream's first sample.
+    imu_never_came: bool,
+    /// Sequence number of the last frame handled.
+    last_seq: Option<u64>,
+    /// The next frame is the first after a restart (its gap is counted apart).
+    first_after_restart: bool,
+    ack_seq: u64,
+    ended: bool,
+    /// Newest keyframe written to the spool: (VO session, id).
+    spooled: Option<KeyframeKey>,
+    /// Local-mapping waits that timed out before this start.
+    vo_timeouts_base: u64,
+}
+
+impl TrackerCore {
+    /// A core resuming `status` (that of a killed predecessor, or a fresh one).
+    pub fn new(cfg: CoreConfig, mut status: Status) -> Self {
+        let kf_counts = KeyframeCounts::resume(&mut status);
+        status
+            .counters
+            .insert("lockstep_sync".into(), cfg.lockstep_sync as u64);
+        let last_seq = status.values.get("last_frame_seq").map(|v| *v as u64);
+        Self {
+            session_base: (status.starts as u32) << 16,
+            vo: None,
+            outbox: Outbox::new(cfg.client),
+            kf_counts,
+            server: ServerState::new(cfg.client, cfg.lockstep_sync),
+            imu: ImuInput::default(),
+            imu_never_came: false,
+            last_seq,
+            // After a restart `last_frame_seq` is the dead process's last status write: the
+            // first frame's jump past it also covers frames that process handled after it.
+            first_after_restart: status.starts > 1,
+            ack_seq: 0,
+            ended: false,
+            spooled: None,
+            vo_timeouts_base: status.get("local_mapping_sync_timeouts"),
+            cfg,
+            status,
+        }
+    }
+
+    /// The counters and errors so far.
+    pub fn status(&self) -> &Status {
+        &self.status
+    }
+
+    /// The counters, for the ports' own errors (spool, publish).
+    pub fn status_mut(&mut self) -> &mut Status {
+        &mut self.status
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &CoreConfig {
+        &self.cfg
+    }
+
+    /// The session id of this start's non-VO messages (acks, end of stream).
+    fn session_id(&self) -> u32 {
+        self.session_base | 1
+    }
+
+    /// The frames' end of stream was taken.
+    pub fn ended(&self) -> bool {
+        self.ended
+    }
+
+    /// The IMU stream ended and every keyframe was acknowledged: nothing more to wait for.
+    pub fn drained(&self) -> bool {
+        self.imu.ended && self.outbox.pending() == 0
+    }
+
+    /// Keyframe traffic so far (sent, re-sent, acknowledged): the status is to be written
+    /// when it changes.
+    pub fn keyframe_progress(&self) -> (u64, u64, u64) {
+        (self.outbox.sent, self.outbox.resent, self.outbox.acked)
+    }
+
+    /// Puts the current keyframe counts into the status.
+    pub fn put_keyframe_counts(&mut self) {
+        self.kf_counts.set(&self.outbox, &mut self.status);
+    }
+
+    /// Takes one IMU message; returns whether it was accepted (for the frame log).
+    pub fn on_imu(&mut self, m: &ImuMsg) -> bool {
+        self.imu.on_sample(m, &mut self.status, self.cfg.client)
+    }
+
+    /// Takes one feedback message of the mapper.
+    pub fn on_feedback(&mut self, f: &Feedback) {
+        self.server
+            .on_feedback(f, &mut self.outbox, &mut self.status);
+    }
+
+    /// Lock-step: whether the server has finished keyframe `key` (see
+    /// [`ServerState::take_handled`]).
+    pub fn take_handled(&mut self, key: KeyframeKey) -> bool {
+        self.server.take_handled(key)
+    }
+
+    /// Periodic work at `now_ns`: keyframes unacknowledged for [`RESEND_AFTER_NS`] are sent
+    /// again, queued ones sent when the in-flight limit allows.
+    pub fn on_tick(&mut self, now_ns: i64) -> Vec<Out> {
+        let mut msgs = vec![];
+        self.outbox.resend_stale(now_ns, RESEND_AFTER_NS, &mut msgs);
+        msgs.into_iter().map(Out::Keyframe).collect()
+    }
+
+    /// A keyframe that a killed predecessor left in the spool: sent before this start's
+    /// own keyframes.
+    pub fn recover_keyframe(&mut self, msg: KeyframeMsg, now_ns: i64) -> Vec<Out> {
+        self.status.add("keyframes_recovered", 1);
+        self.send_keyframe(msg, now_ns)
+    }
+
+    /// Sends a keyframe message (kept until acknowledged) and drops it from the spool.
+    pub fn send_keyframe(&mut self, msg: KeyframeMsg, now_ns: i64) -> Vec<Out> {
+        let key = msg.key();
+        let mut msgs = vec![];
+        self.outbox.send(msg, now_ns, &mut msgs);
+        let mut out: Vec<Out> = msgs.into_iter().map(Out::Keyframe).collect();
+        if self.cfg.spool {
+            out.push(Out::SpoolSent(key));
+        }
+        out
+    }
+
+    /// At the end of stream: the keyframes still in the VO map, oldest first, as messages
+    /// to send with [`TrackerCore::send_keyframe`] (in lock-step one at a time, waiting for
+    /// the server to finish each, so it handles them on the same schedule on every run).
+    pub fn take_window(&mut self) -> Vec<KeyframeMsg> {
+        let Some(v) = self.vo.as_mut() else {
+            return vec![];
+        };
+        let sess = self.session_base | v.session_id();
+        let client = self.cfg.client;
+        v.drain_keyframes()
+            .iter()
+            .map(|kf| keyframe_message(client, kf, sess))
+            .collect()
+    }
+
+    /// The frames' end of stream `h` (after [`TrackerCore::take_window`]): acknowledged, and
+    /// passed on to the recorder as an end-of-stream pose.
+    pub fn end_of_stream(&mut self, h: &FrameHeader, now_ns: i64) -> Vec<Out> {
+        self.ended = true;
+        let c = self.cfg.client;
+        let ack = FrameAck {
+            meta: MsgMeta::new(c, self.session_id(), self.ack_seq, now_ns),
+            frame_seq: h.meta.seq,
+            frame_t_ns: i64::MAX,
+        };
+        self.status
+            .set_value("end_of_stream_seq", h.meta.seq as f64);
+        let mut meta = MsgMeta::new(c, self.session_id(), h.meta.seq, now_ns);
+        meta.flags = FLAG_END_OF_STREAM;
+        let eos = TrackedPose {
+            meta,
+            ..TrackedPose::default()
+        };
+        vec![Out::Ack(ack), Out::Pose(eos)]
+    }
+
+    /// The final status (counters put in, `finished` when the stream ended).
+    pub fn finish(mut self) -> Status {
+        self.put_keyframe_counts();
+        let kept = self.outbox.sent_poses_kept() as f64;
+        self.status.set_value("sent_poses_kept", kept);
+        self.status.finished = self.ended;
+        self.status
+    }
+
+    /// A new VO for frames like `h`, its keyframe ids in this start's own range (the server
+    /// names keyframes by them, so they stay unique per client across restarts).
+    fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
+        let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+        let mut vp = VoParams {
+            rolling_shutter: !self.cfg.no_rs,
+            window: self.cfg.window.max(2),
+            local_mapping_thread: !self.cfg.inline_mapping,
+            sync_local_mapping: self.cfg.lockstep_sync,
+            ..VoParams::default()
+        };
+        vp.orb.n_features = self.cfg.features;
+        let mut v = VoTracker::new(vp, camera)?;
+        v.start_keyframe_ids_at(u64::from(self.session_base >> 16) << KF_ID_BITS_PER_START);
+        let thread = !self.cfg.inline_mapping as u64;
+        self.status
+            .counters
+            .insert("local_mapping_thread".into(), thread);
+        Ok(v)
+    }
+}

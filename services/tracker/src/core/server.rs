@@ -1,0 +1,167 @@
+//! What the tracker knows from the server's feedback: the last usable pose feedback (for
+//! frames' server-map poses, seed eq. 3.1, 3.4) and, in lock-step, which keyframes the server
+//! has finished.
+use std::collections::HashSet;
+
+use nalgebra::Isometry3;
+use shm_schema::{Feedback, Pose, FLAG_HANDLED};
+use shoal_runtime::Status;
+
+use crate::outbox::Outbox;
+
+/// A keyframe as the tracker and the server name it: (VO session, keyframe id).
+pub type KeyframeKey = (u32, u64);
+
+/// The last usable pose feedback: keyframe `j`'s client pose as sent, its server pose and
+/// the scale ratio (seed eq. 3.1, 3.4), for frames of the same VO session.
+#[derive(Debug, Clone)]
+pub struct ServerRef {
+    /// VO session of keyframe `j`.
+    pub session: u32,
+    /// Server map the keyframe is in.
+    pub map_id: u64,
+    t_cj: Isometry3<f64>,
+    t_sj: Isometry3<f64>,
+    lambda: f64,
+}
+
+impl ServerRef {
+    /// From a feedback message with a pose, if the keyframe is one this tracker sent and
+    /// the values are valid.
+    fn from_feedback(f: &Feedback, outbox: &Outbox) -> Option<Self> {
+        let t_cj = outbox.sent_pose(f.acked_session_id, f.acked_keyframe_id)?;
+        if !(f.scale_ratio.is_finite() && f.scale_ratio > 0.0) {
+            return None;
+        }
+        let t_sj = shoal_runtime::wire::iso_from_wire(&f.server_pose)?;
+        Some(Self {
+            session: f.acked_session_id,
+            map_id: f.server_map_id,
+            t_cj,
+            t_sj,
+            lambda: f.scale_ratio,
+        })
+    }
+
+    /// The server-map pose (wire, camera → server map) of a frame with client pose `t_cf`.
+    pub fn frame_pose(&self, t_cf: &Isometry3<f64>) -> Pose {
+        shoal_runtime::wire::wire_from_iso(&slam_core::server::frame_pose_in_server_map(
+            &self.t_cj,
+            &self.t_sj,
+            self.lambda,
+            t_cf,
+        ))
+    }
+}
+
+/// The server's side as the tracker sees it.
+#[derive(Debug, Default)]
+pub struct ServerState {
+    /// Client index.
+    client: u32,
+    /// Lock-step synchronisation on (else `handled` stays empty).
+    sync: bool,
+    /// The last usable pose feedback.
+    pub server_ref: Option<ServerRef>,
+    /// Lock-step: keyframes the server has finished and no frame waited for yet.
+    handled: HashSet<KeyframeKey>,
+}
+
+impl ServerState {
+    /// Nothing heard from the server yet.
+    pub fn new(client: u32, sync: bool) -> Self {
+        Self {
+            client,
+            sync,
+            ..Self::default()
+        }
+    }
+
+    /// Takes one feedback message: acknowledgement (outbox), pose feedback and, in
+    /// lock-step, the keyframe the server has finished.
+    pub fn on_feedback(&mut self, f: &Feedback, outbox: &mut Outbox, status: &mut Status) {
+        if f.meta.check().is_err() {
+            let c = self.client;
+            status.error("schema_version", format!("feedback of client {c}"));
+            return;
+        }
+        status.add("feedback_received", 1);
+        outbox.ack(f.acked_session_id, f.acked_keyframe_id);
+        if f.has_pose != 0 {
+            match ServerRef::from_feedback(f, outbox) {
+                Some(r) => {
+                    outbox.forget_sent_before(f.acked_session_id, f.acked_keyframe_id);
+                    self.server_ref = Some(r);
+                    status.add("pose_feedback_used", 1);
+                }
+                None => status.add("pose_feedback_unusable", 1),
+            }
+        }
+        if self.sync && f.meta.flags & FLAG_HANDLED != 0 {
+            self.handled
+                .insert((f.acked_session_id, f.acked_keyframe_id));
+        }
+    }
+
+    /// Lock-step: whether the server has finished keyframe `key`; when it has, the record
+    /// of finished keyframes starts afresh (feedback comes in handling order).
+    pub fn take_handled(&mut self, key: KeyframeKey) -> bool {
+        let done = self.handled.remove(&key);
+        if done {
+            self.handled.clear();
+        }
+        done
+    }
+
+    /// The server-map pose and map id of a frame of VO session `session` with client pose
+    /// `t_cf`, from the last feedback of the same session (eq. 3.1, 3.4).
+    pub fn frame_pose(&self, session: u32, t_cf: &Isometry3<f64>) -> Option<(Pose, u64)> {
+        let r = self.server_ref.as_ref().filter(|r| r.session == session)?;
+        Some((r.frame_pose(t_cf), r.map_id))
+    }
+}
+
+/// The keyframe counters of the status, kept current: a SIGKILLed tracker must leave exact
+/// figures behind (keyframes are few, so the status is written whenever one is sent or
+/// acknowledged). Counters carry on from the previous start; the keyframes a killed tracker
+/// had sent without seeing their acknowledgement are counted as `keyframes_unacked_at_crash`
+/// by its successor (the mapper applied them; their acknowledgements went to a dead process),
+/// so that `keyframes_acked_seen + keyframes_unacked_at_crash == keyframes_sent`.
+#[derive(Debug)]
+pub struct KeyframeCounts {
+    sent_base: u64,
+    resent_base: u64,
+    acked_base: u64,
+}
+
+impl KeyframeCounts {
+    /// The bases of a start that resumes `status` (a fresh one: zeros).
+    pub fn resume(status: &mut Status) -> Self {
+        let unacked = status.values.remove("keyframes_unacked").unwrap_or(0.0) as u64;
+        let queued = status.values.remove("keyframes_queued").unwrap_or(0.0) as u64;
+        if status.starts > 1 {
+            status.add("keyframes_unacked_at_crash", unacked);
+            // Queued behind the in-flight limit, never sent: lost with the process (as are
+            // the keyframes still in its VO window).
+            status.add("keyframes_unsent_at_crash", queued);
+        }
+        Self {
+            sent_base: status.get("keyframes_sent"),
+            resent_base: status.get("keyframes_resent"),
+            acked_base: status.get("keyframes_acked_seen"),
+        }
+    }
+
+    /// Puts the outbox's counts into `status`.
+    pub fn set(&self, outbox: &Outbox, status: &mut Status) {
+        let mut put = |k: &str, v: u64| {
+            status.counters.insert(k.to_string(), v);
+        };
+        put("keyframes_sent", self.sent_base + outbox.sent);
+        put("keyframes_resent", self.resent_base + outbox.resent);
+        put("keyframes_acked_seen", self.acked_base + outbox.acked);
+        let in_flight = outbox.in_flight();
+        status.set_value("keyframes_unacked", in_flight as f64);
+        status.set_value("keyframes_queued", (outbox.pending() - in_flight) as f64);
+    }
+}

@@ -1,0 +1,314 @@
+//! The tracker core fed in-process with recorded inputs: transport accounting (gaps,
+//! duplicates, foreign schema, end of stream), a restart resuming its predecessor's
+//! counters, and the VO on a synthetic scene with a mapper answering every keyframe.
+use std::collections::BTreeSet;
+
+use datasets::sim::{Scenario, SimParams, SimWorld};
+use shm_schema::{
+    Feedback, FrameHeader, ImuMsg, Intrinsics, MsgMeta, Pose, TrackState, FLAG_BACKFILL,
+    FLAG_END_OF_STREAM, FLAG_HANDLED, FLAG_RESEND,
+};
+use shoal_runtime::Status;
+
+use super::*;
+
+fn config(no_vo: bool) -> CoreConfig {
+    CoreConfig {
+        client: 0,
+        no_vo,
+        no_rs: false,
+        window: 100,
+        features: 1000,
+        inline_mapping: true,
+        lockstep_sync: true,
+        spool: false,
+    }
+}
+
+fn header(seq: u64) -> FrameHeader {
+    FrameHeader {
+        meta: MsgMeta::new(0, 1, seq, 0),
+        t_mid_ns: 1_000_000 * seq as i64,
+        ..FrameHeader::default()
+    }
+}
+
+/// Tracks one frame with no wait for the server; the outputs of both steps.
+fn step(core: &mut TrackerCore, h: FrameHeader, pixels: &[u8]) -> (Vec<Out>, bool) {
+    let frame = FrameIn {
+        header: h,
+        pixels,
+        recv_ns: 0,
+        now_ns: 0,
+    };
+    match core.track(frame).expect("track") {
+        FrameStep::Done(out) => (out, false),
+        FrameStep::EndOfStream(h) => {
+            assert!(core.take_window().is_empty());
+            (core.end_of_stream(&h, 0), true)
+        }
+        FrameStep::Tracked(mut t) => {
+            let mut out = std::mem::take(&mut t.out);
+            out.extend(core.publish_frame(t, 0));
+            (out, false)
+        }
+    }
+}
+
+fn acks(out: &[Out]) -> Vec<u64> {
+    out.iter()
+        .filter_map(|o| match o {
+            Out::Ack(a) => Some(a.frame_seq),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn transport_counts_gaps_duplicates_foreign_frames_and_the_end() {
+    let mut core = TrackerCore::new(config(true), Status::new("tracker:0"));
+    for seq in [0, 1, 4] {
+        let (out, _) = step(&mut core, header(seq), &[]);
+        assert_eq!(acks(&out), vec![seq]);
+        assert!(matches!(out.last(), Some(Out::Pose(p)) if p.meta.seq == seq));
+    }
+    let (out, _) = step(&mut core, header(1), &[]);
+    assert_eq!(acks(&out), vec![1], "a re-sent frame is acknowledged again");
+    assert_eq!(out.len(), 1, "and gets no second pose");
+    let mut foreign = header(5);
+    foreign.meta.schema_version += 1;
+    assert!(step(&mut core, foreign, &[]).0.is_empty());
+    let mut eos = header(6);
+    eos.meta.flags = FLAG_END_OF_STREAM;
+    let (out, ended) = step(&mut core, eos, &[]);
+    assert!(ended && core.ended());
+    assert!(matches!(&out[0], Out::Ack(a) if a.frame_t_ns == i64::MAX));
+    assert!(matches!(&out[1], Out::Pose(p) if p.meta.flags & FLAG_END_OF_STREAM != 0));
+    let s = core.finish();
+    assert_eq!(s.get("frames_received"), 3);
+    assert_eq!(s.get("frames_gap"), 2);
+    assert_eq!(s.get("frames_duplicate"), 1);
+    assert_eq!(s.error_counts["schema_version"], 1);
+    assert!(s.finished);
+}
+
+#[test]
+fn a_restart_resumes_the_counters_of_the_killed_tracker() {
+    let mut prev = Status::new("tracker:0");
+    prev.starts = 3;
+    prev.add("keyframes_sent", 10);
+    prev.add("keyframes_acked_seen", 7);
+    prev.set_value("keyframes_unacked", 2.0);
+    prev.set_value("keyframes_queued", 1.0);
+    prev.set_value("last_frame_seq", 41.0);
+    let mut core = TrackerCore::new(config(true), prev);
+    assert_eq!(core.status().get("keyframes_unacked_at_crash"), 2);
+    assert_eq!(core.status().get("keyframes_unsent_at_crash"), 1);
+    let (out, _) = step(&mut core, header(45), &[]);
+    assert!(
+        matches!(&out[0], Out::Ack(a) if a.meta.session_id == (3 << 16) | 1),
+        "a new start has its own sessions"
+    );
+    step(&mut core, header(47), &[]);
+    assert_eq!(core.status().get("frames_gap_at_restart"), 3);
+    assert_eq!(core.status().get("frames_gap"), 1);
+    // The spool's keyframe of the dead process goes out first, and is counted on top.
+    let mut h = shm_schema::KeyframeHeader::default();
+    h.meta.session_id = (2 << 16) | 1;
+    h.keyframe_id = 9;
+    let out = core.recover_keyframe(
+        KeyframeMsg {
+            header: h,
+            records: vec![],
+        },
+        5,
+    );
+    assert!(matches!(&out[0], Out::Keyframe(m) if m.key() == ((2 << 16) | 1, 9)));
+    let s = core.finish();
+    assert_eq!(s.get("keyframes_sent"), 11);
+    assert_eq!(s.get("keyframes_recovered"), 1);
+    assert_eq!(s.values["keyframes_unacked"], 1.0);
+}
+
+/// A mapper that applies every keyframe at once and answers with its client pose as server
+/// pose (`λ = 1`): the frames' server poses then equal their client poses.
+fn answer(m: &crate::outbox::KeyframeMsg) -> Feedback {
+    let mut meta = MsgMeta::new(0, m.header.meta.session_id, 0, 0);
+    meta.flags = FLAG_HANDLED;
+    Feedback {
+        meta,
+        acked_keyframe_id: m.header.keyframe_id,
+        acked_session_id: m.header.meta.session_id,
+        has_pose: 1,
+        server_pose: m.header.pose_ck,
+        scale_ratio: 1.0,
+        server_map_id: 5,
+    }
+}
+
+/// What a run of the core gave.
+#[derive(Default)]
+struct Run {
+    poses: Vec<shm_schema::TrackedPose>,
+    backfilled: usize,
+    sent: Vec<(u32, u64)>,
+    spooled: BTreeSet<(u32, u64)>,
+    awaited: usize,
+}
+
+impl Run {
+    /// Carries out `out` as the ports would, the mapper answering every keyframe.
+    fn take(&mut self, core: &mut TrackerCore, out: Vec<Out>) {
+        for o in out {
+            match o {
+                Out::Keyframe(m) => {
+                    assert_eq!(m.header.meta.flags & FLAG_RESEND, 0, "no re-send needed");
+                    self.sent.push(m.key());
+                    core.on_feedback(&answer(&m));
+                }
+                Out::Pose(p) if p.meta.flags & FLAG_BACKFILL != 0 => self.backfilled += 1,
+                Out::Pose(p) => self.poses.push(p),
+                Out::SpoolWrite(m) => assert!(self.spooled.insert(m.key())),
+                Out::SpoolSent(k) => assert!(self.spooled.remove(&k), "{k:?} was spooled"),
+                Out::Ack(_) => {}
+            }
+        }
+    }
+}
+
+fn imu_msg(seq: u64, s: &datasets::ImuSample) -> ImuMsg {
+    ImuMsg {
+        meta: MsgMeta::new(0, 1, seq, 0),
+        t_ns: s.t_ns,
+        gyro: s.gyro,
+        accel: s.accel,
+    }
+}
+
+fn frame_header(world: &SimWorld, k: usize) -> FrameHeader {
+    let c = world.calib().model;
+    FrameHeader {
+        meta: MsgMeta::new(0, 1, k as u64, 0),
+        width: c.width,
+        height: c.height,
+        stride: c.width,
+        dataset_index: k as u64,
+        t_mid_ns: world.frame_time_ns(k),
+        readout_ns: world.readout_ns(),
+        intrinsics: Intrinsics {
+            pinhole: [c.fx, c.fy, c.cx, c.cy],
+            distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
+        },
+        t_bs: shoal_runtime::wire::wire_from_iso(&world.calib().t_bs),
+        ..FrameHeader::default()
+    }
+}
+
+/// The synthetic loop through the core with the gyro, a small VO window (keyframes leave it
+/// while tracking), a spool and lock-step waits: every frame posed, every keyframe sent once,
+/// acknowledged and dropped from the spool, the server poses those the feedback implies.
+#[test]
+fn synthetic_frames_through_the_core_lose_no_keyframe() {
+    let mut p = SimParams::new(Scenario::Loop);
+    p.frames = Some(120);
+    p.seed = 3;
+    // A rolling shutter, so that every frame asks for the gyro over its readout.
+    p.readout_ms = Some(20.0);
+    let world = SimWorld::new(p).expect("world");
+    let cfg = CoreConfig {
+        window: 6,
+        spool: true,
+        ..config(false)
+    };
+    let mut core = TrackerCore::new(cfg, Status::new("tracker:0"));
+    let (imu, mut next_imu) = (world.imu_samples(), 0);
+    let mut run = Run::default();
+    let c = world.calib().model;
+    let mut img = vec![0u8; (c.width * c.height) as usize];
+    for k in 0..world.n_frames() {
+        let h = frame_header(&world, k);
+        let need = core.imu_needed_ns(&h, img.len()).expect("gyro wanted");
+        while core.imu_missing(need) {
+            core.on_imu(&imu_msg(next_imu as u64, &imu[next_imu]));
+            next_imu += 1;
+        }
+        world.render_frame_into(k, &mut img).expect("render");
+        let FrameStep::Tracked(mut t) = core
+            .track(FrameIn {
+                header: h,
+                pixels: &img,
+                recv_ns: 0,
+                now_ns: 0,
+            })
+            .expect("track")
+        else {
+            panic!("frame {k} not tracked");
+        };
+        run.take(&mut core, std::mem::take(&mut t.out));
+        if let Some(key) = t.await_handled {
+            assert!(core.take_handled(key), "{key:?} answered");
+            run.awaited += 1;
+        }
+        let out = core.publish_frame(t, 0);
+        run.take(&mut core, out);
+    }
+    for m in core.take_window() {
+        let out = core.send_keyframe(m, 0);
+        run.take(&mut core, out);
+    }
+    let mut eos = MsgMeta::new(0, 1, 999, 0);
+    eos.flags = FLAG_END_OF_STREAM;
+    core.on_imu(&ImuMsg {
+        meta: eos,
+        ..ImuMsg::default()
+    });
+    let mut eos_h = header(120);
+    eos_h.meta.flags = FLAG_END_OF_STREAM;
+    let out = core.end_of_stream(&eos_h, 0);
+    run.take(&mut core, out);
+    assert!(core.drained(), "every keyframe acknowledged");
+    check_run(&run, core.finish());
+}
+
+fn check_run(run: &Run, s: Status) {
+    let n = run.poses.len() - 1; // the end-of-stream pose
+    assert_eq!(n, 120);
+    let tracked = run
+        .poses
+        .iter()
+        .filter(|p| p.state == TrackState::Tracking as u32);
+    let posed = tracked.count() + run.backfilled;
+    assert!(posed >= 118, "{posed} of 120 posed");
+    let distinct: BTreeSet<_> = run.sent.iter().collect();
+    assert_eq!(distinct.len(), run.sent.len(), "each keyframe sent once");
+    assert!(run.sent.len() >= 8, "{} keyframes", run.sent.len());
+    assert!(run.awaited >= 1, "keyframes left the window while tracking");
+    assert!(run.spooled.is_empty(), "spool left with {:?}", run.spooled);
+    let with_server = run.poses.iter().filter(|p| p.has_server_pose != 0);
+    let mut checked = 0;
+    for p in with_server {
+        assert_eq!(p.server_map_id, 5);
+        let (a, b) = (to_iso(&p.pose), to_iso(&p.server_pose));
+        assert!(
+            (a.inverse() * b).translation.vector.norm() < 1e-9,
+            "{a} vs {b}"
+        );
+        checked += 1;
+    }
+    eprintln!(
+        "posed {posed}/120 ({} backfilled), keyframes sent {}, waits {}, server poses {checked}",
+        run.backfilled,
+        run.sent.len(),
+        run.awaited
+    );
+    assert!(checked >= 60, "{checked} frames with a server pose");
+    assert_eq!(s.get("keyframes_sent"), run.sent.len() as u64);
+    assert_eq!(s.get("keyframes_acked_seen"), run.sent.len() as u64);
+    assert_eq!(s.get("frames_gyro_rs"), 120);
+    assert_eq!(s.get("lockstep_imu_timeouts"), 0);
+    assert!(s.errors.is_empty(), "{:?}", s.errors);
+}
+
+fn to_iso(p: &Pose) -> nalgebra::Isometry3<f64> {
+    shoal_runtime::wire::iso_from_wire(p).expect("finite pose")
+}
