@@ -582,7 +582,11 @@ fn client_report(
     let corrupt = st.errors_of(&cam, "corrupt_image");
     let dropped = offered.saturating_sub(received + corrupt);
     let m = |k: &str| st.mapper_client(c, k);
-    let t = |k: &str| st.get(&trk, k);
+    let t: tracker::core::TrackerCounters = st
+        .map
+        .get(&trk)
+        .map(|s| s.counters_as())
+        .unwrap_or_default();
     ClientReport {
         dataset: ds.root.display().to_string(),
         frames_total: total,
@@ -597,12 +601,12 @@ fn client_report(
         frames_corrupt: corrupt,
         frames_resent: st.get(&cam, "frames_resent"),
         imu_samples_published: st.get(&imu, "imu_samples_published"),
-        imu_samples_received: t("imu_samples_received"),
-        imu_samples_dropped: t("imu_samples_dropped") + st.get(&imu, "imu_samples_skipped_late"),
-        keyframes_sent: t("keyframes_sent"),
-        keyframes_acked: t("keyframes_acked_seen"),
-        keyframes_unacked_at_crash: t("keyframes_unacked_at_crash"),
-        keyframes_recovered: t("keyframes_recovered"),
+        imu_samples_received: t.imu_samples_received,
+        imu_samples_dropped: t.imu_samples_dropped + st.get(&imu, "imu_samples_skipped_late"),
+        keyframes_sent: t.keyframes_sent,
+        keyframes_acked: t.keyframes_acked_seen,
+        keyframes_unacked_at_crash: t.keyframes_unacked_at_crash,
+        keyframes_recovered: t.keyframes_recovered,
         keyframes_applied: journaled_applied.unwrap_or_else(|| m("keyframes_applied")),
         keyframes_received: m("keyframes_received"),
         keyframes_kept: m("keyframes_kept"),
@@ -626,11 +630,11 @@ fn client_report(
         ate_server_keyframes: o.ate_server_keyframes,
         ate_server_frames: o.ate_server_frames,
         sessions: o.sessions,
-        local_mapping: local_mapping(st, &trk).to_string(),
-        lockstep_sync: t("lockstep_sync") > 0,
-        lockstep_sync_timeouts: t("local_mapping_sync_timeouts")
-            + t("lockstep_server_timeouts")
-            + t("lockstep_imu_timeouts"),
+        local_mapping: local_mapping(&t).to_string(),
+        lockstep_sync: t.lockstep_sync > 0,
+        lockstep_sync_timeouts: t.local_mapping_sync_timeouts
+            + t.lockstep_server_timeouts
+            + t.lockstep_imu_timeouts,
         trajectory: o.trajectory,
         ate: o.ate,
         latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
@@ -653,12 +657,9 @@ fn keyframe_rate(ds: &datasets::Dataset, total: u64, bytes: u64) -> f64 {
 }
 
 /// How the tracker ran local mapping: `thread`, `inline`, or `none` (no VO ran).
-fn local_mapping(st: &Statuses, trk: &str) -> &'static str {
-    let t = st
-        .map
-        .get(trk)
-        .and_then(|s| s.counters.get("local_mapping_thread"));
-    t.map_or("none", |&t| if t > 0 { "thread" } else { "inline" })
+fn local_mapping(t: &tracker::core::TrackerCounters) -> &'static str {
+    let thread = t.local_mapping_thread;
+    thread.map_or("none", |t| if t > 0 { "thread" } else { "inline" })
 }
 
 impl RunReport {

@@ -10,6 +10,7 @@ use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 /// Line a service prints on stdout once its services are open and it is ready for data.
@@ -52,6 +53,18 @@ pub struct Status {
     pub error_counts: BTreeMap<String, u64>,
     /// The first [`MAX_ERROR_RECORDS`] errors.
     pub errors: Vec<ErrorRecord>,
+    /// The service's crash-recovery state ([`Status::set_resume`]), typed and versioned by
+    /// the service, written atomically with the counters so that the two always agree.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resume: Option<serde_json::Value>,
+}
+
+/// A crash-recovery state as kept in the status file: the service's own struct with its
+/// format version.
+#[derive(Debug, Serialize, Deserialize)]
+struct Versioned<T> {
+    version: u32,
+    state: T,
 }
 
 impl Status {
@@ -78,6 +91,53 @@ impl Status {
     /// Sets value `name`.
     pub fn set_value(&mut self, name: &str, v: f64) {
         self.values.insert(name.to_string(), v);
+    }
+
+    /// Sets the typed counters `c` (a struct of `u64` fields, `Option`s left out when
+    /// `None`): the service's one list of counter names, which the launcher reads back with
+    /// [`Status::counters_as`].
+    pub fn put_counters<C: Serialize>(&mut self, c: &C) {
+        if let Ok(serde_json::Value::Object(m)) = serde_json::to_value(c) {
+            for (k, v) in m {
+                if let Some(v) = v.as_u64() {
+                    self.counters.insert(k, v);
+                }
+            }
+        }
+    }
+
+    /// The counters as the service's typed struct (fields not in the file: their default).
+    pub fn counters_as<C: DeserializeOwned + Default>(&self) -> C {
+        let m: serde_json::Map<String, serde_json::Value> = self
+            .counters
+            .iter()
+            .map(|(k, v)| (k.clone(), serde_json::Value::from(*v)))
+            .collect();
+        serde_json::from_value(serde_json::Value::Object(m)).unwrap_or_default()
+    }
+
+    /// Keeps `state`, format `version`, as the crash-recovery state.
+    pub fn set_resume<T: Serialize>(&mut self, version: u32, state: &T) {
+        self.resume = serde_json::to_value(Versioned { version, state }).ok();
+    }
+
+    /// Takes the crash-recovery state a predecessor left, if it is of format `version`; one
+    /// of another version or unreadable is an error (`resume_state`) and the service starts
+    /// afresh.
+    pub fn take_resume<T: DeserializeOwned>(&mut self, version: u32) -> Option<T> {
+        let v = self.resume.take()?;
+        match serde_json::from_value::<Versioned<T>>(v) {
+            Ok(r) if r.version == version => Some(r.state),
+            Ok(r) => {
+                let detail = format!("state of format {}, this build reads {version}", r.version);
+                self.error("resume_state", detail);
+                None
+            }
+            Err(e) => {
+                self.error("resume_state", format!("unreadable: {e}"));
+                None
+            }
+        }
     }
 
     /// Records an error: counted by kind, kept verbatim up to [`MAX_ERROR_RECORDS`], and
@@ -322,6 +382,48 @@ mod tests {
             assert!(json["heap_in_use_bytes"].as_u64().unwrap() > 0, "{json}");
         }
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[derive(Debug, Default, PartialEq, Serialize, Deserialize)]
+    #[serde(default)]
+    struct Counts {
+        frames: u64,
+        flag: Option<u64>,
+    }
+
+    #[derive(Debug, PartialEq, Serialize, Deserialize)]
+    struct State {
+        next: u64,
+    }
+
+    /// Typed counters go through the status's map by name; the resume state comes back only
+    /// in its own format version, else it is an error and the service starts afresh.
+    #[test]
+    fn typed_counters_and_versioned_resume_state() {
+        let mut s = Status::new("x:0");
+        s.put_counters(&Counts {
+            frames: 4,
+            flag: None,
+        });
+        assert_eq!(s.counters.len(), 1, "a None is left out");
+        assert_eq!(
+            s.counters_as::<Counts>(),
+            Counts {
+                frames: 4,
+                flag: None
+            }
+        );
+        s.set_resume(2, &State { next: 9 });
+        let text = serde_json::to_string(&s).unwrap();
+        let mut back: Status = serde_json::from_str(&text).unwrap();
+        assert_eq!(back.take_resume::<State>(2), Some(State { next: 9 }));
+        assert!(back.resume.is_none(), "taken");
+        let mut old: Status = serde_json::from_str(&text).unwrap();
+        assert_eq!(old.take_resume::<State>(3), None);
+        assert_eq!(old.error_counts["resume_state"], 1);
+        assert!(old.errors[0]
+            .detail
+            .contains("format 2, this build reads 3"));
     }
 
     // The heap statistics and the trimmer are tested in their own process

@@ -8,6 +8,8 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use shm_schema::{FrameHeader, ImuMsg};
 use shoal_runtime::Status;
 
+use crate::core::TrackerCounters;
+
 /// Gyro samples older than this before the newest frame are dropped, ns.
 const KEEP_NS: i64 = 2_000_000_000;
 
@@ -33,7 +35,13 @@ impl ImuInput {
     /// Takes one sample of the stream: checks its schema, sequence (gaps counted as
     /// dropped, repeats as duplicates) and time (non-monotonic ones are errors), and keeps
     /// its gyro rate. Returns whether the sample was accepted.
-    pub fn on_sample(&mut self, m: &ImuMsg, status: &mut Status, client: u32) -> bool {
+    pub fn on_sample(
+        &mut self,
+        m: &ImuMsg,
+        status: &mut Status,
+        counters: &mut TrackerCounters,
+        client: u32,
+    ) -> bool {
         if let Err(e) = m.meta.check() {
             status.error("schema_version", format!("imu of client {client}: {e}"));
             return false;
@@ -46,11 +54,11 @@ impl ImuInput {
             if m.meta.seq <= seq {
                 // A restarted IMU ingest resumes from its last status write and publishes
                 // again samples its predecessor had sent: already taken.
-                status.add("imu_samples_duplicate", 1);
+                counters.imu_samples_duplicate += 1;
                 return false;
             }
             if m.meta.seq > seq + 1 {
-                status.add("imu_samples_dropped", m.meta.seq - seq - 1);
+                counters.imu_samples_dropped += m.meta.seq - seq - 1;
             }
             if m.t_ns <= t {
                 let (seq, t_ns) = (m.meta.seq, m.t_ns);
@@ -62,7 +70,7 @@ impl ImuInput {
             }
         }
         self.last = Some((m.meta.seq, m.t_ns));
-        status.add("imu_samples_received", 1);
+        counters.imu_samples_received += 1;
         let w = Vector3::from(m.gyro);
         if w.iter().all(|v| v.is_finite()) {
             self.push_gyro(m.t_ns, w);

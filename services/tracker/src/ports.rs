@@ -161,7 +161,7 @@ impl Ports {
                 return Ok(());
             }
             if start.elapsed() > SERVER_SYNC_TIMEOUT {
-                core.status_mut().add("lockstep_server_timeouts", 1);
+                core.count_server_timeout();
                 return Ok(());
             }
             let out = core.on_tick(monotonic_ns());

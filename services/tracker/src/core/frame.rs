@@ -113,7 +113,7 @@ impl TrackerCore {
     pub fn imu_needed_ns(&self, h: &FrameHeader, payload_len: usize) -> Option<i64> {
         let admitted = h.meta.check().is_ok()
             && !h.meta.is_end_of_stream()
-            && self.last_seq.is_none_or(|l| h.meta.seq > l);
+            && self.resume.last_frame_seq.is_none_or(|l| h.meta.seq > l);
         let rs = !self.cfg.no_rs && h.readout_ns != 0;
         (admitted && rs && self.trackable(h, payload_len)).then(|| h.t_mid_ns + h.readout_ns / 2)
     }
@@ -164,23 +164,24 @@ impl TrackerCore {
         if h.meta.is_end_of_stream() {
             return Some(FrameStep::EndOfStream(*h));
         }
-        if self.last_seq.is_some_and(|l| h.meta.seq <= l) {
+        if self.resume.last_frame_seq.is_some_and(|l| h.meta.seq <= l) {
             // A re-send of a frame already handled (e.g. the camera restarted): ack again.
-            self.status.add("frames_duplicate", 1);
+            self.counters.frames_duplicate += 1;
             let ack = self.ack(h, now_ns);
             return Some(FrameStep::Done(vec![ack]));
         }
-        let expected = self.last_seq.map_or(0, |l| l + 1);
+        let expected = self.resume.last_frame_seq.map_or(0, |l| l + 1);
         if h.meta.seq > expected {
+            let c = &mut self.counters;
             let gap = if self.first_after_restart {
-                "frames_gap_at_restart"
+                &mut c.frames_gap_at_restart
             } else {
-                "frames_gap"
+                &mut c.frames_gap
             };
-            self.status.add(gap, h.meta.seq - expected);
+            *gap += h.meta.seq - expected;
         }
         self.first_after_restart = false;
-        self.last_seq = Some(h.meta.seq);
+        self.resume.last_frame_seq = Some(h.meta.seq);
         None
     }
 
@@ -203,13 +204,13 @@ impl TrackerCore {
         }
         let need = h.t_mid_ns + h.readout_ns / 2;
         if self.cfg.lockstep_sync && self.imu_missing(need) {
-            self.status.add("lockstep_imu_timeouts", 1);
+            self.counters.lockstep_imu_timeouts += 1;
             // No IMU at all (e.g. its ingest keeps failing): wait no more for its start.
             self.imu_never_came |= self.imu.newest_ns().is_none();
         }
         let omega = self.imu.camera_rate(h);
         if omega.is_some() {
-            self.status.add("frames_gyro_rs", 1);
+            self.counters.frames_gyro_rs += 1;
         }
         omega
     }
@@ -249,7 +250,7 @@ impl TrackerCore {
         t.vo_session = self.session_base | v.session_id();
         t.take_vo_output(&mut o);
         if o.new_session {
-            self.status.add("vo_sessions_started", 1);
+            self.counters.vo_sessions_started += 1;
         }
         let client = self.cfg.client;
         for kf in &o.evicted {
@@ -285,7 +286,7 @@ impl TrackerCore {
                 state: TrackState::Tracking as u32,
                 ..TrackedPose::default()
             }));
-            self.status.add("frames_backfilled", 1);
+            self.counters.frames_backfilled += 1;
         }
         out.push(self.ack(h, now_ns));
         out.push(Out::Pose(self.tracked_pose(&t, now_ns)));
@@ -300,7 +301,7 @@ impl TrackerCore {
             .t_cw
             .and_then(|t_cw| self.server.frame_pose(t.vo_session, &t_cw.inverse()));
         if server_pose.is_some() {
-            self.status.add("frames_server_pose", 1);
+            self.counters.frames_server_pose += 1;
         }
         let mut stage_ms = t.stage_ms;
         stage_ms[stage::TOTAL] = (now_ns - t.recv_ns) as f32 * 1e-6;
@@ -323,19 +324,17 @@ impl TrackerCore {
 
     /// The per-frame counters and the VO's figures.
     fn count_frame(&mut self, t: &Tracked) {
-        let s = &mut self.status;
-        s.add("frames_received", 1);
-        if t.state == TrackState::Tracking {
-            s.add("frames_tracked", 1);
-        }
-        s.add("poses_published", 1);
-        s.set_value("last_frame_seq", t.header.meta.seq as f64);
+        let c = &mut self.counters;
+        c.frames_received += 1;
+        c.frames_tracked += (t.state == TrackState::Tracking) as u64;
+        c.poses_published += 1;
+        self.resume.last_frame_seq = Some(t.header.meta.seq);
         if let Some(v) = self.vo.as_ref() {
+            let s = &mut self.status;
             s.set_value("vo_relocalizations", v.relocalizations() as f64);
             s.set_value("keyframes_culled", v.keyframes_culled() as f64);
-            let timeouts = self.vo_timeouts_base + v.local_mapping_sync_timeouts() as u64;
-            s.counters
-                .insert("local_mapping_sync_timeouts".into(), timeouts);
+            c.local_mapping_sync_timeouts =
+                self.vo_timeouts_base + v.local_mapping_sync_timeouts() as u64;
         }
     }
 
@@ -356,7 +355,7 @@ impl TrackerCore {
         for (id, msg) in new {
             out.push(Out::SpoolWrite(msg));
             self.spooled = Some((session, id));
-            self.status.add("keyframes_spooled", 1);
+            self.counters.keyframes_spooled += 1;
         }
     }
 }

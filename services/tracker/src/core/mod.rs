@@ -17,11 +17,13 @@ use slam_core::vo::{VoParams, VoTracker};
 use crate::imu::ImuInput;
 use crate::outbox::{keyframe_message, KeyframeMsg, Outbox};
 
+mod counters;
 mod frame;
 mod server;
 #[cfg(test)]
 mod tests;
 
+pub use counters::{TrackerCounters, TrackerResume, RESUME_VERSION};
 pub use frame::{FrameIn, FrameStep, Tracked};
 pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 
@@ -87,7 +89,11 @@ impl CoreConfig {
 /// The tracker of one client, without its ports.
 pub struct TrackerCore {
     cfg: CoreConfig,
+    /// Errors and gauges (the counters are put in when it is asked for).
     status: Status,
+    counters: TrackerCounters,
+    /// The crash-recovery state as of now.
+    resume: TrackerResume,
     /// Start count in the high 16 bits: a restarted tracker's VO sessions are new ones.
     session_base: u32,
     vo: Option<VoTracker>,
@@ -97,8 +103,6 @@ pub struct TrackerCore {
     imu: ImuInput,
     /// Lock-step: a frame waited in vain for the IMU stream's first sample.
     imu_never_came: bool,
-    /// Sequence number of the last frame handled.
-    last_seq: Option<u64>,
     /// The next frame is the first after a restart (its gap is counted apart).
     first_after_restart: bool,
     ack_seq: u64,
@@ -112,11 +116,11 @@ pub struct TrackerCore {
 impl TrackerCore {
     /// A core resuming `status` (that of a killed predecessor, or a fresh one).
     pub fn new(cfg: CoreConfig, mut status: Status) -> Self {
-        let kf_counts = KeyframeCounts::resume(&mut status);
-        status
-            .counters
-            .insert("lockstep_sync".into(), cfg.lockstep_sync as u64);
-        let last_seq = status.values.get("last_frame_seq").map(|v| *v as u64);
+        let mut counters: TrackerCounters = status.counters_as();
+        let resume: TrackerResume = status.take_resume(RESUME_VERSION).unwrap_or_default();
+        let restarted = status.starts > 1;
+        let kf_counts = KeyframeCounts::resume(&mut counters, &resume, restarted);
+        counters.lockstep_sync = cfg.lockstep_sync as u64;
         Self {
             session_base: (status.starts as u32) << 16,
             vo: None,
@@ -125,27 +129,40 @@ impl TrackerCore {
             server: ServerState::new(cfg.client, cfg.lockstep_sync),
             imu: ImuInput::default(),
             imu_never_came: false,
-            last_seq,
             // After a restart `last_frame_seq` is the dead process's last status write: the
             // first frame's jump past it also covers frames that process handled after it.
-            first_after_restart: status.starts > 1,
+            first_after_restart: restarted,
             ack_seq: 0,
             ended: false,
             spooled: None,
-            vo_timeouts_base: status.get("local_mapping_sync_timeouts"),
+            vo_timeouts_base: counters.local_mapping_sync_timeouts,
             cfg,
             status,
+            counters,
+            resume,
         }
     }
 
-    /// The counters and errors so far.
-    pub fn status(&self) -> &Status {
+    /// The status as of now (counters and crash-recovery state put in), to write.
+    pub fn status(&mut self) -> &Status {
+        self.status.put_counters(&self.counters);
+        self.status.set_resume(RESUME_VERSION, &self.resume);
         &self.status
     }
 
-    /// The counters, for the ports' own errors (spool, publish).
+    /// For the ports' own errors (spool, publish).
     pub fn status_mut(&mut self) -> &mut Status {
         &mut self.status
+    }
+
+    /// The counters so far.
+    pub fn counters(&self) -> &TrackerCounters {
+        &self.counters
+    }
+
+    /// Lock-step: a wait for the server that timed out.
+    pub fn count_server_timeout(&mut self) {
+        self.counters.lockstep_server_timeouts += 1;
     }
 
     /// The settings.
@@ -176,18 +193,20 @@ impl TrackerCore {
 
     /// Puts the current keyframe counts into the status.
     pub fn put_keyframe_counts(&mut self) {
-        self.kf_counts.set(&self.outbox, &mut self.status);
+        let (c, r) = (&mut self.counters, &mut self.resume);
+        self.kf_counts.set(&self.outbox, c, r);
     }
 
     /// Takes one IMU message; returns whether it was accepted (for the frame log).
     pub fn on_imu(&mut self, m: &ImuMsg) -> bool {
-        self.imu.on_sample(m, &mut self.status, self.cfg.client)
+        let (s, c) = (&mut self.status, &mut self.counters);
+        self.imu.on_sample(m, s, c, self.cfg.client)
     }
 
     /// Takes one feedback message of the mapper.
     pub fn on_feedback(&mut self, f: &Feedback) {
-        self.server
-            .on_feedback(f, &mut self.outbox, &mut self.status);
+        let (s, c) = (&mut self.status, &mut self.counters);
+        self.server.on_feedback(f, &mut self.outbox, s, c);
     }
 
     /// Lock-step: whether the server has finished keyframe `key` (see
@@ -207,7 +226,7 @@ impl TrackerCore {
     /// A keyframe that a killed predecessor left in the spool: sent before this start's
     /// own keyframes.
     pub fn recover_keyframe(&mut self, msg: KeyframeMsg, now_ns: i64) -> Vec<Out> {
-        self.status.add("keyframes_recovered", 1);
+        self.counters.keyframes_recovered += 1;
         self.send_keyframe(msg, now_ns)
     }
 
@@ -265,6 +284,7 @@ impl TrackerCore {
         let kept = self.outbox.sent_poses_kept() as f64;
         self.status.set_value("sent_poses_kept", kept);
         self.status.finished = self.ended;
+        self.status();
         self.status
     }
 
@@ -282,10 +302,7 @@ impl TrackerCore {
         vp.orb.n_features = self.cfg.features;
         let mut v = VoTracker::new(vp, camera)?;
         v.start_keyframe_ids_at(u64::from(self.session_base >> 16) << KF_ID_BITS_PER_START);
-        let thread = !self.cfg.inline_mapping as u64;
-        self.status
-            .counters
-            .insert("local_mapping_thread".into(), thread);
+        self.counters.local_mapping_thread = Some(!self.cfg.inline_mapping as u64);
         Ok(v)
     }
 }

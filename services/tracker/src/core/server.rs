@@ -7,6 +7,7 @@ use nalgebra::Isometry3;
 use shm_schema::{Feedback, Pose, FLAG_HANDLED};
 use shoal_runtime::Status;
 
+use super::counters::{TrackerCounters, TrackerResume};
 use crate::outbox::Outbox;
 
 /// A keyframe as the tracker and the server name it: (VO session, keyframe id).
@@ -79,22 +80,28 @@ impl ServerState {
 
     /// Takes one feedback message: acknowledgement (outbox), pose feedback and, in
     /// lock-step, the keyframe the server has finished.
-    pub fn on_feedback(&mut self, f: &Feedback, outbox: &mut Outbox, status: &mut Status) {
+    pub fn on_feedback(
+        &mut self,
+        f: &Feedback,
+        outbox: &mut Outbox,
+        status: &mut Status,
+        counters: &mut TrackerCounters,
+    ) {
         if f.meta.check().is_err() {
             let c = self.client;
             status.error("schema_version", format!("feedback of client {c}"));
             return;
         }
-        status.add("feedback_received", 1);
+        counters.feedback_received += 1;
         outbox.ack(f.acked_session_id, f.acked_keyframe_id);
         if f.has_pose != 0 {
             match ServerRef::from_feedback(f, outbox) {
                 Some(r) => {
                     outbox.forget_sent_before(f.acked_session_id, f.acked_keyframe_id);
                     self.server_ref = Some(r);
-                    status.add("pose_feedback_used", 1);
+                    counters.pose_feedback_used += 1;
                 }
-                None => status.add("pose_feedback_unusable", 1),
+                None => counters.pose_feedback_unusable += 1,
             }
         }
         if self.sync && f.meta.flags & FLAG_HANDLED != 0 {
@@ -121,12 +128,12 @@ impl ServerState {
     }
 }
 
-/// The keyframe counters of the status, kept current: a SIGKILLed tracker must leave exact
-/// figures behind (keyframes are few, so the status is written whenever one is sent or
-/// acknowledged). Counters carry on from the previous start; the keyframes a killed tracker
-/// had sent without seeing their acknowledgement are counted as `keyframes_unacked_at_crash`
-/// by its successor (the mapper applied them; their acknowledgements went to a dead process),
-/// so that `keyframes_acked_seen + keyframes_unacked_at_crash == keyframes_sent`.
+/// The keyframe counters, kept current: a SIGKILLed tracker must leave exact figures behind
+/// (keyframes are few, so the status is written whenever one is sent or acknowledged).
+/// Counters carry on from the previous start; the keyframes a killed tracker had sent
+/// without seeing their acknowledgement are counted as `keyframes_unacked_at_crash` by its
+/// successor (the mapper applied them; their acknowledgements went to a dead process), so
+/// that `keyframes_acked_seen + keyframes_unacked_at_crash == keyframes_sent`.
 #[derive(Debug)]
 pub struct KeyframeCounts {
     sent_base: u64,
@@ -135,33 +142,28 @@ pub struct KeyframeCounts {
 }
 
 impl KeyframeCounts {
-    /// The bases of a start that resumes `status` (a fresh one: zeros).
-    pub fn resume(status: &mut Status) -> Self {
-        let unacked = status.values.remove("keyframes_unacked").unwrap_or(0.0) as u64;
-        let queued = status.values.remove("keyframes_queued").unwrap_or(0.0) as u64;
-        if status.starts > 1 {
-            status.add("keyframes_unacked_at_crash", unacked);
+    /// The bases of a start that resumes `counters` and `resume` (a fresh one: zeros).
+    pub fn resume(counters: &mut TrackerCounters, resume: &TrackerResume, restarted: bool) -> Self {
+        if restarted {
+            counters.keyframes_unacked_at_crash += resume.keyframes_unacked;
             // Queued behind the in-flight limit, never sent: lost with the process (as are
             // the keyframes still in its VO window).
-            status.add("keyframes_unsent_at_crash", queued);
+            counters.keyframes_unsent_at_crash += resume.keyframes_queued;
         }
         Self {
-            sent_base: status.get("keyframes_sent"),
-            resent_base: status.get("keyframes_resent"),
-            acked_base: status.get("keyframes_acked_seen"),
+            sent_base: counters.keyframes_sent,
+            resent_base: counters.keyframes_resent,
+            acked_base: counters.keyframes_acked_seen,
         }
     }
 
-    /// Puts the outbox's counts into `status`.
-    pub fn set(&self, outbox: &Outbox, status: &mut Status) {
-        let mut put = |k: &str, v: u64| {
-            status.counters.insert(k.to_string(), v);
-        };
-        put("keyframes_sent", self.sent_base + outbox.sent);
-        put("keyframes_resent", self.resent_base + outbox.resent);
-        put("keyframes_acked_seen", self.acked_base + outbox.acked);
+    /// Puts the outbox's counts into `counters` and `resume`.
+    pub fn set(&self, outbox: &Outbox, counters: &mut TrackerCounters, resume: &mut TrackerResume) {
+        counters.keyframes_sent = self.sent_base + outbox.sent;
+        counters.keyframes_resent = self.resent_base + outbox.resent;
+        counters.keyframes_acked_seen = self.acked_base + outbox.acked;
         let in_flight = outbox.in_flight();
-        status.set_value("keyframes_unacked", in_flight as f64);
-        status.set_value("keyframes_queued", (outbox.pending() - in_flight) as f64);
+        resume.keyframes_unacked = in_flight as u64;
+        resume.keyframes_queued = (outbox.pending() - in_flight) as u64;
     }
 }

@@ -98,20 +98,23 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     prev.starts = 3;
     prev.add("keyframes_sent", 10);
     prev.add("keyframes_acked_seen", 7);
-    prev.set_value("keyframes_unacked", 2.0);
-    prev.set_value("keyframes_queued", 1.0);
-    prev.set_value("last_frame_seq", 41.0);
+    let left = TrackerResume {
+        last_frame_seq: Some(41),
+        keyframes_unacked: 2,
+        keyframes_queued: 1,
+    };
+    prev.set_resume(RESUME_VERSION, &left);
     let mut core = TrackerCore::new(config(true), prev);
-    assert_eq!(core.status().get("keyframes_unacked_at_crash"), 2);
-    assert_eq!(core.status().get("keyframes_unsent_at_crash"), 1);
+    assert_eq!(core.counters().keyframes_unacked_at_crash, 2);
+    assert_eq!(core.counters().keyframes_unsent_at_crash, 1);
     let (out, _) = step(&mut core, header(45), &[]);
     assert!(
         matches!(&out[0], Out::Ack(a) if a.meta.session_id == (3 << 16) | 1),
         "a new start has its own sessions"
     );
     step(&mut core, header(47), &[]);
-    assert_eq!(core.status().get("frames_gap_at_restart"), 3);
-    assert_eq!(core.status().get("frames_gap"), 1);
+    assert_eq!(core.counters().frames_gap_at_restart, 3);
+    assert_eq!(core.counters().frames_gap, 1);
     // The spool's keyframe of the dead process goes out first, and is counted on top.
     let mut h = shm_schema::KeyframeHeader::default();
     h.meta.session_id = (2 << 16) | 1;
@@ -124,10 +127,29 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
         5,
     );
     assert!(matches!(&out[0], Out::Keyframe(m) if m.key() == ((2 << 16) | 1, 9)));
-    let s = core.finish();
+    let mut s = core.finish();
     assert_eq!(s.get("keyframes_sent"), 11);
     assert_eq!(s.get("keyframes_recovered"), 1);
-    assert_eq!(s.values["keyframes_unacked"], 1.0);
+    let next: TrackerResume = s.take_resume(RESUME_VERSION).expect("resume state");
+    assert_eq!((next.last_frame_seq, next.keyframes_unacked), (Some(47), 1));
+}
+
+#[test]
+fn a_resume_state_of_another_format_is_refused_and_the_tracker_starts_afresh() {
+    let mut prev = Status::new("tracker:0");
+    prev.starts = 2;
+    let left = TrackerResume {
+        last_frame_seq: Some(41),
+        keyframes_unacked: 2,
+        keyframes_queued: 0,
+    };
+    prev.set_resume(RESUME_VERSION + 1, &left);
+    let mut core = TrackerCore::new(config(true), prev);
+    assert_eq!(core.counters().keyframes_unacked_at_crash, 0);
+    step(&mut core, header(0), &[]);
+    let c = core.counters().clone();
+    assert_eq!((c.frames_received, c.frames_gap_at_restart), (1, 0));
+    assert_eq!(core.status().error_counts["resume_state"], 1);
 }
 
 /// A mapper that applies every keyframe at once and answers with its client pose as server

@@ -1,0 +1,81 @@
+//! The tracker's counters and its crash-recovery state, as types: the one list of their
+//! names (the status file's `counters` and `resume`), which the launcher reads back with the
+//! same types, so a renamed counter does not compile instead of reading 0.
+use serde::{Deserialize, Serialize};
+
+/// Counters of the tracker, carried on over restarts (a successor resumes them).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TrackerCounters {
+    /// Distinct frames handled (a pose published for each).
+    pub frames_received: u64,
+    /// Frames tracked (a valid pose when handled).
+    pub frames_tracked: u64,
+    /// Poses published (one per frame handled).
+    pub poses_published: u64,
+    /// Re-sends of frames already handled (acknowledged again).
+    pub frames_duplicate: u64,
+    /// Frames missing in the sequence (dropped upstream).
+    pub frames_gap: u64,
+    /// Frames missing at a restart (handled by the predecessor after its last status write,
+    /// or published while no tracker ran).
+    pub frames_gap_at_restart: u64,
+    /// Frames whose rolling shutter was compensated with the gyro.
+    pub frames_gyro_rs: u64,
+    /// Frames seen while initialising, posed afterwards.
+    pub frames_backfilled: u64,
+    /// Frames published with a server-map pose.
+    pub frames_server_pose: u64,
+    /// VO sessions started after a tracking loss.
+    pub vo_sessions_started: u64,
+    /// Keyframe messages sent (first sends).
+    pub keyframes_sent: u64,
+    /// Keyframe re-sends.
+    pub keyframes_resent: u64,
+    /// Keyframes whose acknowledgement this tracker (or a predecessor) saw.
+    pub keyframes_acked_seen: u64,
+    /// Keyframes a killed predecessor had sent without seeing the acknowledgement.
+    pub keyframes_unacked_at_crash: u64,
+    /// Keyframes a killed predecessor had queued, never sent.
+    pub keyframes_unsent_at_crash: u64,
+    /// Keyframes written to the spool.
+    pub keyframes_spooled: u64,
+    /// Keyframes recovered from a killed predecessor's spool and sent.
+    pub keyframes_recovered: u64,
+    /// Feedback messages taken.
+    pub feedback_received: u64,
+    /// Pose feedback used for server-map poses.
+    pub pose_feedback_used: u64,
+    /// Pose feedback that referred to no keyframe sent, or was invalid.
+    pub pose_feedback_unusable: u64,
+    /// IMU samples taken.
+    pub imu_samples_received: u64,
+    /// IMU samples published again by a restarted ingest (already taken).
+    pub imu_samples_duplicate: u64,
+    /// IMU samples missing in the sequence.
+    pub imu_samples_dropped: u64,
+    /// 1 when lock-step synchronisation is on.
+    pub lockstep_sync: u64,
+    /// Lock-step: frames that waited in vain for their gyro samples.
+    pub lockstep_imu_timeouts: u64,
+    /// Lock-step: waits for the server to finish a keyframe that timed out.
+    pub lockstep_server_timeouts: u64,
+    /// 1: local mapping in its own thread, 0: inline; none while no VO ran.
+    pub local_mapping_thread: Option<u64>,
+    /// Lock-step: waits for local mapping that timed out.
+    pub local_mapping_sync_timeouts: u64,
+}
+
+/// Format version of [`TrackerResume`].
+pub const RESUME_VERSION: u32 = 1;
+
+/// What a restarted tracker needs of its killed predecessor besides the counters.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct TrackerResume {
+    /// Sequence number of the last frame handled.
+    pub last_frame_seq: Option<u64>,
+    /// Keyframes sent and not acknowledged.
+    pub keyframes_unacked: u64,
+    /// Keyframes queued behind the in-flight limit.
+    pub keyframes_queued: u64,
+}
