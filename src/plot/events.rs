@@ -39,7 +39,6 @@ pub fn corrections_from_journal(path: &Path) -> Vec<CorrectionEvent> {
     let contents = parse(&bytes);
     let mut t_of: HashMap<(u32, u64), i64> = HashMap::new();
     let mut out = Vec::new();
-    let max_id = slam_core::server::types::MAX_CLIENT_KF_ID;
     for e in &contents.entries {
         match e {
             Entry::Keyframe { client, header, .. } => {
@@ -47,8 +46,9 @@ pub fn corrections_from_journal(path: &Path) -> Vec<CorrectionEvent> {
             }
             Entry::Correction { header, .. } => {
                 let at = |server_id: u64| {
-                    let client = (server_id >> 40) as u32;
-                    t_of.get(&(client, server_id & max_id))
+                    use slam_core::server::types::{kf_client, kf_client_kf};
+                    let client = kf_client(server_id);
+                    t_of.get(&(client, kf_client_kf(server_id)))
                         .map(|t| KeyframeAt { client, t_ns: *t })
                 };
                 let kind = if header.kind == shm_schema::CORRECTION_MERGE {

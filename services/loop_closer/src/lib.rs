@@ -191,7 +191,7 @@ impl Closer {
     /// Adds a keyframe: a verified loop gives the correction to send. With
     /// `SHOAL_DEBUG_LOOP` set, every query's statistics go to stderr.
     pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
-        let client = (kf.kf_id >> 40) as u32;
+        let client = slam_core::server::types::kf_client(kf.kf_id);
         let found = self.detector.add(kf);
         if std::env::var_os("SHOAL_DEBUG_LOOP").is_some() {
             eprintln!("loop_closer: query {:?}", self.detector.last_query());

@@ -16,7 +16,7 @@ use shm_schema::{
 };
 use shoal_runtime::journal::{Entry, Journal};
 use shoal_runtime::{ReplayMode, Status};
-use slam_core::server::{HandlerParams, KeyframeStatus, MapId};
+use slam_core::server::{types, HandlerParams, KeyframeStatus, MapId};
 
 use crate::convert::{self, Correction};
 use crate::worker::{CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker};
@@ -153,7 +153,7 @@ impl Mapper {
     /// The worker hosting map `m`: the one hosting the client that created it (groups only
     /// ever join, so a map stays with its creator's handler).
     fn host_of(&self, m: MapId) -> Option<usize> {
-        self.clients.get((m >> 32) as usize)?.worker
+        self.clients.get(types::map_client(m) as usize)?.worker
     }
 
     /// Sends a correction to the worker hosting its map(s); for a merge of maps hosted by
@@ -274,7 +274,7 @@ impl Mapper {
         let from = (req.next as usize).min(self.resync.len());
         let to = (from + req.max as usize).min(self.resync.len());
         for k in &self.resync[from..to] {
-            let client = (k.kf_id >> 40) as u32;
+            let client = types::kf_client(k.kf_id);
             let mut meta = MsgMeta::new(client, 0, self.loop_seq, monotonic_ns());
             meta.flags |= shm_schema::FLAG_RESYNC;
             let (intr, w, h) = shoal_runtime::wire::intrinsics_from_camera(&k.camera);

@@ -21,7 +21,7 @@ use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 use nalgebra::Isometry3;
 use slam_core::server::{
     apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeptKeyframe,
-    KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
+    types, KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
 };
 
 use crate::convert::Correction;
@@ -249,7 +249,7 @@ impl Group {
                 m.map
                     .keyframes
                     .keys()
-                    .filter(|k| *k >> 40 == u64::from(c))
+                    .filter(|k| types::kf_client(**k) == c)
                     .count()
             }),
             lambda: cs.h.lambda(),
@@ -314,12 +314,11 @@ impl Group {
 impl Group {
     /// Every kept keyframe of the group's maps (a restarted loop closer's resync).
     fn snapshot(&self) -> Vec<slam_core::server::KeptKeyframe> {
-        let max_client = slam_core::server::types::MAX_CLIENT_KF_ID;
-        self.maps
+                self.maps
             .values()
             .flat_map(|m| {
                 let kfs = m.map.keyframes.keys();
-                kfs.filter_map(move |k| m.kept_summary(*k, *k & max_client))
+                kfs.filter_map(move |k| m.kept_summary(*k, types::kf_client_kf(*k)))
             })
             .collect()
     }
@@ -514,11 +513,11 @@ fn write_files(out: Option<&Path>, g: &Group) {
         let _ = std::fs::write(out.join(format!("map_growth_c{c}.txt")), text);
         let current = cs.h.current_map_id();
         for (id, m) in &g.maps {
-            let mine = |k: &u64| *k >> 40 == u64::from(*c);
+            let mine = |k: &u64| types::kf_client(*k) == *c;
             let name = if Some(*id) == current {
                 format!("keyframes_server_c{c}.txt")
-            } else if *id >> 32 == u64::from(*c) && m.map.keyframes.keys().any(mine) {
-                format!("keyframes_server_c{c}_m{}.txt", id & 0xffff_ffff)
+            } else if types::map_client(*id) == *c && m.map.keyframes.keys().any(mine) {
+                format!("keyframes_server_c{c}_m{}.txt", types::map_index(*id))
             } else {
                 continue;
             };

@@ -26,6 +26,27 @@ pub fn server_map_id(client_id: u32, n: u32) -> MapId {
     (u64::from(client_id) << 32) | u64::from(n)
 }
 
+/// The client of a server keyframe id (see [`server_kf_id`]); also of a server point id
+/// (points are numbered from `client_id << 40` by the client's handler).
+pub fn kf_client(id: KfId) -> u32 {
+    (id >> 40) as u32
+}
+
+/// The client's own keyframe id in a server keyframe id (see [`server_kf_id`]).
+pub fn kf_client_kf(id: KfId) -> KfId {
+    id & MAX_CLIENT_KF_ID
+}
+
+/// The client that created server map `id` (see [`server_map_id`]).
+pub fn map_client(id: MapId) -> u32 {
+    (id >> 32) as u32
+}
+
+/// Which of its client's server maps `id` is (see [`server_map_id`]).
+pub fn map_index(id: MapId) -> u32 {
+    (id & 0xffff_ffff) as u32
+}
+
 /// A keyframe as the client sends it (seed §3.3, keyframe message).
 #[derive(Debug, Clone)]
 pub struct ServerKeyframe {

@@ -31,6 +31,40 @@ pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 /// (2^28 keyframes per life, 4096 lives within the server's 40-bit client keyframe ids).
 const KF_ID_BITS_PER_START: u32 = 28;
 
+/// The ids one start (life) of the tracker process gives out, the packing in one place:
+/// session ids carry the start count in the high 16 bits and the VO's own session counter in
+/// the low 16 (a restarted tracker's sessions are new ones); keyframe ids start at
+/// `start << KF_ID_BITS_PER_START` (unique per client across restarts: the server names
+/// keyframes by them).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StartIds {
+    start: u32,
+}
+
+impl StartIds {
+    /// The ids of start number `start` (1 for the first).
+    pub fn new(start: u64) -> Self {
+        Self {
+            start: start as u32,
+        }
+    }
+
+    /// The wire session id of the VO's session `vo_session` in this start.
+    pub fn session(self, vo_session: u32) -> u32 {
+        (self.start << 16) | (vo_session & 0xffff)
+    }
+
+    /// The start count and VO session of a wire session id.
+    pub fn split(session: u32) -> (u32, u32) {
+        (session >> 16, session & 0xffff)
+    }
+
+    /// The first keyframe id of this start.
+    pub fn first_keyframe_id(self) -> u64 {
+        u64::from(self.start) << KF_ID_BITS_PER_START
+    }
+}
+
 /// A keyframe unacknowledged for this long is sent again (e.g. to a restarted mapper), ns.
 pub const RESEND_AFTER_NS: i64 = 2_000_000_000;
 
@@ -94,8 +128,8 @@ pub struct TrackerCore {
     counters: TrackerCounters,
     /// The crash-recovery state as of now.
     resume: TrackerResume,
-    /// Start count in the high 16 bits: a restarted tracker's VO sessions are new ones.
-    session_base: u32,
+    /// The ids this start gives out.
+    ids: StartIds,
     vo: Option<VoTracker>,
     outbox: Outbox,
     kf_counts: KeyframeCounts,
@@ -122,7 +156,7 @@ impl TrackerCore {
         let kf_counts = KeyframeCounts::resume(&mut counters, &resume, restarted);
         counters.lockstep_sync = cfg.lockstep_sync as u64;
         Self {
-            session_base: (status.starts as u32) << 16,
+            ids: StartIds::new(status.starts),
             vo: None,
             outbox: Outbox::new(cfg.client),
             kf_counts,
@@ -172,7 +206,7 @@ impl TrackerCore {
 
     /// The session id of this start's non-VO messages (acks, end of stream).
     fn session_id(&self) -> u32 {
-        self.session_base | 1
+        self.ids.session(1)
     }
 
     /// The frames' end of stream was taken.
@@ -249,7 +283,7 @@ impl TrackerCore {
         let Some(v) = self.vo.as_mut() else {
             return vec![];
         };
-        let sess = self.session_base | v.session_id();
+        let sess = self.ids.session(v.session_id());
         let client = self.cfg.client;
         v.drain_keyframes()
             .iter()
@@ -301,7 +335,7 @@ impl TrackerCore {
         };
         vp.orb.n_features = self.cfg.features;
         let mut v = VoTracker::new(vp, camera)?;
-        v.start_keyframe_ids_at(u64::from(self.session_base >> 16) << KF_ID_BITS_PER_START);
+        v.start_keyframe_ids_at(self.ids.first_keyframe_id());
         self.counters.local_mapping_thread = Some(!self.cfg.inline_mapping as u64);
         Ok(v)
     }

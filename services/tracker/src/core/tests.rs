@@ -109,7 +109,7 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     assert_eq!(core.counters().keyframes_unsent_at_crash, 1);
     let (out, _) = step(&mut core, header(45), &[]);
     assert!(
-        matches!(&out[0], Out::Ack(a) if a.meta.session_id == (3 << 16) | 1),
+        matches!(&out[0], Out::Ack(a) if StartIds::split(a.meta.session_id) == (3, 1)),
         "a new start has its own sessions"
     );
     step(&mut core, header(47), &[]);
@@ -117,7 +117,7 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     assert_eq!(core.counters().frames_gap, 1);
     // The spool's keyframe of the dead process goes out first, and is counted on top.
     let mut h = shm_schema::KeyframeHeader::default();
-    h.meta.session_id = (2 << 16) | 1;
+    h.meta.session_id = StartIds::new(2).session(1);
     h.keyframe_id = 9;
     let out = core.recover_keyframe(
         KeyframeMsg {
@@ -126,7 +126,7 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
         },
         5,
     );
-    assert!(matches!(&out[0], Out::Keyframe(m) if m.key() == ((2 << 16) | 1, 9)));
+    assert!(matches!(&out[0], Out::Keyframe(m) if m.key() == (StartIds::new(2).session(1), 9)));
     let mut s = core.finish();
     assert_eq!(s.get("keyframes_sent"), 11);
     assert_eq!(s.get("keyframes_recovered"), 1);
