@@ -20,8 +20,9 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 use nalgebra::Isometry3;
 use slam_core::server::{
-    apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeptKeyframe,
-    types, KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
+    apply_pose_corrections, merge_maps, types, HandleReport, HandlerParams, HandlerStats,
+    KeptKeyframe, KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe,
+    ServerMaps,
 };
 
 use crate::convert::Correction;
@@ -314,7 +315,7 @@ impl Group {
 impl Group {
     /// Every kept keyframe of the group's maps (a restarted loop closer's resync).
     fn snapshot(&self) -> Vec<slam_core::server::KeptKeyframe> {
-                self.maps
+        self.maps
             .values()
             .flat_map(|m| {
                 let kfs = m.map.keyframes.keys();

@@ -18,8 +18,9 @@ use slam_core::vo::Keyframe;
 pub struct KeyframeMsg {
     /// Header: session, id, pose, intrinsics.
     pub header: KeyframeHeader,
-    /// One record per keypoint.
-    pub records: Vec<KeypointRecord>,
+    /// One record per keypoint, shared by the outbox and the messages it hands out (a
+    /// re-send copies the header only).
+    pub records: std::sync::Arc<[KeypointRecord]>,
 }
 
 impl KeyframeMsg {
@@ -95,7 +96,10 @@ pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg
         n_keypoints: n as u32,
         reserved: 0,
     };
-    KeyframeMsg { header, records }
+    KeyframeMsg {
+        header,
+        records: records.into(),
+    }
 }
 
 impl Outbox {
@@ -220,7 +224,7 @@ mod tests {
         header.pose_ck = Pose::IDENTITY;
         KeyframeMsg {
             header,
-            records: vec![KeypointRecord::default(); 3],
+            records: vec![KeypointRecord::default(); 3].into(),
         }
     }
 

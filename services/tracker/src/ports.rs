@@ -196,9 +196,8 @@ impl Ports {
     /// The frames' end of stream: the VO window goes to the mapper (in lock-step one
     /// keyframe at a time), then the end of stream is acknowledged and passed on.
     fn end_of_stream(&mut self, core: &mut TrackerCore, h: &FrameHeader) -> anyhow::Result<()> {
-        for msg in core.take_window() {
-            let key = msg.key();
-            let out = core.send_keyframe(msg, monotonic_ns());
+        for kf in core.take_window() {
+            let (key, out) = core.send_window_keyframe(&kf, monotonic_ns());
             self.exec(out, core.status_mut())?;
             if core.config().lockstep_sync {
                 self.sync_status(core);
@@ -306,7 +305,7 @@ fn open_spool(params: &Params, ports: &mut Ports, core: &mut TrackerCore) -> any
     for k in rec.keyframes {
         let msg = KeyframeMsg {
             header: k.header,
-            records: k.records,
+            records: k.records.into(),
         };
         let out = core.recover_keyframe(msg, monotonic_ns());
         ports.exec(out, core.status_mut())?;

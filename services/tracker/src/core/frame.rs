@@ -246,7 +246,9 @@ impl TrackerCore {
             }
         };
         // Evicted keyframes belong to the session they were made in.
-        let sess = self.ids.session(v.session_id().saturating_sub(o.new_session as u32));
+        let sess = self
+            .ids
+            .session(v.session_id().saturating_sub(o.new_session as u32));
         t.vo_session = self.ids.session(v.session_id());
         t.take_vo_output(&mut o);
         if o.new_session {

@@ -276,19 +276,26 @@ impl TrackerCore {
         out
     }
 
-    /// At the end of stream: the keyframes still in the VO map, oldest first, as messages
-    /// to send with [`TrackerCore::send_keyframe`] (in lock-step one at a time, waiting for
-    /// the server to finish each, so it handles them on the same schedule on every run).
-    pub fn take_window(&mut self) -> Vec<KeyframeMsg> {
-        let Some(v) = self.vo.as_mut() else {
-            return vec![];
-        };
-        let sess = self.ids.session(v.session_id());
-        let client = self.cfg.client;
-        v.drain_keyframes()
-            .iter()
-            .map(|kf| keyframe_message(client, kf, sess))
-            .collect()
+    /// At the end of stream: the keyframes still in the VO map, oldest first, to send one
+    /// by one with [`TrackerCore::send_window_keyframe`] (in lock-step waiting for the
+    /// server to finish each, so it handles them on the same schedule on every run).
+    pub fn take_window(&mut self) -> Vec<slam_core::vo::Keyframe> {
+        self.vo
+            .as_mut()
+            .map_or_else(Vec::new, |v| v.drain_keyframes())
+    }
+
+    /// Sends keyframe `kf` of the VO window (of the VO's current session); returns its key
+    /// and the outputs.
+    pub fn send_window_keyframe(
+        &mut self,
+        kf: &slam_core::vo::Keyframe,
+        now_ns: i64,
+    ) -> (KeyframeKey, Vec<Out>) {
+        let vo_session = self.vo.as_ref().map_or(1, |v| v.session_id());
+        let msg = keyframe_message(self.cfg.client, kf, self.ids.session(vo_session));
+        let key = msg.key();
+        (key, self.send_keyframe(msg, now_ns))
     }
 
     /// The frames' end of stream `h` (after [`TrackerCore::take_window`]): acknowledged, and

@@ -122,7 +122,7 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     let out = core.recover_keyframe(
         KeyframeMsg {
             header: h,
-            records: vec![],
+            records: Vec::new().into(),
         },
         5,
     );
@@ -274,8 +274,8 @@ fn synthetic_frames_through_the_core_lose_no_keyframe() {
         let out = core.publish_frame(t, 0);
         run.take(&mut core, out);
     }
-    for m in core.take_window() {
-        let out = core.send_keyframe(m, 0);
+    for kf in core.take_window() {
+        let (_, out) = core.send_window_keyframe(&kf, 0);
         run.take(&mut core, out);
     }
     let mut eos = MsgMeta::new(0, 1, 999, 0);
