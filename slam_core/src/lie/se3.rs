@@ -161,7 +161,10 @@ mod tests {
             let x = xi() * s;
             let back = se3_log(&se3_exp(&x));
             let tol = if s >= 3.0 { 1e-10 } else { 1e-12 };
-            assert!((back - x).norm() < tol * (1.0 + x.norm()), "{s}: {back} vs {x}");
+            assert!(
+                (back - x).norm() < tol * (1.0 + x.norm()),
+                "{s}: {back} vs {x}"
+            );
         }
         // Near π: the rotation angle is kept, the logarithm stays consistent with exp.
         let w = Vector3::new(0.0, PI - 1e-7, 0.0);
@@ -200,21 +203,33 @@ mod tests {
             let (jl, jl_inv) = (se3_jl(&x), se3_jl_inv(&x));
             for k in 0..6 {
                 let cols = [
-                    (numeric_col(|d| se3_log(&(ex.inverse() * se3_exp(&(x + d)))), k), &jr),
-                    (numeric_col(|d| se3_log(&(se3_exp(&(x + d)) * ex.inverse())), k), &jl),
+                    (
+                        numeric_col(|d| se3_log(&(ex.inverse() * se3_exp(&(x + d)))), k),
+                        &jr,
+                    ),
+                    (
+                        numeric_col(|d| se3_log(&(se3_exp(&(x + d)) * ex.inverse())), k),
+                        &jl,
+                    ),
                     (numeric_col(|d| se3_log(&(ex * se3_exp(d))), k), &jr_inv),
                     (numeric_col(|d| se3_log(&(se3_exp(d) * ex)), k), &jl_inv),
                 ];
                 for (i, (num, j)) in cols.iter().enumerate() {
                     let err = (num - j.column(k)).norm();
-                    assert!(err < 1e-7 * (1.0 + num.norm()), "s {s} col {k} J#{i}: {err}");
+                    assert!(
+                        err < 1e-7 * (1.0 + num.norm()),
+                        "s {s} col {k} J#{i}: {err}"
+                    );
                 }
             }
             let tol = 1e-11 * (1.0 + jr_inv.norm());
             assert!((jr * jr_inv - Matrix6::identity()).norm() < tol, "{s}");
             assert!((jl * jl_inv - Matrix6::identity()).norm() < tol, "{s}");
             // Jl = Ad(Exp ξ) Jr.
-            assert!((jl - se3_adjoint(&ex) * jr).norm() < 1e-11 * (1.0 + jl.norm()), "{s}");
+            assert!(
+                (jl - se3_adjoint(&ex) * jr).norm() < 1e-11 * (1.0 + jl.norm()),
+                "{s}"
+            );
         }
     }
 }

@@ -9,7 +9,9 @@
 use std::ops::Mul;
 use std::sync::OnceLock;
 
-use nalgebra::{Isometry3, Matrix3, Matrix4, SMatrix, SVector, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, SMatrix, SVector, Translation3, UnitQuaternion, Vector3,
+};
 
 use super::so3::{quat_exp, quat_log, skew};
 
@@ -341,7 +343,10 @@ mod tests {
         assert!(close(&acc, &big, 1e-8), "{acc:?} vs {big:?}");
         for s in [0.0, 1e-9, 1e-4, 0.1, 1.0, 2.0, 3.0] {
             let v = x * s;
-            assert!((Sim3::exp(&v).log() - v).norm() < 1e-11 * (1.0 + v.norm()), "{s}");
+            assert!(
+                (Sim3::exp(&v).log() - v).norm() < 1e-11 * (1.0 + v.norm()),
+                "{s}"
+            );
         }
         // Near π the rotation angle is kept and exp(log(S)) = S.
         let near = Vector7::from_column_slice(&[0.0, PI - 1e-7, 0.0, 0.5, 0.1, -0.2, -0.3]);

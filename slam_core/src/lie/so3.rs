@@ -44,7 +44,11 @@ pub fn vee(m: &Matrix3<f64>) -> Vector3<f64> {
 fn coeffs(theta2: f64) -> (f64, f64, f64) {
     let theta = theta2.sqrt();
     if theta < SMALL_ANGLE {
-        return (1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0, 1.0 / 6.0 - theta2 / 120.0);
+        return (
+            1.0 - theta2 / 6.0,
+            0.5 - theta2 / 24.0,
+            1.0 / 6.0 - theta2 / 120.0,
+        );
     }
     let s = theta.sin();
     let half = (0.5 * theta).sin() / theta;
@@ -146,10 +150,23 @@ mod tests {
 
     fn angles() -> Vec<Vector3<f64>> {
         let axis = Vector3::new(0.3, -0.5, 0.8).normalize();
-        [0.0, 1e-12, 1e-9, 1e-6, 1e-4, 9e-4, 1.1e-3, 0.01, 0.3, 1.0, 2.5, PI - 1e-3]
-            .iter()
-            .map(|&t| axis * t)
-            .collect()
+        [
+            0.0,
+            1e-12,
+            1e-9,
+            1e-6,
+            1e-4,
+            9e-4,
+            1.1e-3,
+            0.01,
+            0.3,
+            1.0,
+            2.5,
+            PI - 1e-3,
+        ]
+        .iter()
+        .map(|&t| axis * t)
+        .collect()
     }
 
     #[test]
@@ -171,7 +188,10 @@ mod tests {
             let q = quat_exp(&w);
             assert!((q.to_rotation_matrix().matrix() - r.matrix()).norm() < 1e-14);
             if w.norm() < PI - 1e-4 {
-                assert!((quat_log(&q) - w).norm() < 1e-14 * (1.0 + w.norm()), "{w:?}");
+                assert!(
+                    (quat_log(&q) - w).norm() < 1e-14 * (1.0 + w.norm()),
+                    "{w:?}"
+                );
             }
         }
     }
@@ -226,8 +246,16 @@ mod tests {
                 }
             }
             let tol = 1e-12 * (1.0 + jr_inv.norm());
-            assert!((jr * jr_inv - Matrix3::identity()).norm() < tol, "{}", w.norm());
-            assert!((jl * jl_inv - Matrix3::identity()).norm() < tol, "{}", w.norm());
+            assert!(
+                (jr * jr_inv - Matrix3::identity()).norm() < tol,
+                "{}",
+                w.norm()
+            );
+            assert!(
+                (jl * jl_inv - Matrix3::identity()).norm() < tol,
+                "{}",
+                w.norm()
+            );
             assert!((so3_jl(&-w) - jr).norm() < 1e-15);
         }
     }
