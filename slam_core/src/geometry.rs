@@ -1,67 +1,14 @@
-//! Small geometry helpers on `nalgebra` f64 types: SO(3) exp/log, skew matrices, quaternion
-//! conversions, pose interpolation (lerp + slerp) and Umeyama similarity alignment.
+//! Small geometry helpers on `nalgebra` f64 types: quaternion conversions, pose interpolation
+//! (lerp + slerp) and Umeyama similarity alignment. The Lie-group math (SO(3)/SE(3)/Sim(3)
+//! exp, log, Jacobians, skew matrices) is in [`crate::lie`].
 //!
 //! Conventions: a pose `T_AB` maps points of frame B into frame A (`x_A = T_AB x_B`);
 //! quaternions are Hamilton, stored `(w, x, y, z)` where an array is used.
 
 use nalgebra::{Isometry3, Matrix3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
 
+use crate::lie::{quat_exp, quat_log};
 use crate::CoreError;
-
-/// Angles below this (rad) use Taylor expansions in [`so3_exp`] / [`so3_log`].
-const SMALL_ANGLE: f64 = 1e-8;
-
-/// The skew-symmetric (cross-product) matrix `[v]x`, so that `skew(a) * b == a.cross(&b)`.
-pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
-    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
-}
-
-/// The inverse of [`skew`]: the vector of the skew-symmetric part of `m`.
-pub fn vee(m: &Matrix3<f64>) -> Vector3<f64> {
-    Vector3::new(
-        m[(2, 1)] - m[(1, 2)],
-        m[(0, 2)] - m[(2, 0)],
-        m[(1, 0)] - m[(0, 1)],
-    ) * 0.5
-}
-
-/// SO(3) exponential map (Rodrigues): the rotation by angle `|w|` about `w / |w|`.
-pub fn so3_exp(w: &Vector3<f64>) -> Rotation3<f64> {
-    let theta2 = w.norm_squared();
-    let k = skew(w);
-    let (a, b) = if theta2.sqrt() < SMALL_ANGLE {
-        // sin(t)/t ≈ 1 - t²/6, (1 - cos t)/t² ≈ 1/2 - t²/24
-        (1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0)
-    } else {
-        let theta = theta2.sqrt();
-        (theta.sin() / theta, (1.0 - theta.cos()) / theta2)
-    };
-    Rotation3::from_matrix_unchecked(Matrix3::identity() + k * a + k * k * b)
-}
-
-/// SO(3) logarithm: the rotation vector `w` (angle in `[0, π]`) with `so3_exp(w) == r`.
-/// Robust near 0 and near π (goes through the unit quaternion).
-pub fn so3_log(r: &Rotation3<f64>) -> Vector3<f64> {
-    let q = UnitQuaternion::from_rotation_matrix(r);
-    quat_log(&q)
-}
-
-/// Logarithm of a unit quaternion as a rotation vector (angle in `[0, π]`).
-pub fn quat_log(q: &UnitQuaternion<f64>) -> Vector3<f64> {
-    // Take the representative with w >= 0 so the angle is in [0, π].
-    let (w, v) = if q.w < 0.0 {
-        (-q.w, -q.imag())
-    } else {
-        (q.w, q.imag())
-    };
-    let n = v.norm();
-    if n < SMALL_ANGLE {
-        // angle = 2 atan2(n, w) ≈ 2 n / w
-        v * (2.0 / w.max(SMALL_ANGLE))
-    } else {
-        v * (2.0 * n.atan2(w) / n)
-    }
-}
 
 /// A unit quaternion from `(w, x, y, z)`, normalised. `None` when the input is not finite or
 /// its norm is (nearly) zero, so bad input from a file cannot produce NaN poses.
@@ -96,7 +43,7 @@ pub fn pose_from_pq(p: [f64; 3], q_wxyz: [f64; 4]) -> Option<Isometry3<f64>> {
 /// Never panics (also for rotations 180° apart).
 pub fn slerp(a: &UnitQuaternion<f64>, b: &UnitQuaternion<f64>, alpha: f64) -> UnitQuaternion<f64> {
     let rel = a.inverse() * b;
-    a * UnitQuaternion::from_scaled_axis(quat_log(&rel) * alpha)
+    a * quat_exp(&(quat_log(&rel) * alpha))
 }
 
 /// Pose interpolation: linear in the translation, slerp in the rotation.
@@ -266,35 +213,6 @@ mod tests {
 
     fn approx(a: f64, b: f64, tol: f64) -> bool {
         (a - b).abs() <= tol
-    }
-
-    #[test]
-    fn exp_log_roundtrip() {
-        for w in [
-            Vector3::new(0.1, -0.2, 0.3),
-            Vector3::new(1e-10, 0.0, -2e-10),
-            Vector3::zeros(),
-            Vector3::new(0.0, std::f64::consts::PI - 1e-9, 0.0),
-            Vector3::new(2.0, 1.0, -0.5),
-        ] {
-            let r = so3_exp(&w);
-            assert!((r.matrix().transpose() * r.matrix() - Matrix3::identity()).norm() < 1e-12);
-            let w2 = so3_log(&r);
-            assert!(
-                (so3_exp(&w2).matrix() - r.matrix()).norm() < 1e-9,
-                "{w:?} -> {w2:?}"
-            );
-            let ref_r = Rotation3::from_scaled_axis(w);
-            assert!((ref_r.matrix() - r.matrix()).norm() < 1e-12);
-        }
-    }
-
-    #[test]
-    fn skew_vee() {
-        let a = Vector3::new(1.0, 2.0, 3.0);
-        let b = Vector3::new(-0.5, 0.1, 4.0);
-        assert!((skew(&a) * b - a.cross(&b)).norm() < 1e-15);
-        assert_eq!(vee(&skew(&a)), a);
     }
 
     #[test]

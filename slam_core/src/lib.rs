@@ -6,6 +6,7 @@ pub mod error;
 pub mod features;
 pub mod geometry;
 pub mod imu;
+pub mod lie;
 pub mod loop_closing;
 pub mod metrics;
 pub mod optim;

@@ -20,7 +20,7 @@ use nalgebra::{Vector2, Vector3};
 
 use crate::camera::PinholeRadtan;
 use crate::features::KeyPoint;
-use crate::geometry::so3_exp;
+use crate::lie::so3_exp;
 
 /// Capture time (ns) of image row coordinate `row` of a frame whose middle row is captured
 /// at `t_mid_ns` and whose full readout takes `readout_ns` (seed eq. 2.61-2.63):

@@ -6,9 +6,9 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
 use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion, Vector3};
+use slam_core::lie::{Matrix7, Sim3};
 use slam_core::pgo::{
-    optimize_se3, optimize_sim3, Edge, LmParams, Matrix7, PgoMethod, PgoParams, Se3Graph, Sim3,
-    Sim3Graph, Vertex,
+    optimize_se3, optimize_sim3, Edge, LmParams, PgoMethod, PgoParams, Se3Graph, Sim3Graph, Vertex,
 };
 
 struct Counting;

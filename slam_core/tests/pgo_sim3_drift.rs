@@ -5,10 +5,11 @@
 //! bring the trajectory back onto the ground truth (ATE after Sim(3) alignment).
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use slam_core::lie::{Matrix7, Sim3};
 use slam_core::metrics::{align, ape_translation, Alignment};
 use slam_core::pgo::{
-    optimize_sim3, parse_g2o, sim3_cost, write_g2o_sim3, AnyGraph, Edge, Matrix7, PgoMethod,
-    PgoParams, Sim3, Sim3Graph, Vertex,
+    optimize_sim3, parse_g2o, sim3_cost, write_g2o_sim3, AnyGraph, Edge, PgoMethod, PgoParams,
+    Sim3Graph, Vertex,
 };
 
 /// xorshift64* in [-1, 1).

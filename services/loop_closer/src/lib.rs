@@ -31,10 +31,9 @@ use shm_schema::{
 use shoal_runtime::wire::{iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint};
 use shoal_runtime::{ReplayMode, ServiceStart, Status};
 use slam_core::features::OrbFeatures;
+use slam_core::lie::Sim3;
 use slam_core::loop_closing::{LoopDetector, LoopDetectorParams, LoopMatch};
-use slam_core::pgo::{
-    correct_loop, GraphKeyframe, LoopConstraint, LoopGraphParams, PgoMethod, Sim3,
-};
+use slam_core::pgo::{correct_loop, GraphKeyframe, LoopConstraint, LoopGraphParams, PgoMethod};
 use slam_core::place::Vocabulary;
 use slam_core::server::{KeptKeyframe, KeptPoint, MapId};
 

@@ -10,7 +10,7 @@ use shm_schema::{
 };
 use slam_core::camera::PinholeRadtan;
 use slam_core::features::OrbFeatures;
-use slam_core::pgo::Sim3;
+use slam_core::lie::Sim3;
 use slam_core::server::{KeptKeyframe, MapId, ServerKeyframe};
 use slam_core::vo::{KfId, PointId};
 

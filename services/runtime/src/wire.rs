@@ -1,7 +1,7 @@
 //! Wire ↔ nalgebra conversions of poses and similarities, shared by the services.
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use shm_schema::Pose;
-use slam_core::pgo::Sim3;
+use slam_core::lie::Sim3;
 
 /// A wire pose `T_ab` as an isometry; `None` when not finite or the quaternion is ~0.
 pub fn iso_from_wire(p: &Pose) -> Option<Isometry3<f64>> {

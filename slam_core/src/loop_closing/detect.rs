@@ -10,7 +10,7 @@ use nalgebra::{Isometry3, Translation3};
 use super::matching::neighbourhood_points;
 use super::sim3_ransac::{compute_sim3, Sim3Params};
 use super::LoopMatch;
-use crate::pgo::Sim3;
+use crate::lie::Sim3;
 use crate::place::{min_score_among, BowVector, FeatureVector, KeyframeDatabase, Vocabulary};
 use crate::server::{KeptKeyframe, MapId};
 use crate::vo::KfId;

@@ -7,7 +7,7 @@ use std::collections::HashSet;
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::features::{hamming, FeatureGrid};
-use crate::pgo::Sim3;
+use crate::lie::Sim3;
 use crate::place::{Descriptor, FeatureVector};
 use crate::server::KeptKeyframe;
 use crate::vo::PointId;

@@ -31,7 +31,7 @@ pub use matching::{match_kept_points, neighbourhood_points, NeighbourhoodPoint, 
 pub use refine::{refine_sim3, RefineParams, Sim3Correspondence};
 pub use sim3_ransac::{compute_sim3, Sim3Params, Sim3Result};
 
-use crate::pgo::Sim3;
+use crate::lie::Sim3;
 use crate::server::MapId;
 use crate::vo::{KfId, PointId};
 

@@ -4,14 +4,13 @@
 //! query image and of the query point `S⁻¹ p_q` projected into the matched image, each
 //! weighted by its keypoint octave's `1/σ²` and robustified by Huber.
 //!
-//! Left perturbation `S ← Exp(ξ) S`, `ξ = [ρ; ω; σ]` ([`Sim3::exp`]). Accumulation is in
+//! Left perturbation `S ← Exp(ξ) S`, `ξ = [ω; ρ; σ]` (rotation first, [`Sim3::exp`]). Accumulation is in
 //! place into a 7x7 system on the stack: nothing is allocated per residual.
 
 use nalgebra::{Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 
 use crate::camera::PinholeRadtan;
-use crate::geometry::skew;
-use crate::pgo::{Matrix7, Sim3, Vector7};
+use crate::lie::{skew, Matrix7, Sim3, Vector7};
 
 /// One 3D-3D correspondence with the two keypoints that observed it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -104,7 +103,7 @@ fn evaluate(
         if !active.is_empty() && !active.get(i).copied().unwrap_or(false) {
             continue;
         }
-        // Forward: S p_m into the query image. d(S p_m)/dξ = [I, -[p']×, p'].
+        // Forward: S p_m into the query image. d(S p_m)/dξ = [-[p']×, I, p'].
         let p1 = s.transform_point(&c.p_m);
         match project_with_jacobian(cam_q, &p1) {
             Some((uv, jp)) => {
@@ -113,8 +112,8 @@ fn evaluate(
                 cost += rho;
                 if let Some((h, g)) = system.as_mut() {
                     let mut dp = SMatrix::<f64, 3, 7>::zeros();
-                    dp.fixed_view_mut::<3, 3>(0, 0).fill_with_identity();
-                    dp.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-skew(&p1)));
+                    dp.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-skew(&p1)));
+                    dp.fixed_view_mut::<3, 3>(0, 3).fill_with_identity();
                     dp.fixed_view_mut::<3, 1>(0, 6).copy_from(&p1);
                     let j = jp * dp;
                     let wi = w * c.inv_sigma2_q;
@@ -125,7 +124,7 @@ fn evaluate(
             None => cost += behind,
         }
         // Backward: S⁻¹ p_q into the matched image.
-        // d(S⁻¹ Exp(-ξ) p_q)/dξ = (1/s) Rᵀ [-I, [p_q]×, -p_q].
+        // d(S⁻¹ Exp(-ξ) p_q)/dξ = (1/s) Rᵀ [[p_q]×, -I, -p_q].
         let p2 = s_inv.transform_point(&c.p_q);
         match project_with_jacobian(cam_m, &p2) {
             Some((uv, jp)) => {
@@ -134,9 +133,9 @@ fn evaluate(
                 cost += rho;
                 if let Some((h, g)) = system.as_mut() {
                     let mut dq = SMatrix::<f64, 3, 7>::zeros();
-                    dq.fixed_view_mut::<3, 3>(0, 0).fill_with_identity();
-                    dq.fixed_view_mut::<3, 3>(0, 0).neg_mut();
-                    dq.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&c.p_q));
+                    dq.fixed_view_mut::<3, 3>(0, 0).copy_from(&skew(&c.p_q));
+                    dq.fixed_view_mut::<3, 3>(0, 3).fill_with_identity();
+                    dq.fixed_view_mut::<3, 3>(0, 3).neg_mut();
                     dq.fixed_view_mut::<3, 1>(0, 6).copy_from(&(-c.p_q));
                     let j = jp * (r_inv * dq);
                     let wi = w * c.inv_sigma2_m;

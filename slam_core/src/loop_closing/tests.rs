@@ -415,8 +415,9 @@ fn refinement_improves_a_perturbed_similarity() {
             }
         })
         .collect();
-    let mut xi = crate::pgo::Vector7::zeros();
-    xi.copy_from_slice(&[0.05, -0.03, 0.08, 0.01, -0.015, 0.02, 0.04]);
+    // [ω; ρ; σ]
+    let mut xi = crate::lie::Vector7::zeros();
+    xi.copy_from_slice(&[0.01, -0.015, 0.02, 0.05, -0.03, 0.08, 0.04]);
     let start = Sim3::exp(&xi).compose(&truth);
     let (refined, cost) = refine_sim3(
         &start,

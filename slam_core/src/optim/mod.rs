@@ -1,10 +1,11 @@
-//! Non-linear least-squares building blocks: SE(3) increments, robust kernels and the
+//! Non-linear least-squares building blocks: robust kernels, bundle adjustment and the
 //! motion-only (pose-only) optimisation of tracking (Mur-Artal et al. 2015, section V-D).
 //!
 //! Conventions shared by everything here (and meant for the bundle adjustment that will
 //! live beside it, e.g. `optim/ba*.rs`):
-//! - Poses are world-to-camera `T_cw`; an increment `δ = [ρ; φ]` (translation first, then
-//!   rotation) is applied on the **left**: `T_cw ← Exp(δ) · T_cw` (see [`se3::se3_exp`]).
+//! - Poses are world-to-camera `T_cw`; an increment `δ = [ω; v]` (rotation first, the order
+//!   of [`crate::lie`]) is applied on the **left**: `T_cw ← Exp(δ) · T_cw`
+//!   ([`crate::lie::se3_exp`]); Jacobian columns follow the same order.
 //! - Residuals are `predicted - observed` in pixels; a residual's information is the scalar
 //!   `1 / σ²` with `σ = 1.2^octave` ([`inv_sigma2_for_octave`]); robust kernels act on the
 //!   squared Mahalanobis error `χ² = rᵀ Ω r` ([`robust::RobustKernel`]).
@@ -13,7 +14,6 @@
 pub mod ba;
 pub mod pose_only;
 pub mod robust;
-pub mod se3;
 pub(crate) mod sparse_llt;
 
 pub use pose_only::{PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, Velocity};

@@ -4,10 +4,10 @@
 //! minimising the robust reprojection error in pixels, in rounds that reclassify inliers.
 //!
 //! **Model.** The pose is `T_cw` (world to camera at the frame's mid-row time); increments
-//! are on the left, `T_cw ← Exp(δ) T_cw`, `δ = [ρ; φ]` ([`super::se3::se3_exp`]). The
+//! are on the left, `T_cw ← Exp(δ) T_cw`, `δ = [ω; v]` ([`crate::lie::se3_exp`]). The
 //! residual of an observation is `π(p_c) - u` (pixels) with `π` the full
 //! [`PinholeRadtan`] projection (distortion included); its Jacobian is analytic:
-//! `∂π/∂p_c = diag(fx, fy) · ∂distort/∂x_n · ∂x_n/∂p_c` and `∂p_c/∂δ = R_A [I | -[q]x]`,
+//! `∂π/∂p_c = diag(fx, fy) · ∂distort/∂x_n · ∂x_n/∂p_c` and `∂p_c/∂δ = R_A [-[q]x | I]`,
 //! with `q = T_cw p_w` and `A` the rolling-shutter correction below (identity for a global
 //! shutter). Information is `1 / σ²` per observation; the cost is `Σ ρ(rᵀ Ω r)`.
 //!
@@ -20,7 +20,7 @@
 //!
 //! **Rolling shutter.** An observation may carry `dt`, its capture time minus the frame's
 //! mid-row time (seconds, e.g. [`crate::rolling_shutter::row_offset_s`] of its row). With a
-//! constant camera velocity `ξ = [v; ω]` (linear m/s and angular rad/s, both expressed in
+//! constant camera velocity `ξ = [ω; v]` (angular rad/s and linear m/s, both expressed in
 //! the camera frame at mid-row: a body twist) the camera pose at that time is
 //! `T_wc(dt) = T_wc ∘ Exp(dt ξ)`, so the point is projected from
 //! `p_c = Exp(-dt ξ) · T_cw · p_w` (`A = Exp(-dt ξ)`, computed once per call). The velocity
@@ -35,9 +35,8 @@ use nalgebra::{
 };
 
 use super::robust::RobustKernel;
-use super::se3::se3_exp;
 use crate::camera::PinholeRadtan;
-use crate::geometry::skew;
+use crate::lie::{se3_exp, skew};
 use crate::CoreError;
 
 /// One observation of a fixed map point.
@@ -61,6 +60,22 @@ pub struct Velocity {
     pub linear: Vector3<f64>,
     /// Angular velocity `ω`, rad/s, camera frame.
     pub angular: Vector3<f64>,
+}
+
+impl Velocity {
+    /// The body twist `ξ = [ω; v]` (rotation first, as [`crate::lie::se3_exp`] takes it).
+    pub fn twist(&self) -> Vector6<f64> {
+        let (w, v) = (&self.angular, &self.linear);
+        Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z)
+    }
+
+    /// The velocity of a body twist `ξ = [ω; v]`.
+    pub fn from_twist(xi: &Vector6<f64>) -> Self {
+        Self {
+            angular: Vector3::new(xi[0], xi[1], xi[2]),
+            linear: Vector3::new(xi[3], xi[4], xi[5]),
+        }
+    }
 }
 
 /// Parameters of [`PoseOptimizer::optimize`]; defaults are ORB-SLAM's.
@@ -194,9 +209,10 @@ impl PoseOptimizer {
         };
         let a = du_dp * r_a;
         let b = -(a * skew(&q));
+        // Columns [ω; v]: ∂/∂ω = -A [q]x, ∂/∂v = A.
         let mut j = Matrix2x6::zeros();
-        j.fixed_view_mut::<2, 3>(0, 0).copy_from(&a);
-        j.fixed_view_mut::<2, 3>(0, 3).copy_from(&b);
+        j.fixed_view_mut::<2, 3>(0, 0).copy_from(&b);
+        j.fixed_view_mut::<2, 3>(0, 3).copy_from(&a);
         Some(Linearised { r: uv - o.pixel, j })
     }
 
@@ -273,14 +289,7 @@ impl PoseOptimizer {
                     "pose-only: non-finite velocity".into(),
                 ));
             }
-            let xi = Vector6::new(
-                v.linear.x,
-                v.linear.y,
-                v.linear.z,
-                v.angular.x,
-                v.angular.y,
-                v.angular.z,
-            );
+            let xi = v.twist();
             if xi != Vector6::zeros() && obs.iter().any(|o| o.dt != 0.0) {
                 self.rolling = true;
                 self.shutter

@@ -3,8 +3,8 @@
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector2, Vector3, Vector6};
 
 use super::pose_only::*;
-use super::se3::se3_exp;
 use crate::camera::PinholeRadtan;
+use crate::lie::se3_exp;
 use crate::rolling_shutter::row_offset_s;
 use crate::twoview::synth::{box_point, Rng};
 use crate::CoreError;
@@ -40,14 +40,7 @@ fn scene(
                 None => continue,
             },
             Some((v, readout)) => {
-                let xi = Vector6::new(
-                    v.linear.x,
-                    v.linear.y,
-                    v.linear.z,
-                    v.angular.x,
-                    v.angular.y,
-                    v.angular.z,
-                );
+                let xi = v.twist();
                 let mut dt = 0.0;
                 let mut uv = Vector2::zeros();
                 let mut ok = true;

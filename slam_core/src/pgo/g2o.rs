@@ -6,7 +6,9 @@
 //!   information in g2o's `(t, R)` order; stored permuted to `(R, t)` (GTSAM's order).
 //! - `VERTEX_SIM3:QUAT id tx ty tz qx qy qz qw s`
 //! - `EDGE_SIM3:QUAT i j tx ty tz qx qy qz qw s` + 28 upper-triangular entries of the 7x7
-//!   information ordered `[translation, rotation, log-scale]`; `Z_ij ≈ S_wi⁻¹ S_wj`.
+//!   information ordered `[translation, rotation, log-scale]`; stored permuted to
+//!   `[rotation, translation, log-scale]` (the order of [`crate::lie::Sim3`]);
+//!   `Z_ij ≈ S_wi⁻¹ S_wj`.
 //! - `FIX id`
 //!
 //! A file holds one kind of graph. Malformed lines give [`CoreError::Parse`] with the line
@@ -15,10 +17,10 @@
 use std::collections::HashMap;
 use std::fmt::Write as _;
 
-use nalgebra::{Isometry3, Matrix6, Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Quaternion, SMatrix, Translation3, UnitQuaternion, Vector3};
 
 use super::graph::{AnyGraph, Edge, GraphPose, PoseGraph, Se3Graph, Sim3Graph, Vertex};
-use super::sim3::{Matrix7, Sim3};
+use crate::lie::{Matrix7, Sim3};
 use crate::CoreError;
 
 fn err(line: usize, msg: impl Into<String>) -> CoreError {
@@ -114,9 +116,12 @@ impl Fields<'_> {
     }
 }
 
-/// Permutes a 6x6 matrix between `(t, R)` and `(R, t)` block order (an involution).
-pub fn swap_blocks_6(m: &Matrix6<f64>) -> Matrix6<f64> {
-    Matrix6::from_fn(|a, b| m[((a + 3) % 6, (b + 3) % 6)])
+/// Permutes a 6x6 (SE(3)) or 7x7 (Sim(3)) matrix between g2o's translation-first block
+/// order `(t, R[, σ])` and the rotation-first order `(R, t[, σ])` of [`crate::lie`] by
+/// swapping its first two 3-blocks (an involution; the log-scale row/column stays last).
+pub fn swap_rt_blocks<const D: usize>(m: &SMatrix<f64, D, D>) -> SMatrix<f64, D, D> {
+    let p = |a: usize| if a < 6 { (a + 3) % 6 } else { a };
+    SMatrix::from_fn(|a, b| m[(p(a), p(b))])
 }
 
 /// Graph under construction, with the id → index map.
@@ -222,7 +227,7 @@ pub fn parse_g2o(text: &str) -> Result<AnyGraph, CoreError> {
             "EDGE_SE3:QUAT" => {
                 f.expect_len(2 + 7 + 21)?;
                 let (t, q) = f.pose(2)?;
-                let info = swap_blocks_6(&f.upper::<6>(9)?);
+                let info = swap_rt_blocks(&f.upper::<6>(9)?);
                 se3_edges.push((
                     line,
                     f.id(0)?,
@@ -240,7 +245,7 @@ pub fn parse_g2o(text: &str) -> Result<AnyGraph, CoreError> {
                 f.expect_len(2 + 8 + 28)?;
                 let (t, q) = f.pose(2)?;
                 let s = f.scale(9)?;
-                let info: Matrix7 = f.upper::<7>(10)?;
+                let info: Matrix7 = swap_rt_blocks(&f.upper::<7>(10)?);
                 sim3_edges.push((line, f.id(0)?, f.id(1)?, Sim3::new(q, t, s), info));
             }
             _ => {
@@ -299,7 +304,7 @@ pub fn write_g2o_se3(g: &Se3Graph) -> String {
             &e.measurement.translation.vector,
             &e.measurement.rotation,
         );
-        write_upper(&mut out, &swap_blocks_6(&e.info));
+        write_upper(&mut out, &swap_rt_blocks(&e.info));
         out.push('\n');
     }
     write_fixes(&mut out, g);
@@ -319,7 +324,7 @@ pub fn write_g2o_sim3(g: &Sim3Graph) -> String {
         let _ = write!(out, "EDGE_SIM3:QUAT {a} {b}");
         write_pose(&mut out, &e.measurement.t, &e.measurement.r);
         let _ = write!(out, " {:.17e}", e.measurement.s);
-        write_upper(&mut out, &e.info);
+        write_upper(&mut out, &swap_rt_blocks(&e.info));
         out.push('\n');
     }
     write_fixes(&mut out, g);
@@ -341,6 +346,7 @@ pub fn write_tum<'a>(poses: impl IntoIterator<Item = (u64, &'a Isometry3<f64>)>)
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Matrix6;
 
     const SIM: &str = "# a comment\n\
         VERTEX_SIM3:QUAT 0 0 0 0 0 0 0 1 1\n\
@@ -361,9 +367,10 @@ mod tests {
         assert_eq!(g.vertices[1].pose.s, 2.0);
         let e = g.edges[0];
         assert_eq!((e.i, e.j), (0, 1));
+        // File diag (t: 1 1 1, R: 2 2 2, σ: 5), stored (R, t, σ).
         assert_eq!(e.info[(6, 6)], 5.0);
-        assert_eq!(e.info[(3, 3)], 2.0);
-        assert_eq!(e.info[(0, 0)], 1.0);
+        assert_eq!(e.info[(3, 3)], 1.0);
+        assert_eq!(e.info[(0, 0)], 2.0);
         let again = parse_g2o(&write_g2o_sim3(&g)).unwrap();
         assert_eq!(again, AnyGraph::Sim3(g));
     }
@@ -437,7 +444,11 @@ mod tests {
     #[test]
     fn swap_is_an_involution() {
         let m = Matrix6::from_fn(|a, b| (a * 6 + b) as f64);
-        assert_eq!(swap_blocks_6(&swap_blocks_6(&m)), m);
-        assert_eq!(swap_blocks_6(&m)[(0, 0)], m[(3, 3)]);
+        assert_eq!(swap_rt_blocks(&swap_rt_blocks(&m)), m);
+        assert_eq!(swap_rt_blocks(&m)[(0, 0)], m[(3, 3)]);
+        let m7 = Matrix7::from_fn(|a, b| (a * 7 + b) as f64);
+        assert_eq!(swap_rt_blocks(&swap_rt_blocks(&m7)), m7);
+        assert_eq!(swap_rt_blocks(&m7)[(0, 0)], m7[(3, 3)]);
+        assert_eq!(swap_rt_blocks(&m7)[(6, 1)], m7[(6, 4)]);
     }
 }

@@ -3,7 +3,7 @@
 
 use nalgebra::{Isometry3, Matrix6};
 
-use super::sim3::{Matrix7, Sim3};
+use crate::lie::{Matrix7, Sim3};
 
 /// A pose type a graph can hold, with the information matrix of its edges.
 pub trait GraphPose: Copy + std::fmt::Debug {

@@ -11,13 +11,13 @@
 //! the right, `X ← X Exp(δ)`; Jacobians `∂r/∂δ_j = Jr(r)⁻¹`,
 //! `∂r/∂δ_i = -Jr(r)⁻¹ Ad(X_j⁻¹ X_i)`. A subset of the tangent coordinates can be optimised
 //! while the others stay fixed (stepwise Sim(3) step 2: translation and scale only).
+//! Tangent orders and Jacobians are those of [`crate::lie`] (rotation first).
 
 use nalgebra::{Isometry3, SMatrix, SVector};
 
 use super::graph::{Edge, GraphPose};
-use super::se3::{se3_adjoint, se3_exp, se3_jr_inv, se3_log};
-use super::sim3::{sim3_jr_inv, Sim3};
 use super::sparse::BlockSystem;
+use crate::lie::{se3_adjoint, se3_exp, se3_jr_inv, se3_log, sim3_jr_inv, Sim3};
 use crate::CoreError;
 
 /// Stopping and damping parameters (defaults = GTSAM's `LevenbergMarquardtParams()`).

@@ -9,8 +9,8 @@ use std::collections::{BTreeMap, HashMap};
 use nalgebra::Isometry3;
 
 use super::graph::{Edge, Sim3Graph, Vertex};
-use super::sim3::{Matrix7, Sim3};
 use super::{optimize_sim3, PgoMethod, PgoParams, PgoReport};
+use crate::lie::{Matrix7, Sim3};
 use crate::vo::KfId;
 use crate::CoreError;
 

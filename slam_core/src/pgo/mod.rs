@@ -6,8 +6,9 @@
 //! of eq. 3.9 written for world-from-keyframe poses) and the cost is
 //! `E = ½ Σ rᵀ Ω r` — exactly GTSAM's `graph.error()`: for SE(3), `r` is ordered
 //! `(rotation, translation)` with the translation part `V(θ)⁻¹ t` and `Ω` is the file's
-//! information with its `(t, R)` blocks permuted; for Sim(3), `r = [ρ, ω, σ]` and `Ω` is
-//! the file's 7x7 information in that order.
+//! information with its `(t, R)` blocks permuted; for Sim(3), `r = [ω, ρ, σ]` and `Ω` is
+//! the file's 7x7 information (stored `[ρ, ω, σ]`) with its first two blocks permuted.
+//! Tangent orders, `Log`, `Exp`, adjoints and Jacobians are those of [`crate::lie`].
 //!
 //! **Gauge.** `FIX` vertices are held constant. An SE(3) graph without `FIX` gets GTSAM's
 //! prior on its smallest-id vertex (at the vertex's input value, information
@@ -53,8 +54,6 @@ mod graph;
 mod information;
 mod lm;
 mod loop_graph;
-mod se3;
-mod sim3;
 mod sparse;
 mod stepwise;
 
@@ -63,20 +62,19 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Matrix6, Vector3, Vector6};
 
 pub use chordal::{chordal_init, project_to_so3};
-pub use g2o::{parse_g2o, swap_blocks_6, write_g2o_se3, write_g2o_sim3, write_tum};
+pub use g2o::{parse_g2o, swap_rt_blocks, write_g2o_se3, write_g2o_sim3, write_tum};
 pub use graph::{AnyGraph, Edge, GraphPose, PoseGraph, Se3Graph, Sim3Graph, Vertex};
 pub use information::gtsam_effective_information;
 pub use lm::{graph_cost, LiePose, LmParams, LmSummary, Prior};
 pub use loop_graph::{
     correct_loop, GraphKeyframe, LoopConstraint, LoopCorrection, LoopGraphParams,
 };
-pub use se3::{se3_adjoint, se3_exp, se3_jr_inv, se3_log, so3_jr_inv, so3_v_inv};
-pub use sim3::{sim3_ad, sim3_jr_inv, sim3_w, Matrix7, Sim3, Vector7};
 pub use stepwise::{solve_scales, STEP2_ACTIVE};
 
 use lm::{levenberg_marquardt, BetweenProblem};
 use sparse::BlockSystem;
 
+use crate::lie::Sim3;
 use crate::CoreError;
 
 /// How a Sim(3) graph is optimised.

@@ -82,6 +82,6 @@ pub fn solve_scales(graph: &mut Sim3Graph, fixed: &[bool]) -> Result<(), CoreErr
     Ok(())
 }
 
-/// Tangent coordinates optimised in step 2 (eq. 3.12): translation `ρ` and log-scale `σ`;
-/// the rotation `ω` is held.
-pub const STEP2_ACTIVE: [usize; 4] = [0, 1, 2, 6];
+/// Tangent coordinates optimised in step 2 (eq. 3.12): translation `ρ` and log-scale `σ`
+/// (indices 3-6 of `[ω; ρ; σ]`); the rotation `ω` is held.
+pub const STEP2_ACTIVE: [usize; 4] = [3, 4, 5, 6];

@@ -3,6 +3,7 @@
 use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion, Vector3, Vector6};
 
 use super::*;
+use crate::lie::{se3_exp, Matrix7};
 
 fn iso(t: [f64; 3], w: [f64; 3]) -> Isometry3<f64> {
     Isometry3::from_parts(

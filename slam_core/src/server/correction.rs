@@ -15,7 +15,7 @@ use nalgebra::Isometry3;
 
 use super::server_map::ServerMap;
 use super::types::MapId;
-use crate::pgo::Sim3;
+use crate::lie::Sim3;
 use crate::vo::{ClientMap, KfId, PointId};
 use crate::CoreError;
 

@@ -23,9 +23,9 @@ use super::types::{
     server_kf_id, server_map_id, HandleReport, KeptKeyframe, KeyframeStatus, MapId, ServerFeedback,
     ServerKeyframe,
 };
+use crate::lie::Sim3;
 use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
 use crate::optim::PoseOptParams;
-use crate::pgo::Sim3;
 use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
 use crate::vo::local_mapping::{
     create_points_with_neighbours, cull_recent_points, global_bundle_adjustment,

@@ -195,7 +195,7 @@ pub fn decompose_essential(e: &Matrix3<f64>) -> Result<[Motion; 4], CoreError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::skew;
+    use crate::lie::skew;
 
     #[test]
     fn eight_point_and_decomposition_recover_the_motion() {

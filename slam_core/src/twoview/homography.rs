@@ -9,7 +9,7 @@
 use nalgebra::{Matrix3, Rotation3, SymmetricEigen, Vector2, Vector3};
 
 use super::normalize::{apply, hartley, null_matrix, Normal9, Row9};
-use crate::geometry::skew;
+use crate::lie::skew;
 use crate::CoreError;
 
 /// Adds the two DLT rows of `x2 ~ H x1` for one correspondence to the normal matrix.

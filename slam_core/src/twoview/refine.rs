@@ -15,7 +15,7 @@
 
 use nalgebra::{Matrix3, Rotation3, SMatrix, SVector, Vector2, Vector3};
 
-use crate::geometry::{skew, so3_exp};
+use crate::lie::{skew, so3_exp};
 
 type M5 = SMatrix<f64, 5, 5>;
 type V5 = SVector<f64, 5>;

@@ -51,7 +51,7 @@ pub fn create_points_with_neighbours(map: &mut ClientMap, k: KfId, n_neighbours:
         // Relative pose 1 → 2 for the epipolar test in normalised coordinates.
         let t_21 = kf2.t_cw * kf1.t_cw.inverse();
         let r = t_21.rotation.to_rotation_matrix();
-        let e = crate::geometry::skew(&t_21.translation.vector) * r.matrix();
+        let e = crate::lie::skew(&t_21.translation.vector) * r.matrix();
         let (p1, p2) = (projection_matrix(&kf1.t_cw), projection_matrix(&kf2.t_cw));
         let cam1 = kf1.camera;
         let mut new_points = Vec::new();

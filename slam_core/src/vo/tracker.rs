@@ -15,6 +15,7 @@ use super::search::ProjCandidate;
 use super::{KeyframeRule, KeyframeRuleParams};
 use crate::camera::PinholeRadtan;
 use crate::features::{FeatureGrid, GrayImage, OrbExtractor, OrbFeatures, OrbParams};
+use crate::lie::{se3_exp, se3_log};
 use crate::optim::{PoseObservation, PoseOptimizer, Velocity};
 use crate::CoreError;
 
@@ -535,33 +536,12 @@ impl VoTracker {
         let dt = (t_ns - last.t_ns) as f64 * 1e-9;
         let a = dt / period;
         let log = se3_log(&v);
-        let pred = crate::optim::se3::se3_exp(&(log * a)) * last.t_cw;
+        let pred = se3_exp(&(log * a)) * last.t_cw;
         // Body twist per second, camera frame: T_cw(t + dt) = Exp(-dt ξ) T_cw(t)
         // (the pose optimiser's rolling-shutter convention).
-        let xi = -log / period;
-        let vel = Velocity {
-            linear: Vector3::new(xi[0], xi[1], xi[2]),
-            angular: Vector3::new(xi[3], xi[4], xi[5]),
-        };
+        let vel = Velocity::from_twist(&(-log / period));
         Some((pred, Some(vel)))
     }
-}
-
-/// Logarithm of an SE(3) pose as `[ρ; φ]` (translation first), the inverse of
-/// [`crate::optim::se3::se3_exp`]: `φ = Log(R)`, `ρ = J(φ)⁻¹ t`.
-pub fn se3_log(t: &Isometry3<f64>) -> nalgebra::Vector6<f64> {
-    let phi = crate::geometry::so3_log(&t.rotation.to_rotation_matrix());
-    let theta = phi.norm();
-    let w = crate::geometry::skew(&phi);
-    let j_inv = if theta < 1e-6 {
-        nalgebra::Matrix3::identity() - 0.5 * w + w * w / 12.0
-    } else {
-        let half = 0.5 * theta;
-        let c = (1.0 - half * half.cos() / half.sin()) / (theta * theta);
-        nalgebra::Matrix3::identity() - 0.5 * w + c * w * w
-    };
-    let rho = j_inv * t.translation.vector;
-    nalgebra::Vector6::new(rho.x, rho.y, rho.z, phi.x, phi.y, phi.z)
 }
 
 mod backward;
@@ -571,17 +551,3 @@ mod reloc;
 mod track;
 
 use local_mapper::lock;
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn se3_log_inverts_exp() {
-        let xi = nalgebra::Vector6::new(0.3, -0.2, 0.5, 0.4, -0.1, 0.25);
-        let t = crate::optim::se3::se3_exp(&xi);
-        assert!((se3_log(&t) - xi).norm() < 1e-9);
-        let small = nalgebra::Vector6::new(1e-3, 0.0, 2e-3, 1e-8, 0.0, 0.0);
-        assert!((se3_log(&crate::optim::se3::se3_exp(&small)) - small).norm() < 1e-12);
-    }
-}

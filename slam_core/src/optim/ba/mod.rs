@@ -3,7 +3,7 @@
 //! the server mapper (local and global BA, seed §3.4.1-3.4.2).
 //!
 //! **Model.** Conventions of [`crate::optim`]: poses are world-to-camera `T_cw`, updated on
-//! the left (`T_cw ← Exp(δ) T_cw`, `δ = [ρ; φ]`); points `p_w ← p_w + δp`; residuals
+//! the left (`T_cw ← Exp(δ) T_cw`, `δ = [ω; v]`, rotation first as in [`crate::lie`]); points `p_w ← p_w + δp`; residuals
 //! `π(T_cw p_w) - u` in pixels through the full [`crate::camera::PinholeRadtan`] model
 //! (analytic Jacobians through the distortion, [`linearize_reprojection`]); information
 //! `1/σ²`, `σ = 1.2^octave`; Huber kernel (`δ = √5.991`) on `χ² = rᵀ Ω r`.

@@ -5,7 +5,7 @@
 use nalgebra::{Isometry3, Matrix2x3, Matrix2x6, Point3, Vector2, Vector3};
 
 use crate::camera::PinholeRadtan;
-use crate::geometry::skew;
+use crate::lie::skew;
 use crate::CoreError;
 
 /// A keyframe of a bundle-adjustment problem.
@@ -197,14 +197,14 @@ pub fn reprojection_residual(
 pub struct ReprojectionLinearization {
     /// Residual `π(T_cw p_w) - pixel`, pixels.
     pub residual: Vector2<f64>,
-    /// `∂r/∂δ` for the left pose increment `T_cw ← Exp(δ) T_cw`, `δ = [ρ; φ]`.
+    /// `∂r/∂δ` for the left pose increment `T_cw ← Exp(δ) T_cw`, `δ = [ω; v]`.
     pub d_pose: Matrix2x6<f64>,
     /// `∂r/∂p_w` for the point increment `p_w ← p_w + δp`.
     pub d_point: Matrix2x3<f64>,
 }
 
 /// Residual and analytic Jacobians of one observation, through the distortion:
-/// `∂π/∂p_c = diag(fx, fy) · ∂distort/∂x_n · ∂x_n/∂p_c`, `∂p_c/∂δ = [I | -[p_c]x]`,
+/// `∂π/∂p_c = diag(fx, fy) · ∂distort/∂x_n · ∂x_n/∂p_c`, `∂p_c/∂δ = [-[p_c]x | I]`,
 /// `∂p_c/∂p_w = R_cw`. `None` when the point is not in front of the camera.
 #[inline]
 pub fn linearize_reprojection(
@@ -226,11 +226,12 @@ pub fn linearize_reprojection(
     };
     du_dp.row_mut(0).scale_mut(camera.fx);
     du_dp.row_mut(1).scale_mut(camera.fy);
+    // Columns [ω; v]: ∂/∂ω = -∂π/∂p_c [p_c]x, ∂/∂v = ∂π/∂p_c.
     let mut d_pose = Matrix2x6::zeros();
-    d_pose.fixed_view_mut::<2, 3>(0, 0).copy_from(&du_dp);
     d_pose
-        .fixed_view_mut::<2, 3>(0, 3)
+        .fixed_view_mut::<2, 3>(0, 0)
         .copy_from(&(-(du_dp * skew(&p_c))));
+    d_pose.fixed_view_mut::<2, 3>(0, 3).copy_from(&du_dp);
     Some(ReprojectionLinearization {
         residual: uv - pixel,
         d_pose,

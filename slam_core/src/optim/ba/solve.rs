@@ -10,8 +10,8 @@ use nalgebra::{Isometry3, Vector3, Vector6};
 use super::linear::LinearSolverKind;
 use super::problem::{reprojection_residual, BaProblem};
 use super::schur::{NormalEquations, NONE};
+use crate::lie::se3_exp;
 use crate::optim::robust::RobustKernel;
-use crate::optim::se3::se3_exp;
 use crate::CoreError;
 
 /// Squared error charged to an active observation whose point falls behind its camera during

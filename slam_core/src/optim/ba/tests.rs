@@ -9,7 +9,7 @@ use super::synth::{synthetic_scene, SyntheticBa, SyntheticBaConfig};
 use super::*;
 use crate::camera::PinholeRadtan;
 use crate::geometry::umeyama;
-use crate::optim::se3::se3_exp;
+use crate::lie::se3_exp;
 
 fn centre(t_cw: &Isometry3<f64>) -> Vector3<f64> {
     t_cw.inverse().translation.vector

@@ -18,8 +18,9 @@ use std::collections::VecDeque;
 use nalgebra::Isometry3;
 
 use super::track::push_frame_candidates;
-use super::{se3_log, LastFrame, VoOutput, VoTracker};
+use super::{LastFrame, VoOutput, VoTracker};
 use crate::features::OrbFeatures;
+use crate::lie::{se3_exp, se3_log};
 use crate::vo::map::KfId;
 use crate::vo::search::ProjSearchParams;
 
@@ -86,7 +87,7 @@ impl BackwardMotion {
     /// The pose predicted at `dt_s` before the frame posed `t_cw`.
     fn predict(&self, t_cw: &Isometry3<f64>, dt_s: f64) -> Isometry3<f64> {
         let a = dt_s / self.period_s.max(1e-9);
-        crate::optim::se3::se3_exp(&(se3_log(&self.motion) * a)) * t_cw
+        se3_exp(&(se3_log(&self.motion) * a)) * t_cw
     }
 }
 

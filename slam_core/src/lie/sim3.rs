@@ -1,17 +1,23 @@
-//! Similarity transforms `Sim(3)`: `x_w = s R x_k + t` (seed §3.4.3, `S = [sR, t]`), with
-//! the exponential and logarithm on the 7-vector tangent `[ρ (translation), ω (rotation),
-//! σ (log-scale)]`, the adjoint and a series for the inverse right Jacobian.
+//! Similarity transforms Sim(3): `x_a = s R x_b + t` (seed §2.2 / §3.4.3, `S = [sR, t]`),
+//! with the exponential and logarithm on the tangent `ξ = [ω; ρ; σ]` (rotation, translation,
+//! log-scale: rotation first like SE(3); the seed's minimal vector `(ν, ω, σ)` of eq. 2.23
+//! lists the translation first), the adjoint, and the right Jacobian and its inverse.
+//!
+//! `Exp([ω; ρ; σ]) = [e^σ Exp(ω), W(ω, σ) ρ]` with `W = ∫₀¹ e^{σu} Exp(uω) du`
+//! ([`sim3_w`]); it is the matrix exponential of [`sim3_hat`].
 
 use std::ops::Mul;
 use std::sync::OnceLock;
 
-use nalgebra::{Isometry3, Matrix3, SMatrix, SVector, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, SMatrix, SVector, Translation3, UnitQuaternion, Vector3,
+};
 
-use crate::geometry::{quat_log, skew};
+use super::so3::{quat_exp, quat_log, skew};
 
-/// A 7-vector `[ρ; ω; σ]` of the Sim(3) tangent space.
+/// A 7-vector `[ω; ρ; σ]` of the Sim(3) tangent space.
 pub type Vector7 = SVector<f64, 7>;
-/// A 7x7 matrix (Sim(3) information, adjoint, Jacobians).
+/// A 7x7 matrix (Sim(3) information, adjoint, Jacobians), rows and columns `[ω; ρ; σ]`.
 pub type Matrix7 = SMatrix<f64, 7, 7>;
 
 /// A similarity `x ↦ s R x + t` with `s > 0`.
@@ -29,6 +35,15 @@ impl Default for Sim3 {
     fn default() -> Self {
         Self::identity()
     }
+}
+
+/// The parts `(ω, ρ, σ)` of a tangent vector.
+fn split(xi: &Vector7) -> (Vector3<f64>, Vector3<f64>, f64) {
+    (
+        Vector3::new(xi[0], xi[1], xi[2]),
+        Vector3::new(xi[3], xi[4], xi[5]),
+        xi[6],
+    )
 }
 
 impl Sim3 {
@@ -80,37 +95,44 @@ impl Sim3 {
         self.r * x * self.s + self.t
     }
 
-    /// Exponential of `[ρ; ω; σ]`: `R = Exp(ω)`, `s = e^σ`, `t = W(ω, σ) ρ`.
+    /// The 4x4 matrix `[[sR, t], [0, 1]]`.
+    pub fn to_homogeneous(&self) -> Matrix4<f64> {
+        let mut m = Matrix4::identity();
+        m.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(self.r.to_rotation_matrix().into_inner() * self.s));
+        m.fixed_view_mut::<3, 1>(0, 3).copy_from(&self.t);
+        m
+    }
+
+    /// Exponential of `[ω; ρ; σ]`: `R = Exp(ω)`, `s = e^σ`, `t = W(ω, σ) ρ`.
     pub fn exp(xi: &Vector7) -> Self {
-        let w = Vector3::new(xi[3], xi[4], xi[5]);
-        let rho = Vector3::new(xi[0], xi[1], xi[2]);
-        let sigma = xi[6];
+        let (w, rho, sigma) = split(xi);
         Self {
-            r: UnitQuaternion::from_scaled_axis(w),
+            r: quat_exp(&w),
             t: sim3_w(&w, sigma) * rho,
             s: sigma.exp(),
         }
     }
 
-    /// Logarithm `[ρ; ω; σ]` (angle in `[0, π]`); inverse of [`Sim3::exp`].
+    /// Logarithm `[ω; ρ; σ]` (angle in `[0, π]`); inverse of [`Sim3::exp`].
     pub fn log(&self) -> Vector7 {
         let w = quat_log(&self.r);
         let sigma = self.s.ln();
         let wm = sim3_w(&w, sigma);
         // W is invertible for θ < 2π (its eigenvalues are averages of e^{σu}·e^{±iθu}).
         let rho = wm.try_inverse().unwrap_or_else(Matrix3::identity) * self.t;
-        Vector7::from_column_slice(&[rho.x, rho.y, rho.z, w.x, w.y, w.z, sigma])
+        Vector7::from_column_slice(&[w.x, w.y, w.z, rho.x, rho.y, rho.z, sigma])
     }
 
-    /// Adjoint `[[sR, [t]×R, -t], [0, R, 0], [0, 0, 1]]`: `S Exp(ξ) S⁻¹ = Exp(Ad_S ξ)`.
+    /// Adjoint `[[R, 0, 0], [[t]×R, sR, -t], [0, 0, 1]]`: `S Exp(ξ) S⁻¹ = Exp(Ad_S ξ)`.
     pub fn adjoint(&self) -> Matrix7 {
         let r = self.r.to_rotation_matrix().into_inner();
         let mut m = Matrix7::zeros();
-        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&(r * self.s));
-        m.fixed_view_mut::<3, 3>(0, 3)
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+        m.fixed_view_mut::<3, 3>(3, 0)
             .copy_from(&(skew(&self.t) * r));
-        m.fixed_view_mut::<3, 1>(0, 6).copy_from(&(-self.t));
-        m.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
+        m.fixed_view_mut::<3, 3>(3, 3).copy_from(&(r * self.s));
+        m.fixed_view_mut::<3, 1>(3, 6).copy_from(&(-self.t));
         m[(6, 6)] = 1.0;
         m
     }
@@ -128,6 +150,16 @@ impl Mul for &Sim3 {
     fn mul(self, rhs: &Sim3) -> Sim3 {
         self.compose(rhs)
     }
+}
+
+/// The hat operator of sim(3): `[ω; ρ; σ] ↦ [[[ω]× + σI, ρ], [0, 0]]`.
+pub fn sim3_hat(xi: &Vector7) -> Matrix4<f64> {
+    let (w, rho, sigma) = split(xi);
+    let mut m = Matrix4::zeros();
+    m.fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&(skew(&w) + Matrix3::identity() * sigma));
+    m.fixed_view_mut::<3, 1>(0, 3).copy_from(&rho);
+    m
 }
 
 /// Nodes and weights of 16-point Gauss-Legendre quadrature on `[0, 1]`, computed once by
@@ -187,26 +219,37 @@ pub fn sim3_w(w: &Vector3<f64>, sigma: f64) -> Matrix3<f64> {
     Matrix3::identity() * a + k * b + k * k * c
 }
 
-/// The Lie bracket matrix `ad_ξ` of `sim(3)` in `[ρ; ω; σ]` order:
-/// `[[[ω]× + σI, [ρ]×, -ρ], [0, [ω]×, 0], [0, 0, 0]]`.
+/// The Lie bracket matrix `ad_ξ` of sim(3) in `[ω; ρ; σ]` order,
+/// `[[[ω]×, 0, 0], [[ρ]×, [ω]× + σI, -ρ], [0, 0, 0]]`, so that `Ad(Exp ξ) = exp(ad_ξ)`.
 pub fn sim3_ad(xi: &Vector7) -> Matrix7 {
-    let rho = Vector3::new(xi[0], xi[1], xi[2]);
-    let w = Vector3::new(xi[3], xi[4], xi[5]);
+    let (w, rho, sigma) = split(xi);
     let wx = skew(&w);
     let mut m = Matrix7::zeros();
-    m.fixed_view_mut::<3, 3>(0, 0)
-        .copy_from(&(wx + Matrix3::identity() * xi[6]));
-    m.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&rho));
-    m.fixed_view_mut::<3, 1>(0, 6).copy_from(&(-rho));
-    m.fixed_view_mut::<3, 3>(3, 3).copy_from(&wx);
+    m.fixed_view_mut::<3, 3>(0, 0).copy_from(&wx);
+    m.fixed_view_mut::<3, 3>(3, 0).copy_from(&skew(&rho));
+    m.fixed_view_mut::<3, 3>(3, 3)
+        .copy_from(&(wx + Matrix3::identity() * sigma));
+    m.fixed_view_mut::<3, 1>(3, 6).copy_from(&(-rho));
+    m
+}
+
+/// Right Jacobian of Sim(3), `Exp(ξ + δ) ≈ Exp(ξ) Exp(Jr(ξ) δ)`:
+/// `Jr(ξ) = ∫₀¹ exp(-u ad_ξ) du = ∫₀¹ Ad(Exp(-uξ)) du`, by the 16-point Gauss-Legendre rule
+/// of [`sim3_w`] (exact to rounding for `|σ| + θ` up to ~10).
+pub fn sim3_jr(xi: &Vector7) -> Matrix7 {
+    let mut m = Matrix7::zeros();
+    for &(u, wt) in gauss_legendre() {
+        m += Sim3::exp(&(xi * -u)).adjoint() * wt;
+    }
     m
 }
 
 /// Inverse right Jacobian of Sim(3), `Log(Exp(ξ) Exp(δ)) ≈ ξ + Jr(ξ)⁻¹ δ`, by its Bernoulli
 /// series `Jr⁻¹ = Σ Bₙ⁺ adⁿ / n!`, i.e.
-/// `I + ½ad + ad²/12 - ad⁴/720 + ad⁶/30240 - ad⁸/1209600 + ad¹⁰/47900160`. Converges for `|σ ± iθ| < 2π`; the truncation error is below 1e-9 for
-/// residuals with `|σ| + θ < 1`, which holds near every optimum (the cost itself is always
-/// evaluated exactly, so larger residuals only slow the first iterations down).
+/// `I + ½ad + ad²/12 - ad⁴/720 + ad⁶/30240 - ad⁸/1209600 + ad¹⁰/47900160`. Converges for
+/// `|σ ± iθ| < 2π`; the truncation error is below 1e-9 for residuals with `|σ| + θ < 1`,
+/// which holds near every optimum (the pose-graph cost itself is always evaluated exactly,
+/// so larger residuals only slow the first iterations down).
 pub fn sim3_jr_inv(xi: &Vector7) -> Matrix7 {
     let ad = sim3_ad(xi);
     let ad2 = ad * ad;
@@ -225,9 +268,11 @@ pub fn sim3_jr_inv(xi: &Vector7) -> Matrix7 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::f64::consts::PI;
 
+    /// `ω = (0.3, -0.5, 0.8)`, `ρ = (0.7, -1.2, 0.4)`, `σ = 0.6`.
     fn xi() -> Vector7 {
-        Vector7::from_column_slice(&[0.7, -1.2, 0.4, 0.3, -0.5, 0.8, 0.6])
+        Vector7::from_column_slice(&[0.3, -0.5, 0.8, 0.7, -1.2, 0.4, 0.6])
     }
 
     fn close(a: &Sim3, b: &Sim3, tol: f64) -> bool {
@@ -276,6 +321,16 @@ mod tests {
     }
 
     #[test]
+    fn exp_is_the_matrix_exponential_of_hat() {
+        for s in [0.0, 1e-9, 1e-4, 0.1, 1.0, 2.0] {
+            let x = xi() * s;
+            let m = sim3_hat(&x).exp();
+            let e = Sim3::exp(&x).to_homogeneous();
+            assert!((m - e).norm() < 1e-12 * (1.0 + m.norm()), "{s}");
+        }
+    }
+
+    #[test]
     fn exp_matches_many_small_steps_and_log_inverts() {
         let x = xi();
         let big = Sim3::exp(&x);
@@ -286,38 +341,55 @@ mod tests {
             acc = acc * step;
         }
         assert!(close(&acc, &big, 1e-8), "{acc:?} vs {big:?}");
-        for s in [0.0, 1e-9, 1e-4, 0.1, 1.0, 2.0] {
+        for s in [0.0, 1e-9, 1e-4, 0.1, 1.0, 2.0, 3.0] {
             let v = x * s;
-            assert!((Sim3::exp(&v).log() - v).norm() < 1e-12, "{s}");
+            assert!(
+                (Sim3::exp(&v).log() - v).norm() < 1e-11 * (1.0 + v.norm()),
+                "{s}"
+            );
         }
+        // Near π the rotation angle is kept and exp(log(S)) = S.
+        let near = Vector7::from_column_slice(&[0.0, PI - 1e-7, 0.0, 0.5, 0.1, -0.2, -0.3]);
+        let s = Sim3::exp(&near);
+        assert!((s.log()[1] - (PI - 1e-7)).abs() < 1e-8);
+        assert!(close(&Sim3::exp(&s.log()), &s, 1e-9));
     }
 
     #[test]
-    fn adjoint_moves_twists() {
+    fn adjoint_moves_twists_and_is_exp_of_ad() {
         let a = Sim3::exp(&xi());
-        let d = Vector7::from_column_slice(&[0.1, 0.2, -0.3, 0.05, -0.1, 0.2, 0.3]);
+        let d = Vector7::from_column_slice(&[0.05, -0.1, 0.2, 0.1, 0.2, -0.3, 0.3]);
         let lhs = a * Sim3::exp(&d) * a.inverse();
         let rhs = Sim3::exp(&(a.adjoint() * d));
         assert!(close(&lhs, &rhs, 1e-12));
+        let b = Sim3::exp(&(xi() * -0.4));
+        assert!(((a * b).adjoint() - a.adjoint() * b.adjoint()).norm() < 1e-12);
+        assert!((sim3_ad(&xi()).exp() - a.adjoint()).norm() < 1e-11);
+    }
+
+    /// Central difference of `f` along coordinate `k`.
+    fn numeric_col(f: impl Fn(&Vector7) -> Vector7, k: usize) -> Vector7 {
+        let h = 1e-6;
+        let mut d = Vector7::zeros();
+        d[k] = h;
+        (f(&d) - f(&-d)) / (2.0 * h)
     }
 
     #[test]
-    fn jr_inv_matches_numeric_derivative() {
-        for s in [0.0, 0.01, 0.3, 1.0] {
+    fn jacobians_match_numeric_derivatives() {
+        for s in [0.0, 1e-6, 0.01, 0.3, 1.0] {
             let x = xi() * s;
-            let j = sim3_jr_inv(&x);
+            let (jr, jr_inv) = (sim3_jr(&x), sim3_jr_inv(&x));
             let ex = Sim3::exp(&x);
-            let h = 1e-6;
             for k in 0..7 {
-                let mut d = Vector7::zeros();
-                d[k] = h;
-                let p = (ex * Sim3::exp(&d)).log();
-                d[k] = -h;
-                let m = (ex * Sim3::exp(&d)).log();
-                let col = (p - m) / (2.0 * h);
-                let err = (col - j.column(k)).norm();
-                assert!(err < 1e-7, "s {s} col {k}: {err}");
+                let num = numeric_col(|d| (ex * Sim3::exp(d)).log(), k);
+                let err = (num - jr_inv.column(k)).norm();
+                assert!(err < 1e-7, "Jr⁻¹ s {s} col {k}: {err}");
+                let num = numeric_col(|d| (ex.inverse() * Sim3::exp(&(x + d))).log(), k);
+                let err = (num - jr.column(k)).norm();
+                assert!(err < 1e-7, "Jr s {s} col {k}: {err}");
             }
+            assert!((jr * jr_inv - Matrix7::identity()).norm() < 1e-7, "{s}");
         }
     }
 }
