@@ -13,7 +13,7 @@ use nalgebra::{Isometry3, Translation3, Vector2};
 
 use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_two_frames_windowed, OrbFeatures, WindowMatchParams};
-use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptParams};
+use crate::optim::{PoseObservation, PoseOptParams};
 use crate::twoview::{initialize, normalize_pixels, TwoViewParams};
 use crate::vo::map::Keyframe;
 
@@ -23,8 +23,8 @@ const MAX_BACKFILL: usize = 64;
 /// A frame seen while initialising: its matches to the reference.
 pub(super) struct InitFrame {
     t_ns: i64,
-    /// `(reference feature, pixel, octave)`.
-    obs: Vec<(u32, [f32; 2], u8)>,
+    /// `(reference feature, pixel, information 1/σ² of its octave)`.
+    obs: Vec<(u32, [f32; 2], f64)>,
 }
 
 /// The initialiser's state.
@@ -85,7 +85,7 @@ impl VoTracker {
                     .iter()
                     .map(|m| {
                         let k = feats.keypoints[m.train as usize];
-                        (m.query, [k.x, k.y], k.octave)
+                        (m.query, [k.x, k.y], feats.scale.inv_sigma2(k.octave))
                     })
                     .collect(),
             });
@@ -217,14 +217,14 @@ impl VoTracker {
         a: f64,
     ) -> Option<Isometry3<f64>> {
         self.obs.clear();
-        for &(q, px, octave) in &f.obs {
+        for &(q, px, inv_sigma2) in &f.obs {
             let Some((_, p_w)) = ref_points.get(q as usize).copied().flatten() else {
                 continue;
             };
             self.obs.push(PoseObservation {
                 point_w: p_w,
                 pixel: Vector2::new(px[0] as f64, px[1] as f64),
-                inv_sigma2: inv_sigma2_for_octave(octave as u32, 1.2),
+                inv_sigma2,
                 dt: 0.0,
             });
         }

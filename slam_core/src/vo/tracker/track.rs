@@ -6,7 +6,7 @@ use nalgebra::{Isometry3, Vector2};
 
 use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
-use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptParams, Velocity};
+use crate::optim::{PoseObservation, PoseOptParams, Velocity};
 use crate::vo::local_mapping::create_points_with_neighbours;
 use crate::vo::map::{Keyframe, KfId};
 use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
@@ -174,12 +174,7 @@ impl VoTracker {
         });
         last.t_ns = frame.t_ns;
         last.t_cw = t_cw;
-        last.features.keypoints.clear();
-        last.features.keypoints.extend_from_slice(&feats.keypoints);
-        last.features.descriptors.clear();
-        last.features
-            .descriptors
-            .extend_from_slice(&feats.descriptors);
+        last.features.copy_from(feats);
         last.points.clear();
         last.points.extend_from_slice(&self.frame_points);
         self.last = Some(last);
@@ -301,7 +296,7 @@ impl VoTracker {
             self.obs.push(PoseObservation {
                 point_w: mp.p_w,
                 pixel: Vector2::new(kp.x as f64, kp.y as f64),
-                inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
+                inv_sigma2: feats.scale.inv_sigma2(kp.octave),
                 dt: crate::rolling_shutter::row_offset_s(readout_ns, kp.y as f64, rows),
             });
             self.obs_kp.push(k);
