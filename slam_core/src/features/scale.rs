@@ -51,7 +51,7 @@ impl PyramidScale {
         Self {
             factor,
             n_levels: n_levels.clamp(1, MAX_LEVELS),
-            level_scale: std::array::from_fn(|o| (factor as f32).powi(o as i32)),
+            level_scale: std::array::from_fn(|o| powi_f32(factor as f32, o as u32)),
             inv_sigma2,
             sigma2: inv_sigma2.map(|w| 1.0 / w),
         }
@@ -67,7 +67,7 @@ impl PyramidScale {
         self.n_levels
     }
 
-    /// The finest-to-coarsest last octave, `n_levels - 1`.
+    /// The coarsest octave, `n_levels - 1`.
     pub fn max_octave(&self) -> u8 {
         (self.n_levels - 1).min(u8::MAX as usize) as u8
     }
@@ -77,7 +77,7 @@ impl PyramidScale {
     pub fn level_scale(&self, octave: u8) -> f32 {
         match self.level_scale.get(octave as usize) {
             Some(&s) => s,
-            None => (self.factor as f32).powi(i32::from(octave)),
+            None => powi_f32(self.factor as f32, u32::from(octave)),
         }
     }
 
@@ -98,6 +98,39 @@ impl PyramidScale {
     }
 }
 
+/// `a^n` by binary exponentiation: the algorithm `f32::powi` runs at run time
+/// (compiler-builtins' `__powisf2`), written out so that the result does not depend on
+/// whether the compiler folds a constant call (LLVM folds `powi` of constants with the
+/// host's `pow`, which can differ in the last bit).
+pub(crate) fn powi_f32(a: f32, n: u32) -> f32 {
+    let (mut base, mut n, mut acc) = (a, n, 1.0f32);
+    loop {
+        if n & 1 == 1 {
+            acc *= base;
+        }
+        n >>= 1;
+        if n == 0 {
+            return acc;
+        }
+        base *= base;
+    }
+}
+
+/// [`powi_f32`] in double precision (`f64::powi`'s run-time `__powidf2`).
+pub(crate) fn powi_f64(a: f64, n: u32) -> f64 {
+    let (mut base, mut n, mut acc) = (a, n, 1.0f64);
+    loop {
+        if n & 1 == 1 {
+            acc *= base;
+        }
+        n >>= 1;
+        if n == 0 {
+            return acc;
+        }
+        base *= base;
+    }
+}
+
 impl Default for PyramidScale {
     /// [`ORB_SCALE_FACTOR`] and [`ORB_N_LEVELS`].
     fn default() -> Self {
@@ -115,11 +148,24 @@ mod tests {
         assert_eq!(s.n_levels(), ORB_N_LEVELS);
         assert_eq!(s.max_octave(), 7);
         for o in [0u8, 1, 3, 7, 31, 32, 200] {
-            let (f, o32) = (ORB_SCALE_FACTOR, u32::from(o));
+            // Opaque inputs: `powi` evaluated at run time (not folded by the compiler).
+            let (f, o32) = (std::hint::black_box(ORB_SCALE_FACTOR), u32::from(o));
+            let o = std::hint::black_box(o);
             assert_eq!(s.level_scale(o), (f as f32).powi(i32::from(o)));
             assert_eq!(s.inv_sigma2(o), inv_sigma2_for_octave(o32, f));
             assert_eq!(s.sigma2(o), 1.0 / inv_sigma2_for_octave(o32, f));
         }
         assert_eq!(s.inv_sigma2(0), 1.0);
+    }
+
+    #[test]
+    fn binary_exponentiation_is_powi() {
+        for f in [ORB_SCALE_FACTOR, 1.5, 2.0, 1.1] {
+            for n in 0..=255u32 {
+                let (f, n) = std::hint::black_box((f, n));
+                assert_eq!(powi_f32(f as f32, n), (f as f32).powi(n as i32), "{f}^{n}");
+                assert_eq!(powi_f64(f, n), f.powi(n as i32), "{f}^{n}");
+            }
+        }
     }
 }

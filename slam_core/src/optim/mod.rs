@@ -25,7 +25,7 @@ pub use robust::RobustKernel;
 /// `σ = scale_factor^octave` pixels. Feature sets carry these values per octave
 /// ([`crate::features::PyramidScale::inv_sigma2`]).
 pub fn inv_sigma2_for_octave(octave: u32, scale_factor: f64) -> f64 {
-    let sigma = scale_factor.powi(octave.min(64) as i32);
+    let sigma = crate::features::powi_f64(scale_factor, octave.min(64));
     1.0 / (sigma * sigma)
 }
 

@@ -39,10 +39,11 @@ pub(super) struct InitState {
 /// indexed by reference feature; `None` where no point was made.
 type RefPoints = Vec<Option<(PointId, Vector3<f64>)>>;
 
-/// Whether `SHOAL_DEBUG_INIT` asks for the initialiser's diagnostics on stderr. (The
-/// diagnostics stay here rather than in [`VoOutput`]: returning them would need the tracker
-/// service, `services/tracker`, to print them.)
-fn debug_init() -> bool {
+/// Whether `SHOAL_DEBUG_INIT` asks for the initialiser's (and the backward walk's)
+/// diagnostics on stderr: the one place it is read. (The diagnostics stay here rather than in
+/// [`VoOutput`]: returning them would need the tracker service, `services/tracker`, to print
+/// them.)
+pub(super) fn debug_init() -> bool {
     std::env::var_os("SHOAL_DEBUG_INIT").is_some()
 }
 
