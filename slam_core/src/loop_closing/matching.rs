@@ -192,8 +192,9 @@ pub(crate) struct GuidedMatch {
 
 /// Projects every neighbourhood point not in `skip_points` into `q` with `s_qm` and matches
 /// it to the closest free query keypoint (`q_taken[k] == false`) within `radius_px ·
-/// scale_factor^octave` (the query features' pyramid scale) at Hamming distance `<= max_distance` (ORB-SLAM's loop
-/// `SearchByProjection`). Each query keypoint keeps its closest point.
+/// scale_factor^octave` (the query features' pyramid scale) at Hamming distance
+/// `<= max_distance` (ORB-SLAM's loop `SearchByProjection`). Each query keypoint keeps its
+/// closest point.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn guided_matches(
     q: &KeptKeyframe,
