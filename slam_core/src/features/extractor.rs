@@ -97,7 +97,7 @@ impl OrbFeatures {
         self.keypoints.extend_from_slice(&other.keypoints);
         self.descriptors.clear();
         self.descriptors.extend_from_slice(&other.descriptors);
-        self.scale = other.scale;
+        self.scale.clone_from(&other.scale);
     }
 
     /// Number of features.
@@ -274,7 +274,7 @@ impl OrbExtractor {
             )));
         }
         out.clear();
-        out.scale = self.scale;
+        out.scale.clone_from(&self.scale);
         let mut clock = Clock::new(timings.is_some());
         self.pyramid.build(img)?;
         let mut t = OrbTimings {

@@ -6,6 +6,8 @@
 //! factor and the per-level tables from the [`PyramidScale`] of the feature set
 //! ([`super::OrbFeatures::scale`]), computed once by the extractor.
 
+use std::sync::Arc;
+
 use crate::optim::inv_sigma2_for_octave;
 
 /// Scale between two consecutive ORB pyramid levels (ORB-SLAM's 1.2): the extractor's
@@ -27,13 +29,20 @@ pub const MAX_LEVELS: usize = 32;
 /// Per-level scale and keypoint uncertainty of one ORB pyramid, computed once.
 ///
 /// Octaves at or beyond [`MAX_LEVELS`] (possible in keypoints read from a message) fall
-/// back to computing the same formulas.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// back to computing the same formulas. The tables are shared (cloning is a reference-count
+/// increment, no allocation).
+#[derive(Debug, Clone, PartialEq)]
 pub struct PyramidScale {
     /// Scale between consecutive levels.
     factor: f64,
     /// Levels of the pyramid (1..=[`MAX_LEVELS`]).
     n_levels: usize,
+    tables: Arc<Tables>,
+}
+
+/// The per-octave tables of a [`PyramidScale`].
+#[derive(Debug, PartialEq)]
+struct Tables {
     /// `factor^o` in single precision (`(factor as f32).powi(o)`): search radii, patch sizes.
     level_scale: [f32; MAX_LEVELS],
     /// `1 / σ²` with `σ = factor^o` pixels ([`inv_sigma2_for_octave`]).
@@ -51,9 +60,11 @@ impl PyramidScale {
         Self {
             factor,
             n_levels: n_levels.clamp(1, MAX_LEVELS),
-            level_scale: std::array::from_fn(|o| powi_f32(factor as f32, o as u32)),
-            inv_sigma2,
-            sigma2: inv_sigma2.map(|w| 1.0 / w),
+            tables: Arc::new(Tables {
+                level_scale: std::array::from_fn(|o| powi_f32(factor as f32, o as u32)),
+                inv_sigma2,
+                sigma2: inv_sigma2.map(|w| 1.0 / w),
+            }),
         }
     }
 
@@ -75,7 +86,7 @@ impl PyramidScale {
     /// Scale of octave `o` relative to level 0, `factor^o` (single precision, as the
     /// search windows and patch sizes use it).
     pub fn level_scale(&self, octave: u8) -> f32 {
-        match self.level_scale.get(octave as usize) {
+        match self.tables.level_scale.get(octave as usize) {
             Some(&s) => s,
             None => powi_f32(self.factor as f32, u32::from(octave)),
         }
@@ -83,7 +94,7 @@ impl PyramidScale {
 
     /// Information `1 / σ²` (pixels⁻²) of a keypoint of octave `o`, `σ = factor^o`.
     pub fn inv_sigma2(&self, octave: u8) -> f64 {
-        match self.inv_sigma2.get(octave as usize) {
+        match self.tables.inv_sigma2.get(octave as usize) {
             Some(&w) => w,
             None => inv_sigma2_for_octave(u32::from(octave), self.factor),
         }
@@ -91,7 +102,7 @@ impl PyramidScale {
 
     /// Variance `σ²` (pixels²) of a keypoint of octave `o`.
     pub fn sigma2(&self, octave: u8) -> f64 {
-        match self.sigma2.get(octave as usize) {
+        match self.tables.sigma2.get(octave as usize) {
             Some(&s) => s,
             None => 1.0 / inv_sigma2_for_octave(u32::from(octave), self.factor),
         }

@@ -116,14 +116,13 @@ impl Correspondences<'_> {
     /// Counts the inliers of `pose` into `mask`.
     fn score(&self, pose: &Isometry3<f64>, mask: &mut [bool]) -> usize {
         let mut n = 0;
-        for i in 0..self.points_w.len() {
-            let q = pose * Point3::from(self.points_w[i]);
-            mask[i] = q.z > 0.0
-                && (Vector2::new(q.x / q.z, q.y / q.z) - self.xn[i]).norm_squared()
-                    * self.k
-                    * self.inv_sigma2[i]
+        let obs = self.points_w.iter().zip(self.xn).zip(self.inv_sigma2);
+        for (inlier, ((p_w, x), w)) in mask.iter_mut().zip(obs) {
+            let q = pose * Point3::from(*p_w);
+            *inlier = q.z > 0.0
+                && (Vector2::new(q.x / q.z, q.y / q.z) - x).norm_squared() * self.k * w
                     <= self.chi2;
-            n += usize::from(mask[i]);
+            n += usize::from(*inlier);
         }
         n
     }

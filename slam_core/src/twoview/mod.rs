@@ -230,11 +230,14 @@ struct ModelFits {
     f: Best,
 }
 
-/// Step 2's outcome: the chosen model, its inliers and its motion hypotheses `(R_21, t_21)`.
+/// Motion hypotheses `(R_21, t_21)` of a decomposed model.
+type Motions = Vec<(Rotation3<f64>, Vector3<f64>)>;
+
+/// Step 2's outcome: the chosen model, its inliers and its motion hypotheses.
 struct Hypotheses {
     model: TwoViewModel,
     inliers: Vec<bool>,
-    motions: Vec<(Rotation3<f64>, Vector3<f64>)>,
+    motions: Motions,
     /// Ambiguity ratio of [`select::accept`] for this model.
     ambiguity: f64,
 }
@@ -484,7 +487,7 @@ fn homography_motions(
     x1: &[Vector2<f64>],
     x2: &[Vector2<f64>],
     params: &TwoViewParams,
-) -> Result<Vec<(Rotation3<f64>, Vector3<f64>)>, CoreError> {
+) -> Result<Motions, CoreError> {
     let mut h = best_h.model;
     // Sign with positive depths: x2ᵀ H x1 > 0 on most inliers.
     let votes: f64 = (0..x1.len())
