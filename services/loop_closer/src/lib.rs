@@ -102,6 +102,7 @@ pub fn keyframe_from_wire(
         return Err(format!("loop keyframe {:#x}: invalid intrinsics", h.kf_id));
     }
     let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+    // Octaves only on the wire: the default pyramid scale (`ORB_SCALE_FACTOR`) applies.
     let mut features = OrbFeatures::with_capacity(records.len());
     let mut points = Vec::new();
     for (i, r) in records.iter().enumerate() {

@@ -45,6 +45,8 @@ pub fn server_keyframe(
     if !valid_intrinsics(&h.intrinsics, h.width) {
         return Err(format!("keyframe {}: invalid intrinsics", h.keyframe_id));
     }
+    // The message carries octaves, not the pyramid's factor: the features get the default
+    // scale (`slam_core::features::ORB_SCALE_FACTOR`, the clients' extractor default).
     let mut features = OrbFeatures::with_capacity(records.len());
     let mut client_points = Vec::with_capacity(records.len());
     for r in records {

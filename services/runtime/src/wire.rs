@@ -56,11 +56,10 @@ pub fn intrinsics_from_camera(
     )
 }
 
-/// Scale between pyramid levels of the client's ORB extractor (restores keypoint sizes, which
-/// keyframe messages do not carry).
-pub const LEVEL_SCALE: f32 = 1.2;
-
-/// A keypoint of a keyframe message (its size restored from the octave).
+/// A keypoint of a keyframe message (its size restored from the octave). Keyframe messages
+/// carry neither sizes nor the pyramid's scale factor: the size is `PATCH_SIZE ·
+/// factor^octave` with [`slam_core::features::ORB_SCALE_FACTOR`], the clients' extractor
+/// default.
 pub fn wire_keypoint(
     u: f32,
     v: f32,
@@ -74,7 +73,8 @@ pub fn wire_keypoint(
         y: v,
         angle,
         response,
-        size: slam_core::features::PATCH_SIZE * LEVEL_SCALE.powi(octave as i32),
+        size: slam_core::features::PATCH_SIZE
+            * (slam_core::features::ORB_SCALE_FACTOR as f32).powi(octave as i32),
         octave,
     }
 }

@@ -7,6 +7,7 @@ use super::fast::{self, Candidate, FastConfig};
 use super::image::{GrayBuffer, GrayImage};
 use super::orb::{orientations, DescriptorTable, OrientationTable, PATTERN_REACH};
 use super::pyramid::{gaussian_blur7, Pyramid};
+use super::scale::{PyramidScale, MAX_LEVELS, ORB_N_LEVELS, ORB_SCALE_FACTOR};
 use crate::CoreError;
 
 /// Diameter of the ORB patch at level 0 (keypoint `size` is this times the level scale).
@@ -17,8 +18,10 @@ pub const PATCH_SIZE: f32 = 31.0;
 pub struct OrbParams {
     /// Total number of keypoints wanted over all levels.
     pub n_features: usize,
-    /// Scale between two consecutive pyramid levels (> 1).
-    pub scale_factor: f32,
+    /// Scale between two consecutive pyramid levels (> 1; default [`ORB_SCALE_FACTOR`]).
+    /// The image pyramid resamples with its single-precision value; the features carry it
+    /// in [`OrbFeatures::scale`].
+    pub scale_factor: f64,
     /// Number of pyramid levels (1..=32).
     pub n_levels: usize,
     /// FAST threshold tried first in every detection cell.
@@ -37,8 +40,8 @@ impl Default for OrbParams {
     fn default() -> Self {
         Self {
             n_features: 1000,
-            scale_factor: 1.2,
-            n_levels: 8,
+            scale_factor: ORB_SCALE_FACTOR,
+            n_levels: ORB_N_LEVELS,
             fast_threshold: 20,
             fast_min_threshold: 7,
             level_share_exponent: 2.0,
@@ -64,22 +67,37 @@ pub struct KeyPoint {
     pub octave: u8,
 }
 
-/// Keypoints and their 256-bit descriptors (`descriptors[i]` belongs to `keypoints[i]`).
+/// Keypoints and their 256-bit descriptors (`descriptors[i]` belongs to `keypoints[i]`),
+/// with the scale of the pyramid they were detected on.
 #[derive(Debug, Clone, Default)]
 pub struct OrbFeatures {
     /// Keypoints, grouped by level (level 0 first).
     pub keypoints: Vec<KeyPoint>,
     /// Rotated BRIEF descriptors, 32 bytes each.
     pub descriptors: Vec<[u8; 32]>,
+    /// Scale factor and per-octave tables of the pyramid (set by [`OrbExtractor`]; features
+    /// built otherwise, e.g. from keyframe messages, have [`PyramidScale::default`]).
+    pub scale: PyramidScale,
 }
 
 impl OrbFeatures {
-    /// Empty feature set with room for `n` features.
+    /// Empty feature set with room for `n` features, with the default pyramid scale.
     pub fn with_capacity(n: usize) -> Self {
         Self {
             keypoints: Vec::with_capacity(n),
             descriptors: Vec::with_capacity(n),
+            scale: PyramidScale::default(),
         }
+    }
+
+    /// Makes `self` a copy of `other`, reusing `self`'s buffers (no allocation once they
+    /// have grown).
+    pub fn copy_from(&mut self, other: &OrbFeatures) {
+        self.keypoints.clear();
+        self.keypoints.extend_from_slice(&other.keypoints);
+        self.descriptors.clear();
+        self.descriptors.extend_from_slice(&other.descriptors);
+        self.scale.clone_from(&other.scale);
     }
 
     /// Number of features.
@@ -92,7 +110,7 @@ impl OrbFeatures {
         self.keypoints.is_empty()
     }
 
-    /// Removes all features, keeping the capacity.
+    /// Removes all features, keeping the capacity (and the scale).
     pub fn clear(&mut self) {
         self.keypoints.clear();
         self.descriptors.clear();
@@ -129,6 +147,8 @@ pub struct OrbExtractor {
     width: usize,
     height: usize,
     pyramid: Pyramid,
+    /// The pyramid's scale tables, copied into every extracted feature set.
+    scale: PyramidScale,
     per_level: Vec<usize>,
     blurred: GrayBuffer,
     blur_tmp: Vec<u16>,
@@ -149,7 +169,7 @@ impl OrbExtractor {
                 "image {width}x{height} is smaller than the ORB border allows (39x39)"
             )));
         }
-        let valid = (1..=32).contains(&params.n_levels)
+        let valid = (1..=MAX_LEVELS).contains(&params.n_levels)
             && params.scale_factor > 1.0
             && params.scale_factor.is_finite()
             && params.level_share_exponent.is_finite()
@@ -160,7 +180,7 @@ impl OrbExtractor {
                 "invalid ORB parameters {params:?}"
             )));
         }
-        let pyramid = Pyramid::new(width, height, params.n_levels, params.scale_factor)?;
+        let pyramid = Pyramid::new(width, height, params.n_levels, pyramid_factor(&params))?;
         let per_level = features_per_level(&params);
         let max_cands = (width * height / 16).max(1024);
         let max_per_level = per_level.iter().copied().max().unwrap_or(0);
@@ -176,6 +196,7 @@ impl OrbExtractor {
             brief: DescriptorTable::new(params.angle_bins, width),
             per_level,
             pyramid,
+            scale: PyramidScale::new(params.scale_factor, params.n_levels),
             params,
             width,
             height,
@@ -190,6 +211,11 @@ impl OrbExtractor {
     /// Target number of keypoints of each level.
     pub fn features_per_level(&self) -> &[usize] {
         &self.per_level
+    }
+
+    /// The scale tables of the pyramid (as carried by the extracted features).
+    pub fn scale(&self) -> &PyramidScale {
+        &self.scale
     }
 
     /// Scale of level `l` relative to level 0.
@@ -248,6 +274,7 @@ impl OrbExtractor {
             )));
         }
         out.clear();
+        out.scale.clone_from(&self.scale);
         let mut clock = Clock::new(timings.is_some());
         self.pyramid.build(img)?;
         let mut t = OrbTimings {
@@ -325,9 +352,15 @@ impl OrbExtractor {
     }
 }
 
+/// The factor the image pyramid resamples with (single precision, as the level sizes and
+/// the per-level budget have always been computed).
+fn pyramid_factor(p: &OrbParams) -> f32 {
+    p.scale_factor as f32
+}
+
 /// Per-level keypoint budget: geometric shares, the last level taking the remainder.
 fn features_per_level(p: &OrbParams) -> Vec<usize> {
-    let f = (p.scale_factor as f64).powf(-(p.level_share_exponent as f64));
+    let f = f64::from(pyramid_factor(p)).powf(-(p.level_share_exponent as f64));
     let n = p.n_features as f64;
     let levels = p.n_levels;
     let mut per = Vec::with_capacity(levels);

@@ -20,6 +20,7 @@ mod matching;
 mod orb;
 mod pattern;
 mod pyramid;
+mod scale;
 mod simd;
 #[cfg(test)]
 mod tests;
@@ -28,3 +29,5 @@ pub use extractor::{KeyPoint, OrbExtractor, OrbFeatures, OrbParams, OrbTimings, 
 pub use image::{GrayBuffer, GrayImage};
 pub use matching::*;
 pub use pyramid::Pyramid;
+pub(crate) use scale::powi_f64;
+pub use scale::{PyramidScale, MAX_LEVELS, ORB_N_LEVELS, ORB_SCALE_FACTOR};

@@ -275,7 +275,7 @@ mod tests {
         let (w, h) = (752, 480);
         let data = vec![77u8; w * h];
         let img = GrayImage::from_packed(&data, w, h).unwrap();
-        let mut p = Pyramid::new(w, h, 8, 1.2).unwrap();
+        let mut p = Pyramid::new(w, h, 8, crate::features::ORB_SCALE_FACTOR as f32).unwrap();
         p.build(&img).unwrap();
         let l1 = p.level(1).unwrap();
         assert_eq!((l1.width(), l1.height()), (627, 400));
@@ -296,7 +296,7 @@ mod tests {
         let (w, h) = (120, 90);
         let data: Vec<u8> = (0..w * h).map(|i| ((i % w) * 2) as u8).collect();
         let img = GrayImage::from_packed(&data, w, h).unwrap();
-        let mut p = Pyramid::new(w, h, 2, 1.2).unwrap();
+        let mut p = Pyramid::new(w, h, 2, crate::features::ORB_SCALE_FACTOR as f32).unwrap();
         p.build(&img).unwrap();
         let l1 = p.level(1).unwrap();
         for x in 1..l1.width() - 1 {

@@ -173,7 +173,7 @@ fn geometric_inliers(a: &OrbFeatures, b: &OrbFeatures, matches: &[Match], m: Mot
                 &b.keypoints[mm.train as usize],
             );
             let (ex, ey) = m.apply((p.x, p.y));
-            let tol = 2.5 * 1.2f32.powi(p.octave.max(q.octave) as i32);
+            let tol = 2.5 * (super::ORB_SCALE_FACTOR as f32).powi(p.octave.max(q.octave) as i32);
             (ex - q.x).hypot(ey - q.y) <= tol
         })
         .count();

@@ -192,8 +192,9 @@ pub(crate) struct GuidedMatch {
 
 /// Projects every neighbourhood point not in `skip_points` into `q` with `s_qm` and matches
 /// it to the closest free query keypoint (`q_taken[k] == false`) within `radius_px ·
-/// scale_factor^octave` at Hamming distance `<= max_distance` (ORB-SLAM's loop
-/// `SearchByProjection`). Each query keypoint keeps its closest point.
+/// scale_factor^octave` (the query features' pyramid scale) at Hamming distance
+/// `<= max_distance` (ORB-SLAM's loop `SearchByProjection`). Each query keypoint keeps its
+/// closest point.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn guided_matches(
     q: &KeptKeyframe,
@@ -203,7 +204,6 @@ pub(crate) fn guided_matches(
     q_taken: &[bool],
     radius_px: f32,
     max_distance: u32,
-    scale_factor: f32,
 ) -> Vec<GuidedMatch> {
     let kps = &q.features.keypoints;
     let (w, h) = (q.camera.width as usize, q.camera.height as usize);
@@ -224,7 +224,7 @@ pub(crate) fn guided_matches(
         if !q.camera.contains(&uv) {
             continue;
         }
-        let r = radius_px * scale_factor.powi(i32::from(np.octave.min(31)));
+        let r = radius_px * q.features.scale.level_scale(np.octave.min(31));
         let (mut bd, mut bk) = (NONE, NONE);
         grid.for_each_in_window(kps, uv.x as f32, uv.y as f32, r, 0, u8::MAX, |k| {
             if q_taken.get(k).copied().unwrap_or(true) {

@@ -12,7 +12,6 @@ use crate::camera::PinholeRadtan;
 use crate::features::TH_LOW;
 use crate::geometry::umeyama;
 use crate::lie::Sim3;
-use crate::optim::inv_sigma2_for_octave;
 use crate::place::FeatureVector;
 use crate::ransac::{adaptive_iterations, sample_distinct, SplitMix64};
 use crate::server::KeptKeyframe;
@@ -29,10 +28,9 @@ pub struct Sim3Params {
     /// Candidates with fewer descriptor matches are skipped (ORB-SLAM: 20).
     pub min_matches: usize,
     /// χ² threshold (2 dof, 99%) of a reprojection inlier, at the keypoint's octave
-    /// (`e² / σ² <= 9.21`, `σ = scale_factor^octave` pixels), tested in both images.
+    /// (`e² / σ² <= 9.21`, `σ = scale_factor^octave` pixels, the scale of each keyframe's
+    /// features, [`crate::features::OrbFeatures::scale`]), tested in both images.
     pub chi2: f64,
-    /// ORB pyramid scale factor (σ of a keypoint at octave `o` is `scale_factor^o`).
-    pub scale_factor: f64,
     /// RANSAC confidence of drawing one all-inlier 3-point sample.
     pub confidence: f64,
     /// Largest number of RANSAC iterations (ORB-SLAM: 300).
@@ -44,7 +42,7 @@ pub struct Sim3Params {
     /// Inliers needed after refinement (ORB-SLAM: 20).
     pub min_refined_inliers: usize,
     /// Guided matching radius at octave 0, pixels (ORB-SLAM: 10), times
-    /// `scale_factor^octave` of the projected point's keypoint.
+    /// `scale_factor^octave` of the projected point's keypoint (the query's pyramid scale).
     pub guided_radius_px: f32,
     /// Largest Hamming distance of a guided match (ORB-SLAM: [`TH_LOW`]).
     pub guided_max_distance: u32,
@@ -65,7 +63,6 @@ impl Default for Sim3Params {
             ratio: 0.75,
             min_matches: 20,
             chi2: 9.21,
-            scale_factor: 1.2,
             confidence: 0.99,
             max_iterations: 300,
             min_ransac_inliers: 20,
@@ -253,8 +250,8 @@ pub fn compute_sim3(
             p_m: pmm.p_k,
             uv_q: Vector2::new(f64::from(kq.x), f64::from(kq.y)),
             uv_m: Vector2::new(f64::from(km.x), f64::from(km.y)),
-            inv_sigma2_q: inv_sigma2_for_octave(u32::from(kq.octave), params.scale_factor),
-            inv_sigma2_m: inv_sigma2_for_octave(u32::from(km.octave), params.scale_factor),
+            inv_sigma2_q: q.features.scale.inv_sigma2(kq.octave),
+            inv_sigma2_m: m.features.scale.inv_sigma2(km.octave),
         };
         let finite = c
             .p_q
@@ -324,7 +321,6 @@ pub fn compute_sim3(
         &q_taken,
         params.guided_radius_px,
         params.guided_max_distance,
-        params.scale_factor as f32,
     );
     let mut q_point_of_kp = vec![None; q.features.keypoints.len()];
     for p in &q.points {

@@ -65,7 +65,7 @@ pub(super) struct KfSpec {
     /// Server point id = world index + this.
     pub point_offset: u64,
     pub camera: PinholeRadtan,
-    /// Pixel noise σ at octave 0 (times 1.2^octave).
+    /// Pixel noise σ at octave 0 (times scale_factor^octave).
     pub noise_px: f64,
     /// Each observation flips 0..=max_flips random descriptor bits.
     pub max_flips: usize,
@@ -118,7 +118,7 @@ pub(super) fn make_keyframe(world: &World, spec: &KfSpec, rng: &mut Rng) -> Kept
         y: uv.y as f32,
         angle: rng.uniform(0.0, 360.0) as f32,
         response: 1.0,
-        size: 31.0 * 1.2f32.powi(i32::from(octave)),
+        size: 31.0 * (crate::features::ORB_SCALE_FACTOR as f32).powi(i32::from(octave)),
         octave,
     };
     for (i, p_w) in world.points.iter().enumerate() {
@@ -130,7 +130,7 @@ pub(super) fn make_keyframe(world: &World, spec: &KfSpec, rng: &mut Rng) -> Kept
             continue;
         };
         let octave = rng.below(4) as u8;
-        let sigma = spec.noise_px * 1.2f64.powi(i32::from(octave));
+        let sigma = spec.noise_px * crate::features::ORB_SCALE_FACTOR.powi(i32::from(octave));
         let uv = uv + Vector2::new(rng.gauss(), rng.gauss()) * sigma;
         if !cam.contains(&uv) {
             continue;
@@ -410,8 +410,8 @@ fn refinement_improves_a_perturbed_similarity() {
                 p_m: pmm.p_k,
                 uv_q: Vector2::new(f64::from(a.x), f64::from(a.y)),
                 uv_m: Vector2::new(f64::from(b.x), f64::from(b.y)),
-                inv_sigma2_q: 1.2f64.powi(-2 * i32::from(a.octave)),
-                inv_sigma2_m: 1.2f64.powi(-2 * i32::from(b.octave)),
+                inv_sigma2_q: crate::features::ORB_SCALE_FACTOR.powi(-2 * i32::from(a.octave)),
+                inv_sigma2_m: crate::features::ORB_SCALE_FACTOR.powi(-2 * i32::from(b.octave)),
             }
         })
         .collect();

@@ -3,7 +3,7 @@
 //! carry their own random descriptor. Lap 1 (map A) is stored with the true scale; lap 2
 //! (map A, new point ids: the mapper did not recognise the place) drifted by a similarity
 //! of scale 1.3; a second map B visits part of the circle with scale 0.6. Pixel noise
-//! 0.5 px · 1.2^octave, 0–8 flipped descriptor bits per observation, 1% depth noise.
+//! 0.5 px · scale_factor^octave, 0–8 flipped descriptor bits per observation, 1% depth noise.
 
 use std::collections::HashMap;
 use std::path::Path;

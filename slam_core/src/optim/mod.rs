@@ -7,7 +7,8 @@
 //!   of [`crate::lie`]) is applied on the **left**: `T_cw ← Exp(δ) · T_cw`
 //!   ([`crate::lie::se3_exp`]); Jacobian columns follow the same order.
 //! - Residuals are `predicted - observed` in pixels; a residual's information is the scalar
-//!   `1 / σ²` with `σ = 1.2^octave` ([`inv_sigma2_for_octave`]); robust kernels act on the
+//!   `1 / σ²` with `σ = scale_factor^octave` ([`inv_sigma2_for_octave`], tabulated per
+//!   feature set in [`crate::features::PyramidScale`]); robust kernels act on the
 //!   squared Mahalanobis error `χ² = rᵀ Ω r` ([`robust::RobustKernel`]).
 //! - Levenberg-Marquardt with multiplicative damping of the diagonal (`H + λ diag(H)`).
 
@@ -20,9 +21,11 @@ pub use pose_only::{PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer
 pub use robust::RobustKernel;
 
 /// ORB-SLAM's information of a keypoint detected at pyramid level `octave` with scale factor
-/// `scale_factor` (1.2): `1 / σ²` with `σ = scale_factor^octave` pixels.
+/// `scale_factor` ([`crate::features::ORB_SCALE_FACTOR`] by default): `1 / σ²` with
+/// `σ = scale_factor^octave` pixels. Feature sets carry these values per octave
+/// ([`crate::features::PyramidScale::inv_sigma2`]).
 pub fn inv_sigma2_for_octave(octave: u32, scale_factor: f64) -> f64 {
-    let sigma = scale_factor.powi(octave.min(64) as i32);
+    let sigma = crate::features::powi_f64(scale_factor, octave.min(64));
     1.0 / (sigma * sigma)
 }
 
@@ -30,8 +33,9 @@ pub fn inv_sigma2_for_octave(octave: u32, scale_factor: f64) -> f64 {
 mod tests {
     #[test]
     fn octave_information() {
-        assert_eq!(super::inv_sigma2_for_octave(0, 1.2), 1.0);
-        assert!((super::inv_sigma2_for_octave(2, 1.2) - 1.0 / 1.44f64.powi(2)).abs() < 1e-12);
+        let f = crate::features::ORB_SCALE_FACTOR;
+        assert_eq!(super::inv_sigma2_for_octave(0, f), 1.0);
+        assert!((super::inv_sigma2_for_octave(2, f) - 1.0 / (f * f).powi(2)).abs() < 1e-12);
     }
 }
 

@@ -16,7 +16,7 @@ fn true_pose() -> Isometry3<f64> {
     )
 }
 
-/// Observations of random points (octaves 0..4, noise σ = 1.2^octave px), a fraction
+/// Observations of random points (octaves 0..4, noise σ = scale_factor^octave px), a fraction
 /// `outliers` moved to random pixels. With a velocity, pixels follow the rolling-shutter
 /// model with readout `readout_ns` and `dt` of the observed row.
 fn scene(
@@ -33,7 +33,7 @@ fn scene(
     while obs.len() < n {
         let p_w = (t_wc * Point3::from(box_point(rng))).coords;
         let octave = (rng.0.next_f64() * 4.0) as u32;
-        let sigma = 1.2f64.powi(octave as i32);
+        let sigma = crate::features::ORB_SCALE_FACTOR.powi(octave as i32);
         let (uv, dt) = match vel {
             None => match cam.project(&(t_cw * Point3::from(p_w)).coords) {
                 Some(uv) => (uv, 0.0),

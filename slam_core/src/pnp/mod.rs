@@ -97,25 +97,35 @@ impl PnpSolver {
     }
 }
 
-/// Counts the inliers of `pose` into `mask`.
-fn score(
-    pose: &Isometry3<f64>,
-    points_w: &[Vector3<f64>],
-    xn: &[Vector2<f64>],
-    inv_sigma2: &[f64],
+/// The correspondences of one problem with the inlier test `χ² = |r|² · k · inv_sigma2
+/// <= chi2` (`k = pixel_scale²` turns normalised residuals into pixels).
+#[derive(Clone, Copy)]
+struct Correspondences<'a> {
+    points_w: &'a [Vector3<f64>],
+    xn: &'a [Vector2<f64>],
+    inv_sigma2: &'a [f64],
     k: f64,
     chi2: f64,
-    mask: &mut [bool],
-) -> usize {
-    let mut n = 0;
-    for i in 0..points_w.len() {
-        let q = pose * Point3::from(points_w[i]);
-        mask[i] = q.z > 0.0
-            && (Vector2::new(q.x / q.z, q.y / q.z) - xn[i]).norm_squared() * k * inv_sigma2[i]
-                <= chi2;
-        n += usize::from(mask[i]);
+}
+
+impl Correspondences<'_> {
+    fn len(&self) -> usize {
+        self.points_w.len()
     }
-    n
+
+    /// Counts the inliers of `pose` into `mask`.
+    fn score(&self, pose: &Isometry3<f64>, mask: &mut [bool]) -> usize {
+        let mut n = 0;
+        let obs = self.points_w.iter().zip(self.xn).zip(self.inv_sigma2);
+        for (inlier, ((p_w, x), w)) in mask.iter_mut().zip(obs) {
+            let q = pose * Point3::from(*p_w);
+            *inlier = q.z > 0.0
+                && (Vector2::new(q.x / q.z, q.y / q.z) - x).norm_squared() * self.k * w
+                    <= self.chi2;
+            n += usize::from(*inlier);
+        }
+        n
+    }
 }
 
 /// [`solve_pnp_ransac_with`] with fresh buffers.
@@ -141,6 +151,53 @@ pub fn solve_pnp_ransac_with(
     inv_sigma2: &[f64],
     params: &PnpParams,
 ) -> Result<PnpResult, CoreError> {
+    check_input(points_w, xn, inv_sigma2, params)?;
+    let data = Correspondences {
+        points_w,
+        xn,
+        inv_sigma2,
+        k: params.pixel_scale * params.pixel_scale,
+        chi2: params.chi2,
+    };
+    // 1. RANSAC over EPnP minimal sets, adaptive number of iterations.
+    let (best, iterations) = ransac_epnp(solver, &data, params);
+    let Some((count, pose)) = best else {
+        return Err(CoreError::Degenerate("pnp: no EPnP solution".into()));
+    };
+    if count < params.min_inliers {
+        return Err(CoreError::Degenerate(format!(
+            "pnp: best pose has {count} inliers (need {})",
+            params.min_inliers
+        )));
+    }
+    // 2. EPnP refit on the inliers.
+    let mut inliers = vec![false; data.len()];
+    let mut pose = refit_on_inliers(solver, &data, pose, count, &mut inliers);
+    // 3. Motion-only polish, which also gives the final inliers.
+    if params.refine {
+        pose = polish(solver, &data, pose, params, &mut inliers);
+    }
+    let n_inliers = inliers.iter().filter(|&&b| b).count();
+    if n_inliers < params.min_inliers {
+        return Err(CoreError::Degenerate(format!(
+            "pnp: {n_inliers} inliers after refinement"
+        )));
+    }
+    Ok(PnpResult {
+        t_cw: pose,
+        inliers,
+        n_inliers,
+        iterations,
+    })
+}
+
+/// Input checks of [`solve_pnp_ransac_with`].
+fn check_input(
+    points_w: &[Vector3<f64>],
+    xn: &[Vector2<f64>],
+    inv_sigma2: &[f64],
+    params: &PnpParams,
+) -> Result<(), CoreError> {
     let n = points_w.len();
     if xn.len() != n || inv_sigma2.len() != n {
         return Err(CoreError::InvalidArgument(format!(
@@ -172,7 +229,18 @@ pub fn solve_pnp_ransac_with(
             "pnp: non-finite input or non-positive information".into(),
         ));
     }
-    let k = params.pixel_scale * params.pixel_scale;
+    Ok(())
+}
+
+/// The RANSAC loop: EPnP on minimal sets of `sample_size` correspondences, the iteration
+/// limit adapted to the best inlier ratio so far. Returns the best `(inlier count, pose)`
+/// and the iterations run.
+fn ransac_epnp(
+    solver: &mut PnpSolver,
+    data: &Correspondences<'_>,
+    params: &PnpParams,
+) -> (Option<(usize, Isometry3<f64>)>, usize) {
+    let n = data.len();
     let mut rng = SplitMix64::new(params.seed);
     let mut set = [0usize; 16];
     let set = &mut set[..params.sample_size];
@@ -186,18 +254,15 @@ pub fn solve_pnp_ransac_with(
         if !sample_distinct(&mut rng, n, set) {
             break;
         }
-        let Some(pose) = epnp::epnp(points_w, xn, set.iter().copied(), &mut solver.epnp) else {
+        let Some(pose) = epnp::epnp(
+            data.points_w,
+            data.xn,
+            set.iter().copied(),
+            &mut solver.epnp,
+        ) else {
             continue;
         };
-        let count = score(
-            &pose,
-            points_w,
-            xn,
-            inv_sigma2,
-            k,
-            params.chi2,
-            &mut solver.mask,
-        );
+        let count = data.score(&pose, &mut solver.mask);
         if best.is_none_or(|(c, _)| count > c) {
             best = Some((count, pose));
             limit = adaptive_iterations(
@@ -208,85 +273,69 @@ pub fn solve_pnp_ransac_with(
             );
         }
     }
-    let Some((count, mut pose)) = best else {
-        return Err(CoreError::Degenerate("pnp: no EPnP solution".into()));
-    };
-    if count < params.min_inliers {
-        return Err(CoreError::Degenerate(format!(
-            "pnp: best pose has {count} inliers (need {})",
-            params.min_inliers
-        )));
-    }
-    // Refit on the inliers (twice: the set usually grows).
-    let mut inliers = vec![false; n];
-    score(
-        &pose,
-        points_w,
-        xn,
-        inv_sigma2,
-        k,
-        params.chi2,
-        &mut inliers,
-    );
+    (best, iterations)
+}
+
+/// Refits EPnP on the inliers of `pose` (twice: the set usually grows), keeping a refit
+/// with at least `count` inliers; `inliers` receives the kept pose's inliers.
+fn refit_on_inliers(
+    solver: &mut PnpSolver,
+    data: &Correspondences<'_>,
+    mut pose: Isometry3<f64>,
+    count: usize,
+    inliers: &mut [bool],
+) -> Isometry3<f64> {
+    data.score(&pose, inliers);
     for _ in 0..2 {
-        let idx = (0..n).filter(|&i| inliers[i]);
-        if let Some(p) = epnp::epnp(points_w, xn, idx, &mut solver.epnp) {
-            let c = score(
-                &p,
-                points_w,
-                xn,
-                inv_sigma2,
-                k,
-                params.chi2,
-                &mut solver.mask,
-            );
+        let idx = (0..data.len()).filter(|&i| inliers[i]);
+        if let Some(p) = epnp::epnp(data.points_w, data.xn, idx, &mut solver.epnp) {
+            let c = data.score(&p, &mut solver.mask);
             if c >= count {
                 pose = p;
                 inliers.copy_from_slice(&solver.mask);
             }
         }
     }
-    if params.refine {
-        // Motion-only optimisation on a virtual pinhole camera whose "pixels" are
-        // normalised coordinates times the focal length.
-        let s = params.pixel_scale;
-        let cam = PinholeRadtan::pinhole(1, 1, s, s, 0.0, 0.0);
-        solver.obs.clear();
-        solver.obs.extend((0..n).map(|i| PoseObservation {
-            point_w: points_w[i],
-            pixel: xn[i] * s,
-            inv_sigma2: inv_sigma2[i],
-            dt: 0.0,
-        }));
-        let opt_params = PoseOptParams {
-            chi2: params.chi2,
-            huber_delta: params.chi2.sqrt(),
-            ..PoseOptParams::default()
-        };
-        let mut mask = std::mem::take(&mut solver.mask);
-        let res = solver
-            .optimizer
-            .optimize(&cam, &pose, &solver.obs, None, &opt_params, &mut mask);
-        if let Ok(r) = res {
-            if r.n_inliers >= params.min_inliers {
-                pose = r.t_cw;
-                inliers.copy_from_slice(&mask);
-            }
+    pose
+}
+
+/// Motion-only optimisation on a virtual pinhole camera whose "pixels" are normalised
+/// coordinates times the focal length; kept (pose and `inliers`) when it has at least
+/// `min_inliers`.
+fn polish(
+    solver: &mut PnpSolver,
+    data: &Correspondences<'_>,
+    pose: Isometry3<f64>,
+    params: &PnpParams,
+    inliers: &mut [bool],
+) -> Isometry3<f64> {
+    let s = params.pixel_scale;
+    let cam = PinholeRadtan::pinhole(1, 1, s, s, 0.0, 0.0);
+    solver.obs.clear();
+    solver.obs.extend((0..data.len()).map(|i| PoseObservation {
+        point_w: data.points_w[i],
+        pixel: data.xn[i] * s,
+        inv_sigma2: data.inv_sigma2[i],
+        dt: 0.0,
+    }));
+    let opt_params = PoseOptParams {
+        chi2: params.chi2,
+        huber_delta: params.chi2.sqrt(),
+        ..PoseOptParams::default()
+    };
+    let mut mask = std::mem::take(&mut solver.mask);
+    let res = solver
+        .optimizer
+        .optimize(&cam, &pose, &solver.obs, None, &opt_params, &mut mask);
+    let mut pose = pose;
+    if let Ok(r) = res {
+        if r.n_inliers >= params.min_inliers {
+            pose = r.t_cw;
+            inliers.copy_from_slice(&mask);
         }
-        solver.mask = mask;
     }
-    let n_inliers = inliers.iter().filter(|&&b| b).count();
-    if n_inliers < params.min_inliers {
-        return Err(CoreError::Degenerate(format!(
-            "pnp: {n_inliers} inliers after refinement"
-        )));
-    }
-    Ok(PnpResult {
-        t_cw: pose,
-        inliers,
-        n_inliers,
-        iterations,
-    })
+    solver.mask = mask;
+    pose
 }
 
 #[cfg(test)]

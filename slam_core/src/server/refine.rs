@@ -11,7 +11,7 @@ use super::handler::HandlerParams;
 use super::server_map::ServerMap;
 use super::types::ServerKeyframe;
 use crate::features::FeatureGrid;
-use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptimizer};
+use crate::optim::{PoseObservation, PoseOptimizer};
 use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
 use crate::vo::{KfId, PointId};
 use crate::CoreError;
@@ -214,7 +214,7 @@ impl Refiner {
             self.obs.push(PoseObservation {
                 point_w: mp.p_w,
                 pixel: Vector2::new(kp.x as f64, kp.y as f64),
-                inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
+                inv_sigma2: kf.features.scale.inv_sigma2(kp.octave),
                 dt: 0.0,
             });
             self.obs_kp.push(k);

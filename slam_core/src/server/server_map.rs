@@ -7,7 +7,6 @@ use std::collections::BTreeMap;
 use nalgebra::{Isometry3, Vector2};
 
 use super::types::{server_kf_id, KeptKeyframe, KeptPoint, MapId, ServerKeyframe};
-use crate::optim::inv_sigma2_for_octave;
 use crate::twoview::triangulate::{
     check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
 };
@@ -315,12 +314,12 @@ impl ServerMap {
             CheckView {
                 t_cw: kf.t_cw,
                 pixel: px,
-                inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
+                inv_sigma2: kf.features.scale.inv_sigma2(kp.octave),
             },
             CheckView {
                 t_cw: kf0.t_cw,
                 pixel: px0,
-                inv_sigma2: inv_sigma2_for_octave(kp0.octave as u32, 1.2),
+                inv_sigma2: kf0.features.scale.inv_sigma2(kp0.octave),
             },
         ];
         check_point(&p_w, &views, &kf.camera, check).ok()?;

@@ -209,6 +209,111 @@ impl Best {
             inliers: vec![false; n],
         }
     }
+
+    /// Keeps `model` when its `score` is higher; its inlier `mask` is swapped in.
+    fn consider(&mut self, model: Matrix3<f64>, score: f64, mask: &mut Vec<bool>) {
+        if score > self.score {
+            self.model = model;
+            self.score = score;
+            std::mem::swap(&mut self.inliers, mask);
+        }
+    }
+
+    fn n_inliers(&self) -> usize {
+        self.inliers.iter().filter(|&&b| b).count()
+    }
+}
+
+/// The winners of step 1: the best homography and the best fundamental matrix.
+struct ModelFits {
+    h: Best,
+    f: Best,
+}
+
+/// Motion hypotheses `(R_21, t_21)` of a decomposed model.
+type Motions = Vec<(Rotation3<f64>, Vector3<f64>)>;
+
+/// Step 2's outcome: the chosen model, its inliers and its motion hypotheses.
+struct Hypotheses {
+    model: TwoViewModel,
+    inliers: Vec<bool>,
+    motions: Motions,
+    /// Ambiguity ratio of [`select::accept`] for this model.
+    ambiguity: f64,
+}
+
+/// Fits and scores both models on chosen matches (step 1): the matches, their Hartley
+/// normalisations and the score parameters.
+struct ModelScorer<'a> {
+    x1: &'a [Vector2<f64>],
+    x2: &'a [Vector2<f64>],
+    x1n: Vec<Vector2<f64>>,
+    x2n: Vec<Vector2<f64>>,
+    t1: Matrix3<f64>,
+    t2: Matrix3<f64>,
+    /// Pixels per normalised unit.
+    s: f64,
+    /// `1 / sigma_px²`.
+    inv_s2: f64,
+    th_h: f64,
+    th_f: f64,
+}
+
+impl<'a> ModelScorer<'a> {
+    fn new(
+        x1: &'a [Vector2<f64>],
+        x2: &'a [Vector2<f64>],
+        params: &TwoViewParams,
+    ) -> Result<Self, CoreError> {
+        let degenerate =
+            || CoreError::Degenerate("two-view: points collapse to one location".into());
+        let t1 = hartley(x1.iter()).ok_or_else(degenerate)?;
+        let t2 = hartley(x2.iter()).ok_or_else(degenerate)?;
+        Ok(Self {
+            x1,
+            x2,
+            x1n: x1.iter().map(|p| apply(&t1, p)).collect(),
+            x2n: x2.iter().map(|p| apply(&t2, p)).collect(),
+            t1,
+            t2,
+            s: params.pixel_scale,
+            inv_s2: 1.0 / (params.sigma_px * params.sigma_px),
+            th_h: params.chi2_homography,
+            th_f: params.chi2_fundamental,
+        })
+    }
+
+    /// Normalised DLT homography of matches `idx`, scored by `S_H` into `best`.
+    fn try_homography(
+        &self,
+        idx: impl Iterator<Item = usize>,
+        best: &mut Best,
+        mask: &mut Vec<bool>,
+    ) {
+        if let Some(h) = homography::solve_normalized(&self.x1n, &self.x2n, idx)
+            .and_then(|hn| homography::denormalize(&hn, &self.t1, &self.t2))
+        {
+            let (x1, x2) = (self.x1, self.x2);
+            let sc = score_homography(&h, x1, x2, self.s, self.inv_s2, self.th_h, mask);
+            best.consider(h, sc, mask);
+        }
+    }
+
+    /// Normalised 8-point fundamental matrix of matches `idx`, scored by `S_F` into `best`.
+    fn try_fundamental(
+        &self,
+        idx: impl Iterator<Item = usize>,
+        best: &mut Best,
+        mask: &mut Vec<bool>,
+    ) {
+        if let Some(f) = fundamental::solve_normalized(&self.x1n, &self.x2n, idx)
+            .and_then(|fnorm| fundamental::denormalize(&fnorm, &self.t1, &self.t2))
+        {
+            let (x1, x2, s, inv_s2) = (self.x1, self.x2, self.s, self.inv_s2);
+            let sc = score_fundamental(&f, x1, x2, s, inv_s2, self.th_f, self.th_h, mask);
+            best.consider(f, sc, mask);
+        }
+    }
 }
 
 /// Two-view initialisation (Mur-Artal et al. 2015, section IV): see the module docs.
@@ -225,6 +330,53 @@ pub fn initialize(
     x2: &[Vector2<f64>],
     params: &TwoViewParams,
 ) -> Result<TwoViewResult, CoreError> {
+    check_input(x1, x2, params)?;
+    let n = x1.len();
+    // 1. RANSAC of H and F on the same samples, then refits on their inliers.
+    let fits = fit_models(x1, x2, params)?;
+    let (score_h, score_f) = (fits.h.score, fits.f.score);
+    // 2. Model selection (R_H) and decomposition into motion hypotheses.
+    let hyp = model_hypotheses(fits, x1, x2, params)?;
+    // 3. The hypothesis triangulating most inliers in front of both cameras.
+    let mut parallax = Vec::with_capacity(n);
+    let (k, _, second_good) =
+        select::rank(&hyp.motions, x1, x2, &hyp.inliers, params, &mut parallax)
+            .ok_or_else(|| CoreError::Degenerate("two-view: no motion hypothesis".into()))?;
+    let (r0, t0) = hyp.motions[k];
+    let tn = t0.norm();
+    if !(tn.is_finite() && tn > 1e-12) {
+        return Err(CoreError::Degenerate("two-view: zero translation".into()));
+    }
+    // 4. Refinement of the motion and the final inliers.
+    let refine_motion = hyp.model == TwoViewModel::Essential;
+    let (r, t, inliers) =
+        refine_and_classify(r0, t0 / tn, hyp.inliers, x1, x2, params, refine_motion);
+    // 5. Triangulation and the acceptance rules.
+    let n_inliers = inliers.iter().filter(|&&b| b).count();
+    let mut points = vec![Vector3::zeros(); n];
+    let mut triangulated = vec![false; n];
+    let out = Some((points.as_mut_slice(), triangulated.as_mut_slice()));
+    let eval = select::evaluate(&r, &t, x1, x2, &inliers, params, out, &mut parallax);
+    select::accept(&eval, second_good, n_inliers, params, hyp.ambiguity)?;
+    Ok(TwoViewResult {
+        model: hyp.model,
+        rotation: r,
+        translation: t,
+        points,
+        triangulated,
+        inliers,
+        score_h,
+        score_f,
+        parallax_deg: eval.parallax_deg,
+    })
+}
+
+/// Input checks of [`initialize`].
+fn check_input(
+    x1: &[Vector2<f64>],
+    x2: &[Vector2<f64>],
+    params: &TwoViewParams,
+) -> Result<(), CoreError> {
     let n = x1.len();
     if x2.len() != n {
         return Err(CoreError::InvalidArgument(format!(
@@ -252,141 +404,131 @@ pub fn initialize(
             "two-view: pixel_scale and sigma_px must be > 0".into(),
         ));
     }
-    let degenerate = || CoreError::Degenerate("two-view: points collapse to one location".into());
-    let t1 = hartley(x1.iter()).ok_or_else(degenerate)?;
-    let t2 = hartley(x2.iter()).ok_or_else(degenerate)?;
-    let x1n: Vec<_> = x1.iter().map(|p| apply(&t1, p)).collect();
-    let x2n: Vec<_> = x2.iter().map(|p| apply(&t2, p)).collect();
+    Ok(())
+}
 
-    let s = params.pixel_scale;
-    let inv_s2 = 1.0 / (params.sigma_px * params.sigma_px);
-    let (th_h, th_f) = (params.chi2_homography, params.chi2_fundamental);
-    let mut best_h = Best::new(n);
-    let mut best_f = Best::new(n);
+/// Step 1: one RANSAC loop fitting a homography (first 4 points of each sample) and a
+/// fundamental matrix (all 8) on the same samples, scored by `S_H` and `S_F`; then both
+/// refitted on their inliers (twice: the inlier set usually grows once).
+fn fit_models(
+    x1: &[Vector2<f64>],
+    x2: &[Vector2<f64>],
+    params: &TwoViewParams,
+) -> Result<ModelFits, CoreError> {
+    let n = x1.len();
+    let scorer = ModelScorer::new(x1, x2, params)?;
+    let mut fits = ModelFits {
+        h: Best::new(n),
+        f: Best::new(n),
+    };
     let mut mask = vec![false; n];
     let mut rng = SplitMix64::new(params.seed);
     let mut set = [0usize; 8];
-    let eval_h = |h: &Matrix3<f64>, m: &mut [bool]| score_homography(h, x1, x2, s, inv_s2, th_h, m);
-    let eval_f =
-        |f: &Matrix3<f64>, m: &mut [bool]| score_fundamental(f, x1, x2, s, inv_s2, th_f, th_h, m);
-    let consider = |best: &mut Best, model: Matrix3<f64>, score: f64, m: &mut Vec<bool>| {
-        if score > best.score {
-            best.model = model;
-            best.score = score;
-            std::mem::swap(&mut best.inliers, m);
-        }
-    };
     for _ in 0..params.iterations {
         if !sample_distinct(&mut rng, n, &mut set) {
             break;
         }
-        if let Some(h) = homography::solve_normalized(&x1n, &x2n, set[..4].iter().copied())
-            .and_then(|hn| homography::denormalize(&hn, &t1, &t2))
-        {
-            let sc = eval_h(&h, &mut mask);
-            consider(&mut best_h, h, sc, &mut mask);
-        }
-        if let Some(f) = fundamental::solve_normalized(&x1n, &x2n, set.iter().copied())
-            .and_then(|fnorm| fundamental::denormalize(&fnorm, &t1, &t2))
-        {
-            let sc = eval_f(&f, &mut mask);
-            consider(&mut best_f, f, sc, &mut mask);
-        }
+        scorer.try_homography(set[..4].iter().copied(), &mut fits.h, &mut mask);
+        scorer.try_fundamental(set.iter().copied(), &mut fits.f, &mut mask);
     }
-    // Refit both models on their inliers (twice: the inlier set usually grows once).
     for _ in 0..2 {
-        let idx = best_h.inliers.clone();
-        if idx.iter().filter(|&&b| b).count() >= 4 {
-            if let Some(h) = homography::solve_normalized(&x1n, &x2n, (0..n).filter(|&i| idx[i]))
-                .and_then(|hn| homography::denormalize(&hn, &t1, &t2))
-            {
-                let sc = eval_h(&h, &mut mask);
-                consider(&mut best_h, h, sc, &mut mask);
-            }
+        let idx = fits.h.inliers.clone();
+        if fits.h.n_inliers() >= 4 {
+            scorer.try_homography((0..n).filter(|&i| idx[i]), &mut fits.h, &mut mask);
         }
-        let idx = best_f.inliers.clone();
-        if idx.iter().filter(|&&b| b).count() >= 8 {
-            if let Some(f) = fundamental::solve_normalized(&x1n, &x2n, (0..n).filter(|&i| idx[i]))
-                .and_then(|fnorm| fundamental::denormalize(&fnorm, &t1, &t2))
-            {
-                let sc = eval_f(&f, &mut mask);
-                consider(&mut best_f, f, sc, &mut mask);
-            }
+        let idx = fits.f.inliers.clone();
+        if fits.f.n_inliers() >= 8 {
+            scorer.try_fundamental((0..n).filter(|&i| idx[i]), &mut fits.f, &mut mask);
         }
     }
-    let total = best_h.score + best_f.score;
+    Ok(fits)
+}
+
+/// Step 2: the homography when `R_H = S_H / (S_H + S_F) > homography_ratio` (or when it
+/// keeps `homography_inlier_ratio` of F's inliers), else the essential matrix from F; the
+/// chosen model decomposed into its motion hypotheses.
+fn model_hypotheses(
+    fits: ModelFits,
+    x1: &[Vector2<f64>],
+    x2: &[Vector2<f64>],
+    params: &TwoViewParams,
+) -> Result<Hypotheses, CoreError> {
+    let total = fits.h.score + fits.f.score;
     if total <= 0.0 {
         return Err(CoreError::Degenerate("two-view: no model found".into()));
     }
-    let (score_h, score_f) = (best_h.score, best_f.score);
-    let n_h = best_h.inliers.iter().filter(|&&b| b).count() as f64;
-    let n_f = best_f.inliers.iter().filter(|&&b| b).count() as f64;
-    let use_h =
-        score_h / total > params.homography_ratio || n_h >= params.homography_inlier_ratio * n_f;
-    let mut parallax = Vec::with_capacity(n);
-    let (model, best, hypotheses, ambiguity) = if use_h {
-        let mut h = best_h.model;
-        // Sign with positive depths: x2ᵀ H x1 > 0 on most inliers.
-        let votes: f64 = (0..n)
-            .filter(|&i| best_h.inliers[i])
-            .map(|i| {
-                let v = Vector3::new(x2[i].x, x2[i].y, 1.0)
-                    .dot(&(h * Vector3::new(x1[i].x, x1[i].y, 1.0)));
-                v.signum()
-            })
-            .sum();
-        if votes < 0.0 {
-            h = -h;
-        }
-        // Polish H itself: on a plane the epipolar (Sampson) cost used below for F is
-        // ill-conditioned (every [e']x H fits the points).
-        if params.refine_iterations > 0 {
-            let delta = params.chi2_homography.sqrt() * params.sigma_px / s;
-            h = refine::refine_homography(
-                &h,
-                x1,
-                x2,
-                &best_h.inliers,
-                delta,
-                params.refine_iterations,
-            );
-        }
-        let sols = decompose_homography(&h)?;
-        let hyps: Vec<_> = sols.iter().map(|m| (m.rotation, m.translation)).collect();
-        (
-            TwoViewModel::Homography,
-            best_h,
-            hyps,
-            params.ambiguity_ratio_h,
-        )
+    let (n_h, n_f) = (fits.h.n_inliers() as f64, fits.f.n_inliers() as f64);
+    let use_h = fits.h.score / total > params.homography_ratio
+        || n_h >= params.homography_inlier_ratio * n_f;
+    if use_h {
+        let motions = homography_motions(&fits.h, x1, x2, params)?;
+        Ok(Hypotheses {
+            model: TwoViewModel::Homography,
+            inliers: fits.h.inliers,
+            motions,
+            ambiguity: params.ambiguity_ratio_h,
+        })
     } else {
-        let e = essential_from_fundamental(&best_f.model)
+        let e = essential_from_fundamental(&fits.f.model)
             .ok_or_else(|| CoreError::Degenerate("two-view: SVD of F failed".into()))?;
-        let hyps = decompose_essential(&e)?.to_vec();
-        (
-            TwoViewModel::Essential,
-            best_f,
-            hyps,
-            params.ambiguity_ratio_f,
-        )
-    };
-    let (k, _, second_good) =
-        select::rank(&hypotheses, x1, x2, &best.inliers, params, &mut parallax)
-            .ok_or_else(|| CoreError::Degenerate("two-view: no motion hypothesis".into()))?;
-    let (r0, t0) = hypotheses[k];
-    let tn = t0.norm();
-    if !(tn.is_finite() && tn > 1e-12) {
-        return Err(CoreError::Degenerate("two-view: zero translation".into()));
+        Ok(Hypotheses {
+            model: TwoViewModel::Essential,
+            inliers: fits.f.inliers,
+            motions: decompose_essential(&e)?.to_vec(),
+            ambiguity: params.ambiguity_ratio_f,
+        })
     }
-    // Essential path: refine (Huber at the inlier bound) on the matches whose Sampson error is small at the
-    // current motion, with a shrinking gate of 16, 4, 4 times the squared inlier bound (the
-    // linear model is biased, up to ~1° and ~5° on noisy data, and so is its inlier set; a
-    // gate at the bound itself would truncate the noise and bias the result), then classify
-    // the inliers at the refined motion.
-    let delta = params.chi2_fundamental.sqrt() * params.sigma_px / s;
-    let (mut r, mut t) = (r0, t0 / tn);
-    let mut inliers = best.inliers.clone();
-    if params.refine_iterations > 0 && !use_h {
+}
+
+/// The motion hypotheses of the best homography: its sign made to give positive depths,
+/// polished on its inliers, decomposed.
+fn homography_motions(
+    best_h: &Best,
+    x1: &[Vector2<f64>],
+    x2: &[Vector2<f64>],
+    params: &TwoViewParams,
+) -> Result<Motions, CoreError> {
+    let mut h = best_h.model;
+    // Sign with positive depths: x2ᵀ H x1 > 0 on most inliers.
+    let votes: f64 = (0..x1.len())
+        .filter(|&i| best_h.inliers[i])
+        .map(|i| {
+            let v =
+                Vector3::new(x2[i].x, x2[i].y, 1.0).dot(&(h * Vector3::new(x1[i].x, x1[i].y, 1.0)));
+            v.signum()
+        })
+        .sum();
+    if votes < 0.0 {
+        h = -h;
+    }
+    // Polish H itself: on a plane the epipolar (Sampson) cost used below for F is
+    // ill-conditioned (every [e']x H fits the points).
+    if params.refine_iterations > 0 {
+        let delta = params.chi2_homography.sqrt() * params.sigma_px / params.pixel_scale;
+        let iterations = params.refine_iterations;
+        h = refine::refine_homography(&h, x1, x2, &best_h.inliers, delta, iterations);
+    }
+    let sols = decompose_homography(&h)?;
+    Ok(sols.iter().map(|m| (m.rotation, m.translation)).collect())
+}
+
+/// Step 4. Essential path (`refine_motion`): refine (Huber at the inlier bound) on the
+/// matches whose Sampson error is small at the current motion, with a shrinking gate of 16,
+/// 4, 4 times the squared inlier bound (the linear model is biased, up to ~1° and ~5° on
+/// noisy data, and so is its inlier set; a gate at the bound itself would truncate the
+/// noise and bias the result). Both paths then classify the inliers at the final motion.
+fn refine_and_classify(
+    r0: Rotation3<f64>,
+    t0: Vector3<f64>,
+    mut inliers: Vec<bool>,
+    x1: &[Vector2<f64>],
+    x2: &[Vector2<f64>],
+    params: &TwoViewParams,
+    refine_motion: bool,
+) -> (Rotation3<f64>, Vector3<f64>, Vec<bool>) {
+    let delta = params.chi2_fundamental.sqrt() * params.sigma_px / params.pixel_scale;
+    let (mut r, mut t) = (r0, t0);
+    if params.refine_iterations > 0 && refine_motion {
         for gate in [16.0, 4.0, 4.0] {
             refine::classify(&r, &t, x1, x2, gate * delta * delta, &mut inliers);
             (r, t) =
@@ -394,31 +536,7 @@ pub fn initialize(
         }
     }
     refine::classify(&r, &t, x1, x2, delta * delta, &mut inliers);
-    let n_inliers = inliers.iter().filter(|&&b| b).count();
-    let mut points = vec![Vector3::zeros(); n];
-    let mut triangulated = vec![false; n];
-    let eval = select::evaluate(
-        &r,
-        &t,
-        x1,
-        x2,
-        &inliers,
-        params,
-        Some((&mut points, &mut triangulated)),
-        &mut parallax,
-    );
-    select::accept(&eval, second_good, n_inliers, params, ambiguity)?;
-    Ok(TwoViewResult {
-        model,
-        rotation: r,
-        translation: t,
-        points,
-        triangulated,
-        inliers,
-        score_h,
-        score_f,
-        parallax_deg: eval.parallax_deg,
-    })
+    (r, t, inliers)
 }
 
 #[cfg(test)]

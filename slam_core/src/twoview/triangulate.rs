@@ -137,7 +137,8 @@ pub struct CheckView {
     pub t_cw: Isometry3<f64>,
     /// Observed (distorted) pixel.
     pub pixel: Vector2<f64>,
-    /// Information of the observation, `1 / σ²` with σ in pixels (ORB-SLAM: σ = 1.2^octave).
+    /// Information of the observation, `1 / σ²` with σ in pixels (ORB-SLAM:
+    /// σ = scale_factor^octave, [`crate::features::PyramidScale::inv_sigma2`]).
     pub inv_sigma2: f64,
 }
 

@@ -133,6 +133,7 @@ mod tests {
             features: OrbFeatures {
                 keypoints: vec![kp; n],
                 descriptors: vec![[0; 32]; n],
+                ..OrbFeatures::default()
             },
             points: vec![None; n],
         }

@@ -4,7 +4,6 @@ use nalgebra::Vector2;
 
 use super::map::{ClientMap, KfId};
 use crate::features::{match_brute_force, MatchParams};
-use crate::optim::inv_sigma2_for_octave;
 use crate::twoview::triangulate::{
     check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
 };
@@ -67,7 +66,7 @@ pub fn create_points_with_neighbours(map: &mut ClientMap, k: KfId, n_neighbours:
             // Distance of x2 to the epipolar line E x1, in pixels (≈ fx × normalised).
             let l = e * x1;
             let dist = x2.dot(&l).abs() / (l.x * l.x + l.y * l.y).sqrt().max(1e-12) * cam1.fx;
-            let sigma2 = 1.0 / inv_sigma2_for_octave(k2.octave as u32, 1.2);
+            let sigma2 = kf2.features.scale.sigma2(k2.octave);
             if dist * dist > 3.84 * sigma2 {
                 continue;
             }
@@ -78,12 +77,12 @@ pub fn create_points_with_neighbours(map: &mut ClientMap, k: KfId, n_neighbours:
                 CheckView {
                     t_cw: kf1.t_cw,
                     pixel: px1,
-                    inv_sigma2: inv_sigma2_for_octave(k1.octave as u32, 1.2),
+                    inv_sigma2: kf1.features.scale.inv_sigma2(k1.octave),
                 },
                 CheckView {
                     t_cw: kf2.t_cw,
                     pixel: px2,
-                    inv_sigma2: inv_sigma2_for_octave(k2.octave as u32, 1.2),
+                    inv_sigma2: kf2.features.scale.inv_sigma2(k2.octave),
                 },
             ];
             if check_point(&p_w, &views, &cam1, &check).is_err() {
@@ -250,7 +249,7 @@ fn prepare_ba(
                 ki,
                 pi,
                 nalgebra::Vector2::new(kp.x as f64, kp.y as f64),
-                inv_sigma2_for_octave(kp.octave as u32, 1.2),
+                kf.features.scale.inv_sigma2(kp.octave),
             );
             job.obs_keys.push((*p, *kid, *i));
         }

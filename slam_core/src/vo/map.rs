@@ -433,6 +433,7 @@ mod tests {
             features: OrbFeatures {
                 keypoints: vec![kp; n],
                 descriptors: (0..n).map(|i| [i as u8; 32]).collect(),
+                ..OrbFeatures::default()
             },
             points: vec![None; n],
         }

@@ -22,10 +22,9 @@ pub struct ProjCandidate {
 /// Parameters of [`search_by_projection`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProjSearchParams {
-    /// Window radius at octave 0, pixels (scaled by `scale_factor^octave`).
+    /// Window radius at octave 0, pixels (scaled by `scale_factor^octave` of the frame's
+    /// pyramid, [`OrbFeatures::scale`]).
     pub radius: f32,
-    /// Scale factor of the pyramid.
-    pub scale_factor: f32,
     /// Largest descriptor distance accepted.
     pub max_distance: u32,
     /// Best / second-best distance ratio (1.0 = no ratio test).
@@ -39,7 +38,6 @@ impl ProjSearchParams {
     pub fn motion_model() -> Self {
         Self {
             radius: 15.0,
-            scale_factor: 1.2,
             max_distance: TH_HIGH,
             ratio: 1.0,
             octave_tolerance: 1,
@@ -50,7 +48,6 @@ impl ProjSearchParams {
     pub fn local_map() -> Self {
         Self {
             radius: 5.0,
-            scale_factor: 1.2,
             max_distance: TH_HIGH,
             ratio: 0.8,
             octave_tolerance: 1,
@@ -61,7 +58,6 @@ impl ProjSearchParams {
     pub fn tight() -> Self {
         Self {
             radius: 4.0,
-            scale_factor: 1.2,
             max_distance: TH_LOW,
             ratio: 0.8,
             octave_tolerance: 1,
@@ -86,7 +82,7 @@ pub fn search_by_projection(
 ) -> usize {
     out.clear();
     out.resize(frame.len(), None);
-    let max_oct = 7u8;
+    let max_oct = frame.scale.max_octave();
     for (ci, c) in candidates.iter().enumerate() {
         let p_c = t_cw * Point3::from(c.p_w);
         if p_c.z <= 0.05 {
@@ -98,7 +94,7 @@ pub fn search_by_projection(
         if !camera.contains(&uv) {
             continue;
         }
-        let r = params.radius * params.scale_factor.powi(c.octave as i32);
+        let r = params.radius * frame.scale.level_scale(c.octave);
         let lo = c.octave.saturating_sub(params.octave_tolerance);
         let hi = (c.octave + params.octave_tolerance).min(max_oct);
         let Some(m) = match_in_window(

@@ -6,7 +6,7 @@
 //! the left (`T_cw ← Exp(δ) T_cw`, `δ = [ω; v]`, rotation first as in [`crate::lie`]); points `p_w ← p_w + δp`; residuals
 //! `π(T_cw p_w) - u` in pixels through the full [`crate::camera::PinholeRadtan`] model
 //! (analytic Jacobians through the distortion, [`linearize_reprojection`]); information
-//! `1/σ²`, `σ = 1.2^octave`; Huber kernel (`δ = √5.991`) on `χ² = rᵀ Ω r`.
+//! `1/σ²`, `σ = scale_factor^octave`; Huber kernel (`δ = √5.991`) on `χ² = rᵀ Ω r`.
 //!
 //! **Solver.** Levenberg-Marquardt (damping `λ · clamp(diag H)`, Nielsen's update of `λ`)
 //! on the normal equations with the points eliminated by the Schur complement (3x3 point

@@ -38,8 +38,8 @@ pub struct BaObservation {
     pub point: usize,
     /// The observed (distorted) keypoint, pixels.
     pub pixel: Vector2<f64>,
-    /// Information `1 / σ²` (pixels⁻²), `σ = 1.2^octave`; see
-    /// [`crate::optim::inv_sigma2_for_octave`].
+    /// Information `1 / σ²` (pixels⁻²), `σ = scale_factor^octave`; see
+    /// [`crate::features::PyramidScale::inv_sigma2`].
     pub inv_sigma2: f64,
 }
 

@@ -7,6 +7,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector2, Vector3};
 
 use super::problem::BaProblem;
 use crate::camera::PinholeRadtan;
+use crate::features::ORB_SCALE_FACTOR;
 use crate::optim::inv_sigma2_for_octave;
 use crate::CoreError;
 
@@ -168,7 +169,7 @@ pub fn synthetic_scene(cfg: &SyntheticBaConfig) -> Result<SyntheticBa, CoreError
                 x if x < 0.9 => 2,
                 _ => 3,
             };
-            let sigma = 1.2f64.powi(octave as i32) * cfg.noise_px;
+            let sigma = ORB_SCALE_FACTOR.powi(octave as i32) * cfg.noise_px;
             let is_out = rng.uniform(0.0, 1.0) < cfg.outlier_ratio;
             let pixel = if is_out {
                 // A random pixel at least 30 px away from the true projection.
@@ -181,7 +182,7 @@ pub fn synthetic_scene(cfg: &SyntheticBaConfig) -> Result<SyntheticBa, CoreError
             } else {
                 uv + Vector2::new(rng.normal(), rng.normal()) * sigma
             };
-            truth.add_observation(k, j, pixel, inv_sigma2_for_octave(octave, 1.2));
+            truth.add_observation(k, j, pixel, inv_sigma2_for_octave(octave, ORB_SCALE_FACTOR));
             outlier.push(is_out);
         }
     }

@@ -109,7 +109,7 @@ impl VoTracker {
             .collect();
         kfs.sort_unstable();
         if let [(t_ref, first), (t_later, second), ..] = kfs[..] {
-            if std::env::var_os("SHOAL_DEBUG_INIT").is_some() {
+            if super::init::debug_init() {
                 let before = frames.0.iter().filter(|f| f.t_ns < t_ref).count();
                 eprintln!(
                     "backward: {before} of {} kept frames before the oldest keyframe (t {t_ref} ns)",
@@ -126,7 +126,7 @@ impl VoTracker {
                 let dt_s = (next.t_ns - f.t_ns) as f64 * 1e-9;
                 let guess = motion.predict(&next.t_cw, dt_s);
                 let Some(t_cw) = self.track_one_backwards(f, &next, &guess) else {
-                    if std::env::var_os("SHOAL_DEBUG_INIT").is_some() {
+                    if super::init::debug_init() {
                         eprintln!(
                             "backward: {} frames kept, stopped at t {} ns ({} inliers)",
                             frames.0.len(),

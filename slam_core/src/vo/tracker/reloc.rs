@@ -13,7 +13,6 @@ use nalgebra::{Isometry3, Vector2, Vector3};
 
 use super::{VoFrame, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
-use crate::optim::inv_sigma2_for_octave;
 use crate::pnp::{solve_pnp_ransac_with, PnpParams};
 use crate::vo::map::{KfId, PointId};
 
@@ -74,7 +73,7 @@ impl VoTracker {
                 }
                 pts.push(point.p_w);
                 xn.push(Vector2::new(b.x / b.z, b.y / b.z));
-                w.push(inv_sigma2_for_octave(kp.octave as u32, 1.2));
+                w.push(feats.scale.inv_sigma2(kp.octave));
                 idx.push((m.train as usize, p));
             }
             if pts.len() < MIN_MATCHES {

@@ -6,13 +6,30 @@ use nalgebra::{Isometry3, Vector2};
 
 use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
-use crate::optim::{inv_sigma2_for_octave, PoseObservation, PoseOptParams, Velocity};
+use crate::optim::{PoseObservation, PoseOptParams, Velocity};
 use crate::vo::local_mapping::create_points_with_neighbours;
 use crate::vo::map::{Keyframe, KfId};
 use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
 use crate::CoreError;
 
+/// How a frame got its first pose (steps 1-3 of [`VoTracker::track`]).
+#[derive(Debug, Clone, Copy)]
+struct FirstPose {
+    t_cw: Isometry3<f64>,
+    /// Found by relocalisation (the motion model is then reset).
+    relocalized: bool,
+}
+
+/// Milliseconds since `t0`.
+fn ms_since(t0: Instant) -> f32 {
+    t0.elapsed().as_secs_f32() * 1e3
+}
+
 impl VoTracker {
+    /// Tracking of one frame against the map (seed §3.3; Mur-Artal et al. 2015, section V):
+    /// a first pose (1. motion model, else 2. reference keyframe, else 3. relocalisation),
+    /// 4. the local map, the motion model update, 5. the keyframe decision. A frame with no
+    /// pose counts as a failure ([`super::VoParams::max_failures`] start a new session).
     pub(super) fn track(
         &mut self,
         frame: &VoFrame<'_>,
@@ -23,125 +40,195 @@ impl VoTracker {
             self.state = VoState::NotInitialized;
             return Ok(());
         };
-        let vel = if self.params.rolling_shutter && frame.readout_ns != 0 {
-            // Rotation during the readout is already taken out of the keypoints.
-            vel.map(|v| Velocity {
-                angular: if self.derotated {
-                    nalgebra::Vector3::zeros()
-                } else {
-                    v.angular
-                },
-                ..v
-            })
-        } else {
-            None
-        };
+        let vel = self.readout_velocity(frame, vel);
         self.frame_points.clear();
         self.frame_points.resize(feats.len(), None);
-        // 1. Motion model: the last frame's points around their predicted positions.
-        let m0 = Instant::now();
-        let mut ok = false;
-        let mut t_cw = pred;
-        if self.velocity.is_some() && self.state == VoState::Tracking {
-            self.gather_last_frame_candidates();
-            let mut n = self.search(&t_cw, feats, &ProjSearchParams::motion_model());
-            if n < 20 {
-                let wide = ProjSearchParams {
-                    radius: 30.0,
-                    ..ProjSearchParams::motion_model()
-                };
-                self.frame_points.iter_mut().for_each(|p| *p = None);
-                n = self.search(&t_cw, feats, &wide);
-            }
-            out.times.matching += m0.elapsed().as_secs_f32() * 1e3;
-            if n >= 20 {
-                let p0 = Instant::now();
-                if let Some((pose, inl)) =
-                    self.optimize(frame.readout_ns, feats, &t_cw, vel.as_ref())
-                {
-                    ok = inl >= 10;
-                    t_cw = pose;
-                }
-                out.times.pose_opt += p0.elapsed().as_secs_f32() * 1e3;
-            }
-        }
-        // 2. Fallback: match the reference keyframe by descriptors.
-        if !ok {
-            let m1 = Instant::now();
-            self.frame_points.iter_mut().for_each(|p| *p = None);
-            let n = self.match_reference_keyframe(feats);
-            out.times.matching += m1.elapsed().as_secs_f32() * 1e3;
-            if n >= 15 {
-                let p1 = Instant::now();
-                let guess = self.last.as_ref().map_or(pred, |l| l.t_cw);
-                if let Some((pose, inl)) =
-                    self.optimize(frame.readout_ns, feats, &guess, vel.as_ref())
-                {
-                    ok = inl >= 10;
-                    t_cw = pose;
-                }
-                out.times.pose_opt += p1.elapsed().as_secs_f32() * 1e3;
-            }
-        }
-        // 3. Relocalisation against the keyframes of the client map.
-        let mut relocalized = false;
-        if !ok {
-            let r0 = Instant::now();
-            if let Some((pose, _)) = self.relocalize(frame, feats) {
-                ok = true;
-                relocalized = true;
-                t_cw = pose;
-            }
-            out.times.matching += r0.elapsed().as_secs_f32() * 1e3;
-        }
-        if !ok {
-            self.failures += 1;
-            self.state = VoState::Lost;
-            if self.failures >= self.params.max_failures {
-                self.start_new_session(out);
-            }
+        // 1.-3. A first pose.
+        let Some(first) = self.first_pose(frame, feats, &pred, vel.as_ref(), out) else {
+            self.count_failure(out);
             return Ok(());
-        }
+        };
         self.reloc_cursor = None;
         // 4. Local map: points of the reference keyframe's neighbourhood.
-        let l0 = Instant::now();
-        self.gather_local_map_candidates();
-        out.times.local_map += l0.elapsed().as_secs_f32() * 1e3;
-        let m2 = Instant::now();
-        self.search(&t_cw, feats, &ProjSearchParams::local_map());
-        out.times.matching += m2.elapsed().as_secs_f32() * 1e3;
-        let p2 = Instant::now();
-        let tracked = match self.optimize(frame.readout_ns, feats, &t_cw, vel.as_ref()) {
-            Some((pose, inl)) => {
-                t_cw = pose;
-                inl
-            }
-            None => 0,
-        };
-        out.times.pose_opt += p2.elapsed().as_secs_f32() * 1e3;
+        let (t_cw, tracked) = self.track_local_map(frame, feats, first.t_cw, vel.as_ref(), out);
         if tracked < self.params.min_inliers {
-            self.failures += 1;
-            self.state = VoState::Lost;
-            if self.failures >= self.params.max_failures {
-                self.start_new_session(out);
-            }
+            self.count_failure(out);
             return Ok(());
         }
         self.failures = 0;
         self.state = VoState::Tracking;
-        // Motion model update (none across a relocalisation: the last frame is far away).
-        if relocalized {
-            self.velocity = None;
-        } else if let Some(last) = &self.last {
-            let dt = (frame.t_ns - last.t_ns) as f64 * 1e-9;
-            if dt > 0.0 {
-                self.velocity = Some((t_cw * last.t_cw.inverse(), dt));
-            }
-        }
+        self.update_motion_model(frame.t_ns, &t_cw, first.relocalized);
         out.t_cw = Some(t_cw);
         out.tracked = tracked;
         self.update_reference_keyframe();
         // 5. Keyframe?
+        self.keyframe_decision(frame, feats, t_cw, tracked, out);
+        self.remember_last_frame(frame.t_ns, t_cw, feats);
+        Ok(())
+    }
+
+    /// The motion model's velocity for the rolling-shutter compensation (none without a
+    /// readout or with the compensation off; no rotation when the keypoints were already
+    /// derotated to the mid-row time).
+    fn readout_velocity(&self, frame: &VoFrame<'_>, vel: Option<Velocity>) -> Option<Velocity> {
+        if !(self.params.rolling_shutter && frame.readout_ns != 0) {
+            return None;
+        }
+        // Rotation during the readout is already taken out of the keypoints.
+        vel.map(|v| Velocity {
+            angular: if self.derotated {
+                nalgebra::Vector3::zeros()
+            } else {
+                v.angular
+            },
+            ..v
+        })
+    }
+
+    /// Steps 1-3: the first of motion model, reference keyframe and relocalisation that
+    /// gives a pose.
+    fn first_pose(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        pred: &Isometry3<f64>,
+        vel: Option<&Velocity>,
+        out: &mut VoOutput,
+    ) -> Option<FirstPose> {
+        let tracked = |t_cw| FirstPose {
+            t_cw,
+            relocalized: false,
+        };
+        if let Some(t_cw) = self.track_motion_model(frame, feats, pred, vel, out) {
+            return Some(tracked(t_cw));
+        }
+        if let Some(t_cw) = self.track_reference_keyframe(frame, feats, pred, vel, out) {
+            return Some(tracked(t_cw));
+        }
+        // 3. Relocalisation against the keyframes of the client map.
+        let r0 = Instant::now();
+        let found = self.relocalize(frame, feats);
+        out.times.matching += ms_since(r0);
+        found.map(|(t_cw, _)| FirstPose {
+            t_cw,
+            relocalized: true,
+        })
+    }
+
+    /// Step 1, motion model: the last frame's points around their predicted positions
+    /// (a wider window when too few are found), then pose optimisation from `pred`.
+    fn track_motion_model(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        pred: &Isometry3<f64>,
+        vel: Option<&Velocity>,
+        out: &mut VoOutput,
+    ) -> Option<Isometry3<f64>> {
+        let m0 = Instant::now();
+        if self.velocity.is_none() || self.state != VoState::Tracking {
+            return None;
+        }
+        self.gather_last_frame_candidates();
+        let mut n = self.search(pred, feats, &ProjSearchParams::motion_model());
+        if n < 20 {
+            let wide = ProjSearchParams {
+                radius: 30.0,
+                ..ProjSearchParams::motion_model()
+            };
+            self.frame_points.iter_mut().for_each(|p| *p = None);
+            n = self.search(pred, feats, &wide);
+        }
+        out.times.matching += ms_since(m0);
+        if n < 20 {
+            return None;
+        }
+        let p0 = Instant::now();
+        let res = self.optimize(frame.readout_ns, feats, pred, vel);
+        out.times.pose_opt += ms_since(p0);
+        res.filter(|&(_, inliers)| inliers >= 10)
+            .map(|(t_cw, _)| t_cw)
+    }
+
+    /// Step 2, fallback: the reference keyframe's points matched by descriptors, then pose
+    /// optimisation from the last frame's pose.
+    fn track_reference_keyframe(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        pred: &Isometry3<f64>,
+        vel: Option<&Velocity>,
+        out: &mut VoOutput,
+    ) -> Option<Isometry3<f64>> {
+        let m1 = Instant::now();
+        self.frame_points.iter_mut().for_each(|p| *p = None);
+        let n = self.match_reference_keyframe(feats);
+        out.times.matching += ms_since(m1);
+        if n < 15 {
+            return None;
+        }
+        let p1 = Instant::now();
+        let guess = self.last.as_ref().map_or(*pred, |l| l.t_cw);
+        let res = self.optimize(frame.readout_ns, feats, &guess, vel);
+        out.times.pose_opt += ms_since(p1);
+        res.filter(|&(_, inliers)| inliers >= 10)
+            .map(|(t_cw, _)| t_cw)
+    }
+
+    /// Step 4: the local map's points searched around their projections from `t_cw`, then
+    /// pose optimisation. Returns the pose and its inliers (0 when the optimisation failed).
+    fn track_local_map(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        t_cw: Isometry3<f64>,
+        vel: Option<&Velocity>,
+        out: &mut VoOutput,
+    ) -> (Isometry3<f64>, usize) {
+        let l0 = Instant::now();
+        self.gather_local_map_candidates();
+        out.times.local_map += ms_since(l0);
+        let m2 = Instant::now();
+        self.search(&t_cw, feats, &ProjSearchParams::local_map());
+        out.times.matching += ms_since(m2);
+        let p2 = Instant::now();
+        let res = self.optimize(frame.readout_ns, feats, &t_cw, vel);
+        out.times.pose_opt += ms_since(p2);
+        res.unwrap_or((t_cw, 0))
+    }
+
+    /// A frame without a pose: lost, and a new session after [`super::VoParams::max_failures`].
+    fn count_failure(&mut self, out: &mut VoOutput) {
+        self.failures += 1;
+        self.state = VoState::Lost;
+        if self.failures >= self.params.max_failures {
+            self.start_new_session(out);
+        }
+    }
+
+    /// Motion model update from the last frame (none across a relocalisation: the last
+    /// frame is far away).
+    fn update_motion_model(&mut self, t_ns: i64, t_cw: &Isometry3<f64>, relocalized: bool) {
+        if relocalized {
+            self.velocity = None;
+        } else if let Some(last) = &self.last {
+            let dt = (t_ns - last.t_ns) as f64 * 1e-9;
+            if dt > 0.0 {
+                self.velocity = Some((t_cw * last.t_cw.inverse(), dt));
+            }
+        }
+    }
+
+    /// Step 5: a keyframe when the rule asks for one; keyframes beyond the window are
+    /// evicted into `out.evicted` (oldest first).
+    fn keyframe_decision(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        t_cw: Isometry3<f64>,
+        tracked: usize,
+        out: &mut VoOutput,
+    ) {
         self.frames_since_kf += 1;
         let ref_tracked = self.ref_kf.map_or(0, |k| {
             let min_obs = if self.map.keyframes.len() <= 2 { 2 } else { 3 };
@@ -164,26 +251,24 @@ impl VoTracker {
                 }
             }
         }
-        out.times.keyframe = k0.elapsed().as_secs_f32() * 1e3;
-        // Reuse the previous last frame's buffers: no allocation once they have grown.
+        out.times.keyframe = ms_since(k0);
+    }
+
+    /// The frame becomes the last frame, reusing the previous last frame's buffers (no
+    /// allocation once they have grown).
+    fn remember_last_frame(&mut self, t_ns: i64, t_cw: Isometry3<f64>, feats: &OrbFeatures) {
         let mut last = self.last.take().unwrap_or(LastFrame {
             t_ns: 0,
             t_cw,
             features: OrbFeatures::default(),
             points: Vec::new(),
         });
-        last.t_ns = frame.t_ns;
+        last.t_ns = t_ns;
         last.t_cw = t_cw;
-        last.features.keypoints.clear();
-        last.features.keypoints.extend_from_slice(&feats.keypoints);
-        last.features.descriptors.clear();
-        last.features
-            .descriptors
-            .extend_from_slice(&feats.descriptors);
+        last.features.copy_from(feats);
         last.points.clear();
         last.points.extend_from_slice(&self.frame_points);
         self.last = Some(last);
-        Ok(())
     }
 
     fn gather_last_frame_candidates(&mut self) {
@@ -301,7 +386,7 @@ impl VoTracker {
             self.obs.push(PoseObservation {
                 point_w: mp.p_w,
                 pixel: Vector2::new(kp.x as f64, kp.y as f64),
-                inv_sigma2: inv_sigma2_for_octave(kp.octave as u32, 1.2),
+                inv_sigma2: feats.scale.inv_sigma2(kp.octave),
                 dt: crate::rolling_shutter::row_offset_s(readout_ns, kp.y as f64, rows),
             });
             self.obs_kp.push(k);
