@@ -109,37 +109,32 @@ impl PyramidScale {
     }
 }
 
-/// `a^n` by binary exponentiation: the algorithm `f32::powi` runs at run time
-/// (compiler-builtins' `__powisf2`), written out so that the result does not depend on
-/// whether the compiler folds a constant call (LLVM folds `powi` of constants with the
-/// host's `pow`, which can differ in the last bit).
-pub(crate) fn powi_f32(a: f32, n: u32) -> f32 {
-    let (mut base, mut n, mut acc) = (a, n, 1.0f32);
+/// `a^n` by binary exponentiation: the algorithm `f32::powi` / `f64::powi` run at run time
+/// (compiler-builtins' `__powisf2` / `__powidf2`), written out so that the result does not
+/// depend on whether the compiler folds a constant call (LLVM folds `powi` of constants with
+/// the host's `pow`, which can differ in the last bit).
+fn powi_by_squaring<T: Copy + std::ops::Mul<Output = T>>(a: T, n: u32, one: T) -> T {
+    let (mut base, mut n, mut acc) = (a, n, one);
     loop {
         if n & 1 == 1 {
-            acc *= base;
+            acc = acc * base;
         }
         n >>= 1;
         if n == 0 {
             return acc;
         }
-        base *= base;
+        base = base * base;
     }
 }
 
-/// [`powi_f32`] in double precision (`f64::powi`'s run-time `__powidf2`).
+/// [`powi_by_squaring`] in single precision.
+pub(crate) fn powi_f32(a: f32, n: u32) -> f32 {
+    powi_by_squaring(a, n, 1.0)
+}
+
+/// [`powi_by_squaring`] in double precision.
 pub(crate) fn powi_f64(a: f64, n: u32) -> f64 {
-    let (mut base, mut n, mut acc) = (a, n, 1.0f64);
-    loop {
-        if n & 1 == 1 {
-            acc *= base;
-        }
-        n >>= 1;
-        if n == 0 {
-            return acc;
-        }
-        base *= base;
-    }
+    powi_by_squaring(a, n, 1.0)
 }
 
 impl Default for PyramidScale {

@@ -143,8 +143,21 @@ impl VoTracker {
         if n < 20 {
             return None;
         }
+        self.optimize_timed(frame, feats, pred, vel, out)
+    }
+
+    /// Pose optimisation from `guess` (timed as `pose_opt`); the pose when it keeps at
+    /// least 10 inliers.
+    fn optimize_timed(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        guess: &Isometry3<f64>,
+        vel: Option<&Velocity>,
+        out: &mut VoOutput,
+    ) -> Option<Isometry3<f64>> {
         let p0 = Instant::now();
-        let res = self.optimize(frame.readout_ns, feats, pred, vel);
+        let res = self.optimize(frame.readout_ns, feats, guess, vel);
         out.times.pose_opt += ms_since(p0);
         res.filter(|&(_, inliers)| inliers >= 10)
             .map(|(t_cw, _)| t_cw)
@@ -167,12 +180,8 @@ impl VoTracker {
         if n < 15 {
             return None;
         }
-        let p1 = Instant::now();
         let guess = self.last.as_ref().map_or(*pred, |l| l.t_cw);
-        let res = self.optimize(frame.readout_ns, feats, &guess, vel);
-        out.times.pose_opt += ms_since(p1);
-        res.filter(|&(_, inliers)| inliers >= 10)
-            .map(|(t_cw, _)| t_cw)
+        self.optimize_timed(frame, feats, &guess, vel, out)
     }
 
     /// Step 4: the local map's points searched around their projections from `t_cw`, then
