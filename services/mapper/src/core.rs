@@ -29,7 +29,7 @@ pub enum Out {
     /// "finished").
     Feedback(Feedback),
     /// A kept keyframe (or a resync snapshot's keyframe or end marker) to the loop closer.
-    LoopKeyframe(LoopKeyframeHeader, Vec<LoopKeypointRecord>),
+    LoopKeyframe(Box<LoopKeyframeHeader>, Vec<LoopKeypointRecord>),
 }
 
 type KfKey = (u32, u64);
@@ -279,7 +279,7 @@ impl Mapper {
             meta.flags |= shm_schema::FLAG_RESYNC;
             let (intr, w, h) = shoal_runtime::wire::intrinsics_from_camera(&k.camera);
             let (lh, recs) = convert::loop_keyframe(k, meta, &intr, w, h);
-            self.out.push(Out::LoopKeyframe(lh, recs));
+            self.out.push(Out::LoopKeyframe(Box::new(lh), recs));
             self.loop_seq += 1;
             self.status.add("resync_keyframes_sent", 1);
         }
@@ -290,7 +290,7 @@ impl Mapper {
                 meta,
                 ..LoopKeyframeHeader::default()
             };
-            self.out.push(Out::LoopKeyframe(end, vec![]));
+            self.out.push(Out::LoopKeyframe(Box::new(end), vec![]));
             self.loop_seq += 1;
         }
     }
@@ -596,7 +596,7 @@ impl Mapper {
                         let meta = MsgMeta::new(c, session, self.loop_seq, monotonic_ns());
                         let (lh, recs) =
                             convert::loop_keyframe(k, meta, &h.intrinsics, h.width, h.height);
-                        self.out.push(Out::LoopKeyframe(lh, recs));
+                        self.out.push(Out::LoopKeyframe(Box::new(lh), recs));
                         loop_seq = Some(self.loop_seq);
                         self.loop_seq += 1;
                         s.add(&format!("c{c}.keyframes_forwarded"), 1);

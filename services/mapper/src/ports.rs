@@ -60,7 +60,7 @@ impl Ports {
                 Out::LoopKeyframe(h, recs) => {
                     let out = self.loop_keyframes.loan_slice_uninit(recs.len())?;
                     let mut out = out.write_from_slice(&recs);
-                    *out.user_header_mut() = h;
+                    *out.user_header_mut() = *h;
                     out.send()?;
                 }
             }
