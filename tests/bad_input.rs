@@ -123,6 +123,8 @@ fn a_pipeline_of_another_schema_version_is_refused() {
         "{stderr}"
     );
     drop(out);
+    drop((_svc, node));
+    remove_counter_segment(&prefix);
 }
 
 /// A message of another schema version in the middle of a running pipeline (a frame and an
@@ -195,6 +197,7 @@ fn messages_of_another_schema_version_are_counted_and_the_run_goes_on() {
 
     assert!(child.wait().unwrap().success(), "the run goes on");
     drop((frame_pub, imu_pub, kf_pub, frames, imu, kfs, node));
+    remove_counter_segment(&prefix("foreign"));
     let rep = report(out.path());
     assert_eq!(
         rep["error_counts"]["tracker:0/schema_version"], 2,

@@ -152,6 +152,7 @@ fn server_map_pose_feedback_and_journal_replay_on_loop() {
     // SAFETY: plain kill(2) on our own child's pid.
     unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
     assert!(child.wait().expect("mapper exit").success());
+    remove_counter_segment(&prefix("mapper_replay"));
     let a = std::fs::read_to_string(out.join("keyframes_server_c0.txt")).expect("run");
     let b = std::fs::read_to_string(rebuilt.join("keyframes_server_c0.txt")).expect("rebuilt");
     assert_eq!(a, b, "the replayed journal gives the same server keyframes");

@@ -38,6 +38,18 @@ pub fn prefix(test: &str) -> String {
     format!("st{}_{}_", std::process::id(), test)
 }
 
+/// Removes the node-id counter segment iceoryx2 leaves in `/dev/shm` for `prefix` (as the
+/// launcher does at the end of a run), for tests that open nodes or run services without
+/// the launcher; call it once the test's nodes are dropped and its children have exited.
+pub fn remove_counter_segment(prefix: &str) {
+    let config = shm_schema::topics::config_with_prefix(prefix).expect("iceoryx2 config");
+    // SAFETY: no node of this test's own prefix is left (dropped, children exited).
+    let removed = unsafe {
+        iceoryx2::testing::remove_global_mgmt_segment::<iceoryx2::prelude::ipc::Service>(&config)
+    };
+    removed.expect("removing the node counter segment");
+}
+
 /// A fresh temporary folder.
 pub fn tempdir() -> tempfile::TempDir {
     tempfile::tempdir().expect("temp dir")
