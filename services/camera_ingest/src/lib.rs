@@ -23,7 +23,7 @@ use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::FLAG_RESEND;
 use shm_schema::{FrameAck, FrameHeader, MsgMeta, PixelFormat, FLAG_END_OF_STREAM};
-use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, ServiceStart, Status};
+use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status};
 
 /// Parameters of the camera ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -224,12 +224,7 @@ fn open<'a>(
 /// SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
     let c = params.replay.client;
-    let start = ServiceStart::open(
-        &service_name(c),
-        &format!("camera_ingest_c{c}"),
-        params.replay.status.clone(),
-        params.replay.ipc_prefix.clone(),
-    )?;
+    let start = params.replay.start(&service_name(c), "camera_ingest")?;
     let (mut file, mut status) = (start.file, start.status);
     let replay = open(params, &mut status, start.node)?;
     shoal_runtime::signal_ready();

@@ -21,7 +21,7 @@ use iceoryx2::node::Node;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::{FrameAck, ImuMsg, MsgMeta, FLAG_END_OF_STREAM};
-use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, ServiceStart, Status};
+use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status};
 
 /// Parameters of the IMU ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -135,12 +135,7 @@ fn pacer(params: &Params, dataset: &datasets::Dataset, status: &Status) -> (Pace
 /// Replays the IMU samples; returns the final status. Stops early on SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
     let c = params.replay.client;
-    let start = ServiceStart::open(
-        &service_name(c),
-        &format!("imu_ingest_c{c}"),
-        params.replay.status.clone(),
-        params.replay.ipc_prefix.clone(),
-    )?;
+    let start = params.replay.start(&service_name(c), "imu_ingest")?;
     let (mut file, mut status, node) = (start.file, start.status, start.node);
     let dataset = datasets::open(&params.replay.dataset)?;
     shoal_runtime::report_dataset_issues(&mut status, &dataset, true);

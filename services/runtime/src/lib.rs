@@ -202,13 +202,18 @@ impl StatusFile {
         )
     }
 
+    /// The last write is older than `period` (a periodic write is due).
+    pub fn due(&self, period: std::time::Duration) -> bool {
+        self.last_write.elapsed() >= period
+    }
+
     /// Writes `status` if the last write is older than `period`.
     pub fn write_every(
         &mut self,
         status: &Status,
         period: std::time::Duration,
     ) -> std::io::Result<()> {
-        if self.last_write.elapsed() >= period {
+        if self.due(period) {
             self.write(status)
         } else {
             Ok(())
@@ -537,6 +542,19 @@ pub struct ReplayArgs {
     /// Replay at most this many frames (the IMU: samples up to that frame's time).
     #[arg(long)]
     pub max_frames: Option<usize>,
+}
+
+impl ReplayArgs {
+    /// The [`ServiceStart`] of ingest service `service` (node `{node}_c{client}`).
+    pub fn start(&self, service: &str, node: &str) -> anyhow::Result<ServiceStart> {
+        let node_name = format!("{node}_c{}", self.client);
+        ServiceStart::open(
+            service,
+            &node_name,
+            self.status.clone(),
+            self.ipc_prefix.clone(),
+        )
+    }
 }
 
 /// The camera model of a message's intrinsics (frames and keyframes carry the same
