@@ -579,7 +579,7 @@ fn publish(
 }
 
 /// The vocabulary of `--vocabulary`, else the shipped one.
-fn vocabulary(params: &Params) -> anyhow::Result<Vocabulary> {
+pub fn vocabulary(params: &Params) -> anyhow::Result<Vocabulary> {
     Ok(match &params.vocabulary {
         Some(p) => Vocabulary::load(p)
             .with_context(|| format!("loading the vocabulary {}", p.display()))?,
