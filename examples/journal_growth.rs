@@ -11,7 +11,7 @@
 //! them).
 use std::collections::{BTreeMap, HashSet};
 
-use shoal_runtime::journal::{parse, Entry};
+use shoal_runtime::journal::{read_journal, Entry};
 use slam_core::server::{HandlerParams, KeyframeHandler, ServerMaps};
 
 fn main() -> anyhow::Result<()> {
@@ -20,9 +20,7 @@ fn main() -> anyhow::Result<()> {
         .get(1)
         .ok_or_else(|| anyhow::anyhow!("usage: journal_growth JOURNAL [EVERY]"))?;
     let every: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(250);
-    let bytes = std::fs::read(path)?;
-    let contents = parse(&bytes);
-    drop(bytes);
+    let contents = read_journal(std::path::Path::new(path))?;
     // Heap held by the journal entries not replayed yet, so that the printed heap is the
     // handlers' and maps' own.
     let rec_bytes = |r: &Vec<shm_schema::KeypointRecord>| {

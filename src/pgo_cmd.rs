@@ -9,10 +9,11 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use datasets::trajectory::{push_tum_line, TumDigits, TumRow};
+use nalgebra::Isometry3;
 use serde::Serialize;
 use slam_core::pgo::{
-    optimize_se3, optimize_sim3, parse_g2o, write_tum, AnyGraph, PgoInit, PgoMethod, PgoParams,
-    PgoReport,
+    optimize_se3, optimize_sim3, parse_g2o, AnyGraph, PgoInit, PgoMethod, PgoParams, PgoReport,
 };
 
 /// Sim(3) optimisation method.
@@ -116,6 +117,17 @@ struct Optimised {
     vertices: usize,
     edges: usize,
     tum: String,
+}
+
+/// TUM trajectory lines `id tx ty tz qx qy qz qw` (the vertex id as the timestamp, 17
+/// significant digits) of the rigid part of each pose.
+fn write_tum<'a>(poses: impl IntoIterator<Item = (u64, &'a Isometry3<f64>)>) -> String {
+    let mut out = String::new();
+    for (id, p) in poses {
+        let r = TumRow::from_pose(0, p);
+        push_tum_line(&mut out, id, &r.t, &r.q, TumDigits::Sci17);
+    }
+    out
 }
 
 /// Optimises the graph of `args` (SE(3) by LM, Sim(3) by `--method`).

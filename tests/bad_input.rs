@@ -190,7 +190,7 @@ fn messages_of_another_schema_version_are_counted_and_the_run_goes_on() {
     let mut s = kf_pub.loan_slice(0).unwrap();
     *s.user_header_mut() = KeyframeHeader {
         meta: foreign,
-        keyframe_id: 1 << 40,
+        keyframe_id: slam_core::ids::ClientKeyframeId::MAX + 1,
         ..Default::default()
     };
     s.send().unwrap();

@@ -78,11 +78,21 @@ pub fn parse_seconds_ns(text: &str) -> Option<i64> {
     i64::try_from(if neg { -v } else { v }).ok()
 }
 
+/// Integer ns shown as seconds with 9 decimals (`-1.500000000`, `12.000000001`), exactly.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Seconds(pub i64);
+
+impl std::fmt::Display for Seconds {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let a = i128::from(self.0).unsigned_abs();
+        let sign = if self.0 < 0 { "-" } else { "" };
+        write!(f, "{sign}{}.{:09}", a / 1_000_000_000, a % 1_000_000_000)
+    }
+}
+
 /// Formats integer ns as seconds text with 9 decimals (`-1.500000000`, `12.000000001`).
 pub fn format_seconds(t_ns: i64) -> String {
-    let a = i128::from(t_ns).unsigned_abs();
-    let sign = if t_ns < 0 { "-" } else { "" };
-    format!("{sign}{}.{:09}", a / 1_000_000_000, a % 1_000_000_000)
+    Seconds(t_ns).to_string()
 }
 
 /// Detects the format from the column count of the first data line (8 → TUM, 12 → KITTI).
@@ -257,22 +267,110 @@ pub fn read_kitti(path: &Path, times: Option<&Path>) -> Result<Trajectory, Datas
     })
 }
 
+/// How a TUM file prints the seven pose numbers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TumDigits {
+    /// The shortest text that reads back to the same `f64` (`{}`): lossless.
+    Exact,
+    /// Nine decimals (`{:.9}`), as the pipeline's outputs.
+    Fixed9,
+    /// Scientific with 17 digits after the point (`{:.17e}`), as the g2o tools.
+    Sci17,
+}
+
+/// One TUM row: the time and the pose's translation and rotation quaternion as stored
+/// (`[x, y, z, w]`, not renormalised: a wire pose is written as received).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TumRow {
+    /// Time, ns.
+    pub t_ns: i64,
+    /// `[tx, ty, tz]`.
+    pub t: [f64; 3],
+    /// `[qx, qy, qz, qw]`.
+    pub q: [f64; 4],
+}
+
+impl TumRow {
+    /// The row of pose `pose` at `t_ns`.
+    pub fn from_pose(t_ns: i64, pose: &Isometry3<f64>) -> Self {
+        let v = pose.translation.vector;
+        let q = pose.rotation.quaternion();
+        Self {
+            t_ns,
+            t: [v.x, v.y, v.z],
+            q: [q.i, q.j, q.k, q.w],
+        }
+    }
+}
+
+impl From<&StampedPose> for TumRow {
+    fn from(p: &StampedPose) -> Self {
+        Self::from_pose(p.t_ns, &p.pose)
+    }
+}
+
+/// Appends the TUM line `stamp tx ty tz qx qy qz qw` and a newline to `out`: `stamp` as it
+/// displays (a time as [`Seconds`], or a vertex id), the translation `t` and the quaternion
+/// `q_xyzw` as `digits` says. The one TUM line writer of the workspace.
+pub fn push_tum_line(
+    out: &mut String,
+    stamp: impl std::fmt::Display,
+    t: &[f64; 3],
+    q_xyzw: &[f64; 4],
+    digits: TumDigits,
+) {
+    let _ = write!(out, "{stamp}");
+    for v in t.iter().chain(q_xyzw) {
+        let _ = match digits {
+            TumDigits::Exact => write!(out, " {v}"),
+            TumDigits::Fixed9 => write!(out, " {v:.9}"),
+            TumDigits::Sci17 => write!(out, " {v:.17e}"),
+        };
+    }
+    out.push('\n');
+}
+
+/// The text of a TUM file: the comment line `header` (written as given, e.g. `# t tx ty tz
+/// qx qy qz qw`), then a line per row (time in [`Seconds`]).
+pub fn tum_text(
+    header: Option<&str>,
+    rows: impl IntoIterator<Item = TumRow>,
+    digits: TumDigits,
+) -> String {
+    let mut s = String::new();
+    if let Some(h) = header {
+        s.push_str(h);
+        s.push('\n');
+    }
+    for r in rows {
+        push_tum_line(&mut s, Seconds(r.t_ns), &r.t, &r.q, digits);
+    }
+    s
+}
+
+/// Writes a TUM file ([`tum_text`]) atomically: to `<path>.tmp`, then renamed over `path`.
+pub fn write_tum_file(
+    path: &Path,
+    header: Option<&str>,
+    rows: impl IntoIterator<Item = TumRow>,
+    digits: TumDigits,
+) -> std::io::Result<()> {
+    let text = tum_text(header, rows, digits);
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    let tmp = std::path::PathBuf::from(tmp);
+    std::fs::write(&tmp, text)?;
+    std::fs::rename(&tmp, path)
+}
+
 /// One TUM line: `t tx ty tz qx qy qz qw` (t in seconds with 9 decimals, full f64 precision
-/// elsewhere).
+/// elsewhere), without the newline.
 pub fn format_tum_line(p: &StampedPose) -> String {
-    let t = p.pose.translation.vector;
-    let q = p.pose.rotation;
-    format!(
-        "{} {} {} {} {} {} {} {}",
-        format_seconds(p.t_ns),
-        t.x,
-        t.y,
-        t.z,
-        q.i,
-        q.j,
-        q.k,
-        q.w
-    )
+    let r = TumRow::from(p);
+    let mut s = String::new();
+    push_tum_line(&mut s, Seconds(r.t_ns), &r.t, &r.q, TumDigits::Exact);
+    s.pop();
+    s
 }
 
 fn write_file(path: &Path, text: &str) -> Result<(), DatasetError> {
@@ -282,14 +380,18 @@ fn write_file(path: &Path, text: &str) -> Result<(), DatasetError> {
     })
 }
 
-/// Writes a TUM file (with a `#` header line).
+/// Writes a TUM file (with a `#` header line, lossless numbers, [`write_tum_file`]).
 pub fn write_tum(path: &Path, poses: &[StampedPose]) -> Result<(), DatasetError> {
-    let mut s = String::from("# timestamp tx ty tz qx qy qz qw\n");
-    for p in poses {
-        s.push_str(&format_tum_line(p));
-        s.push('\n');
-    }
-    write_file(path, &s)
+    write_tum_file(
+        path,
+        Some("# timestamp tx ty tz qx qy qz qw"),
+        poses.iter().map(TumRow::from),
+        TumDigits::Exact,
+    )
+    .map_err(|source| DatasetError::Io {
+        path: path.into(),
+        source,
+    })
 }
 
 /// Writes a KITTI pose file (no stamps; write them with [`write_times`] if needed).
@@ -351,6 +453,62 @@ mod tests {
             "1403715273.262142976"
         );
         assert_eq!(format_seconds(-1_500_000_000), "-1.500000000");
+        assert_eq!(format_seconds(1_000_000_050_000_001), "1000000.050000001");
+        assert_eq!(format_seconds(5), "0.000000005");
+    }
+
+    /// The TUM writer prints what the copies it replaced printed, byte for byte.
+    #[test]
+    fn tum_lines_keep_their_formats() {
+        let pose = Isometry3::from_parts(
+            Translation3::new(1.25, -0.1, 1e-7),
+            UnitQuaternion::from_euler_angles(0.3, -0.2, 2.9),
+        );
+        let (t, q) = (pose.translation.vector, pose.rotation.quaternion());
+        let p = StampedPose {
+            t_ns: -1_403_715_273_262_142_976,
+            pose,
+        };
+        let stamp = format_seconds(p.t_ns);
+        assert_eq!(
+            format_tum_line(&p),
+            format!(
+                "{stamp} {} {} {} {} {} {} {}",
+                t.x, t.y, t.z, q.i, q.j, q.k, q.w
+            )
+        );
+        let r = TumRow::from(&p);
+        assert_eq!(
+            tum_text(Some("# h"), [r], TumDigits::Fixed9),
+            format!(
+                "# h\n{stamp} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}\n",
+                t.x, t.y, t.z, q.i, q.j, q.k, q.w
+            )
+        );
+        let mut s = String::new();
+        push_tum_line(&mut s, 12u64, &r.t, &r.q, TumDigits::Sci17);
+        assert_eq!(
+            s,
+            format!(
+                "12 {:.17e} {:.17e} {:.17e} {:.17e} {:.17e} {:.17e} {:.17e}\n",
+                t.x, t.y, t.z, q.i, q.j, q.k, q.w
+            )
+        );
+        let dir = std::env::temp_dir().join(format!("shoal_tum_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("t.txt");
+        write_tum(&path, &[p]).expect("write");
+        assert_eq!(
+            std::fs::read_to_string(&path).expect("read"),
+            format!(
+                "# timestamp tx ty tz qx qy qz qw\n{}\n",
+                format_tum_line(&p)
+            )
+        );
+        assert!(!dir.join("t.txt.tmp").exists());
+        let back = read_tum(&path).expect("read");
+        assert_eq!(back.poses[0].t_ns, p.t_ns);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -366,7 +366,7 @@ fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
     let switch = switch.expect("a discarded keyframe to end the first session at");
     assert!(switch + 2 < kfs.len(), "the new session has keyframes");
     assert_eq!(maps.len(), 2);
-    let ids: Vec<u64> = maps.keys().copied().collect();
+    let ids: Vec<_> = maps.keys().copied().collect();
     let second = &maps[&ids[1]];
     assert_eq!(second.session_id, kfs[switch].session_id + 1);
     assert!(second.map.keyframes.len() >= 2);

@@ -661,6 +661,68 @@ mod tests {
         assert!(matches!(m.check(), Err(MetaError::BadMagic(0))));
     }
 
+    /// The type name of `T` as iceoryx2 matches it between processes.
+    fn type_name<T: ZeroCopySend>() -> &'static str {
+        // SAFETY: only reads the name; the layouts are this crate's own.
+        unsafe { <T as ZeroCopySend>::type_name() }
+    }
+
+    /// Every `#[type_name("shoal::vN::Type")]` in this file names the struct it is on, under
+    /// the current [`SCHEMA_VERSION`] (a bump of the version must rename them all, so that
+    /// iceoryx2 refuses to connect binaries of different layouts), and every message type
+    /// derives its name from one.
+    #[test]
+    fn type_names_carry_the_schema_version() {
+        let prefix = format!("shoal::v{SCHEMA_VERSION}::");
+        let src = include_str!("messages.rs");
+        let derives = src
+            .lines()
+            .filter(|l| l.trim_start().starts_with("#[derive(") && l.contains("ZeroCopySend"))
+            .count();
+        let mut named = Vec::new();
+        let mut lines = src.lines();
+        while let Some(l) = lines.next() {
+            let Some(rest) = l.trim().strip_prefix("#[type_name(\"") else {
+                continue;
+            };
+            let name = rest.strip_suffix("\")]").expect("one string literal");
+            let ty = lines
+                .by_ref()
+                .find_map(|l| l.trim().strip_prefix("pub struct "))
+                .and_then(|r| r.split([' ', '{']).next())
+                .expect("a struct after the type_name");
+            assert_eq!(name, format!("{prefix}{ty}"), "type_name of {ty}");
+            named.push(name);
+        }
+        assert_eq!(
+            named.len(),
+            derives,
+            "a ZeroCopySend type without a type_name"
+        );
+        let names = [
+            type_name::<MsgMeta>(),
+            type_name::<Pose>(),
+            type_name::<Intrinsics>(),
+            type_name::<FrameHeader>(),
+            type_name::<ImuMsg>(),
+            type_name::<FrameAck>(),
+            type_name::<TrackedPose>(),
+            type_name::<KeyframeHeader>(),
+            type_name::<KeypointRecord>(),
+            type_name::<Feedback>(),
+            type_name::<LoopKeyframeHeader>(),
+            type_name::<LoopKeypointRecord>(),
+            type_name::<ResyncRequest>(),
+            type_name::<CorrectionHeader>(),
+            type_name::<CorrectionRecord>(),
+        ];
+        assert_eq!(names.len(), named.len(), "a message type missing here");
+        for n in names {
+            assert!(n.starts_with(&prefix), "{n} is not under {prefix}");
+            assert!(named.contains(&n), "{n}");
+        }
+    }
+
     #[test]
     fn track_state_round_trip() {
         for s in [

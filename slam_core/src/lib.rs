@@ -5,6 +5,7 @@ pub mod camera;
 pub mod error;
 pub mod features;
 pub mod geometry;
+pub mod ids;
 pub mod imu;
 pub mod lie;
 pub mod loop_closing;

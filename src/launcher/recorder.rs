@@ -274,31 +274,18 @@ impl Recorder {
     }
 }
 
-/// Writes a TUM trajectory (`t tx ty tz qx qy qz qw`, t in seconds).
+/// Writes a TUM trajectory of wire poses (`t tx ty tz qx qy qz qw`, t in seconds, nine
+/// decimals, the quaternion as received) with [`datasets::trajectory::write_tum_file`].
 pub fn write_tum(path: &std::path::Path, poses: &[(i64, shm_schema::Pose)]) -> std::io::Result<()> {
-    use std::io::Write;
-    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
-    writeln!(f, "# t tx ty tz qx qy qz qw (camera-to-world, shoal)")?;
-    for (t, p) in poses {
-        writeln!(
-            f,
-            "{} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
-            seconds_text(*t),
-            p.t[0],
-            p.t[1],
-            p.t[2],
-            p.q[0],
-            p.q[1],
-            p.q[2],
-            p.q[3]
-        )?;
-    }
-    f.flush()
-}
-
-/// Nanoseconds as exact decimal seconds (`1403715273.262142976`), no float rounding.
-pub fn seconds_text(t_ns: i64) -> String {
-    let sign = if t_ns < 0 { "-" } else { "" };
-    let a = t_ns.unsigned_abs();
-    format!("{sign}{}.{:09}", a / 1_000_000_000, a % 1_000_000_000)
+    use datasets::trajectory::{write_tum_file, TumDigits, TumRow};
+    write_tum_file(
+        path,
+        Some("# t tx ty tz qx qy qz qw (camera-to-world, shoal)"),
+        poses.iter().map(|(t_ns, p)| TumRow {
+            t_ns: *t_ns,
+            t: p.t,
+            q: p.q,
+        }),
+        TumDigits::Fixed9,
+    )
 }

@@ -191,7 +191,7 @@ fn evaluate_client(
     let est_t: Vec<i64> = traj.iter().map(|(t, _)| *t).collect();
     let est_p: Vec<_> = traj
         .iter()
-        .map(|(_, p)| super::sessions::to_iso(p))
+        .map(|(_, p)| shoal_runtime::wire::iso_from_wire_unchecked(p))
         .collect();
     evaluate_poses(ds, &est_t, &est_p, plot)
 }
@@ -377,8 +377,7 @@ pub struct RunReport {
 
 /// Distinct keyframes (session, id) per client in the mapper journal at `path`.
 fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<u64>> {
-    let bytes = std::fs::read(path).ok()?;
-    let contents = shoal_runtime::journal::parse(&bytes);
+    let contents = shoal_runtime::journal::read_journal(path).ok()?;
     let mut seen: Vec<std::collections::HashSet<(u32, u64)>> = vec![Default::default(); clients];
     for e in &contents.entries {
         if let shoal_runtime::journal::Entry::Keyframe { client, header, .. } = e {

@@ -9,8 +9,8 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use nalgebra::Isometry3;
 use serde::Serialize;
+use shoal_runtime::wire::{iso_from_wire_unchecked, wire_from_iso};
 use slam_core::sessions::{
     in_server_map, in_session_frame, session_links, NoLink, SessionLink, SessionPose, TimedPose,
 };
@@ -62,22 +62,8 @@ pub struct OneFrame {
     pub report: SessionsReport,
 }
 
-/// A wire pose (`q` as `[x, y, z, w]`) as an isometry.
-pub fn to_iso(p: &shm_schema::Pose) -> Isometry3<f64> {
-    let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-        p.q[3], p.q[0], p.q[1], p.q[2],
-    ));
-    Isometry3::from_parts(nalgebra::Translation3::new(p.t[0], p.t[1], p.t[2]), q)
-}
-
 fn to_wire(p: &TimedPose) -> (i64, shm_schema::Pose) {
-    let q = p.t_wc.rotation;
-    let t = p.t_wc.translation.vector;
-    let pose = shm_schema::Pose {
-        t: [t.x, t.y, t.z],
-        q: [q.i, q.j, q.k, q.w],
-    };
-    (p.t_ns, pose)
+    (p.t_ns, wire_from_iso(&p.t_wc))
 }
 
 fn read_keyframes(path: &Path) -> Vec<TimedPose> {
@@ -109,7 +95,7 @@ pub fn one_frame(
             session,
             pose: TimedPose {
                 t_ns: *t_ns,
-                t_wc: to_iso(p),
+                t_wc: iso_from_wire_unchecked(p),
             },
         })
         .collect();

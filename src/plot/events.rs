@@ -1,12 +1,12 @@
 //! Where the loop closures and map merges of a run happened, from the mapper's journal
 //! (`OUT/mapper_journal.bin`): each correction the mapper received names its query and
-//! matched keyframes (server ids: client in the bits above 40, client keyframe id below),
+//! matched keyframes (server ids, [`slam_core::ids::KeyframeId`]: client and client keyframe id),
 //! whose times the journal's keyframe entries give.
 use std::collections::HashMap;
 use std::path::Path;
 
 use nalgebra::Vector3;
-use shoal_runtime::journal::{parse, Entry};
+use shoal_runtime::journal::{read_journal, Entry};
 
 use super::{Mark, MarkKind};
 
@@ -33,10 +33,9 @@ pub struct CorrectionEvent {
 /// The corrections in the journal at `path` (none when it is missing or unreadable), in
 /// order; a correction naming a keyframe the journal does not hold is left out.
 pub fn corrections_from_journal(path: &Path) -> Vec<CorrectionEvent> {
-    let Ok(bytes) = std::fs::read(path) else {
+    let Ok(contents) = read_journal(path) else {
         return Vec::new();
     };
-    let contents = parse(&bytes);
     let mut t_of: HashMap<(u32, u64), i64> = HashMap::new();
     let mut out = Vec::new();
     for e in &contents.entries {
@@ -46,9 +45,9 @@ pub fn corrections_from_journal(path: &Path) -> Vec<CorrectionEvent> {
             }
             Entry::Correction { header, .. } => {
                 let at = |server_id: u64| {
-                    use slam_core::server::types::{kf_client, kf_client_kf};
-                    let client = kf_client(server_id);
-                    t_of.get(&(client, kf_client_kf(server_id)))
+                    let id = slam_core::ids::KeyframeId::from_raw(server_id);
+                    let client = id.client().raw();
+                    t_of.get(&(client, id.client_kf()))
                         .map(|t| KeyframeAt { client, t_ns: *t })
                 };
                 let kind = if header.kind == shm_schema::CORRECTION_MERGE {

@@ -15,6 +15,7 @@ use nalgebra::Isometry3;
 use super::params::SimParams;
 use super::scene::Scene;
 use super::world::SimWorld;
+use crate::trajectory::{push_tum_line, Seconds, TumDigits, TumRow};
 use crate::DatasetError;
 
 /// What one written agent contains.
@@ -97,30 +98,6 @@ pub fn generate(params: &SimParams, out_dir: &Path) -> Result<SimSummary, Datase
         },
         total_s: start.elapsed().as_secs_f64(),
     })
-}
-
-/// Formats ns as seconds with 9 decimals, exactly.
-fn ns_to_s(t_ns: i64) -> String {
-    let sign = if t_ns < 0 { "-" } else { "" };
-    let a = t_ns.unsigned_abs();
-    format!("{sign}{}.{:09}", a / 1_000_000_000, a % 1_000_000_000)
-}
-
-/// The TUM line `t tx ty tz qx qy qz qw` of a pose.
-fn tum_line(t_ns: i64, pose: &Isometry3<f64>) -> String {
-    let p = pose.translation.vector;
-    let q = pose.rotation.quaternion();
-    format!(
-        "{} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}\n",
-        ns_to_s(t_ns),
-        p.x,
-        p.y,
-        p.z,
-        q.i,
-        q.j,
-        q.k,
-        q.w
-    )
 }
 
 /// A 4x4 `T_BS`-style YAML matrix block.
@@ -273,10 +250,14 @@ fn write_agent(world: &SimWorld, dir: &Path) -> Result<(AgentSummary, f64), Data
             })?;
         w.flush().map_err(io_err(&path))?;
         let _ = writeln!(data_csv, "{stamp},{name}");
-        tum.push_str(&tum_line(
-            stamp,
-            &world.pose_cam_at(world.frame_capture_time_ns(k)),
-        ));
+        let row = TumRow::from_pose(stamp, &world.pose_cam_at(world.frame_capture_time_ns(k)));
+        push_tum_line(
+            &mut tum,
+            Seconds(row.t_ns),
+            &row.t,
+            &row.q,
+            TumDigits::Fixed9,
+        );
     }
     write_text(&cam_dir.join("data.csv"), &data_csv)?;
     write_text(&dir.join("groundtruth_cam0.txt"), &tum)?;
@@ -288,16 +269,4 @@ fn write_agent(world: &SimWorld, dir: &Path) -> Result<(AgentSummary, f64), Data
         path_length_m: world.path_length_m(),
     };
     Ok((summary, render_s))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn seconds_have_nine_decimals() {
-        assert_eq!(ns_to_s(1_000_000_050_000_001), "1000000.050000001");
-        assert_eq!(ns_to_s(5), "0.000000005");
-        assert_eq!(ns_to_s(-1_500_000_000), "-1.500000000");
-    }
 }

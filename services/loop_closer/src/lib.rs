@@ -28,9 +28,12 @@ use shm_schema::{
     CORRECTION_MERGE, CORRECTION_POSE_GRAPH, MAX_LOOP_COVISIBLE, RECORD_KEYFRAME_DELTA,
     RECORD_POINT_PAIR,
 };
-use shoal_runtime::wire::{iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint};
+use shoal_runtime::wire::{
+    camera_from_intrinsics, iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint,
+};
 use shoal_runtime::{ReplayMode, ServiceStart, Status};
 use slam_core::features::OrbFeatures;
+use slam_core::ids::KeyframeId;
 use slam_core::lie::Sim3;
 use slam_core::loop_closing::{LoopDetector, LoopDetectorParams, LoopMatch};
 use slam_core::pgo::{correct_loop, GraphKeyframe, LoopConstraint, LoopGraphParams, PgoMethod};
@@ -101,7 +104,7 @@ pub fn keyframe_from_wire(
     if !valid_intrinsics(&h.intrinsics, h.width) {
         return Err(format!("loop keyframe {:#x}: invalid intrinsics", h.kf_id));
     }
-    let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+    let camera = camera_from_intrinsics(&h.intrinsics, h.width, h.height);
     // Octaves only on the wire: the default pyramid scale (`ORB_SCALE_FACTOR`) applies.
     let mut features = OrbFeatures::with_capacity(records.len());
     let mut points = Vec::new();
@@ -132,7 +135,7 @@ pub fn keyframe_from_wire(
         .zip(h.covisible_weights[..n].iter().copied())
         .collect();
     Ok(KeptKeyframe {
-        map_id: h.map_id,
+        map_id: MapId::from_raw(h.map_id),
         kf_id: h.kf_id,
         client_kf_id: h.client_kf_id,
         t_ns: h.t_ns,
@@ -191,7 +194,7 @@ impl Closer {
     /// Adds a keyframe: a verified loop gives the correction to send. With
     /// `SHOAL_DEBUG_LOOP` set, every query's statistics go to stderr.
     pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
-        let client = slam_core::server::types::kf_client(kf.kf_id);
+        let client = KeyframeId::from_raw(kf.kf_id).client().raw();
         let found = self.detector.add(kf);
         if std::env::var_os("SHOAL_DEBUG_LOOP").is_some() {
             eprintln!("loop_closer: query {:?}", self.detector.last_query());
@@ -216,8 +219,8 @@ impl Closer {
             kind,
             query_kf: m.query,
             matched_kf: m.matched,
-            from_map: m.query_map,
-            into_map: m.matched_map,
+            from_map: m.query_map.raw(),
+            into_map: m.matched_map.raw(),
             sim3,
             scale,
             inliers: m.inliers as u32,

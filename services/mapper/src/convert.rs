@@ -1,6 +1,6 @@
 //! Wire ↔ algorithm conversions: a keyframe message (header + keypoint records) into a
 //! [`ServerKeyframe`], a kept keyframe into a loop keyframe message, a correction message
-//! into a [`Correction`], and poses between the wire [`Pose`] and nalgebra.
+//! into a [`Correction`] (poses, intrinsics and keypoints through [`shoal_runtime::wire`]).
 use std::collections::BTreeMap;
 
 use shm_schema::{
@@ -10,16 +10,19 @@ use shm_schema::{
 };
 use slam_core::camera::PinholeRadtan;
 use slam_core::features::OrbFeatures;
+use slam_core::ids::MapId;
 use slam_core::lie::Sim3;
-use slam_core::server::{KeptKeyframe, MapId, ServerKeyframe};
+use slam_core::server::{KeptKeyframe, ServerKeyframe};
 use slam_core::vo::{KfId, PointId};
 
-pub use shoal_runtime::wire::{iso_from_wire, sim3_from_wire, wire_from_iso, wire_from_sim3};
-use shoal_runtime::wire::{valid_intrinsics, wire_keypoint};
+use shoal_runtime::wire::{
+    camera_from_intrinsics, iso_from_wire, sim3_from_wire, valid_intrinsics, wire_from_iso,
+    wire_keypoint,
+};
 
 /// The camera of a keyframe message.
 pub fn camera_of(h: &KeyframeHeader) -> PinholeRadtan {
-    shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height)
+    camera_from_intrinsics(&h.intrinsics, h.width, h.height)
 }
 
 /// Converts a keyframe message of client `client` into what the handler takes. Errors
@@ -155,14 +158,14 @@ pub fn correction(
     match h.kind {
         CORRECTION_MERGE => Ok(Correction::Merge {
             id: h.correction_id,
-            from: h.from_map,
-            into: h.into_map,
+            from: MapId::from_raw(h.from_map),
+            into: MapId::from_raw(h.into_map),
             s_into_from: s,
             pairs,
         }),
         CORRECTION_POSE_GRAPH => Ok(Correction::PoseGraph {
             id: h.correction_id,
-            map: h.into_map,
+            map: MapId::from_raw(h.into_map),
             deltas,
             fallback: s,
             pairs,
@@ -205,7 +208,7 @@ pub fn loop_keyframe(
     }
     let mut h = LoopKeyframeHeader {
         meta,
-        map_id: kept.map_id,
+        map_id: kept.map_id.raw(),
         kf_id: kept.kf_id,
         client_kf_id: kept.client_kf_id,
         t_ns: kept.t_ns,
@@ -227,27 +230,7 @@ pub fn loop_keyframe(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
     use shm_schema::Pose;
-
-    #[test]
-    fn pose_round_trip_and_bad_pose() {
-        let t = Isometry3::from_parts(
-            Translation3::new(1.0, -2.0, 0.5),
-            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.7),
-        );
-        let back = iso_from_wire(&wire_from_iso(&t)).expect("valid");
-        assert!((back.translation.vector - t.translation.vector).norm() < 1e-12);
-        assert!(back.rotation.angle_to(&t.rotation) < 1e-12);
-        let mut bad = wire_from_iso(&t);
-        bad.t[0] = f64::NAN;
-        assert!(iso_from_wire(&bad).is_none());
-        bad = Pose {
-            t: [0.0; 3],
-            q: [0.0; 4],
-        };
-        assert!(iso_from_wire(&bad).is_none());
-    }
 
     #[test]
     fn message_to_server_keyframe() {

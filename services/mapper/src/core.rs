@@ -14,9 +14,11 @@ use shm_schema::{
     CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeypointRecord,
     LoopKeyframeHeader, LoopKeypointRecord, MsgMeta,
 };
-use shoal_runtime::journal::{Entry, Journal};
+use shoal_runtime::journal::{Entry, Journal, OpenError};
+use shoal_runtime::wire::{intrinsics_from_camera, wire_from_iso};
 use shoal_runtime::{ReplayMode, Status};
-use slam_core::server::{types, HandlerParams, KeyframeStatus, MapId};
+use slam_core::ids::{KeyframeId, MapId};
+use slam_core::server::{HandlerParams, KeyframeStatus};
 
 use crate::convert::{self, Correction};
 use crate::worker::{CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker};
@@ -110,9 +112,23 @@ impl Mapper {
     }
 
     /// Opens the journal at `path` and rebuilds the maps from it (before any new keyframe).
+    /// A journal of another version (or without a version header) is not replayed: it is an
+    /// error in the status, counted in `journals_rejected`, moved to `<path>.rejected`, and
+    /// the mapper starts with a new journal.
     pub fn open_journal(&mut self, path: &std::path::Path) -> anyhow::Result<()> {
-        let (j, contents) = Journal::open(path)
-            .with_context(|| format!("opening the journal {}", path.display()))?;
+        let context = || format!("opening the journal {}", path.display());
+        let (j, contents) = match Journal::open(path) {
+            Err(OpenError::Version(e)) => {
+                self.status.add("journals_rejected", 1);
+                let aside = Journal::set_aside(path).with_context(context)?;
+                self.status.error(
+                    "journal",
+                    format!("{e}: not replayed, moved to {}", aside.display()),
+                );
+                Journal::open(path).with_context(context)?
+            }
+            r => r.with_context(context)?,
+        };
         if let Some(p) = contents.problem {
             self.status
                 .error("journal", format!("{}: {p}", path.display()));
@@ -153,7 +169,7 @@ impl Mapper {
     /// The worker hosting map `m`: the one hosting the client that created it (groups only
     /// ever join, so a map stays with its creator's handler).
     fn host_of(&self, m: MapId) -> Option<usize> {
-        self.clients.get(types::map_client(m) as usize)?.worker
+        self.clients.get(m.client().index())?.worker
     }
 
     /// Sends a correction to the worker hosting its map(s); for a merge of maps hosted by
@@ -274,10 +290,10 @@ impl Mapper {
         let from = (req.next as usize).min(self.resync.len());
         let to = (from + req.max as usize).min(self.resync.len());
         for k in &self.resync[from..to] {
-            let client = types::kf_client(k.kf_id);
+            let client = KeyframeId::from_raw(k.kf_id).client().raw();
             let mut meta = MsgMeta::new(client, 0, self.loop_seq, monotonic_ns());
             meta.flags |= shm_schema::FLAG_RESYNC;
-            let (intr, w, h) = shoal_runtime::wire::intrinsics_from_camera(&k.camera);
+            let (intr, w, h) = intrinsics_from_camera(&k.camera);
             let (lh, recs) = convert::loop_keyframe(k, meta, &intr, w, h);
             self.out.push(Out::LoopKeyframe(Box::new(lh), recs));
             self.loop_seq += 1;
@@ -362,7 +378,7 @@ impl Mapper {
         set(format!("c{c}.maps"), f.stats.maps);
         set(format!("c{c}.server_keyframes"), f.keyframes as u64);
         if let Some(m) = f.map_id {
-            set(format!("c{c}.map_id"), m);
+            set(format!("c{c}.map_id"), m.raw());
         }
         s.set_value(&format!("c{c}.lambda"), f.lambda);
         if let Some(cl) = self.clients.get_mut(c as usize) {
@@ -384,9 +400,9 @@ impl Mapper {
             acked_keyframe_id: f.acked_keyframe_id,
             acked_session_id: f.acked_session_id,
             has_pose: 1,
-            server_pose: convert::wire_from_iso(&t_sk),
+            server_pose: wire_from_iso(&t_sk),
             scale_ratio: lambda,
-            server_map_id: map_id,
+            server_map_id: map_id.raw(),
         };
         self.out.push(Out::Feedback(msg));
         cl.fb_seq += 1;
@@ -409,15 +425,16 @@ impl Mapper {
             let mut meta = MsgMeta::new(k.client, k.session, cl.fb_seq, monotonic_ns());
             meta.flags |= shm_schema::FLAG_HANDLED;
             let (map_id, t_sk, lambda) =
-                k.pose.unwrap_or((0, nalgebra::Isometry3::identity(), 1.0));
+                k.pose
+                    .unwrap_or((MapId::default(), nalgebra::Isometry3::identity(), 1.0));
             self.out.push(Out::Feedback(Feedback {
                 meta,
                 acked_keyframe_id: k.kf_id,
                 acked_session_id: k.session,
                 has_pose: k.pose.is_some() as u32,
-                server_pose: convert::wire_from_iso(&t_sk),
+                server_pose: wire_from_iso(&t_sk),
                 scale_ratio: lambda,
-                server_map_id: map_id,
+                server_map_id: map_id.raw(),
             }));
             cl.fb_seq += 1;
             let c = k.client;

@@ -12,17 +12,17 @@
 //! main thread can journal it and a replay can follow the same schedule. After a
 //! correction the global BA runs at once (in replays too), so it needs no journal entry.
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
+use datasets::trajectory::{write_tum_file, TumDigits, TumRow};
 use nalgebra::Isometry3;
+use slam_core::ids::KeyframeId;
 use slam_core::server::{
-    apply_pose_corrections, merge_maps, types, HandleReport, HandlerParams, HandlerStats,
-    KeptKeyframe, KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe,
-    ServerMaps,
+    apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeptKeyframe,
+    KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
 };
 
 use crate::convert::Correction;
@@ -250,7 +250,7 @@ impl Group {
                 m.map
                     .keyframes
                     .keys()
-                    .filter(|k| types::kf_client(**k) == c)
+                    .filter(|k| KeyframeId::from_raw(**k).client().raw() == c)
                     .count()
             }),
             lambda: cs.h.lambda(),
@@ -319,7 +319,7 @@ impl Group {
             .values()
             .flat_map(|m| {
                 let kfs = m.map.keyframes.keys();
-                kfs.filter_map(move |k| m.kept_summary(*k, types::kf_client_kf(*k)))
+                kfs.filter_map(move |k| m.kept_summary(*k, KeyframeId::from_raw(*k).client_kf()))
             })
             .collect()
     }
@@ -514,11 +514,11 @@ fn write_files(out: Option<&Path>, g: &Group) {
         let _ = std::fs::write(out.join(format!("map_growth_c{c}.txt")), text);
         let current = cs.h.current_map_id();
         for (id, m) in &g.maps {
-            let mine = |k: &u64| types::kf_client(*k) == *c;
+            let mine = |k: &u64| KeyframeId::from_raw(*k).client().raw() == *c;
             let name = if Some(*id) == current {
                 format!("keyframes_server_c{c}.txt")
-            } else if types::map_client(*id) == *c && m.map.keyframes.keys().any(mine) {
-                format!("keyframes_server_c{c}_m{}.txt", types::map_index(*id))
+            } else if id.client().raw() == *c && m.map.keyframes.keys().any(mine) {
+                format!("keyframes_server_c{c}_m{}.txt", id.index())
             } else {
                 continue;
             };
@@ -538,32 +538,13 @@ fn write_files(out: Option<&Path>, g: &Group) {
     }
 }
 
-/// Writes a TUM trajectory (`t tx ty tz qx qy qz qw`, t in seconds) atomically.
-pub fn write_tum(path: &Path, poses: &[(i64, Isometry3<f64>)]) -> std::io::Result<()> {
-    let tmp = path.with_extension("txt.tmp");
-    {
-        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp)?);
-        writeln!(f, "# t tx ty tz qx qy qz qw (camera-to-map, shoal mapper)")?;
-        for (t, p) in poses {
-            let q = p.rotation.quaternion();
-            let v = p.translation.vector;
-            let a = t.unsigned_abs();
-            let sign = if *t < 0 { "-" } else { "" };
-            writeln!(
-                f,
-                "{sign}{}.{:09} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
-                a / 1_000_000_000,
-                a % 1_000_000_000,
-                v.x,
-                v.y,
-                v.z,
-                q.i,
-                q.j,
-                q.k,
-                q.w
-            )?;
-        }
-        f.flush()?;
-    }
-    std::fs::rename(&tmp, path)
+/// Writes a TUM trajectory (`t tx ty tz qx qy qz qw`, t in seconds, nine decimals)
+/// atomically ([`datasets::trajectory::write_tum_file`]).
+fn write_tum(path: &Path, poses: &[(i64, Isometry3<f64>)]) -> std::io::Result<()> {
+    write_tum_file(
+        path,
+        Some("# t tx ty tz qx qy qz qw (camera-to-map, shoal mapper)"),
+        poses.iter().map(|(t, p)| TumRow::from_pose(*t, p)),
+        TumDigits::Fixed9,
+    )
 }

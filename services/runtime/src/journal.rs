@@ -12,12 +12,27 @@
 //! Framing, little endian: `MAGIC u32 | kind u8 | 0 u8 ×3 | len u32 | payload | FNV-1a 64 of
 //! (kind, len, payload)`. A torn or corrupt tail (a crash in the middle of a write) is
 //! reported and cut off before new entries are appended; nothing after it is read.
+//!
+//! A journal file starts with a header: `"SHOALJNL" | JOURNAL_VERSION u32 | SCHEMA_VERSION u32`
+//! ([`JOURNAL_VERSION`], [`shm_schema::SCHEMA_VERSION`]: the payloads are the messages'
+//! fields). A journal without it, or of another version, is refused with a
+//! [`VersionError`] naming the file ([`Journal::open`], [`read_journal`]) instead of being
+//! misread. Spool files hold one entry each and no header ([`encode_entry`], [`parse`]).
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use shm_schema::{
     CorrectionHeader, CorrectionRecord, Intrinsics, KeyframeHeader, KeypointRecord, MsgMeta, Pose,
+    SCHEMA_VERSION,
 };
+
+/// Version of the journal format (header, framing and payload encodings). Bump on any change
+/// of them.
+pub const JOURNAL_VERSION: u32 = 1;
+/// First bytes of a journal file.
+const FILE_MAGIC: [u8; 8] = *b"SHOALJNL";
+/// Bytes of the file header (magic, journal version, schema version).
+pub const FILE_HEAD: usize = 16;
 
 /// Start of every entry ("SHJL").
 const MAGIC: u32 = 0x4C4A_4853;
@@ -347,10 +362,107 @@ fn decode(kind: u8, p: &[u8]) -> Option<Entry> {
     }
 }
 
-/// Parses journal bytes: the good entries and where the good prefix ends.
+/// The header a journal of this binary starts with.
+fn file_header() -> [u8; FILE_HEAD] {
+    let mut h = [0u8; FILE_HEAD];
+    h[..8].copy_from_slice(&FILE_MAGIC);
+    h[8..12].copy_from_slice(&JOURNAL_VERSION.to_le_bytes());
+    h[12..].copy_from_slice(&SCHEMA_VERSION.to_le_bytes());
+    h
+}
+
+/// A journal file this binary does not read: no header, or one of another version.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct VersionError {
+    /// The file.
+    pub path: PathBuf,
+    /// (journal version, schema version) of the file's header; `None` when it has none.
+    pub found: Option<(u32, u32)>,
+}
+
+impl std::fmt::Display for VersionError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "journal {}: ", self.path.display())?;
+        match self.found {
+            None => write!(
+                f,
+                "no journal header (written by an older binary, or not a journal)"
+            )?,
+            Some((j, s)) => write!(f, "journal version {j} of schema version {s}")?,
+        }
+        write!(
+            f,
+            "; this binary reads journal version {JOURNAL_VERSION} of schema version {SCHEMA_VERSION}"
+        )
+    }
+}
+
+impl std::error::Error for VersionError {}
+
+/// The versions in the header of journal bytes; `Err(None)` without a header, `Err(found)`
+/// for another version.
+fn check_header(bytes: &[u8]) -> Result<(), Option<(u32, u32)>> {
+    let head = bytes.get(..FILE_HEAD).ok_or(None)?;
+    if head[..8] != FILE_MAGIC {
+        return Err(None);
+    }
+    let word = |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
+    let found = (word(8), word(12));
+    if found != (JOURNAL_VERSION, SCHEMA_VERSION) {
+        return Err(Some(found));
+    }
+    Ok(())
+}
+
+/// Parses the bytes of a journal file (header, then entries); `good_len` counts the header.
+/// Errors, naming `path`, when the header is missing or of another version.
+pub fn parse_journal(path: &Path, bytes: &[u8]) -> Result<Contents, VersionError> {
+    check_header(bytes).map_err(|found| VersionError {
+        path: path.to_path_buf(),
+        found,
+    })?;
+    Ok(parse_from(bytes, FILE_HEAD))
+}
+
+/// Why a journal file could not be read.
+#[derive(Debug)]
+pub enum ReadError {
+    /// Reading the file failed.
+    Io(PathBuf, std::io::Error),
+    /// Not a journal of this version.
+    Version(VersionError),
+}
+
+impl std::fmt::Display for ReadError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ReadError::Io(p, e) => write!(f, "reading the journal {}: {e}", p.display()),
+            ReadError::Version(e) => e.fmt(f),
+        }
+    }
+}
+
+impl std::error::Error for ReadError {}
+
+/// Reads and parses the journal file at `path` ([`parse_journal`]).
+pub fn read_journal(path: &Path) -> Result<Contents, ReadError> {
+    let bytes = std::fs::read(path).map_err(|e| ReadError::Io(path.to_path_buf(), e))?;
+    parse_journal(path, &bytes).map_err(ReadError::Version)
+}
+
+/// Parses framed entries without a file header (a spool file): the good entries and where
+/// the good prefix ends.
 pub fn parse(bytes: &[u8]) -> Contents {
-    let mut c = Contents::default();
-    let mut at = 0usize;
+    parse_from(bytes, 0)
+}
+
+/// The entries of `bytes` from offset `at` on; `good_len` and the problem's byte offset are
+/// file offsets.
+fn parse_from(bytes: &[u8], mut at: usize) -> Contents {
+    let mut c = Contents {
+        good_len: at as u64,
+        ..Contents::default()
+    };
     while at < bytes.len() {
         let rest = &bytes[at..];
         let fail = |why: &str| format!("byte {at}: {why}; the journal is cut there");
@@ -420,32 +532,91 @@ pub struct Journal {
     pub bytes_written: u64,
 }
 
+/// Why [`Journal::open`] failed.
+#[derive(Debug)]
+pub enum OpenError {
+    /// Reading, cutting or creating the file failed.
+    Io(std::io::Error),
+    /// The file is not a journal of this version (nothing was changed in it).
+    Version(VersionError),
+}
+
+impl std::fmt::Display for OpenError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            OpenError::Io(e) => e.fmt(f),
+            OpenError::Version(e) => e.fmt(f),
+        }
+    }
+}
+
+impl std::error::Error for OpenError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            OpenError::Io(e) => Some(e),
+            OpenError::Version(e) => Some(e),
+        }
+    }
+}
+
+impl From<std::io::Error> for OpenError {
+    fn from(e: std::io::Error) -> Self {
+        OpenError::Io(e)
+    }
+}
+
 impl Journal {
-    /// Opens (or creates) the journal at `path`: reads what is there, cuts a torn or corrupt
-    /// tail off, and positions for appending.
-    pub fn open(path: &Path) -> std::io::Result<(Self, Contents)> {
+    /// Opens (or creates, with its header) the journal at `path`: reads what is there, cuts
+    /// a torn or corrupt tail off, and positions for appending. A file of another journal
+    /// version, or without a header, is an [`OpenError::Version`] and is left as it is
+    /// (see [`Journal::set_aside`]). An empty file, or one holding part of this version's
+    /// header (a crash while creating it), is a new journal.
+    pub fn open(path: &Path) -> Result<(Self, Contents), OpenError> {
         let bytes = match std::fs::read(path) {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
-            Err(e) => return Err(e),
+            Err(e) => return Err(e.into()),
         };
-        let contents = parse(&bytes);
-        if contents.good_len < bytes.len() as u64 {
+        let header = file_header();
+        let fresh = bytes.len() < FILE_HEAD && header.starts_with(&bytes);
+        let contents = if fresh {
+            Contents::default()
+        } else {
+            parse_journal(path, &bytes).map_err(OpenError::Version)?
+        };
+        if !fresh && contents.good_len < bytes.len() as u64 {
             let f = std::fs::OpenOptions::new().write(true).open(path)?;
             f.set_len(contents.good_len)?;
         }
-        let file = std::fs::OpenOptions::new()
+        let mut file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
             .open(path)?;
+        let mut bytes_written = 0;
+        if fresh {
+            file.set_len(0)?;
+            file.write_all(&header)?;
+            file.flush()?;
+            bytes_written = FILE_HEAD as u64;
+        }
         Ok((
             Self {
                 path: path.to_path_buf(),
                 file,
-                bytes_written: 0,
+                bytes_written,
             },
             contents,
         ))
+    }
+
+    /// Moves the file at `path` out of the way (to `<path>.rejected`, replacing an older
+    /// one) so that a new journal can start there; returns where it went.
+    pub fn set_aside(path: &Path) -> std::io::Result<PathBuf> {
+        let mut name = path.as_os_str().to_owned();
+        name.push(".rejected");
+        let to = PathBuf::from(name);
+        std::fs::rename(path, &to)?;
+        Ok(to)
     }
 
     /// The journal's path.
@@ -497,6 +668,7 @@ mod tests {
 
     #[test]
     fn round_trip_and_torn_tail_is_cut() {
+        let map = slam_core::ids::MapId::new(slam_core::ids::ClientId::new(1), 0);
         let dir = std::env::temp_dir().join(format!("shoal_journal_{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("dir");
         let path = dir.join("j.bin");
@@ -517,8 +689,8 @@ mod tests {
                     n_records: 2,
                     query_kf: 9,
                     matched_kf: 3,
-                    from_map: 1 << 32,
-                    into_map: 1 << 32,
+                    from_map: map.raw(),
+                    into_map: map.raw(),
                     scale: 1.25,
                     inliers: 88,
                     ..CorrectionHeader::default()
@@ -547,7 +719,9 @@ mod tests {
             }
         }
         let full = std::fs::read(&path).expect("read");
-        let c = parse(&full);
+        assert_eq!(full[..FILE_HEAD], file_header());
+        let c = parse_journal(&path, &full).expect("this version");
+        assert_eq!(c.good_len, full.len() as u64);
         assert_eq!(c.entries, entries);
         assert!(c.problem.is_none());
         // A crash in the middle of the last write: the entries before it survive.
@@ -558,15 +732,98 @@ mod tests {
         // Appending after the cut gives a clean journal again.
         j.append(&entries[3]).expect("append");
         drop(j);
-        let c = parse(&std::fs::read(&path).expect("read"));
+        let c = read_journal(&path).expect("read");
         assert_eq!(c.entries, entries);
         assert!(c.problem.is_none());
         // A flipped byte inside an entry is caught by the checksum.
         let mut bad = full.clone();
-        bad[HEAD + 20] ^= 1;
-        let c = parse(&bad);
+        bad[FILE_HEAD + HEAD + 20] ^= 1;
+        let c = parse_journal(&path, &bad).expect("header intact");
+        assert_eq!(c.good_len, FILE_HEAD as u64);
         assert!(c.entries.is_empty());
         assert!(c.problem.is_some_and(|p| p.contains("checksum")));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    fn temp_journal(name: &str) -> (PathBuf, PathBuf) {
+        let dir = std::env::temp_dir().join(format!("shoal_journal_{name}_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("mapper_journal.bin");
+        (dir, path)
+    }
+
+    /// A journal of another version is refused, untouched, with an error naming the file and
+    /// both versions; set aside, a new journal starts in its place.
+    #[test]
+    fn another_version_is_refused() {
+        let (dir, path) = temp_journal("version");
+        {
+            let (mut j, _) = Journal::open(&path).expect("open");
+            j.append(&keyframe(1)).expect("append");
+        }
+        let mut bytes = std::fs::read(&path).expect("read");
+        bytes[8..12].copy_from_slice(&(JOURNAL_VERSION + 1).to_le_bytes());
+        std::fs::write(&path, &bytes).expect("write");
+        let err = match Journal::open(&path) {
+            Err(OpenError::Version(e)) => e,
+            other => panic!("expected a version error, got {other:?}"),
+        };
+        assert_eq!(err.found, Some((JOURNAL_VERSION + 1, SCHEMA_VERSION)));
+        let text = err.to_string();
+        assert!(text.contains(&path.display().to_string()), "{text}");
+        assert!(
+            text.contains(&format!("journal version {}", JOURNAL_VERSION + 1)),
+            "{text}"
+        );
+        assert_eq!(std::fs::read(&path).expect("read"), bytes, "left as it was");
+        assert!(matches!(read_journal(&path), Err(ReadError::Version(_))));
+        // Another schema version is refused the same way.
+        let mut other_schema = bytes.clone();
+        other_schema[8..12].copy_from_slice(&JOURNAL_VERSION.to_le_bytes());
+        other_schema[12..16].copy_from_slice(&(SCHEMA_VERSION + 1).to_le_bytes());
+        let e = parse_journal(&path, &other_schema).expect_err("other schema");
+        assert_eq!(e.found, Some((JOURNAL_VERSION, SCHEMA_VERSION + 1)));
+        // Set aside, the path holds a new, empty journal.
+        let aside = Journal::set_aside(&path).expect("rename");
+        assert_eq!(std::fs::read(&aside).expect("read"), bytes);
+        let (_, c) = Journal::open(&path).expect("fresh");
+        assert!(c.entries.is_empty() && c.problem.is_none());
+        assert_eq!(std::fs::read(&path).expect("read"), file_header());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A journal without the header (bare entries, as older binaries wrote it) is refused;
+    /// an empty file or a torn header (a crash while creating the journal) is a new journal.
+    #[test]
+    fn missing_header_is_refused_and_a_torn_one_restarts() {
+        let (dir, path) = temp_journal("header");
+        let bare = encode_entry(&keyframe(1));
+        std::fs::write(&path, &bare).expect("write");
+        let err = match Journal::open(&path) {
+            Err(OpenError::Version(e)) => e,
+            other => panic!("expected a version error, got {other:?}"),
+        };
+        assert_eq!(err.found, None);
+        let text = err.to_string();
+        assert!(text.contains("no journal header"), "{text}");
+        assert!(text.contains(&path.display().to_string()), "{text}");
+        assert_eq!(std::fs::read(&path).expect("read"), bare);
+        for torn in [0, 5, FILE_HEAD - 1] {
+            std::fs::write(&path, &file_header()[..torn]).expect("write");
+            let (mut j, c) = Journal::open(&path).expect("a new journal");
+            assert!(c.entries.is_empty() && c.problem.is_none());
+            j.append(&keyframe(2)).expect("append");
+            drop(j);
+            let c = read_journal(&path).expect("read");
+            assert_eq!(c.entries, vec![keyframe(2)]);
+        }
+        // Garbage shorter than a header is not taken for a torn one.
+        std::fs::write(&path, b"abc").expect("write");
+        assert!(matches!(
+            Journal::open(&path),
+            Err(OpenError::Version(VersionError { found: None, .. }))
+        ));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

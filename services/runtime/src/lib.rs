@@ -556,28 +556,3 @@ impl ReplayArgs {
         )
     }
 }
-
-/// The camera model of a message's intrinsics (frames and keyframes carry the same
-/// [`shm_schema::Intrinsics`]): pinhole `[fx, fy, cx, cy]` and radial-tangential
-/// `[k1, k2, p1, p2, k3]`.
-pub fn camera_from_intrinsics(
-    intrinsics: &shm_schema::Intrinsics,
-    width: u32,
-    height: u32,
-) -> datasets::PinholeRadtan {
-    let [fx, fy, cx, cy] = intrinsics.pinhole;
-    let [k1, k2, p1, p2, k3] = intrinsics.distortion;
-    datasets::PinholeRadtan {
-        width,
-        height,
-        fx,
-        fy,
-        cx,
-        cy,
-        k1,
-        k2,
-        p1,
-        p2,
-        k3,
-    }
-}

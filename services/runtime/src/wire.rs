@@ -1,21 +1,55 @@
-//! Wire ↔ nalgebra conversions of poses and similarities, shared by the services.
+//! Every conversion between the shared-memory wire types ([`shm_schema`]) and the
+//! algorithm's types ([`slam_core`], nalgebra), shared by the services and the launcher:
+//! poses and similarities (the wire quaternion is `[x, y, z, w]`, nalgebra's constructor
+//! takes `w` first: the swap is done here and nowhere else), camera intrinsics, keypoints and
+//! the tracking state. Ids convert through [`slam_core::ids`].
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-use shm_schema::Pose;
+use shm_schema::{Intrinsics, Pose, TrackState};
+use slam_core::camera::PinholeRadtan;
 use slam_core::lie::Sim3;
+use slam_core::vo::VoState;
+
+/// A wire quaternion norm below this is no rotation.
+const MIN_QUATERNION_NORM: f64 = 1e-6;
+
+/// The wire rotation `[x, y, z, w]` as a (not normalised) nalgebra quaternion.
+fn quaternion_from_wire(q: &[f64; 4]) -> Quaternion<f64> {
+    Quaternion::new(q[3], q[0], q[1], q[2])
+}
+
+/// The rotation of a wire pose; `None` when not finite or the quaternion is ~0 (the
+/// translation is not looked at).
+pub fn rotation_from_wire(p: &Pose) -> Option<UnitQuaternion<f64>> {
+    if !p.q.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let q = quaternion_from_wire(&p.q);
+    if q.norm() < MIN_QUATERNION_NORM {
+        return None;
+    }
+    Some(UnitQuaternion::from_quaternion(q))
+}
 
 /// A wire pose `T_ab` as an isometry; `None` when not finite or the quaternion is ~0.
 pub fn iso_from_wire(p: &Pose) -> Option<Isometry3<f64>> {
-    if !p.t.iter().chain(p.q.iter()).all(|v| v.is_finite()) {
+    if !p.t.iter().all(|v| v.is_finite()) {
         return None;
     }
-    let q = Quaternion::new(p.q[3], p.q[0], p.q[1], p.q[2]);
-    if q.norm() < 1e-6 {
-        return None;
-    }
+    let r = rotation_from_wire(p)?;
     Some(Isometry3::from_parts(
         Translation3::new(p.t[0], p.t[1], p.t[2]),
-        UnitQuaternion::from_quaternion(q),
+        r,
     ))
+}
+
+/// A wire pose `T_ab` as an isometry without the validity checks of [`iso_from_wire`] (for
+/// poses this program recorded itself): a non-finite or zero pose gives a non-finite
+/// isometry.
+pub fn iso_from_wire_unchecked(p: &Pose) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(p.t[0], p.t[1], p.t[2]),
+        UnitQuaternion::from_quaternion(quaternion_from_wire(&p.q)),
+    )
 }
 
 /// An isometry `T_ab` as a wire pose.
@@ -42,18 +76,44 @@ pub fn wire_from_sim3(s: &Sim3) -> (Pose, f64) {
 }
 
 /// The wire intrinsics `(intrinsics, width, height)` of a camera model (the inverse of
-/// [`crate::camera_from_intrinsics`]).
-pub fn intrinsics_from_camera(
-    c: &slam_core::camera::PinholeRadtan,
-) -> (shm_schema::Intrinsics, u32, u32) {
+/// [`camera_from_intrinsics`]).
+pub fn intrinsics_from_camera(c: &PinholeRadtan) -> (Intrinsics, u32, u32) {
     (
-        shm_schema::Intrinsics {
+        Intrinsics {
             pinhole: [c.fx, c.fy, c.cx, c.cy],
             distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
         },
         c.width,
         c.height,
     )
+}
+
+/// The camera model of a message's intrinsics (frames and keyframes carry the same
+/// [`Intrinsics`]): pinhole `[fx, fy, cx, cy]` and radial-tangential `[k1, k2, p1, p2, k3]`.
+/// Not checked: see [`valid_intrinsics`].
+pub fn camera_from_intrinsics(intrinsics: &Intrinsics, width: u32, height: u32) -> PinholeRadtan {
+    let [fx, fy, cx, cy] = intrinsics.pinhole;
+    let [k1, k2, p1, p2, k3] = intrinsics.distortion;
+    PinholeRadtan {
+        width,
+        height,
+        fx,
+        fy,
+        cx,
+        cy,
+        k1,
+        k2,
+        p1,
+        p2,
+        k3,
+    }
+}
+
+/// Whether message intrinsics can make a camera: positive focal lengths, a finite principal
+/// point and a width.
+pub fn valid_intrinsics(i: &Intrinsics, width: u32) -> bool {
+    let [fx, fy, cx, cy] = i.pinhole;
+    fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite() && width > 0
 }
 
 /// A keypoint of a keyframe message (its size restored from the octave). Keyframe messages
@@ -79,9 +139,71 @@ pub fn wire_keypoint(
     }
 }
 
-/// Whether message intrinsics can make a camera: positive focal lengths, a finite principal
-/// point and a width.
-pub fn valid_intrinsics(i: &shm_schema::Intrinsics, width: u32) -> bool {
-    let [fx, fy, cx, cy] = i.pinhole;
-    fx > 0.0 && fy > 0.0 && cx.is_finite() && cy.is_finite() && width > 0
+/// The wire tracking state of a VO state.
+pub fn track_state_from_vo(s: VoState) -> TrackState {
+    match s {
+        VoState::NotInitialized => TrackState::NotInitialized,
+        VoState::Initializing => TrackState::Initializing,
+        VoState::Tracking => TrackState::Tracking,
+        VoState::Lost => TrackState::Lost,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose() -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(1.0, -2.0, 0.5),
+            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.7),
+        )
+    }
+
+    #[test]
+    fn pose_round_trip_and_bad_poses() {
+        let t = pose();
+        let w = wire_from_iso(&t);
+        let q = t.rotation.quaternion();
+        assert_eq!(w.q, [q.i, q.j, q.k, q.w], "wire order is [x, y, z, w]");
+        let back = iso_from_wire(&w).expect("valid");
+        assert_eq!(back, iso_from_wire_unchecked(&w));
+        assert!((back.translation.vector - t.translation.vector).norm() < 1e-12);
+        assert!(back.rotation.angle_to(&t.rotation) < 1e-12);
+        assert_eq!(rotation_from_wire(&w), Some(back.rotation));
+        let mut bad = w;
+        bad.t[0] = f64::NAN;
+        assert!(iso_from_wire(&bad).is_none());
+        assert!(
+            rotation_from_wire(&bad).is_some(),
+            "only the rotation is looked at"
+        );
+        bad = Pose {
+            t: [0.0; 3],
+            q: [0.0; 4],
+        };
+        assert!(iso_from_wire(&bad).is_none());
+        assert!(rotation_from_wire(&bad).is_none());
+        assert!(sim3_from_wire(&w, 0.0).is_none());
+        let s = sim3_from_wire(&w, 2.0).expect("valid");
+        let (w2, scale) = wire_from_sim3(&s);
+        assert_eq!(scale, 2.0);
+        assert!(w2.t.iter().zip(&w.t).all(|(a, b)| (a - b).abs() < 1e-12));
+    }
+
+    #[test]
+    fn intrinsics_round_trip() {
+        let mut c = PinholeRadtan::pinhole(752, 480, 458.0, 457.0, 367.0, 248.0);
+        c.k1 = -0.28;
+        c.p2 = 1e-5;
+        let (i, w, h) = intrinsics_from_camera(&c);
+        assert!(valid_intrinsics(&i, w));
+        assert_eq!(camera_from_intrinsics(&i, w, h), c);
+    }
+
+    #[test]
+    fn track_states() {
+        assert_eq!(track_state_from_vo(VoState::Tracking), TrackState::Tracking);
+        assert_eq!(track_state_from_vo(VoState::Lost), TrackState::Lost);
+    }
 }

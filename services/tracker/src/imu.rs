@@ -4,7 +4,7 @@
 //! with the frame's `T_BS`).
 use std::collections::VecDeque;
 
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use nalgebra::Vector3;
 use shm_schema::{FrameHeader, ImuMsg};
 use shoal_runtime::Status;
 
@@ -122,11 +122,7 @@ impl ImuInput {
         self.scratch.clear();
         self.scratch.extend(self.gyro.iter().copied());
         let w_b = slam_core::imu::mean_rate(&self.scratch, t0, end)?;
-        let [x, y, z, w] = h.t_bs.q;
-        let q = UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z));
-        if !q.coords.iter().all(|v| v.is_finite()) {
-            return None;
-        }
+        let q = shoal_runtime::wire::rotation_from_wire(&h.t_bs)?;
         Some(q.inverse() * w_b)
     }
 }

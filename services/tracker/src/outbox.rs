@@ -8,9 +8,7 @@
 use std::collections::BTreeMap;
 
 use shm_schema::topics::MAX_KEYPOINTS;
-use shm_schema::{
-    Intrinsics, KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT,
-};
+use shm_schema::{KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT};
 use slam_core::vo::Keyframe;
 
 /// A keyframe message (header and keypoint records) as it goes on the wire.
@@ -65,7 +63,7 @@ pub fn wire_pose(t_cw: &nalgebra::Isometry3<f64>) -> Pose {
 /// The keyframe message of `kf` of VO session `session` (seed §3.3: its pose in the client
 /// map, keypoints, descriptors and client map-point ids); `meta.seq` is set when sent.
 pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg {
-    let c = &kf.camera;
+    let (intrinsics, width, height) = shoal_runtime::wire::intrinsics_from_camera(&kf.camera);
     let n = kf.features.len().min(MAX_KEYPOINTS);
     let records: Vec<KeypointRecord> = (0..n)
         .map(|i| {
@@ -87,12 +85,9 @@ pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg
         keyframe_id: kf.id,
         t_ns: kf.t_ns,
         pose_ck: wire_pose(&kf.t_cw),
-        intrinsics: Intrinsics {
-            pinhole: [c.fx, c.fy, c.cx, c.cy],
-            distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
-        },
-        width: c.width,
-        height: c.height,
+        intrinsics,
+        width,
+        height,
         n_keypoints: n as u32,
         reserved: 0,
     };

@@ -366,11 +366,11 @@ impl LoopDetector {
             return None;
         }
         let window_ns = (p.continuation_window_s * 1e9) as i64;
-        let client = kf.map_id >> 32;
+        let client = kf.map_id.client();
         let mut cands: Vec<(i64, KfId)> = self
             .kfs
             .values()
-            .filter(|s| s.kf.map_id != kf.map_id && s.kf.map_id >> 32 == client)
+            .filter(|s| s.kf.map_id != kf.map_id && s.kf.map_id.client() == client)
             .filter(|s| (0..=window_ns).contains(&(kf.t_ns - s.kf.t_ns)))
             .map(|s| (s.kf.t_ns, s.kf.kf_id))
             .collect();

@@ -258,14 +258,19 @@ fn two_views(seed: u64) -> (World, KfSpec, KfSpec, Rng) {
         })
         .collect();
     let world = World::new(pts, &mut rng);
-    let q = KfSpec::new(Isometry3::identity(), 0, 1, distorted_camera());
+    let q = KfSpec::new(
+        Isometry3::identity(),
+        MapId::from_raw(0),
+        1,
+        distorted_camera(),
+    );
     let t_wm = Isometry3::from_parts(
         Translation3::new(0.8, -0.2, -0.6),
         UnitQuaternion::from_euler_angles(0.03, -0.15, 0.05),
     );
     let mut m = KfSpec::new(
         t_wm,
-        1,
+        MapId::from_raw(1),
         2,
         PinholeRadtan::pinhole(640, 480, 420.0, 420.0, 315.0, 245.0),
     );

@@ -17,6 +17,7 @@ use super::tests::{
 };
 use super::*;
 use crate::camera::PinholeRadtan;
+use crate::ids::{ClientId, MapId};
 use crate::place::{score, Vocabulary};
 use crate::server::KeptKeyframe;
 use crate::vo::KfId;
@@ -31,8 +32,8 @@ fn vocabulary() -> Arc<Vocabulary> {
 }
 
 const KFS_PER_LAP: usize = 48;
-const MAP_A: u64 = 0;
-const MAP_B: u64 = 1 << 32;
+const MAP_A: MapId = MapId::new(ClientId::new(0), 0);
+const MAP_B: MapId = MapId::new(ClientId::new(1), 0);
 const LAP2_ID: KfId = 1000;
 const MAP_B_ID: KfId = 5000;
 

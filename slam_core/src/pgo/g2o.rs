@@ -331,18 +331,6 @@ pub fn write_g2o_sim3(g: &Sim3Graph) -> String {
     out
 }
 
-/// TUM trajectory lines `id tx ty tz qx qy qz qw` (the vertex id as the timestamp) of the
-/// rigid part of each pose.
-pub fn write_tum<'a>(poses: impl IntoIterator<Item = (u64, &'a Isometry3<f64>)>) -> String {
-    let mut out = String::new();
-    for (id, p) in poses {
-        let _ = write!(out, "{id}");
-        write_pose(&mut out, &p.translation.vector, &p.rotation);
-        out.push('\n');
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

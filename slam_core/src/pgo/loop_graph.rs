@@ -10,6 +10,7 @@ use nalgebra::Isometry3;
 
 use super::graph::{Edge, Sim3Graph, Vertex};
 use super::{optimize_sim3, PgoMethod, PgoParams, PgoReport};
+use crate::ids::KeyframeId;
 use crate::lie::{Matrix7, Sim3};
 use crate::vo::KfId;
 use crate::CoreError;
@@ -108,7 +109,7 @@ pub fn correct_loop(
     let mut seen: std::collections::HashSet<(usize, usize)> = std::collections::HashSet::new();
     // Consecutive keyframes of each client (ids are ordered per client).
     for w in order.windows(2) {
-        if w[0].id >> 40 != w[1].id >> 40 {
+        if KeyframeId::from_raw(w[0].id).client() != KeyframeId::from_raw(w[1].id).client() {
             continue;
         }
         let (i, j) = (index[&w[0].id], index[&w[1].id]);

@@ -62,7 +62,7 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Matrix6, Vector3, Vector6};
 
 pub use chordal::{chordal_init, project_to_so3};
-pub use g2o::{parse_g2o, swap_rt_blocks, write_g2o_se3, write_g2o_sim3, write_tum};
+pub use g2o::{parse_g2o, swap_rt_blocks, write_g2o_se3, write_g2o_sim3};
 pub use graph::{AnyGraph, Edge, GraphPose, PoseGraph, Se3Graph, Sim3Graph, Vertex};
 pub use information::gtsam_effective_information;
 pub use lm::{graph_cost, LiePose, LmParams, LmSummary, Prior};

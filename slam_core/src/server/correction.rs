@@ -179,6 +179,7 @@ mod tests {
     use super::*;
     use crate::camera::PinholeRadtan;
     use crate::features::{KeyPoint, OrbFeatures};
+    use crate::ids::{ClientId, KeyframeId, MapPointId};
     use crate::vo::Keyframe;
     use nalgebra::{UnitQuaternion, Vector3};
 
@@ -208,7 +209,8 @@ mod tests {
 
     /// Two keyframes observing three points, in a map of `client`'s id range.
     fn small_map(id: MapId, client: u32, kf_base: KfId) -> ServerMap {
-        let mut m = ServerMap::new(id, client, 1, u64::from(client) << 40);
+        let first_point = MapPointId::first_of_client(ClientId::new(client)).raw();
+        let mut m = ServerMap::new(id, client, 1, first_point);
         let a = kf_base;
         let b = kf_base + 1;
         m.map.insert_keyframe(kf(a, Isometry3::identity(), 3));
@@ -223,52 +225,54 @@ mod tests {
 
     #[test]
     fn merge_transforms_absorbs_and_fuses() {
+        let (m1, m2, m7) = (MapId::from_raw(1), MapId::from_raw(2), MapId::from_raw(7));
+        let c1_kf = |k: KfId| KeyframeId::new(ClientId::new(1), k).raw();
         let mut maps = BTreeMap::new();
-        maps.insert(1, small_map(1, 0, 10));
-        maps.insert(2, small_map(2, 1, 1 << 40));
+        maps.insert(m1, small_map(m1, 0, 10));
+        maps.insert(m2, small_map(m2, 1, c1_kf(0)));
         let s = Sim3::new(
             UnitQuaternion::from_euler_angles(0.0, 0.3, 0.0),
             Vector3::new(1.0, 2.0, 3.0),
             2.0,
         );
         let from_points: Vec<PointId> = {
-            let mut v: Vec<_> = maps[&2].map.points.keys().copied().collect();
+            let mut v: Vec<_> = maps[&m2].map.points.keys().copied().collect();
             v.sort();
             v
         };
         let into_points: Vec<PointId> = {
-            let mut v: Vec<_> = maps[&1].map.points.keys().copied().collect();
+            let mut v: Vec<_> = maps[&m1].map.points.keys().copied().collect();
             v.sort();
             v
         };
-        let p_before = maps[&2].map.points[&from_points[1]].p_w;
-        let c_before = maps[&2].map.keyframes[&((1 << 40) + 1)].center();
+        let p_before = maps[&m2].map.points[&from_points[1]].p_w;
+        let c_before = maps[&m2].map.keyframes[&c1_kf(1)].center();
         let pairs = [(from_points[0], into_points[0])];
-        let r = merge_maps(&mut maps, 2, 1, &s, &pairs).unwrap();
+        let r = merge_maps(&mut maps, m2, m1, &s, &pairs).unwrap();
         assert_eq!(r.keyframes_moved, 2);
         assert_eq!(r.points_fused, 1);
-        assert!(!maps.contains_key(&2));
-        let m = &maps[&1];
+        assert!(!maps.contains_key(&m2));
+        let m = &maps[&m1];
         assert_eq!(m.map.keyframes.len(), 4);
         assert_eq!(m.map.points.len(), 5);
         let p_after = m.map.points[&from_points[1]].p_w;
         assert!((p_after - s.transform_point(&p_before)).norm() < 1e-12);
-        let c_after = m.map.keyframes[&((1 << 40) + 1)].center();
+        let c_after = m.map.keyframes[&c1_kf(1)].center();
         assert!((c_after - s.transform_point(&c_before)).norm() < 1e-12);
         // The fused point is seen by all four keyframes now.
         assert_eq!(m.map.points[&into_points[0]].observations.len(), 4);
-        assert!(m.map.covis_weight(10, 1 << 40) >= 1);
+        assert!(m.map.covis_weight(10, c1_kf(0)) >= 1);
         // Errors leave the maps alone.
-        assert!(merge_maps(&mut maps, 1, 1, &s, &[]).is_err());
-        assert!(merge_maps(&mut maps, 7, 1, &s, &[]).is_err());
+        assert!(merge_maps(&mut maps, m1, m1, &s, &[]).is_err());
+        assert!(merge_maps(&mut maps, m7, m1, &s, &[]).is_err());
         let bad = Sim3::new(UnitQuaternion::identity(), Vector3::zeros(), 0.0);
-        assert!(merge_maps(&mut maps, 1, 7, &bad, &[]).is_err());
+        assert!(merge_maps(&mut maps, m1, m7, &bad, &[]).is_err());
         assert_eq!(maps.len(), 1);
     }
 
     #[test]
     fn pose_corrections_move_keyframes_and_points_with_their_reference() {
-        let mut m = small_map(1, 0, 10);
+        let mut m = small_map(MapId::from_raw(1), 0, 10);
         let d10 = Sim3::new(UnitQuaternion::identity(), Vector3::new(0.0, 1.0, 0.0), 1.0);
         let fallback = Sim3::new(UnitQuaternion::identity(), Vector3::zeros(), 0.5);
         let deltas: BTreeMap<KfId, Sim3> = [(10, d10)].into_iter().collect();

@@ -20,9 +20,9 @@ use super::refine::Refiner;
 use super::scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
 use super::server_map::ServerMap;
 use super::types::{
-    server_kf_id, server_map_id, HandleReport, KeptKeyframe, KeyframeStatus, MapId, ServerFeedback,
-    ServerKeyframe,
+    HandleReport, KeptKeyframe, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe,
 };
+use crate::ids::{ClientId, KeyframeId, MapPointId};
 use crate::lie::Sim3;
 use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
 use crate::optim::PoseOptParams;
@@ -204,7 +204,8 @@ pub struct KeyframeHandler {
 }
 
 impl KeyframeHandler {
-    /// A handler for client `client_id` (server point ids start at `client_id << 40`).
+    /// A handler for client `client_id` (its server point ids start at
+    /// [`MapPointId::first_of_client`]).
     pub fn new(client_id: u32, params: HandlerParams) -> Self {
         Self {
             client_id,
@@ -221,7 +222,7 @@ impl KeyframeHandler {
             last_revisit_ba: None,
             held: None,
             last_forget: 0,
-            next_point_id: u64::from(client_id) << 40,
+            next_point_id: MapPointId::first_of_client(ClientId::new(client_id)).raw(),
             stats: HandlerStats::default(),
             refiner: Refiner::default(),
             frame_points: Vec::new(),
@@ -372,7 +373,7 @@ impl KeyframeHandler {
         first: ServerKeyframe,
         second: ServerKeyframe,
     ) -> HandleReport {
-        let id = server_map_id(self.client_id, self.stats.maps as u32);
+        let id = MapId::new(ClientId::new(self.client_id), self.stats.maps as u32);
         self.stats.maps += 1;
         let session = second.session_id;
         let owner = (self.client_id, session);
@@ -381,7 +382,10 @@ impl KeyframeHandler {
         let first_point = maps
             .values()
             .map(|m| m.map.next_point_id())
-            .filter(|p| p >> 40 == self.next_point_id >> 40)
+            .filter(|p| {
+                MapPointId::from_raw(*p).client()
+                    == MapPointId::from_raw(self.next_point_id).client()
+            })
             .fold(self.next_point_id, u64::max);
         let mut map = ServerMap::new(id, self.client_id, session, first_point);
         map.touch(owner, first.id, &first.client_points);
@@ -734,7 +738,7 @@ impl KeyframeHandler {
 
     /// Server id of client keyframe `kf_id` of this client.
     pub fn server_kf_id(&self, kf_id: KfId) -> KfId {
-        server_kf_id(self.client_id, kf_id)
+        KeyframeId::new(ClientId::new(self.client_id), kf_id).raw()
     }
 }
 

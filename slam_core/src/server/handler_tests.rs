@@ -165,7 +165,10 @@ fn invalid_foreign_and_duplicate_keyframes() {
     );
     let fb = h.feedback(&maps).unwrap();
     assert_eq!((fb.acked_keyframe_id, fb.acked_session_id), (1, 1));
-    assert_eq!(fb.pose.unwrap().0, server_map_id(CLIENT, 0));
+    assert_eq!(
+        fb.pose.unwrap().0,
+        MapId::new(crate::ids::ClientId::new(CLIENT), 0)
+    );
 }
 
 /// A client VO that revisits the same places makes new point ids for them (its window
@@ -213,7 +216,7 @@ fn unseen_client_points_are_forgotten() {
 
 #[test]
 fn forget_unseen_keeps_recently_referenced_points() {
-    let mut map = ServerMap::new(1, CLIENT, 1, 0);
+    let mut map = ServerMap::new(MapId::from_raw(1), CLIENT, 1, 0);
     let (a, b) = ((CLIENT, 1), (CLIENT, 2));
     map.touch(a, 1, &[]);
     map.associate(a, 10, 100);

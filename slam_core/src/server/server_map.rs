@@ -6,7 +6,8 @@ use std::collections::BTreeMap;
 
 use nalgebra::{Isometry3, Vector2};
 
-use super::types::{server_kf_id, KeptKeyframe, KeptPoint, MapId, ServerKeyframe};
+use super::types::{KeptKeyframe, KeptPoint, MapId, ServerKeyframe};
+use crate::ids::{ClientId, KeyframeId};
 use crate::twoview::triangulate::{
     check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
 };
@@ -131,7 +132,7 @@ impl ServerMap {
     /// Moves everything of `other` into this map (keyframes, points, covisibility and the
     /// client-point associations of its owners); `other`'s geometry must already be in this
     /// map's frame and its ids must not collide with this map's (server ids are unique per
-    /// client, see [`server_kf_id`]). Returns the number of keyframes moved.
+    /// client, see [`KeyframeId`]). Returns the number of keyframes moved.
     pub(crate) fn absorb(&mut self, other: ServerMap) -> usize {
         let n = other.map.keyframes.len();
         self.map.absorb(other.map);
@@ -209,7 +210,7 @@ impl ServerMap {
         t_sk: &Isometry3<f64>,
         points: &[Option<PointId>],
     ) -> KfId {
-        let id = server_kf_id(kf.client_id, kf.id);
+        let id = KeyframeId::new(ClientId::new(kf.client_id), kf.id).raw();
         self.map.insert_keyframe(Keyframe {
             id,
             t_ns: kf.t_ns,

@@ -5,47 +5,11 @@ use nalgebra::{Isometry3, Vector3};
 
 use crate::camera::PinholeRadtan;
 use crate::features::OrbFeatures;
+use crate::ids::ClientKeyframeId;
 use crate::vo::{Keyframe, KfId, PointId};
 use crate::CoreError;
 
-/// Server map id: `client_id << 32 | n`, `n` counting the client's server maps from 0.
-pub type MapId = u64;
-
-/// Client keyframe ids must stay below this bound (server ids put the client in the bits
-/// above, see [`server_kf_id`]).
-pub const MAX_CLIENT_KF_ID: KfId = (1 << 40) - 1;
-
-/// Server keyframe id of client `client_id`'s keyframe `kf_id`: `client_id << 40 | kf_id`,
-/// unique across clients so that maps of several clients can later be merged.
-pub fn server_kf_id(client_id: u32, kf_id: KfId) -> KfId {
-    (u64::from(client_id) << 40) | (kf_id & MAX_CLIENT_KF_ID)
-}
-
-/// Server map id of client `client_id`'s `n`-th server map.
-pub fn server_map_id(client_id: u32, n: u32) -> MapId {
-    (u64::from(client_id) << 32) | u64::from(n)
-}
-
-/// The client of a server keyframe id (see [`server_kf_id`]); also of a server point id
-/// (points are numbered from `client_id << 40` by the client's handler).
-pub fn kf_client(id: KfId) -> u32 {
-    (id >> 40) as u32
-}
-
-/// The client's own keyframe id in a server keyframe id (see [`server_kf_id`]).
-pub fn kf_client_kf(id: KfId) -> KfId {
-    id & MAX_CLIENT_KF_ID
-}
-
-/// The client that created server map `id` (see [`server_map_id`]).
-pub fn map_client(id: MapId) -> u32 {
-    (id >> 32) as u32
-}
-
-/// Which of its client's server maps `id` is (see [`server_map_id`]).
-pub fn map_index(id: MapId) -> u32 {
-    (id & 0xffff_ffff) as u32
-}
+pub use crate::ids::MapId;
 
 /// A keyframe as the client sends it (seed §3.3, keyframe message).
 #[derive(Debug, Clone)]
@@ -54,7 +18,8 @@ pub struct ServerKeyframe {
     pub client_id: u32,
     /// VO session of the client that made the keyframe.
     pub session_id: u32,
-    /// Keyframe id, unique per client across sessions (≤ [`MAX_CLIENT_KF_ID`]).
+    /// Keyframe id, unique per client across sessions (≤ [`ClientKeyframeId::MAX`]: the
+    /// server's [`crate::ids::KeyframeId`] puts the client in the bits above).
     pub id: KfId,
     /// Frame time (mid-row), ns.
     pub t_ns: i64,
@@ -100,10 +65,11 @@ impl ServerKeyframe {
                 self.client_points.len()
             )));
         }
-        if self.id > MAX_CLIENT_KF_ID {
+        if self.id > ClientKeyframeId::MAX {
             return Err(CoreError::InvalidArgument(format!(
-                "keyframe id {} above {MAX_CLIENT_KF_ID}",
-                self.id
+                "keyframe id {} above {}",
+                self.id,
+                ClientKeyframeId::MAX
             )));
         }
         let t = self.t_ck.translation.vector;
@@ -161,7 +127,7 @@ pub struct KeptPoint {
 pub struct KeptKeyframe {
     /// Server map it belongs to.
     pub map_id: MapId,
-    /// Server keyframe id ([`server_kf_id`]).
+    /// Server keyframe id ([`crate::ids::KeyframeId`]).
     pub kf_id: KfId,
     /// Client keyframe id.
     pub client_kf_id: KfId,

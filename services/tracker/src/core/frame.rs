@@ -7,7 +7,7 @@ use shm_schema::{
     stage, FrameAck, FrameHeader, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL,
 };
 use slam_core::features::GrayImage;
-use slam_core::vo::{VoFrame, VoOutput, VoState};
+use slam_core::vo::{VoFrame, VoOutput};
 
 use super::{KeyframeKey, Out, TrackerCore};
 use crate::outbox::{keyframe_message, wire_pose};
@@ -75,12 +75,7 @@ impl Tracked {
 
     /// The VO's result for the frame (not its keyframes).
     fn take_vo_output(&mut self, o: &mut VoOutput) {
-        self.state = match o.state {
-            VoState::NotInitialized => TrackState::NotInitialized,
-            VoState::Initializing => TrackState::Initializing,
-            VoState::Tracking => TrackState::Tracking,
-            VoState::Lost => TrackState::Lost,
-        };
+        self.state = shoal_runtime::wire::track_state_from_vo(o.state);
         if self.state == TrackState::Tracking {
             self.t_cw = o.t_cw;
         }
@@ -313,7 +308,7 @@ impl TrackerCore {
             dataset_index: h.dataset_index,
             pose: t.t_cw.map_or(Pose::IDENTITY, |t_cw| wire_pose(&t_cw)),
             server_pose: server_pose.map_or(Pose::IDENTITY, |p| p.0),
-            server_map_id: server_pose.map_or(0, |p| p.1),
+            server_map_id: server_pose.map_or(0, |p| p.1.raw()),
             state: t.state as u32,
             has_server_pose: server_pose.is_some() as u32,
             tracked_points: t.tracked,

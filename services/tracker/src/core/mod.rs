@@ -12,6 +12,7 @@ use shm_schema::{
     Feedback, FrameAck, FrameHeader, ImuMsg, MsgMeta, TrackedPose, FLAG_END_OF_STREAM,
 };
 use shoal_runtime::Status;
+use slam_core::ids::{ClientKeyframeId, SessionId};
 use slam_core::vo::{VoParams, VoTracker};
 
 use crate::imu::ImuInput;
@@ -27,14 +28,10 @@ pub use counters::{TrackerCounters, TrackerResume, RESUME_VERSION};
 pub use frame::{FrameIn, FrameStep, Tracked};
 pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 
-/// Keyframe ids of one life of the tracker process: `start << KF_ID_BITS_PER_START` on
-/// (2^28 keyframes per life, 4096 lives within the server's 40-bit client keyframe ids).
-const KF_ID_BITS_PER_START: u32 = 28;
-
-/// The ids one start (life) of the tracker process gives out, the packing in one place:
-/// session ids carry the start count in the high 16 bits and the VO's own session counter in
-/// the low 16 (a restarted tracker's sessions are new ones); keyframe ids start at
-/// `start << KF_ID_BITS_PER_START` (unique per client across restarts: the server names
+/// The ids one start (life) of the tracker process gives out (the packing is
+/// [`slam_core::ids`]'s): its sessions are new ones ([`SessionId`]: the start count and the
+/// VO's own session counter), its keyframe ids start at
+/// [`ClientKeyframeId::first_of_start`] (unique per client across restarts: the server names
 /// keyframes by them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct StartIds {
@@ -51,17 +48,12 @@ impl StartIds {
 
     /// The wire session id of the VO's session `vo_session` in this start.
     pub fn session(self, vo_session: u32) -> u32 {
-        (self.start << 16) | (vo_session & 0xffff)
-    }
-
-    /// The start count and VO session of a wire session id.
-    pub fn split(session: u32) -> (u32, u32) {
-        (session >> 16, session & 0xffff)
+        SessionId::new(self.start, vo_session).raw()
     }
 
     /// The first keyframe id of this start.
     pub fn first_keyframe_id(self) -> u64 {
-        u64::from(self.start) << KF_ID_BITS_PER_START
+        ClientKeyframeId::first_of_start(self.start).raw()
     }
 }
 
@@ -332,7 +324,7 @@ impl TrackerCore {
     /// A new VO for frames like `h`, its keyframe ids in this start's own range (the server
     /// names keyframes by them, so they stay unique per client across restarts).
     fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
-        let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+        let camera = shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
         let mut vp = VoParams {
             rolling_shutter: !self.cfg.no_rs,
             window: self.cfg.window.max(2),

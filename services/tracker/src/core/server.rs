@@ -6,6 +6,7 @@ use std::collections::HashSet;
 use nalgebra::Isometry3;
 use shm_schema::{Feedback, Pose, FLAG_HANDLED};
 use shoal_runtime::Status;
+use slam_core::ids::MapId;
 
 use super::counters::{TrackerCounters, TrackerResume};
 use crate::outbox::Outbox;
@@ -20,7 +21,7 @@ pub struct ServerRef {
     /// VO session of keyframe `j`.
     pub session: u32,
     /// Server map the keyframe is in.
-    pub map_id: u64,
+    pub map_id: MapId,
     t_cj: Isometry3<f64>,
     t_sj: Isometry3<f64>,
     lambda: f64,
@@ -37,7 +38,7 @@ impl ServerRef {
         let t_sj = shoal_runtime::wire::iso_from_wire(&f.server_pose)?;
         Some(Self {
             session: f.acked_session_id,
-            map_id: f.server_map_id,
+            map_id: MapId::from_raw(f.server_map_id),
             t_cj,
             t_sj,
             lambda: f.scale_ratio,
@@ -122,7 +123,7 @@ impl ServerState {
 
     /// The server-map pose and map id of a frame of VO session `session` with client pose
     /// `t_cf`, from the last feedback of the same session (eq. 3.1, 3.4).
-    pub fn frame_pose(&self, session: u32, t_cf: &Isometry3<f64>) -> Option<(Pose, u64)> {
+    pub fn frame_pose(&self, session: u32, t_cf: &Isometry3<f64>) -> Option<(Pose, MapId)> {
         let r = self.server_ref.as_ref().filter(|r| r.session == session)?;
         Some((r.frame_pose(t_cf), r.map_id))
     }

@@ -5,10 +5,11 @@ use std::collections::BTreeSet;
 
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use shm_schema::{
-    Feedback, FrameHeader, ImuMsg, Intrinsics, MsgMeta, Pose, TrackState, FLAG_BACKFILL,
-    FLAG_END_OF_STREAM, FLAG_HANDLED, FLAG_RESEND,
+    Feedback, FrameHeader, ImuMsg, MsgMeta, Pose, TrackState, FLAG_BACKFILL, FLAG_END_OF_STREAM,
+    FLAG_HANDLED, FLAG_RESEND,
 };
 use shoal_runtime::Status;
+use slam_core::ids::SessionId;
 
 use super::*;
 
@@ -109,7 +110,10 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     assert_eq!(core.counters().keyframes_unsent_at_crash, 1);
     let (out, _) = step(&mut core, header(45), &[]);
     assert!(
-        matches!(&out[0], Out::Ack(a) if StartIds::split(a.meta.session_id) == (3, 1)),
+        matches!(&out[0], Out::Ack(a) if {
+            let s = SessionId::from_raw(a.meta.session_id);
+            (s.start(), s.vo_session()) == (3, 1)
+        }),
         "a new start has its own sessions"
     );
     step(&mut core, header(47), &[]);
@@ -217,10 +221,7 @@ fn frame_header(world: &SimWorld, k: usize) -> FrameHeader {
         dataset_index: k as u64,
         t_mid_ns: world.frame_time_ns(k),
         readout_ns: world.readout_ns(),
-        intrinsics: Intrinsics {
-            pinhole: [c.fx, c.fy, c.cx, c.cy],
-            distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
-        },
+        intrinsics: shoal_runtime::wire::intrinsics_from_camera(&c).0,
         t_bs: shoal_runtime::wire::wire_from_iso(&world.calib().t_bs),
         ..FrameHeader::default()
     }
