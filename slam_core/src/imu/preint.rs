@@ -533,7 +533,7 @@ impl Preintegrated {
         // b_g 9, b_a 12.
         let mut ji = Matrix15::zeros();
         let mut jj = Matrix15::zeros();
-        let mut set = |m: &mut Matrix15, row: usize, col: usize, b: Matrix3<f64>| {
+        let set = |m: &mut Matrix15, row: usize, col: usize, b: Matrix3<f64>| {
             m.fixed_view_mut::<3, 3>(row, col).copy_from(&b);
         };
         set(&mut ji, 0, 0, -jri * rj.transpose() * ri);
