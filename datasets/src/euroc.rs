@@ -32,10 +32,10 @@ use serde::Deserialize;
 use slam_core::geometry::pose_from_pq;
 use slam_core::imu::ImuBiases;
 
+use crate::sim::GtState;
 use crate::text::{
     data_lines, fields, is_header, issue, parse_f64s, parse_i64, read_text, Monotonic,
 };
-use crate::sim::GtState;
 use crate::trajectory::{interpolate_at, read_tum};
 use crate::{
     CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, ImuSample, InputIssue,

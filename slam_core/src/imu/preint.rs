@@ -124,11 +124,20 @@ pub struct MeasurementCorrection {
 impl MeasurementCorrection {
     /// Inverts `T_a` and `T_g`. Fails when either is singular or not finite.
     pub fn new(k: &ImuIntrinsics) -> Result<Self, CoreError> {
-        let finite = k.t_a.iter().chain(k.t_g.iter()).chain(k.t_s.iter()).all(|v| v.is_finite());
+        let finite = k
+            .t_a
+            .iter()
+            .chain(k.t_g.iter())
+            .chain(k.t_s.iter())
+            .all(|v| v.is_finite());
         let inv = |m: &Matrix3<f64>, name: &str| {
             m.try_inverse()
                 .filter(|i| finite && i.iter().all(|v| v.is_finite()))
-                .ok_or_else(|| CoreError::InvalidArgument(format!("IMU intrinsics: {name} is singular or not finite")))
+                .ok_or_else(|| {
+                    CoreError::InvalidArgument(format!(
+                        "IMU intrinsics: {name} is singular or not finite"
+                    ))
+                })
         };
         Ok(Self {
             t_a_inv: inv(&k.t_a, "T_a")?,
@@ -202,7 +211,9 @@ impl PreintegrationParams {
             noise.accel_bias_rw,
         ];
         if !d.iter().all(|v| v.is_finite() && *v >= 0.0) {
-            return Err(CoreError::InvalidArgument(format!("IMU noise densities {d:?}")));
+            return Err(CoreError::InvalidArgument(format!(
+                "IMU noise densities {d:?}"
+            )));
         }
         let correction = MeasurementCorrection::new(intrinsics)?;
         let (sg2, sa2) = (d[0] * d[0], d[1] * d[1]);
@@ -332,14 +343,19 @@ impl Preintegrated {
         let mut am = Matrix9::identity();
         am.fixed_view_mut::<3, 3>(0, 0).copy_from(&e.transpose());
         am.fixed_view_mut::<3, 3>(3, 0).copy_from(&a_vphi);
-        am.fixed_view_mut::<3, 3>(6, 0).copy_from(&(a_vphi * (0.5 * dt)));
-        am.fixed_view_mut::<3, 3>(6, 3).copy_from(&(Matrix3::identity() * dt));
+        am.fixed_view_mut::<3, 3>(6, 0)
+            .copy_from(&(a_vphi * (0.5 * dt)));
+        am.fixed_view_mut::<3, 3>(6, 3)
+            .copy_from(&(Matrix3::identity() * dt));
         let mut bm = Matrix9x6::zeros();
         bm.fixed_view_mut::<3, 3>(0, 0).copy_from(&(jr * dt));
-        bm.fixed_view_mut::<3, 3>(3, 0).copy_from(&(r_mid_ax_jh * (-0.5 * dt2)));
-        bm.fixed_view_mut::<3, 3>(6, 0).copy_from(&(r_mid_ax_jh * (-0.25 * dt3)));
+        bm.fixed_view_mut::<3, 3>(3, 0)
+            .copy_from(&(r_mid_ax_jh * (-0.5 * dt2)));
+        bm.fixed_view_mut::<3, 3>(6, 0)
+            .copy_from(&(r_mid_ax_jh * (-0.25 * dt3)));
         bm.fixed_view_mut::<3, 3>(3, 3).copy_from(&(r_mid * dt));
-        bm.fixed_view_mut::<3, 3>(6, 3).copy_from(&(r_mid * (0.5 * dt2)));
+        bm.fixed_view_mut::<3, 3>(6, 3)
+            .copy_from(&(r_mid * (0.5 * dt2)));
 
         self.cov = am * self.cov * am.transpose()
             + bm * (self.params.noise_cov * (1.0 / dt)) * bm.transpose();
@@ -367,8 +383,7 @@ impl Preintegrated {
         t1_ns: i64,
     ) -> bool {
         let n = samples.len();
-        if t1_ns < t0_ns || n == 0 || samples[0].t_ns() > t0_ns || samples[n - 1].t_ns() < t1_ns
-        {
+        if t1_ns < t0_ns || n == 0 || samples[0].t_ns() > t0_ns || samples[n - 1].t_ns() < t1_ns {
             return false;
         }
         if t1_ns == t0_ns {
@@ -524,8 +539,10 @@ impl Preintegrated {
         r.fixed_rows_mut::<3>(0).copy_from(&r_r);
         r.fixed_rows_mut::<3>(3).copy_from(&r_v);
         r.fixed_rows_mut::<3>(6).copy_from(&r_p);
-        r.fixed_rows_mut::<3>(9).copy_from(&(j.biases.gyro - i.biases.gyro));
-        r.fixed_rows_mut::<3>(12).copy_from(&(j.biases.accel - i.biases.accel));
+        r.fixed_rows_mut::<3>(9)
+            .copy_from(&(j.biases.gyro - i.biases.gyro));
+        r.fixed_rows_mut::<3>(12)
+            .copy_from(&(j.biases.accel - i.biases.accel));
 
         let jri = so3_jr_inv(&r_r);
         let eye = Matrix3::identity();
@@ -537,12 +554,7 @@ impl Preintegrated {
             m.fixed_view_mut::<3, 3>(row, col).copy_from(&b);
         };
         set(&mut ji, 0, 0, -jri * rj.transpose() * ri);
-        set(
-            &mut ji,
-            0,
-            9,
-            -jri * e.transpose() * so3_jr(&phi_b) * jrg,
-        );
+        set(&mut ji, 0, 9, -jri * e.transpose() * so3_jr(&phi_b) * jrg);
         set(&mut ji, 3, 0, skew(&u));
         set(&mut ji, 3, 6, -rit);
         set(&mut ji, 3, 9, -self.d_v_d_bg());

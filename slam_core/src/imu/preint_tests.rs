@@ -13,10 +13,12 @@ struct Motion;
 
 /// `(value, d1, d2)` of `Σ amp sin(w t + ph)`.
 fn sines(t: f64, terms: &[(f64, f64, f64)]) -> (f64, f64, f64) {
-    terms.iter().fold((0.0, 0.0, 0.0), |(v, d1, d2), &(a, w, ph)| {
-        let (s, c) = (w * t + ph).sin_cos();
-        (v + a * s, d1 + a * w * c, d2 - a * w * w * s)
-    })
+    terms
+        .iter()
+        .fold((0.0, 0.0, 0.0), |(v, d1, d2), &(a, w, ph)| {
+            let (s, c) = (w * t + ph).sin_cos();
+            (v + a * s, d1 + a * w * c, d2 - a * w * w * s)
+        })
 }
 
 /// True state at one time: orientation, position, velocity, world acceleration, body rate.
@@ -105,7 +107,9 @@ fn true_deltas(t0: f64, t1: f64) -> (Matrix3<f64>, Vector3<f64>, Vector3<f64>) {
 fn error(pre: &Preintegrated, t0: f64, t1: f64) -> Vector9 {
     let (r, v, p) = true_deltas(t0, t1);
     let mut e = Vector9::zeros();
-    let dr = so3_log(&Rotation3::from_matrix_unchecked(r.transpose() * pre.delta_r().matrix()));
+    let dr = so3_log(&Rotation3::from_matrix_unchecked(
+        r.transpose() * pre.delta_r().matrix(),
+    ));
     e.fixed_rows_mut::<3>(0).copy_from(&dr);
     e.fixed_rows_mut::<3>(3).copy_from(&(pre.delta_v() - v));
     e.fixed_rows_mut::<3>(6).copy_from(&(pre.delta_p() - p));
@@ -137,14 +141,23 @@ fn intrinsics() -> ImuIntrinsics {
 /// 1000 Hz on this aggressive motion (rates up to ~3 rad/s with 5 rad/s harmonics, 5 m/s²).
 #[test]
 fn exact_motion_matches_truth() {
-    for (k, name) in [(ImuIntrinsics::default(), "ideal"), (intrinsics(), "T_a T_g T_s")] {
+    for (k, name) in [
+        (ImuIntrinsics::default(), "ideal"),
+        (intrinsics(), "T_a T_g T_s"),
+    ] {
         let params = PreintegrationParams::new(&ImuNoise::zero(), &k).unwrap();
         let b_eff = params.correction.effective_biases(&raw_biases());
         let mut worst_at = Vec::new();
         for hz in [200.0, 1000.0] {
             let s = samples(hz, 6.0, &raw_biases(), &k, None);
             let mut worst = [0.0f64; 3];
-            for (t0, len) in [(0.5013, 0.1), (1.0, 0.5), (2.2037, 1.0), (3.0, 2.0), (0.0021, 2.0)] {
+            for (t0, len) in [
+                (0.5013, 0.1),
+                (1.0, 0.5),
+                (2.2037, 1.0),
+                (3.0, 2.0),
+                (0.0021, 2.0),
+            ] {
                 let pre = Preintegrated::from_window(&s, ns(t0), ns(t0 + len), b_eff, params)
                     .expect("bracketed");
                 assert!((pre.delta_t() - len).abs() < 1e-9);
@@ -164,7 +177,10 @@ fn exact_motion_matches_truth() {
         assert!(w1000.iter().all(|w| *w < 2e-5), "{name} 1000 Hz: {w1000:?}");
         // Second order: 5x the rate, ~25x smaller errors.
         for b in 0..3 {
-            assert!(w200[b] / w1000[b] > 15.0, "{name}: order {w200:?} {w1000:?}");
+            assert!(
+                w200[b] / w1000[b] > 15.0,
+                "{name}: order {w200:?} {w1000:?}"
+            );
         }
     }
 }
@@ -211,17 +227,33 @@ fn chi2_quantile(k: f64, z: f64) -> f64 {
 }
 
 /// Mean NEES (9 dof) over `runs` noisy runs of one window; returns it with the 95 % band.
-fn monte_carlo_nees(k: &ImuIntrinsics, runs: usize, hz: f64, t0: f64, len: f64, seed: u64) -> (f64, f64, f64) {
+fn monte_carlo_nees(
+    k: &ImuIntrinsics,
+    runs: usize,
+    hz: f64,
+    t0: f64,
+    len: f64,
+    seed: u64,
+) -> (f64, f64, f64) {
     let noise = ImuNoise::default();
     let params = PreintegrationParams::new(&noise, k).unwrap();
     let b_eff = params.correction.effective_biases(&raw_biases());
     let mut rng = Rng::new(seed);
     let mut sum = 0.0;
     for _ in 0..runs {
-        let s = samples(hz, t0 + len + 0.05, &raw_biases(), k, Some((&noise, &mut rng)));
+        let s = samples(
+            hz,
+            t0 + len + 0.05,
+            &raw_biases(),
+            k,
+            Some((&noise, &mut rng)),
+        );
         let pre = Preintegrated::from_window(&s, ns(t0), ns(t0 + len), b_eff, params).unwrap();
         let e = error(&pre, t0, t0 + len);
-        let info = pre.covariance().cholesky().expect("covariance positive definite");
+        let info = pre
+            .covariance()
+            .cholesky()
+            .expect("covariance positive definite");
         sum += e.dot(&info.solve(&e));
     }
     let n = runs as f64;
@@ -243,14 +275,24 @@ fn monte_carlo_nees(k: &ImuIntrinsics, runs: usize, hz: f64, t0: f64, len: f64, 
 /// is -2.5 % (mean NEES ~8.8, printed, not asserted).
 #[test]
 fn monte_carlo_nees_in_band() {
-    for (k, name) in [(ImuIntrinsics::default(), "ideal"), (intrinsics(), "T_a T_g T_s")] {
-        for (hz, len, seed, assert) in [(200.0, 1.0, 7, true), (1000.0, 0.1, 11, true), (200.0, 0.1, 13, false)] {
+    for (k, name) in [
+        (ImuIntrinsics::default(), "ideal"),
+        (intrinsics(), "T_a T_g T_s"),
+    ] {
+        for (hz, len, seed, assert) in [
+            (200.0, 1.0, 7, true),
+            (1000.0, 0.1, 11, true),
+            (200.0, 0.1, 13, false),
+        ] {
             let (nees, lo, hi) = monte_carlo_nees(&k, 1000, hz, 0.4, len, seed);
             println!(
                 "{name}, {len} s window at {hz} Hz: mean NEES {nees:.3} over 1000 runs, 95 % band [{lo:.3}, {hi:.3}]"
             );
             if assert {
-                assert!(nees > lo && nees < hi, "{name} {len} s: NEES {nees} not in [{lo}, {hi}]");
+                assert!(
+                    nees > lo && nees < hi,
+                    "{name} {len} s: NEES {nees} not in [{lo}, {hi}]"
+                );
             }
         }
     }
@@ -283,10 +325,16 @@ fn bias_jacobians_match_reintegration() {
             minus.delta_r().matrix().transpose() * plus.delta_r().matrix(),
         ));
         num.fixed_rows_mut::<3>(0).copy_from(&(dphi / (2.0 * h)));
-        num.fixed_rows_mut::<3>(3).copy_from(&((plus.delta_v() - minus.delta_v()) / (2.0 * h)));
-        num.fixed_rows_mut::<3>(6).copy_from(&((plus.delta_p() - minus.delta_p()) / (2.0 * h)));
+        num.fixed_rows_mut::<3>(3)
+            .copy_from(&((plus.delta_v() - minus.delta_v()) / (2.0 * h)));
+        num.fixed_rows_mut::<3>(6)
+            .copy_from(&((plus.delta_p() - minus.delta_p()) / (2.0 * h)));
         let err = (num - jac.column(c)).norm();
-        assert!(err < 1e-6 * (1.0 + num.norm()), "bias column {c}: {err} ({num} vs {})", jac.column(c));
+        assert!(
+            err < 1e-6 * (1.0 + num.norm()),
+            "bias column {c}: {err} ({num} vs {})",
+            jac.column(c)
+        );
         // ∂φ/∂b_a is zero.
         if c >= 3 {
             assert_eq!(jac.fixed_view::<3, 1>(0, c).norm(), 0.0);
@@ -304,7 +352,14 @@ fn bias_jacobians_match_reintegration() {
             r.matrix().transpose() * exact.delta_r().matrix(),
         ));
         let change = (exact.delta_v() - base.delta_v()).norm();
-        ([er.norm(), (v - exact.delta_v()).norm(), (p - exact.delta_p()).norm()], change)
+        (
+            [
+                er.norm(),
+                (v - exact.delta_v()).norm(),
+                (p - exact.delta_p()).norm(),
+            ],
+            change,
+        )
     };
     let (e1, change) = first_order_error(1.0);
     let (e2, _) = first_order_error(0.5);
@@ -315,7 +370,10 @@ fn bias_jacobians_match_reintegration() {
         assert!((3.5..4.5).contains(&ratio), "block {b}: ratio {ratio}");
     }
     let (r0, v0, p0) = base.corrected(&b0);
-    assert_eq!((r0, v0, p0), (base.delta_r(), base.delta_v(), base.delta_p()));
+    assert_eq!(
+        (r0, v0, p0),
+        (base.delta_r(), base.delta_v(), base.delta_p())
+    );
 }
 
 /// A random rotation vector, translation etc. in a box of half-width `s`.
@@ -366,13 +424,23 @@ fn residual_jacobians_match_finite_differences() {
                 / (2.0 * h);
             let ei = (num_i - res.jac_i.column(c)).norm();
             let ej = (num_j - res.jac_j.column(c)).norm();
-            assert!(ei < 1e-7 * (1.0 + num_i.norm()), "trial {trial} ∂r/∂x_i col {c}: {ei}\n{num_i}\n{}", res.jac_i.column(c));
-            assert!(ej < 1e-7 * (1.0 + num_j.norm()), "trial {trial} ∂r/∂x_j col {c}: {ej}");
+            assert!(
+                ei < 1e-7 * (1.0 + num_i.norm()),
+                "trial {trial} ∂r/∂x_i col {c}: {ei}\n{num_i}\n{}",
+                res.jac_i.column(c)
+            );
+            assert!(
+                ej < 1e-7 * (1.0 + num_j.norm()),
+                "trial {trial} ∂r/∂x_j col {c}: {ej}"
+            );
         }
     }
     let cov = pre.residual_covariance();
     let (bg, ba) = params.bias_walk;
-    assert!((cov[(9, 9)] - bg * bg * 1.5).abs() < 1e-18 && (cov[(14, 14)] - ba * ba * 1.5).abs() < 1e-15);
+    assert!(
+        (cov[(9, 9)] - bg * bg * 1.5).abs() < 1e-18
+            && (cov[(14, 14)] - ba * ba * 1.5).abs() < 1e-15
+    );
     assert_eq!(cov.fixed_view::<9, 9>(0, 0), *pre.covariance());
 }
 
@@ -391,7 +459,11 @@ fn predict_reaches_the_true_state() {
         biases: raw_biases(),
     };
     let sj = pre.predict(&si, &gravity_w());
-    let errs = [(sj.p - tj.p).norm(), (sj.v - tj.v).norm(), (sj.r.matrix() - tj.r).norm()];
+    let errs = [
+        (sj.p - tj.p).norm(),
+        (sj.v - tj.v).norm(),
+        (sj.r.matrix() - tj.r).norm(),
+    ];
     assert!(errs.iter().all(|e| *e < 2e-5), "{errs:?}");
 }
 
