@@ -48,7 +48,10 @@ fn sim_exact_motion_preintegrates_to_ground_truth() {
         }
         assert!(w1000.max() < 1e-4, "{scenario} 1000 Hz: {w1000}");
         for k in 0..3 {
-            assert!(w200[k] / w1000[k] > 15.0, "{scenario}: not second order {w200} {w1000}");
+            assert!(
+                w200[k] / w1000[k] > 15.0,
+                "{scenario}: not second order {w200} {w1000}"
+            );
         }
     }
 }
