@@ -486,8 +486,10 @@ fn corrections_and_params() {
     bad = k;
     bad.t_s[(0, 0)] = f64::NAN;
     assert!(MeasurementCorrection::new(&bad).is_err());
-    let mut n = ImuNoise::default();
-    n.accel_noise_density = -1.0;
+    let n = ImuNoise {
+        accel_noise_density: -1.0,
+        ..ImuNoise::default()
+    };
     assert!(PreintegrationParams::new(&n, &k).is_err());
     // Ideal intrinsics: raw noise, biases unchanged.
     let p = PreintegrationParams::new(&ImuNoise::default(), &ImuIntrinsics::default()).unwrap();
