@@ -10,7 +10,9 @@ use slam_core::imu::ImuNoise;
 #[derive(clap::Args, Debug, Clone)]
 pub struct SimArgs {
     /// Scenario: `loop` (one camera, two laps), `two-agents` (two overlapping cameras,
-    /// written to OUT/agent0 and OUT/agent1) or `fast-rs` (fast rotation, rolling shutter).
+    /// written to OUT/agent0 and OUT/agent1), `fast-rs` (fast rotation, rolling shutter),
+    /// `drone` (EuRoC-like aggressive 6-DoF flight, global shutter) or `blackout` (`loop`
+    /// with 2 s of black frames in the middle).
     #[arg(long, value_parser = parse_scenario)]
     pub scenario: Scenario,
     /// Output folder (created; holds `mav0/` and `groundtruth_cam0.txt`).

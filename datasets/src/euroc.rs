@@ -27,10 +27,12 @@
 
 use std::path::{Path, PathBuf};
 
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Deserialize;
 use slam_core::geometry::pose_from_pq;
+use slam_core::imu::ImuBiases;
 
+use crate::sim::GtState;
 use crate::text::{
     data_lines, fields, is_header, issue, parse_f64s, parse_i64, read_text, Monotonic,
 };
@@ -308,6 +310,52 @@ pub fn read_gt_csv(
         };
         if mono.accept(t_ns, path, line, issues) {
             out.push(StampedPose { t_ns, pose });
+        }
+    }
+    Ok(out)
+}
+
+/// Reads an ASL ground-truth CSV with the full state (`t, p xyz, q wxyz, v xyz, b_g xyz,
+/// b_a xyz`: EuRoC `state_groundtruth_estimate0/data.csv`, the `gt0` excerpt, and what
+/// `shoal sim` writes) as body states. Lines with fewer than 17 numbers are skipped and
+/// recorded as `malformed_line` issues.
+pub fn read_gt_states_csv(
+    path: &Path,
+    issues: &mut Vec<InputIssue>,
+) -> Result<Vec<GtState>, DatasetError> {
+    let text = read_text(path, "ground-truth data.csv")?;
+    let mut mono = Monotonic::default();
+    let mut out = Vec::new();
+    for (line, l) in data_lines(&text) {
+        let f = fields(l, true);
+        let parsed = (f.len() >= 17)
+            .then(|| parse_i64(f[0]).zip(parse_f64s(&f[1..17])))
+            .flatten()
+            .and_then(|(t, v)| {
+                let pose = pose_from_pq([v[0], v[1], v[2]], [v[3], v[4], v[5], v[6]])?;
+                let vec = |k: usize| Vector3::new(v[k], v[k + 1], v[k + 2]);
+                Some(GtState {
+                    t_ns: t,
+                    p_wb: pose.translation.vector,
+                    q_wb: pose.rotation,
+                    v_w: vec(7),
+                    biases: ImuBiases {
+                        gyro: vec(10),
+                        accel: vec(13),
+                    },
+                })
+            });
+        let Some(state) = parsed else {
+            issues.push(issue(
+                path,
+                line,
+                "malformed_line",
+                format!("expected `t,p xyz,q wxyz,v xyz,b_g xyz,b_a xyz`, got `{l}`"),
+            ));
+            continue;
+        };
+        if mono.accept(state.t_ns, path, line, issues) {
+            out.push(state);
         }
     }
     Ok(out)

@@ -74,6 +74,18 @@ pub struct ImuSample {
     pub accel: [f64; 3],
 }
 
+impl slam_core::imu::TimedImuSample for ImuSample {
+    fn t_ns(&self) -> i64 {
+        self.t_ns
+    }
+    fn gyro(&self) -> nalgebra::Vector3<f64> {
+        self.gyro.into()
+    }
+    fn accel(&self) -> nalgebra::Vector3<f64> {
+        self.accel.into()
+    }
+}
+
 /// A pose with its time stamp.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StampedPose {

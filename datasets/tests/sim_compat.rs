@@ -50,3 +50,32 @@ fn generator_output_reads_back_consistently() {
         );
     }
 }
+
+/// The full ground-truth state (velocity, biases) written by the generator reads back
+/// exactly with `euroc::read_gt_states_csv`.
+#[test]
+fn ground_truth_states_read_back() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let mut params = SimParams::new(Scenario::Loop);
+    params.frames = Some(2);
+    params.pixel_noise_sigma = 0.0;
+    generate(&params, tmp.path()).expect("generate");
+    let world = datasets::sim::SimWorld::new(params).expect("world");
+    let mut issues = Vec::new();
+    let csv = tmp.path().join("mav0/state_groundtruth_estimate0/data.csv");
+    let states = euroc::read_gt_states_csv(&csv, &mut issues).expect("read");
+    assert!(issues.is_empty(), "{issues:?}");
+    let truth = world.ground_truth_states();
+    assert_eq!(states.len(), truth.len());
+    for (a, b) in states.iter().zip(truth) {
+        assert_eq!(
+            (a.t_ns, a.p_wb, a.v_w, a.biases),
+            (b.t_ns, b.p_wb, b.v_w, b.biases)
+        );
+        assert!(a.q_wb.angle_to(&b.q_wb) < 1e-12);
+    }
+    // A short line is skipped and recorded.
+    std::fs::write(&csv, "#t\n1,2,3\n").expect("write");
+    let states = euroc::read_gt_states_csv(&csv, &mut issues).expect("read");
+    assert!(states.is_empty() && issues.len() == 1 && issues[0].kind == "malformed_line");
+}

@@ -91,6 +91,18 @@ fn written_files_follow_the_euroc_layout_and_conventions() {
     }
     let imu_yaml = std::fs::read_to_string(root.join("mav0/imu0/sensor.yaml")).expect("imu yaml");
     assert!(imu_yaml.contains("gyroscope_noise_density: 0.00016968"));
+    // The true IMU errors, t_d and t_r (ideal intrinsics by default).
+    for key in [
+        "T_g:\n  cols: 3\n  rows: 3\n  data: [1.0, 0.0, 0.0,\n         0.0, 1.0, 0.0,\n         0.0, 0.0, 1.0]\n",
+        "T_s:\n  cols: 3\n  rows: 3\n  data: [0.0, 0.0, 0.0,",
+        "T_a:\n  cols: 3\n  rows: 3\n  data: [1.0, 0.0, 0.0,",
+        "initial_gyro_bias: [0.003, -0.002, 0.001]",
+        "initial_accel_bias: [0.02, -0.03, 0.05]",
+        "time_offset_ns: 2500000",
+        "readout_time_ns: 30000000",
+    ] {
+        assert!(imu_yaml.contains(key), "missing {key} in\n{imu_yaml}");
+    }
     let data = std::fs::read_to_string(root.join("mav0/cam0/data.csv")).expect("data.csv");
     let stamps: Vec<i64> = data
         .lines()
@@ -284,4 +296,28 @@ fn invalid_parameters_are_rejected() {
     .expect("world");
     let mut small = vec![0u8; 10];
     assert!(world.render_frame_into(0, &mut small).is_err());
+}
+
+/// `blackout`: the `loop` path with the middle 2 s of frames all black; the other frames
+/// render the scene.
+#[test]
+fn blackout_blanks_the_middle_two_seconds() {
+    let mut params = SimParams::new(Scenario::Blackout);
+    params.frames = Some(60);
+    let world = SimWorld::new(params).expect("world");
+    let mut img = vec![0u8; 752 * 480];
+    assert_eq!(Scenario::Blackout.blank_frames(60, 20.0), 10..50);
+    world.render_frame_into(9, &mut img).expect("render");
+    assert!(
+        img.iter().filter(|&&v| v > 0).count() > img.len() / 2,
+        "frame 9 shows the scene"
+    );
+    img.fill(7);
+    world.render_frame_into(10, &mut img).expect("render");
+    assert!(img.iter().all(|&v| v == 0), "frame 10 is blank");
+    world.render_frame_into(49, &mut img).expect("render");
+    assert!(img.iter().all(|&v| v == 0), "frame 49 is blank");
+    world.render_frame_into(50, &mut img).expect("render");
+    assert!(img.iter().any(|&v| v > 0), "frame 50 shows the scene");
+    assert!(world.render_frame_into(20, &mut img[1..]).is_err());
 }

@@ -22,18 +22,40 @@ pub enum Scenario {
     TwoAgents,
     /// One lap with fast yaw swings (up to ~2.8 rad/s) and shaking; rolling shutter 30 ms.
     FastRs,
+    /// EuRoC-like drone flight (752x480 at 20 Hz, 200 Hz IMU with the ADIS16448 noise, global
+    /// shutter): two faster laps (20 s) of a smaller ellipse with height changes and large
+    /// roll, pitch and yaw swings (aggressive 6-DoF motion).
+    Drone,
+    /// The `loop` scene and path with 2 s of blank (black) frames in the middle of the stream
+    /// (camera blackout; the IMU keeps running).
+    Blackout,
 }
+
+/// Lap period of the `drone` scenario, seconds.
+pub const DRONE_LAP_S: f64 = 20.0;
+
+/// Length of the `blackout` scenario's blank stretch, seconds.
+pub const BLACKOUT_S: f64 = 2.0;
 
 impl Scenario {
     /// All scenarios.
-    pub const ALL: [Scenario; 3] = [Scenario::Loop, Scenario::TwoAgents, Scenario::FastRs];
+    pub const ALL: [Scenario; 5] = [
+        Scenario::Loop,
+        Scenario::TwoAgents,
+        Scenario::FastRs,
+        Scenario::Drone,
+        Scenario::Blackout,
+    ];
 
-    /// The name used on the command line (`loop`, `two-agents`, `fast-rs`).
+    /// The name used on the command line (`loop`, `two-agents`, `fast-rs`, `drone`,
+    /// `blackout`).
     pub fn name(self) -> &'static str {
         match self {
             Scenario::Loop => "loop",
             Scenario::TwoAgents => "two-agents",
             Scenario::FastRs => "fast-rs",
+            Scenario::Drone => "drone",
+            Scenario::Blackout => "blackout",
         }
     }
 
@@ -41,15 +63,16 @@ impl Scenario {
     pub fn n_agents(self) -> usize {
         match self {
             Scenario::TwoAgents => 2,
-            Scenario::Loop | Scenario::FastRs => 1,
+            Scenario::Loop | Scenario::FastRs | Scenario::Drone | Scenario::Blackout => 1,
         }
     }
 
     /// Default duration of the camera stream, seconds.
     pub fn default_duration_s(self) -> f64 {
         match self {
-            Scenario::Loop => 2.0 * LAP_S,
+            Scenario::Loop | Scenario::Blackout => 2.0 * LAP_S,
             Scenario::TwoAgents | Scenario::FastRs => LAP_S,
+            Scenario::Drone => 2.0 * DRONE_LAP_S,
         }
     }
 
@@ -57,8 +80,19 @@ impl Scenario {
     pub fn default_readout_ms(self) -> f64 {
         match self {
             Scenario::FastRs => 30.0,
-            Scenario::Loop | Scenario::TwoAgents => 0.0,
+            Scenario::Loop | Scenario::TwoAgents | Scenario::Drone | Scenario::Blackout => 0.0,
         }
+    }
+
+    /// Frames `[first, end)` rendered blank (all black) out of `n_frames` at `rate_hz`: the
+    /// middle [`BLACKOUT_S`] of the `blackout` stream, empty for the other scenarios.
+    pub fn blank_frames(self, n_frames: usize, rate_hz: f64) -> std::ops::Range<usize> {
+        if self != Scenario::Blackout {
+            return 0..0;
+        }
+        let n_blank = ((BLACKOUT_S * rate_hz).round() as usize).min(n_frames);
+        let first = (n_frames - n_blank) / 2;
+        first..first + n_blank
     }
 
     /// The analytic trajectory of `agent` (0-based; `None` if the scenario has no such agent).
@@ -87,7 +121,7 @@ impl Scenario {
             ]
         };
         let traj = match (self, agent) {
-            (Scenario::Loop, 0) | (Scenario::TwoAgents, 0) => {
+            (Scenario::Loop, 0) | (Scenario::TwoAgents, 0) | (Scenario::Blackout, 0) => {
                 let [x, y] = ellipse(6.0, 4.0, 0.0);
                 AnalyticTrajectory {
                     pos: [
@@ -144,6 +178,51 @@ impl Scenario {
                     t_bs: euroc_t_bs(),
                 }
             }
+            (Scenario::Drone, 0) => {
+                let wd = TAU / DRONE_LAP_S;
+                let p = |period: f64| TAU / period;
+                let sine = |amp: f64, period: f64, phase: f64| Sine {
+                    amp,
+                    omega: p(period),
+                    phase,
+                };
+                // A 4.5 m x 3 m ellipse in 20 s (~1.2 m/s) with 2-4 Hz wobble, ±0.45 m of
+                // height; yaw follows the lap with ±0.5 rad swings (peak rate ~1.9 rad/s),
+                // roll and pitch swing ±0.25-0.3 rad as a drone banking and braking.
+                AnalyticTrajectory {
+                    pos: [
+                        Signal::new(
+                            0.0,
+                            0.0,
+                            vec![
+                                Sine {
+                                    amp: 4.5,
+                                    omega: wd,
+                                    phase: 0.5 * PI,
+                                },
+                                sine(0.02, 0.37, 0.0),
+                            ],
+                        ),
+                        Signal::new(
+                            0.0,
+                            0.0,
+                            vec![
+                                Sine {
+                                    amp: 3.0,
+                                    omega: wd,
+                                    phase: 0.0,
+                                },
+                                sine(0.02, 0.29, 1.0),
+                            ],
+                        ),
+                        Signal::new(1.4, 0.0, vec![sine(0.35, 6.7, 0.0), sine(0.1, 1.9, 0.5)]),
+                    ],
+                    yaw: Signal::new(0.0, wd, vec![sine(0.4, 2.9, 0.0), sine(0.1, 1.1, 0.7)]),
+                    pitch: Signal::new(0.05, 0.0, vec![sine(0.2, 3.3, 0.2), sine(0.05, 0.9, 0.0)]),
+                    roll: Signal::new(0.0, 0.0, vec![sine(0.25, 2.3, 0.4), sine(0.05, 0.7, 1.3)]),
+                    t_bs: euroc_t_bs(),
+                }
+            }
             _ => return None,
         };
         Some(traj)
@@ -164,7 +243,10 @@ impl FromStr for Scenario {
             .into_iter()
             .find(|sc| sc.name().eq_ignore_ascii_case(s.trim()))
             .ok_or_else(|| {
-                format!("unknown scenario `{s}` (expected one of: loop, two-agents, fast-rs)")
+                format!(
+                    "unknown scenario `{s}` (expected one of: loop, two-agents, fast-rs, drone, \
+                     blackout)"
+                )
             })
     }
 }
@@ -196,5 +278,32 @@ mod tests {
         let fast = peak(Scenario::FastRs);
         assert!((2.0..3.2).contains(&fast), "fast-rs peak {fast}");
         assert!(peak(Scenario::Loop) < 0.6);
+        let drone = peak(Scenario::Drone);
+        assert!((1.0..3.5).contains(&drone), "drone peak {drone}");
+    }
+
+    #[test]
+    fn drone_moves_in_six_dof_and_blackout_is_the_loop_with_a_gap() {
+        let tr = Scenario::Drone.trajectory(0).expect("drone");
+        let (mut roll, mut pitch, mut z, mut acc) = (0.0f64, 0.0f64, (f64::MAX, f64::MIN), 0.0f64);
+        for i in 0..8000 {
+            let t = f64::from(i) * 0.005;
+            roll = roll.max(tr.roll.value(t).abs());
+            pitch = pitch.max(tr.pitch.value(t).abs());
+            let s = tr.body_state(t);
+            z = (z.0.min(s.p_wb.z), z.1.max(s.p_wb.z));
+            acc = acc.max(s.a_w.norm());
+        }
+        assert!(
+            roll > 0.25 && pitch > 0.2 && z.1 - z.0 > 0.7 && acc > 2.0,
+            "{roll} {pitch} {z:?} {acc}"
+        );
+        assert_eq!(
+            Scenario::Blackout.trajectory(0),
+            Scenario::Loop.trajectory(0)
+        );
+        assert_eq!(Scenario::Blackout.blank_frames(1280, 20.0), 620..660);
+        assert_eq!(Scenario::Loop.blank_frames(1280, 20.0), 0..0);
+        assert_eq!(Scenario::Blackout.blank_frames(10, 20.0), 0..10);
     }
 }

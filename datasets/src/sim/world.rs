@@ -191,7 +191,27 @@ impl SimWorld {
     }
 
     /// Renders frame `k` into `dst` (`width * height` bytes, caller-owned; no allocation).
+    /// Frames of the `blackout` scenario's gap come out all black (0).
     pub fn render_frame_into(&self, k: usize, dst: &mut [u8]) -> Result<(), DatasetError> {
+        if self
+            .params
+            .scenario
+            .blank_frames(self.n_frames, self.params.rate_hz)
+            .contains(&k)
+        {
+            let cam = self.renderer.camera();
+            let need = cam.width as usize * cam.height as usize;
+            if dst.len() != need {
+                return Err(DatasetError::InvalidConfig {
+                    detail: format!(
+                        "render buffer has {} bytes, the image needs {need}",
+                        dst.len()
+                    ),
+                });
+            }
+            dst.fill(0);
+            return Ok(());
+        }
         let noise = PixelNoise {
             seed: mix_seed(self.params.seed, &[0x919, self.agent as u64, k as u64]),
             sigma: self.params.pixel_noise_sigma,

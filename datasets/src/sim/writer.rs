@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{ExtendedColorType, ImageEncoder};
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Matrix3};
 
 use super::params::SimParams;
 use super::scene::Scene;
@@ -147,10 +147,47 @@ fn cam_yaml(world: &SimWorld) -> String {
     )
 }
 
+/// A 3x3 matrix in the OpenCV YAML layout (row-major).
+fn yaml_matrix3(name: &str, m: &Matrix3<f64>) -> String {
+    let rows: Vec<String> = (0..3)
+        .map(|r| {
+            (0..3)
+                .map(|c| format!("{:?}", m[(r, c)]))
+                .collect::<Vec<_>>()
+                .join(", ")
+        })
+        .collect();
+    format!(
+        "{name}:\n  cols: 3\n  rows: 3\n  data: [{}]\n",
+        rows.join(",\n         ")
+    )
+}
+
 fn imu_yaml(world: &SimWorld) -> String {
     let p = world.params();
     let n = &p.noise;
-    format!(
+    let k = &p.imu_intrinsics;
+    let (bg, ba) = (p.initial_biases.gyro, p.initial_biases.accel);
+    let truth = format!(
+        "\n# shoal extensions: the true IMU errors of this dataset (seed eq. 2.53-2.56,\n\
+         # a_m = T_a a_s + b_a + n_a, w_m = T_g w + T_s a_s + b_g + n_g), the biases at the\n\
+         # first sample (they then walk; see state_groundtruth_estimate0), and the true\n\
+         # camera-IMU offset t_d and rolling-shutter readout t_r (also in cam0/sensor.yaml).\n\
+         {}{}{}initial_gyro_bias: [{:?}, {:?}, {:?}]\ninitial_accel_bias: [{:?}, {:?}, {:?}]\n\
+         time_offset_ns: {}\nreadout_time_ns: {}\n",
+        yaml_matrix3("T_g", &k.t_g),
+        yaml_matrix3("T_s", &k.t_s),
+        yaml_matrix3("T_a", &k.t_a),
+        bg.x,
+        bg.y,
+        bg.z,
+        ba.x,
+        ba.y,
+        ba.z,
+        world.time_offset_ns(),
+        world.readout_ns(),
+    );
+    let base = format!(
         "%YAML:1.0\n#Default imu sensor yaml file\nsensor_type: imu\ncomment: shoal synthetic imu0\n\n\
          # Sensor extrinsics wrt. the body-frame.\n{}\nrate_hz: {}\n\n\
          # inertial sensor noise model parameters (static)\ngyroscope_noise_density: {}\n\
@@ -161,7 +198,8 @@ fn imu_yaml(world: &SimWorld) -> String {
         n.gyro_bias_rw,
         n.accel_noise_density,
         n.accel_bias_rw,
-    )
+    );
+    base + &truth
 }
 
 /// Writes one agent; returns its summary and the seconds spent rendering.

@@ -10,8 +10,17 @@
 //! samples `dt` apart the discrete white noise has `σ_d = σ_c / sqrt(dt)` and the bias takes
 //! a random-walk step of `σ_c · sqrt(dt)` per sample. This module holds no random generator:
 //! callers pass standard-normal draws, so simulations stay deterministic and testable.
+//!
+//! [`preint`] preintegrates the measurements between keyframes (Forster et al. 2017).
 
 use nalgebra::{Matrix3, Vector3};
+
+pub mod preint;
+
+pub use preint::{
+    ImuMeasurement, ImuResidual, MeasurementCorrection, NavState, Preintegrated,
+    PreintegrationParams, TimedImuSample,
+};
 
 /// Standard gravity magnitude used across the project, m/s².
 pub const GRAVITY: f64 = 9.81;
