@@ -15,6 +15,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+pub mod init;
 pub mod preint;
 
 pub use preint::{
