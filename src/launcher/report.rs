@@ -955,7 +955,10 @@ mod tests {
         };
         assert_eq!(st.counters::<CameraCounters>(&cam).frames_published, 9);
         assert_eq!(st.errors_of(&cam, ErrorKind::CorruptImage), 1);
-        assert_eq!(st.counters::<TrackerCounters>("tracker:0"), Default::default());
+        assert_eq!(
+            st.counters::<TrackerCounters>("tracker:0"),
+            Default::default()
+        );
         let mut rep = RunReport::default();
         rep.add_server(&st);
         rep.add_services(&st);
@@ -969,7 +972,10 @@ mod tests {
         let services = &json["services"];
         assert_eq!(services["mapper"]["counters"]["c0.keyframes_received"], 31);
         assert_eq!(services["loop_closer"]["counters"]["merges"], 1);
-        assert_eq!(services["camera_ingest:0"]["counters"]["frames_published"], 9);
+        assert_eq!(
+            services["camera_ingest:0"]["counters"]["frames_published"],
+            9
+        );
         assert_eq!(services["mapper"]["outcome"], "done");
         assert_eq!(services["mapper"]["cpu_s"], 2.0);
     }

@@ -111,8 +111,10 @@ mod tests {
     /// out, other counters are not taken for clients'.
     #[test]
     fn per_client_counters_are_flat_in_the_status() {
-        let mut c = Counters::default();
-        c.maps = 2;
+        let mut c = Counters {
+            maps: 2,
+            ..Counters::default()
+        };
         c.clients.of(0).received = 3;
         c.clients.of(12).map_id = Some(7);
         let mut s = crate::Status::new("mapper");
