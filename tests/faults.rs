@@ -4,7 +4,9 @@ mod common;
 
 use std::time::Duration;
 
+use camera_ingest::CameraCounters;
 use common::*;
+use tracker::core::TrackerCounters;
 
 /// Real-time replay; the tracker (the frame consumer) is SIGKILLed mid-stream. The camera
 /// keeps publishing on schedule (safe overflow: a dead subscriber never blocks it), the
@@ -20,19 +22,22 @@ fn killed_consumer_never_blocks_the_ingest_and_resumes() {
         "kill",
         &["--rate", "1.0", "--tracker-arg=--no-vo"],
     );
-    let st = wait_status(out.path(), "tracker_c0", "frames_received", 20);
-    let before = st["counters"]["frames_received"].as_u64().unwrap();
-    sigkill(st["pid"].as_u64().unwrap());
+    let st = wait_counters(
+        out.path(),
+        "tracker_c0",
+        "20 frames",
+        |c: &TrackerCounters| c.frames_received >= 20,
+    );
+    let before = st.counters_as::<TrackerCounters>().frames_received;
+    sigkill(st.pid.into());
     let status = child.wait().unwrap();
     assert!(status.success());
     let rep = report(out.path());
     let c = &rep["clients"][0];
     // The camera published every frame on time: nothing was late, nothing blocked.
     assert_eq!(c["frames_published"], 120);
-    assert_eq!(
-        rep["services"]["camera_ingest:0"]["counters"]["frames_skipped_late"],
-        serde_json::Value::Null
-    );
+    let cam: CameraCounters = service_counters(&rep, "camera_ingest:0");
+    assert_eq!(cam.frames_skipped_late, 0, "{cam:?}");
     assert_eq!(
         rep["services"]["tracker:0"]["restarts"], 1,
         "the launcher restarted the tracker"
@@ -72,8 +77,13 @@ fn killed_ingest_is_restarted_and_resumes() {
             "--tracker-arg=--no-vo",
         ],
     );
-    let st = wait_status(out.path(), "camera_ingest_c0", "frames_published", 15);
-    sigkill(st["pid"].as_u64().unwrap());
+    let st = wait_counters(
+        out.path(),
+        "camera_ingest_c0",
+        "15 frames",
+        |c: &CameraCounters| c.frames_published >= 15,
+    );
+    sigkill(st.pid.into());
     assert!(child.wait().unwrap().success());
     let rep = report(out.path());
     assert_eq!(rep["services"]["camera_ingest:0"]["restarts"], 1);
@@ -92,7 +102,12 @@ fn stale_state_of_a_killed_run_does_not_stop_the_next() {
     let out = tempdir();
     // Same prefix ("stale") for both runs.
     let mut child = spawn_pipeline(&agents[0], out.path(), "stale", &["--rate", "1.0"]);
-    wait_status(out.path(), "tracker_c0", "frames_received", 5);
+    wait_counters(
+        out.path(),
+        "tracker_c0",
+        "5 frames",
+        |c: &TrackerCounters| c.frames_received >= 5,
+    );
     let mut pids = vec![];
     for f in [
         "camera_ingest_c0",
@@ -196,8 +211,13 @@ fn realtime_ingest_outage_counts_the_missed_frames_as_dropped() {
         "outage",
         &["--rate", "1.0", "--tracker-arg=--no-vo"],
     );
-    let st = wait_status(out.path(), "camera_ingest_c0", "frames_published", 20);
-    let mut pid = st["pid"].as_u64().unwrap();
+    let st = wait_counters(
+        out.path(),
+        "camera_ingest_c0",
+        "20 frames",
+        |c: &CameraCounters| c.frames_published >= 20,
+    );
+    let mut pid = u64::from(st.pid);
     for _ in 0..4 {
         sigkill(pid);
         pid = wait_new_pid(out.path(), "camera_ingest_c0", pid);

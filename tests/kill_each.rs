@@ -10,7 +10,12 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+use camera_ingest::CameraCounters;
 use common::*;
+use imu_ingest::ImuCounters;
+use loop_closer::LoopCloserCounters;
+use mapper::MapperCounters;
+use tracker::core::TrackerCounters;
 
 /// Frames of the sequence (16 s at 20 Hz: about 30 keyframes reach the server).
 const FRAMES: u64 = 320;
@@ -138,11 +143,13 @@ fn check_no_loss(rep: &serde_json::Value, tracker_killed: bool) {
         .expect("error counts")
         .keys()
     {
-        assert!(
-            !k.ends_with("/gave_up") && !k.ends_with("/kill_skipped"),
-            "{k}: {:#}",
-            rep["errors"]
-        );
+        for kind in [ErrorKind::GaveUp, ErrorKind::KillUnfired] {
+            assert!(
+                !k.ends_with(&format!("/{kind}")),
+                "{k}: {:#}",
+                rep["errors"]
+            );
+        }
     }
 }
 
@@ -186,8 +193,8 @@ fn kill_camera_ingest() {
     let f = check_killed(&rep, "camera_ingest:0");
     check_no_loss(&rep, false);
     // The restarted ingest resumed where its status said, not from the start.
-    let resumed = &f["counters_at_restart"]["frames_published"];
-    assert!(u(resumed) > 0, "{f}");
+    let resumed: CameraCounters = counters_at_restart(f);
+    assert!(resumed.frames_published > 0, "{f}");
     check_ate(&rep, "camera_ingest kill");
 }
 
@@ -199,7 +206,8 @@ fn kill_imu_ingest() {
     check_no_loss(&rep, false);
     let c = &rep["clients"][0];
     // The restarted ingest went on to the end of the IMU data.
-    assert!(u(&f["counters_at_restart"]["imu_samples_published"]) > 0);
+    let resumed: ImuCounters = counters_at_restart(f);
+    assert!(resumed.imu_samples_published > 0, "{f}");
     assert!(u(&c["imu_samples_published"]) >= 10 * (FRAMES - 1), "{c:#}");
     check_ate(&rep, "imu_ingest kill");
 }
@@ -221,7 +229,7 @@ fn kill_tracker() {
         u(&c["server_maps"]) >= 2,
         "the new VO session has its own server map: {c:#}"
     );
-    let sent_before = u(&f["counters_at_restart"]["keyframes_sent"]);
+    let sent_before = counters_at_restart::<TrackerCounters>(f).keyframes_sent;
     assert!(sent_before > 0, "the first session sent keyframes: {f}");
     assert!(
         u(&c["keyframes_sent"]) > sent_before,
@@ -284,12 +292,13 @@ fn kill_mapper() {
     let (rep, _out) = run("kill_map", &["--kill", &kill]);
     let f = check_killed(&rep, "mapper");
     check_no_loss(&rep, false);
-    let applied_before = u(&f["counters_at_restart"]["c0.keyframes_applied"]);
+    let before: MapperCounters = counters_at_restart(f);
+    let applied_before = before.client(0).keyframes_applied;
     assert!(applied_before > 0, "keyframes applied before the kill: {f}");
-    let counters = &rep["services"]["mapper"]["counters"];
+    let counters: MapperCounters = service_counters(&rep, "mapper");
     assert!(
-        u(&counters["c0.keyframes_replayed"]) >= applied_before,
-        "the journal was replayed: {counters:#}"
+        counters.client(0).keyframes_replayed >= applied_before,
+        "the journal was replayed: {counters:#?}"
     );
     assert_eq!(u(&rep["clients"][0]["server_maps"]), 1);
     check_ate(&rep, "mapper kill");
@@ -305,9 +314,9 @@ fn kill_loop_closer() {
     let f = check_killed(&rep, "loop_closer");
     check_no_loss(&rep, false);
     let c = &rep["clients"][0];
-    let before = f["counters_at_restart"]["c0.keyframes_received"]
-        .as_u64()
-        .unwrap_or(0);
+    let before = counters_at_restart::<LoopCloserCounters>(f)
+        .client(0)
+        .keyframes_received;
     let total = u(&c["loop_keyframes_received"]);
     let forwarded = u(&c["keyframes_forwarded"]);
     eprintln!(
@@ -319,9 +328,8 @@ fn kill_loop_closer() {
         "the restarted loop closer received keyframes: {before} -> {total}"
     );
     assert!(total <= forwarded);
-    let lc = &rep["services"]["loop_closer"]["counters"];
-    let resynced = u(&lc["resync_keyframes"]);
-    let db = u(&lc["database_keyframes"]);
+    let lc: LoopCloserCounters = service_counters(&rep, "loop_closer");
+    let (resynced, db) = (lc.resync_keyframes, lc.database_keyframes);
     let in_maps = u(&rep["mapper"]["keyframes"]);
     eprintln!("loop_closer kill: {resynced} keyframes re-sent by the mapper, database {db}, maps {in_maps}");
     assert!(
@@ -395,8 +403,9 @@ fn chaos_loses_no_keyframe() {
     for (name, s) in rep["services"].as_object().expect("services") {
         assert_ne!(s["outcome"], "failed", "{name} failed: {s:#}");
     }
+    let gave_up = format!("/{}", ErrorKind::GaveUp);
     for k in rep["error_counts"].as_object().expect("errors").keys() {
-        assert!(!k.ends_with("/gave_up"), "{k}: {:#}", rep["errors"]);
+        assert!(!k.ends_with(&gave_up), "{k}: {:#}", rep["errors"]);
     }
     eprintln!(
         "chaos: {} server map(s) at the end, {} merges, server keyframe ATE {:?} m (fault-free \

@@ -8,6 +8,8 @@ mod common;
 use std::path::Path;
 
 use common::*;
+use loop_closer::LoopCloserCounters;
+use mapper::MapperCounters;
 
 fn u(v: &serde_json::Value) -> u64 {
     v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
@@ -51,20 +53,21 @@ fn two_agents_maps_merge_into_one_accurate_map() {
     );
     assert!(o.status.success(), "shoal run failed");
     let r = report(&out);
-    let lc = &r["services"]["loop_closer"]["counters"];
-    let mc = &r["services"]["mapper"]["counters"];
-    eprintln!("loop closer: {lc}");
-    assert!(u(&lc["merges"]) >= 1, "no merge found: {lc}");
+    let lc: LoopCloserCounters = service_counters(&r, "loop_closer");
+    let mc: MapperCounters = service_counters(&r, "mapper");
+    eprintln!("loop closer: {lc:?}");
+    assert!(lc.merges >= 1, "no merge found: {lc:?}");
     assert_eq!(
-        u(&mc["corrections_applied_merge"]),
-        u(&lc["merges"]),
-        "every merge the loop closer sent was applied: {mc}"
+        mc.corrections_applied_merge, lc.merges,
+        "every merge the loop closer sent was applied: {mc:?}"
     );
-    assert!(mc.get("corrections_refused").is_none(), "{mc}");
+    assert_eq!(mc.corrections_refused, 0, "{mc:?}");
     assert_eq!(u(&r["mapper"]["maps"]), 1, "one map after the merge");
+    let map_id = |c| mc.client(c).map_id;
+    assert!(map_id(0).is_some(), "{mc:?}");
     assert_eq!(
-        u(&mc["c0.map_id"]),
-        u(&mc["c1.map_id"]),
+        map_id(0),
+        map_id(1),
         "both clients continue in the same map"
     );
     let mut length = 0.0;
@@ -135,11 +138,11 @@ fn loop_closure_halves_the_server_map_error() {
     );
     assert!(o.status.success(), "shoal run failed");
     let r = report(&out);
-    let lc = &r["services"]["loop_closer"]["counters"];
-    let mc = &r["services"]["mapper"]["counters"];
-    eprintln!("loop closer: {lc}");
-    assert!(u(&lc["loops"]) >= 1, "no loop detected: {lc}");
-    assert!(u(&mc["corrections_applied_pose_graph"]) >= 1, "{mc}");
+    let lc: LoopCloserCounters = service_counters(&r, "loop_closer");
+    let mc: MapperCounters = service_counters(&r, "mapper");
+    eprintln!("loop closer: {lc:?}");
+    assert!(lc.loops >= 1, "no loop detected: {lc:?}");
+    assert!(mc.corrections_applied_pose_graph >= 1, "{mc:?}");
     let (before, n0) = ate_of(&ds[0], &out.join("correction_1_before.txt"));
     let (after, n1) = ate_of(&ds[0], &out.join("correction_1_after.txt"));
     eprintln!(

@@ -7,6 +7,7 @@ mod common;
 use std::path::Path;
 
 use common::*;
+use mapper::MapperCounters;
 
 /// RMSE (m) of the ATE entry `key` of a client report.
 fn ate(c: &serde_json::Value, key: &str) -> f64 {
@@ -52,9 +53,9 @@ fn check_client(r: &serde_json::Value, out: &Path, c: usize) -> (f64, f64, f64) 
         "kept {kept}, in map {in_map}"
     );
     assert!(cl["keyframe_bytes_per_s"].as_f64().unwrap_or(0.0) > 0.0);
-    let counters = &r["services"]["mapper"]["counters"];
+    let counters: MapperCounters = service_counters(r, "mapper");
     assert_eq!(
-        u(&counters[format!("c{c}.maps")]),
+        counters.client(c as u32).maps,
         1,
         "one server map per client"
     );
@@ -142,8 +143,12 @@ fn server_map_pose_feedback_and_journal_replay_on_loop() {
     loop {
         let replayed = std::fs::read_to_string(&status)
             .ok()
-            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-            .and_then(|s| s["counters"]["c0.keyframes_replayed"].as_u64());
+            .and_then(|t| serde_json::from_str::<Status>(&t).ok())
+            .map(|s| {
+                s.counters_as::<MapperCounters>()
+                    .client(0)
+                    .keyframes_replayed
+            });
         if replayed == Some(applied) || start.elapsed().as_secs() > 120 {
             break;
         }

@@ -38,7 +38,7 @@ use crate::text::{
 };
 use crate::trajectory::{interpolate_at, read_tum};
 use crate::{
-    CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, ImuSample, InputIssue,
+    CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, ImuSample, InputIssue, IssueKind,
     PinholeRadtan, StampedPose,
 };
 
@@ -217,7 +217,7 @@ fn read_frames(
             issues.push(issue(
                 &csv,
                 line,
-                "malformed_line",
+                IssueKind::MalformedLine,
                 format!("expected `timestamp_ns,filename`, got `{l}`"),
             ));
             continue;
@@ -230,7 +230,7 @@ fn read_frames(
             issues.push(issue(
                 &csv,
                 line,
-                "missing_image",
+                IssueKind::MissingImage,
                 format!("{} does not exist; frame dropped", path.display()),
             ));
             continue;
@@ -267,7 +267,7 @@ pub fn read_imu_csv(
             issues.push(issue(
                 path,
                 line,
-                "malformed_line",
+                IssueKind::MalformedLine,
                 format!("expected `t,wx,wy,wz,ax,ay,az`, got `{l}`"),
             ));
             continue;
@@ -303,7 +303,7 @@ pub fn read_gt_csv(
             issues.push(issue(
                 path,
                 line,
-                "malformed_line",
+                IssueKind::MalformedLine,
                 format!("expected `t,px,py,pz,qw,qx,qy,qz,...`, got `{l}`"),
             ));
             continue;
@@ -349,7 +349,7 @@ pub fn read_gt_states_csv(
             issues.push(issue(
                 path,
                 line,
-                "malformed_line",
+                IssueKind::MalformedLine,
                 format!("expected `t,p xyz,q wxyz,v xyz,b_g xyz,b_a xyz`, got `{l}`"),
             ));
             continue;
@@ -435,7 +435,7 @@ pub fn read(root: &Path) -> Result<Dataset, DatasetError> {
         issues.push(issue(
             &imu_csv,
             0,
-            "missing_file",
+            IssueKind::MissingFile,
             "no IMU data in this dataset",
         ));
         Vec::new()

@@ -15,7 +15,8 @@ use crate::image_io::image_size;
 use crate::text::{data_lines, fields, issue, parse_f64s, read_text, Monotonic};
 use crate::trajectory::{read_kitti, read_times};
 use crate::{
-    CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, PinholeRadtan, StampedPose,
+    CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, IssueKind, PinholeRadtan,
+    StampedPose,
 };
 
 /// True when `dir` looks like a KITTI odometry sequence (`image_0/` and `times.txt`).
@@ -104,7 +105,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
             issues.push(issue(
                 &times_path,
                 line,
-                "missing_image",
+                IssueKind::MissingImage,
                 format!("{} does not exist; frame dropped", path.display()),
             ));
             continue;

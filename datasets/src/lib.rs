@@ -95,6 +95,54 @@ pub struct StampedPose {
     pub pose: nalgebra::Isometry3<f64>,
 }
 
+/// The kinds of [`InputIssue`]. The services count them as errors of the same names
+/// (`shoal_runtime::ErrorKind`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum IssueKind {
+    /// A line that does not parse (`malformed_line`), e.g. a truncated IMU line.
+    MalformedLine,
+    /// A timestamp not after the previous one (`non_monotonic`); the line is skipped.
+    NonMonotonic,
+    /// An image the index names that does not exist (`missing_image`); the frame is dropped.
+    MissingImage,
+    /// A file of the layout this dataset lacks (`missing_file`), e.g. no IMU data.
+    MissingFile,
+    /// A pose without a valid time (`missing_time`).
+    MissingTime,
+    /// Times and poses of different counts (`length_mismatch`).
+    LengthMismatch,
+}
+
+impl IssueKind {
+    /// Every kind.
+    pub const ALL: &'static [IssueKind] = &[
+        Self::MalformedLine,
+        Self::NonMonotonic,
+        Self::MissingImage,
+        Self::MissingFile,
+        Self::MissingTime,
+        Self::LengthMismatch,
+    ];
+
+    /// The kind's short machine-friendly name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::MalformedLine => "malformed_line",
+            Self::NonMonotonic => "non_monotonic",
+            Self::MissingImage => "missing_image",
+            Self::MissingFile => "missing_file",
+            Self::MissingTime => "missing_time",
+            Self::LengthMismatch => "length_mismatch",
+        }
+    }
+}
+
+impl std::fmt::Display for IssueKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// A problem found while reading a dataset that did not stop the read (a skipped line, a
 /// non-monotonic timestamp, a missing image). Counted and reported by the services.
 #[derive(Debug, Clone, PartialEq)]
@@ -103,8 +151,8 @@ pub struct InputIssue {
     pub path: PathBuf,
     /// 1-based line (0 when not tied to a line).
     pub line: usize,
-    /// A short machine-friendly kind, e.g. `malformed_line`, `non_monotonic`, `missing_image`.
-    pub kind: String,
+    /// What is wrong (its name, e.g. `malformed_line`: [`IssueKind::as_str`]).
+    pub kind: IssueKind,
     /// Human-readable detail.
     pub detail: String,
 }

@@ -22,7 +22,9 @@ use nalgebra::Isometry3;
 use crate::euroc::read_imu_csv;
 use crate::image_io::image_size;
 use crate::text::{data_lines, fields, is_header, issue, parse_i64, read_text, Monotonic};
-use crate::{CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, PinholeRadtan};
+use crate::{
+    CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, IssueKind, PinholeRadtan,
+};
 
 /// True when `dir` has a `movie_metadata.csv`.
 pub fn is_phone(dir: &Path) -> bool {
@@ -125,7 +127,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
             issues.push(issue(
                 &meta,
                 line,
-                "malformed_line",
+                IssueKind::MalformedLine,
                 format!("cannot parse frame row `{l}`"),
             ));
             continue;
@@ -138,7 +140,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
             issues.push(issue(
                 &meta,
                 line,
-                "missing_image",
+                IssueKind::MissingImage,
                 format!("{} does not exist; frame dropped", path.display()),
             ));
             continue;
@@ -177,7 +179,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
         issues.push(issue(
             &imu_csv,
             0,
-            "missing_file",
+            IssueKind::MissingFile,
             "no IMU data in this dataset",
         ));
         Vec::new()

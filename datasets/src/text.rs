@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use crate::{DatasetError, InputIssue};
+use crate::{DatasetError, InputIssue, IssueKind};
 
 /// Reads a whole text file; a missing file is [`DatasetError::NotFound`] with `what`.
 pub(crate) fn read_text(path: &Path, what: &str) -> Result<String, DatasetError> {
@@ -22,11 +22,16 @@ pub(crate) fn read_text(path: &Path, what: &str) -> Result<String, DatasetError>
 }
 
 /// An [`InputIssue`].
-pub(crate) fn issue(path: &Path, line: usize, kind: &str, detail: impl Into<String>) -> InputIssue {
+pub(crate) fn issue(
+    path: &Path,
+    line: usize,
+    kind: IssueKind,
+    detail: impl Into<String>,
+) -> InputIssue {
     InputIssue {
         path: path.to_path_buf(),
         line,
-        kind: kind.to_string(),
+        kind,
         detail: detail.into(),
     }
 }
@@ -92,7 +97,7 @@ impl Monotonic {
                 issues.push(issue(
                     path,
                     line,
-                    "non_monotonic",
+                    IssueKind::NonMonotonic,
                     format!(
                         "timestamp {t} is {what} than the previous accepted {last}; line skipped"
                     ),

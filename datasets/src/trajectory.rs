@@ -14,7 +14,7 @@ use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 use slam_core::geometry::{interpolate_pose_at, pose_from_pq};
 
 use crate::text::{data_lines, fields, issue, parse_f64s, read_text, Monotonic};
-use crate::{DatasetError, InputIssue, StampedPose};
+use crate::{DatasetError, InputIssue, IssueKind, StampedPose};
 
 /// A trajectory file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -146,7 +146,7 @@ pub fn read_tum(path: &Path) -> Result<Trajectory, DatasetError> {
             issues.push(issue(
                 path,
                 line,
-                "malformed_line",
+                IssueKind::MalformedLine,
                 format!("expected `t tx ty tz qx qy qz qw`, got `{l}`"),
             ));
             continue;
@@ -192,7 +192,7 @@ pub fn read_times(path: &Path) -> Result<(Vec<Option<i64>>, Vec<InputIssue>), Da
                 issues.push(issue(
                     path,
                     line,
-                    "malformed_line",
+                    IssueKind::MalformedLine,
                     format!("not a time in seconds: `{l}`"),
                 ));
             }
@@ -225,7 +225,7 @@ pub fn read_kitti(path: &Path, times: Option<&Path>) -> Result<Trajectory, Datas
             issues.push(issue(
                 path,
                 line,
-                "malformed_line",
+                IssueKind::MalformedLine,
                 "expected 12 numbers of a 3x4 [R|t] pose",
             ));
             continue;
@@ -238,7 +238,7 @@ pub fn read_kitti(path: &Path, times: Option<&Path>) -> Result<Trajectory, Datas
                     issues.push(issue(
                         path,
                         line,
-                        "missing_time",
+                        IssueKind::MissingTime,
                         format!("no valid time for pose {k}"),
                     ));
                     continue;
@@ -254,7 +254,7 @@ pub fn read_kitti(path: &Path, times: Option<&Path>) -> Result<Trajectory, Datas
             issues.push(issue(
                 tp,
                 0,
-                "length_mismatch",
+                IssueKind::LengthMismatch,
                 format!("{} times for {count} poses", ts.len()),
             ));
         }

@@ -7,7 +7,8 @@ use datasets::trajectory::{
     detect_format, read_kitti, read_trajectory, write_kitti, write_tum, TrajectoryFormat,
 };
 use datasets::{
-    decode_gray_into, image_size, open, DatasetError, DatasetKind, InputIssue, StampedPose,
+    decode_gray_into, image_size, open, DatasetError, DatasetKind, InputIssue, IssueKind,
+    StampedPose,
 };
 
 const YAML: &str = "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.1, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]\nrate_hz: 20\nresolution: [4, 3]\nintrinsics: [100.0, 101.0, 2.0, 1.5]\ndistortion_coefficients: [0.1, 0.01, 0.001, 0.0001]\nreadout_time_ns: 20000000\ntime_offset_ns: 1500000\n";
@@ -33,7 +34,7 @@ fn euroc(dir: &Path, cam_csv: &str, imu_csv: &str, gt_csv: &str) -> std::path::P
     dir.to_path_buf()
 }
 
-fn has(issues: &[InputIssue], file: &str, line: usize, kind: &str) -> bool {
+fn has(issues: &[InputIssue], file: &str, line: usize, kind: IssueKind) -> bool {
     issues
         .iter()
         .any(|i| i.path.ends_with(file) && i.line == line && i.kind == kind)
@@ -49,22 +50,44 @@ fn euroc_lenient_lines_and_missing_images() {
     let ds = open(&root).expect("open");
     assert_eq!(ds.kind, DatasetKind::Euroc);
     let csv = "cam0/data.csv";
-    assert!(has(&ds.issues, csv, 4, "non_monotonic"), "{:#?}", ds.issues);
-    assert!(has(&ds.issues, csv, 5, "non_monotonic"), "{:#?}", ds.issues);
     assert!(
-        has(&ds.issues, csv, 6, "malformed_line"),
+        has(&ds.issues, csv, 4, IssueKind::NonMonotonic),
         "{:#?}",
         ds.issues
     );
-    assert!(has(&ds.issues, csv, 8, "missing_image"), "{:#?}", ds.issues);
-    assert!(has(&ds.issues, "imu0/data.csv", 3, "malformed_line"));
-    assert!(has(&ds.issues, "imu0/data.csv", 4, "malformed_line"));
-    assert!(has(&ds.issues, "imu0/data.csv", 6, "non_monotonic"));
+    assert!(
+        has(&ds.issues, csv, 5, IssueKind::NonMonotonic),
+        "{:#?}",
+        ds.issues
+    );
+    assert!(
+        has(&ds.issues, csv, 6, IssueKind::MalformedLine),
+        "{:#?}",
+        ds.issues
+    );
+    assert!(
+        has(&ds.issues, csv, 8, IssueKind::MissingImage),
+        "{:#?}",
+        ds.issues
+    );
+    assert!(has(
+        &ds.issues,
+        "imu0/data.csv",
+        3,
+        IssueKind::MalformedLine
+    ));
+    assert!(has(
+        &ds.issues,
+        "imu0/data.csv",
+        4,
+        IssueKind::MalformedLine
+    ));
+    assert!(has(&ds.issues, "imu0/data.csv", 6, IssueKind::NonMonotonic));
     assert!(has(
         &ds.issues,
         "state_groundtruth_estimate0/data.csv",
         4,
-        "malformed_line"
+        IssueKind::MalformedLine
     ));
     // t_d = 1.5 ms is added to every frame; readout and calibration come from the YAML.
     let t: Vec<i64> = ds.frames.iter().map(|f| f.t_ns).collect();
@@ -189,22 +212,22 @@ fn kitti_and_phone_lenient() {
     fs::write(tmp.path().join("poses/07.txt"), poses).expect("poses");
     let ds = open(&k).expect("open kitti");
     assert!(
-        has(&ds.issues, "times.txt", 3, "malformed_line"),
+        has(&ds.issues, "times.txt", 3, IssueKind::MalformedLine),
         "{:#?}",
         ds.issues
     );
     assert!(
-        has(&ds.issues, "times.txt", 4, "non_monotonic"),
+        has(&ds.issues, "times.txt", 4, IssueKind::NonMonotonic),
         "{:#?}",
         ds.issues
     );
     assert!(
-        has(&ds.issues, "times.txt", 6, "missing_image"),
+        has(&ds.issues, "times.txt", 6, IssueKind::MissingImage),
         "{:#?}",
         ds.issues
     );
     assert!(
-        has(&ds.issues, "poses/07.txt", 5, "malformed_line"),
+        has(&ds.issues, "poses/07.txt", 5, IssueKind::MalformedLine),
         "{:#?}",
         ds.issues
     );
@@ -230,27 +253,32 @@ fn kitti_and_phone_lenient() {
     fs::write(p.join("gyro_accel.csv"), "Timestamp[nanosec],gx,gy,gz,ax,ay,az,Unix\n10,0,0,0,0,0,9.8,1\n5,0,0,0,0,0,9.8,1\n20,0,0,\n").expect("imu");
     let ds = open(&p).expect("open phone");
     assert!(
-        has(&ds.issues, "movie_metadata.csv", 3, "malformed_line"),
+        has(
+            &ds.issues,
+            "movie_metadata.csv",
+            3,
+            IssueKind::MalformedLine
+        ),
         "{:#?}",
         ds.issues
     );
     assert!(
-        has(&ds.issues, "movie_metadata.csv", 5, "non_monotonic"),
+        has(&ds.issues, "movie_metadata.csv", 5, IssueKind::NonMonotonic),
         "{:#?}",
         ds.issues
     );
     assert!(
-        has(&ds.issues, "movie_metadata.csv", 6, "missing_image"),
+        has(&ds.issues, "movie_metadata.csv", 6, IssueKind::MissingImage),
         "{:#?}",
         ds.issues
     );
     assert!(
-        has(&ds.issues, "gyro_accel.csv", 3, "non_monotonic"),
+        has(&ds.issues, "gyro_accel.csv", 3, IssueKind::NonMonotonic),
         "{:#?}",
         ds.issues
     );
     assert!(
-        has(&ds.issues, "gyro_accel.csv", 4, "malformed_line"),
+        has(&ds.issues, "gyro_accel.csv", 4, IssueKind::MalformedLine),
         "{:#?}",
         ds.issues
     );
@@ -314,9 +342,9 @@ fn trajectory_files_roundtrip_and_issues() {
     let t = read_trajectory(&tum).expect("read");
     assert_eq!(t.poses.len(), 2);
     assert_eq!(t.poses[0].t_ns, 1_403_715_273_262_142_976);
-    assert!(has(&t.issues, "t.txt", 3, "malformed_line"));
-    assert!(has(&t.issues, "t.txt", 4, "non_monotonic"));
-    assert!(has(&t.issues, "t.txt", 5, "malformed_line")); // zero quaternion
+    assert!(has(&t.issues, "t.txt", 3, IssueKind::MalformedLine));
+    assert!(has(&t.issues, "t.txt", 4, IssueKind::NonMonotonic));
+    assert!(has(&t.issues, "t.txt", 5, IssueKind::MalformedLine)); // zero quaternion
 
     let out = tmp.path().join("o.txt");
     write_tum(&out, &t.poses).expect("write");
@@ -339,8 +367,8 @@ fn trajectory_files_roundtrip_and_issues() {
     let kt = read_kitti(&k, Some(&times)).expect("kitti+times");
     assert_eq!(kt.poses.len(), 1);
     assert!(
-        has(&kt.issues, "k.txt", 2, "missing_time")
-            && has(&kt.issues, "times.txt", 0, "length_mismatch")
+        has(&kt.issues, "k.txt", 2, IssueKind::MissingTime)
+            && has(&kt.issues, "times.txt", 0, IssueKind::LengthMismatch)
     );
     let bad = tmp.path().join("bad.txt");
     fs::write(&bad, "1 2 3\n").expect("bad");

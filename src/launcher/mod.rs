@@ -22,7 +22,7 @@ use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
-use shoal_runtime::{ErrorRecord, ReplayMode};
+use shoal_runtime::{ErrorKind, ErrorRecord, ReplayMode};
 
 use child::{describe_exit, Phase, Supervised};
 use recorder::Recorder;
@@ -299,7 +299,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     for s in &unfired {
         watch.errors.push(ErrorRecord {
             service: "launcher".into(),
-            kind: "kill_unfired".into(),
+            kind: ErrorKind::KillUnfired,
             detail: format!("{}: {}", s.spec, s.reason),
         });
     }
@@ -371,7 +371,7 @@ fn open_datasets(
             datasets::open(path).map_err(|e| {
                 let record = ErrorRecord {
                     service: "launcher".into(),
-                    kind: "dataset".into(),
+                    kind: ErrorKind::Dataset,
                     detail: e.to_string(),
                 };
                 (e, vec![record])
@@ -488,7 +488,7 @@ impl Watch {
             if cfg.max_duration.is_some_and(|d| started.elapsed() > d) {
                 self.errors.push(ErrorRecord {
                     service: "launcher".into(),
-                    kind: "timeout".into(),
+                    kind: ErrorKind::Timeout,
                     detail: format!("run stopped after {:?}", started.elapsed()),
                 });
                 return Ok(RunEnd::TimedOut);
@@ -572,17 +572,11 @@ fn wait_server_quiet(services: &[Supervised], timeout: Duration) {
     let mut last = None;
     let mut same_since = Instant::now();
     while start.elapsed() < timeout {
-        let m = report::load_status(&mapper).counters;
-        let l = report::load_status(&closer).counters;
-        let sum = |c: &std::collections::BTreeMap<String, u64>, suffix: &str| -> u64 {
-            c.iter()
-                .filter(|(k, _)| k.starts_with('c') && k.ends_with(suffix))
-                .map(|(_, v)| *v)
-                .sum()
-        };
-        let caught_up = sum(&l, ".keyframes_received") >= sum(&m, ".keyframes_forwarded")
-            && m.get("corrections_received").copied().unwrap_or(0)
-                >= l.get("corrections_sent").copied().unwrap_or(0);
+        let m: ::mapper::MapperCounters = report::load_status(&mapper).counters_as();
+        let l: ::loop_closer::LoopCloserCounters = report::load_status(&closer).counters_as();
+        let received: u64 = l.clients.iter().map(|(_, c)| c.keyframes_received).sum();
+        let forwarded: u64 = m.clients.iter().map(|(_, c)| c.keyframes_forwarded).sum();
+        let caught_up = received >= forwarded && m.corrections_received >= l.corrections_sent;
         let now = Some((m, l));
         if now != last {
             last = now;
@@ -655,7 +649,7 @@ fn supervise(
             if st.code() == Some(shoal_runtime::EXIT_CONFIG) {
                 errors.push(ErrorRecord {
                     service: sv.name.clone(),
-                    kind: "config".into(),
+                    kind: ErrorKind::Config,
                     detail: format!(
                         "{what}: cannot run with its configuration, not restarted; see {}",
                         sv.log.display()
@@ -668,7 +662,7 @@ fn supervise(
             if sv.quick_crashes > cfg.max_restarts {
                 errors.push(ErrorRecord {
                     service: sv.name.clone(),
-                    kind: "gave_up".into(),
+                    kind: ErrorKind::GaveUp,
                     detail: format!(
                         "{what} after {} restarts ({} crashes in a row, each within {:?} of \
                          being ready)",

@@ -4,8 +4,14 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Duration;
 
+use camera_ingest::CameraCounters;
+use imu_ingest::ImuCounters;
+use loop_closer::LoopCloserCounters;
+use mapper::MapperCounters;
+use serde::de::DeserializeOwned;
 use serde::Serialize;
-use shoal_runtime::{ErrorRecord, Status};
+use shoal_runtime::{ErrorKind, ErrorRecord, Status};
+use tracker::core::TrackerCounters;
 
 use super::child::Supervised;
 use super::recorder::{write_tum, Percentiles, Recorder};
@@ -375,6 +381,50 @@ pub struct RunReport {
     pub provenance: super::provenance::Provenance,
 }
 
+/// What a report is made of besides the recorder, read from disk and the system once the
+/// run is over; the client outputs (trajectories, plots, evaluations) are written here.
+struct Gathered {
+    statuses: Statuses,
+    /// Distinct keyframes per client in the mapper journal, if it could be read.
+    journaled: Option<Vec<u64>>,
+    outputs: Vec<ClientOutputs>,
+    /// Per client, its files in the output folder.
+    files: Vec<Vec<String>>,
+    launcher_cpu_s: f64,
+}
+
+impl Gathered {
+    /// Reads the status files and the journal, writes each client's outputs and lists them.
+    fn read(
+        cfg: &RunConfig,
+        datasets: &[datasets::Dataset],
+        services: &[Supervised],
+        recorder: &Recorder,
+    ) -> anyhow::Result<Self> {
+        let statuses = Statuses::load(services);
+        let journal = cfg.out.join(super::MAPPER_JOURNAL);
+        let journaled = journal_keyframes(&journal, datasets.len());
+        let events = crate::plot::events::corrections_from_journal(&journal);
+        let mut outputs = Vec::with_capacity(datasets.len());
+        for (c, ds) in datasets.iter().enumerate() {
+            let rec = &recorder.clients[c];
+            outputs.push(ClientOutputs::write(
+                &cfg.out, ds, c, rec, &statuses, &events,
+            )?);
+        }
+        let files = (0..datasets.len())
+            .map(|c| client_files(&cfg.out, c))
+            .collect();
+        Ok(Self {
+            statuses,
+            journaled,
+            outputs,
+            files,
+            launcher_cpu_s: self_cpu_s(),
+        })
+    }
+}
+
 /// Distinct keyframes (session, id) per client in the mapper journal at `path`.
 fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<u64>> {
     let contents = shoal_runtime::journal::read_journal(path).ok()?;
@@ -428,50 +478,71 @@ pub fn load_status(path: &Path) -> Status {
         .unwrap_or_default()
 }
 
-/// The services' status files, by service name, with the launcher's CPU figures.
-struct Statuses<'a> {
-    map: BTreeMap<String, Status>,
-    services: &'a [Supervised],
+/// One service as the run left it: the launcher's supervision figures and the status file
+/// the service kept.
+struct ServiceFacts {
+    name: String,
+    restarts: u32,
+    /// Final phase (`done`, `stopped`, `failed`).
+    outcome: &'static str,
+    recovery_s: Vec<f64>,
+    /// CPU time of all its processes (the reaped ones and the running one so far), s.
+    cpu_s: f64,
+    status: Status,
 }
 
-impl<'a> Statuses<'a> {
-    fn load(services: &'a [Supervised]) -> Self {
-        let map = services
-            .iter()
-            .map(|s| (s.name.clone(), load_status(&s.status)))
-            .collect();
-        Self { map, services }
+impl ServiceFacts {
+    /// Reads `sv`'s status file and CPU time.
+    fn read(sv: &Supervised) -> Self {
+        let outcome = match sv.phase {
+            super::child::Phase::Done => "done",
+            super::child::Phase::Failed => "failed",
+            _ => "stopped",
+        };
+        Self {
+            name: sv.name.clone(),
+            restarts: sv.restarts,
+            outcome,
+            recovery_s: sv.recoveries_s.clone(),
+            cpu_s: sv.cpu_s + sv.running_cpu_s(),
+            status: load_status(&sv.status),
+        }
+    }
+}
+
+/// Every service's facts, in start order, read once; the report's figures come from them
+/// through the services' own counter types ([`Status::counters_as`]).
+struct Statuses {
+    services: Vec<ServiceFacts>,
+}
+
+impl Statuses {
+    /// Reads every service's status file and CPU time.
+    fn load(services: &[Supervised]) -> Self {
+        Self {
+            services: services.iter().map(ServiceFacts::read).collect(),
+        }
     }
 
-    /// Counter `key` of service `svc` (0 when absent).
-    fn get(&self, svc: &str, key: &str) -> u64 {
-        self.map.get(svc).map_or(0, |s| s.get(key))
+    fn facts(&self, svc: &str) -> Option<&ServiceFacts> {
+        self.services.iter().find(|s| s.name == svc)
     }
 
-    /// Value `key` of service `svc` (0 when absent).
-    fn value(&self, svc: &str, key: &str) -> f64 {
-        let v = self.map.get(svc).and_then(|s| s.values.get(key).copied());
-        v.unwrap_or(0.0)
+    /// Service `svc`'s counters as its type `C` (zeros when it left no status).
+    fn counters<C: DeserializeOwned + Default>(&self, svc: &str) -> C {
+        self.facts(svc)
+            .map(|s| s.status.counters_as())
+            .unwrap_or_default()
     }
 
     /// Errors of `kind` met by service `svc`.
-    fn errors_of(&self, svc: &str, kind: &str) -> u64 {
-        let n = self
-            .map
-            .get(svc)
-            .and_then(|s| s.error_counts.get(kind).copied());
-        n.unwrap_or(0)
+    fn errors_of(&self, svc: &str, kind: ErrorKind) -> u64 {
+        self.facts(svc).map_or(0, |s| s.status.errors_of(kind))
     }
 
     /// CPU time of service `svc` over all its starts, s.
     fn cpu_of(&self, svc: &str) -> f64 {
-        let sv = self.services.iter().find(|s| s.name == svc);
-        sv.map_or(0.0, |s| s.cpu_s + s.running_cpu_s())
-    }
-
-    /// The mapper's per-client counter `c{c}.{key}`.
-    fn mapper_client(&self, c: usize, key: &str) -> u64 {
-        self.get("mapper", &format!("c{c}.{key}"))
+        self.facts(svc).map_or(0.0, |s| s.cpu_s)
     }
 }
 
@@ -510,11 +581,9 @@ impl ClientOutputs {
             write_tum(&path, &one.trajectory)?;
             trajectory = Some(path.display().to_string());
         }
-        let final_map = st
-            .map
-            .get("mapper")
-            .and_then(|s| s.counters.get(&format!("c{c}.map_id")));
-        let (live, other_maps) = live_server_poses(rec, final_map.copied());
+        let mapper: MapperCounters = st.counters(mapper::SERVICE_NAME);
+        let final_map = mapper.client(c as u32).map_id;
+        let (live, other_maps) = live_server_poses(rec, final_map);
         // Every frame relative to its session's keyframes' final server poses when the
         // server map has them (the live poses cover only frames tracked after feedback).
         let server_traj = one.server.unwrap_or(live);
@@ -567,62 +636,64 @@ fn client_report(
     journaled_applied: Option<u64>,
     o: ClientOutputs,
 ) -> ClientReport {
+    let ci = c as u32;
     let (cam, imu, trk) = (
-        format!("camera_ingest:{c}"),
-        format!("imu_ingest:{c}"),
-        format!("tracker:{c}"),
+        camera_ingest::service_name(ci),
+        imu_ingest::service_name(ci),
+        tracker::service_name(ci),
     );
+    let cam_n: CameraCounters = st.counters(&cam);
+    let imu_n: ImuCounters = st.counters(&imu);
+    let t: TrackerCounters = st.counters(&trk);
+    let m = st
+        .counters::<MapperCounters>(mapper::SERVICE_NAME)
+        .client(ci);
+    let lc: LoopCloserCounters = st.counters(loop_closer::SERVICE_NAME);
     let total = cfg.max_frames.unwrap_or(usize::MAX).min(ds.frames.len()) as u64;
     let received = rec.frames_posed;
     let (posed, before_init, lost) = rec.fate_counts();
     // Frames the camera went through (published, skipped late, or corrupt): all of them
     // unless the run was stopped early.
-    let offered = (st.value(&cam, "next_index") as u64).min(total);
-    let corrupt = st.errors_of(&cam, "corrupt_image");
+    let offered = cam_n.frames_offered.min(total);
+    let corrupt = st.errors_of(&cam, ErrorKind::CorruptImage);
     let dropped = offered.saturating_sub(received + corrupt);
-    let m = |k: &str| st.mapper_client(c, k);
-    let t: tracker::core::TrackerCounters = st
-        .map
-        .get(&trk)
-        .map(|s| s.counters_as())
-        .unwrap_or_default();
     ClientReport {
         dataset: ds.root.display().to_string(),
         frames_total: total,
-        frames_published: st.get(&cam, "frames_published"),
+        frames_published: cam_n.frames_published,
         frames_received: received,
         frames_tracked: rec.tracked,
         frames_backfilled: rec.backfilled,
         frames_posed: posed,
         frames_unposed: FramesUnposed::new(before_init, lost, corrupt, dropped),
         frames_dropped: dropped,
-        frames_skipped_late: st.get(&cam, "frames_skipped_late"),
+        frames_skipped_late: cam_n.frames_skipped_late,
         frames_corrupt: corrupt,
-        frames_resent: st.get(&cam, "frames_resent"),
-        imu_samples_published: st.get(&imu, "imu_samples_published"),
+        frames_resent: cam_n.frames_resent,
+        imu_samples_published: imu_n.imu_samples_published,
         imu_samples_received: t.imu_samples_received,
-        imu_samples_dropped: t.imu_samples_dropped + st.get(&imu, "imu_samples_skipped_late"),
+        imu_samples_dropped: t.imu_samples_dropped + imu_n.imu_samples_skipped_late,
         keyframes_sent: t.keyframes_sent,
         keyframes_acked: t.keyframes_acked_seen,
         keyframes_unacked_at_crash: t.keyframes_unacked_at_crash,
         keyframes_recovered: t.keyframes_recovered,
-        keyframes_applied: journaled_applied.unwrap_or_else(|| m("keyframes_applied")),
-        keyframes_received: m("keyframes_received"),
-        keyframes_kept: m("keyframes_kept"),
-        server_keyframes: m("server_keyframes"),
-        server_maps: m("maps"),
-        keyframes_forwarded: m("keyframes_forwarded"),
-        loop_keyframes_received: st.get("loop_closer", &format!("c{c}.keyframes_received")),
+        keyframes_applied: journaled_applied.unwrap_or(m.keyframes_applied),
+        keyframes_received: m.keyframes_received,
+        keyframes_kept: m.keyframes_kept,
+        server_keyframes: m.server_keyframes,
+        server_maps: m.maps,
+        keyframes_forwarded: m.keyframes_forwarded,
+        loop_keyframes_received: lc.client(ci).keyframes_received,
         cpu_s: BTreeMap::from([
             ("tracker".to_string(), st.cpu_of(&trk)),
             ("camera_ingest".to_string(), st.cpu_of(&cam)),
             ("imu_ingest".to_string(), st.cpu_of(&imu)),
             (
                 "mapper_handler".to_string(),
-                (m("handle_us") + m("idle_us")) as f64 * 1e-6,
+                (m.handle_us + m.idle_us) as f64 * 1e-6,
             ),
         ]),
-        keyframe_bytes_per_s: keyframe_rate(ds, total, m("keyframe_bytes")),
+        keyframe_bytes_per_s: keyframe_rate(ds, total, m.keyframe_bytes),
         frames_server_pose: rec.tracked_server,
         frames_server_pose_other_maps: o.server_frames_other_maps,
         ate_client_keyframes: o.ate_client_keyframes,
@@ -656,7 +727,7 @@ fn keyframe_rate(ds: &datasets::Dataset, total: u64, bytes: u64) -> f64 {
 }
 
 /// How the tracker ran local mapping: `thread`, `inline`, or `none` (no VO ran).
-fn local_mapping(t: &tracker::core::TrackerCounters) -> &'static str {
+fn local_mapping(t: &TrackerCounters) -> &'static str {
     let thread = t.local_mapping_thread;
     thread.map_or("none", |t| if t > 0 { "thread" } else { "inline" })
 }
@@ -682,8 +753,9 @@ impl RunReport {
         }
     }
 
-    /// Aggregates the services' status files and the recorder, after writing each client's
-    /// trajectories and plots ([`ClientOutputs::write`]).
+    /// Writes each client's trajectories and plots ([`ClientOutputs::write`]), reads the
+    /// services' status files and the mapper journal ([`Gathered::read`]), then aggregates
+    /// them with the recorder ([`RunReport::aggregate`]).
     #[allow(clippy::too_many_arguments)]
     pub fn collect(
         cfg: &RunConfig,
@@ -695,71 +767,72 @@ impl RunReport {
         interrupted: bool,
         timed_out: bool,
     ) -> anyhow::Result<Self> {
-        let st = Statuses::load(services);
-        let journal = cfg.out.join(super::MAPPER_JOURNAL);
-        let journaled = journal_keyframes(&journal, datasets.len());
-        let events = crate::plot::events::corrections_from_journal(&journal);
-        let mut outputs = Vec::with_capacity(datasets.len());
-        for (c, ds) in datasets.iter().enumerate() {
-            let rec = &recorder.clients[c];
-            outputs.push(ClientOutputs::write(&cfg.out, ds, c, rec, &st, &events)?);
-        }
-        let mut rep = Self::failed(cfg, launcher_errors, wall);
+        let gathered = Gathered::read(cfg, datasets, services, recorder)?;
+        let mut rep = Self::aggregate(cfg, datasets, recorder, gathered, launcher_errors, wall);
         rep.interrupted = interrupted;
         rep.timed_out = timed_out;
-        for (c, (ds, o)) in datasets.iter().zip(outputs).enumerate() {
-            let applied = journaled.as_ref().map(|j| j[c]);
-            let mut cl = client_report(cfg, ds, c, &recorder.clients[c], &st, applied, o);
-            cl.files = client_files(&cfg.out, c);
+        Ok(rep)
+    }
+
+    /// The report of what was gathered (pure: no file, process or clock is read).
+    fn aggregate(
+        cfg: &RunConfig,
+        datasets: &[datasets::Dataset],
+        recorder: &Recorder,
+        g: Gathered,
+        launcher_errors: Vec<ErrorRecord>,
+        wall: Duration,
+    ) -> Self {
+        let mut rep = Self::failed(cfg, launcher_errors, wall);
+        let st = &g.statuses;
+        let clients = datasets.iter().zip(g.outputs).zip(g.files).enumerate();
+        for (c, ((ds, o), files)) in clients {
+            let applied = g.journaled.as_ref().map(|j| j[c]);
+            let mut cl = client_report(cfg, ds, c, &recorder.clients[c], st, applied, o);
+            cl.files = files;
             rep.clients.push(cl);
         }
-        rep.add_server(&st);
-        rep.launcher_cpu_s = self_cpu_s();
+        rep.add_server(st);
+        rep.launcher_cpu_s = g.launcher_cpu_s;
         rep.latency_ms = LatencyReport {
             publish_to_pose: recorder.publish_to_pose.percentiles(),
             publish_to_receive: recorder.publish_to_receive.percentiles(),
             tracker_total: recorder.tracker_total.percentiles(),
         };
-        rep.add_services(services, &st);
-        Ok(rep)
+        rep.add_services(st);
+        rep
     }
 
     /// The mapper's and loop closer's figures.
     fn add_server(&mut self, st: &Statuses) {
-        let g = |k: &str| st.get("mapper", k);
+        let m: MapperCounters = st.counters(mapper::SERVICE_NAME);
+        let l: LoopCloserCounters = st.counters(loop_closer::SERVICE_NAME);
         self.mapper = MapperReport {
-            maps: g("maps"),
-            keyframes: g("keyframes"),
-            points: g("points"),
+            maps: m.maps,
+            keyframes: m.keyframes,
+            points: m.points,
         };
-        self.loops = st.get("loop_closer", "loops");
-        self.merges = st.get("loop_closer", "merges");
-        self.corrections_applied =
-            g("corrections_applied_merge") + g("corrections_applied_pose_graph");
+        self.loops = l.loops;
+        self.merges = l.merges;
+        self.corrections_applied = m.corrections_applied();
     }
 
     /// Every service's errors, restarts, outcome, CPU time and counters.
-    fn add_services(&mut self, services: &[Supervised], st: &Statuses) {
-        for sv in services {
-            let status = st.map.get(&sv.name).cloned().unwrap_or_default();
-            self.errors.extend(status.errors.iter().cloned());
-            for (kind, n) in &status.error_counts {
+    fn add_services(&mut self, st: &Statuses) {
+        for sv in &st.services {
+            self.errors.extend(sv.status.errors.iter().cloned());
+            for (kind, n) in &sv.status.error_counts {
                 *self
                     .error_counts
                     .entry(format!("{}/{kind}", sv.name))
                     .or_insert(0) += n;
             }
-            let outcome = match sv.phase {
-                super::child::Phase::Done => "done",
-                super::child::Phase::Failed => "failed",
-                _ => "stopped",
-            };
             let service = ServiceReport {
                 restarts: sv.restarts,
-                outcome: outcome.to_string(),
-                recovery_s: sv.recoveries_s.clone(),
-                cpu_s: sv.cpu_s + sv.running_cpu_s(),
-                counters: status.counters,
+                outcome: sv.outcome.to_string(),
+                recovery_s: sv.recovery_s.clone(),
+                cpu_s: sv.cpu_s,
+                counters: sv.status.counters.clone(),
             };
             self.services.insert(sv.name.clone(), service);
         }
@@ -825,5 +898,84 @@ impl Progress {
         for b in &self.bars {
             b.finish();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn facts(name: &str, status: Status) -> ServiceFacts {
+        ServiceFacts {
+            name: name.to_string(),
+            restarts: 1,
+            outcome: "done",
+            recovery_s: vec![0.5],
+            cpu_s: 2.0,
+            status,
+        }
+    }
+
+    /// The server figures, error counts and per-service sections come from the services'
+    /// typed counters and error kinds, under the names report.json has always had.
+    #[test]
+    fn server_figures_and_services_from_typed_counters() {
+        let mut m = MapperCounters {
+            maps: 1,
+            keyframes: 30,
+            points: 900,
+            corrections_applied_merge: 1,
+            corrections_applied_pose_graph: 2,
+            ..MapperCounters::default()
+        };
+        m.clients.of(0).keyframes_received = 31;
+        let mut ms = Status::new(mapper::SERVICE_NAME);
+        ms.put_counters(&m);
+        let l = LoopCloserCounters {
+            loops: 2,
+            merges: 1,
+            ..LoopCloserCounters::default()
+        };
+        let mut ls = Status::new(loop_closer::SERVICE_NAME);
+        ls.put_counters(&l);
+        let cam = camera_ingest::service_name(0);
+        let mut cs = Status::new(&cam);
+        cs.error(ErrorKind::CorruptImage, "f.png: bad");
+        cs.put_counters(&CameraCounters {
+            frames_published: 9,
+            ..CameraCounters::default()
+        });
+        let st = Statuses {
+            services: vec![
+                facts(mapper::SERVICE_NAME, ms),
+                facts(loop_closer::SERVICE_NAME, ls),
+                facts(&cam, cs),
+            ],
+        };
+        assert_eq!(st.counters::<CameraCounters>(&cam).frames_published, 9);
+        assert_eq!(st.errors_of(&cam, ErrorKind::CorruptImage), 1);
+        assert_eq!(
+            st.counters::<TrackerCounters>("tracker:0"),
+            Default::default()
+        );
+        let mut rep = RunReport::default();
+        rep.add_server(&st);
+        rep.add_services(&st);
+        let mr = &rep.mapper;
+        assert_eq!((mr.maps, mr.keyframes, mr.points), (1, 30, 900));
+        assert_eq!((rep.loops, rep.merges, rep.corrections_applied), (2, 1, 3));
+        assert_eq!(rep.error_total(), 1);
+        let json = serde_json::to_value(&rep).unwrap();
+        assert_eq!(json["error_counts"]["camera_ingest:0/corrupt_image"], 1);
+        assert_eq!(json["errors"][0]["kind"], "corrupt_image");
+        let services = &json["services"];
+        assert_eq!(services["mapper"]["counters"]["c0.keyframes_received"], 31);
+        assert_eq!(services["loop_closer"]["counters"]["merges"], 1);
+        assert_eq!(
+            services["camera_ingest:0"]["counters"]["frames_published"],
+            9
+        );
+        assert_eq!(services["mapper"]["outcome"], "done");
+        assert_eq!(services["mapper"]["cpu_s"], 2.0);
     }
 }

@@ -5,6 +5,9 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use serde::de::DeserializeOwned;
+pub use shoal_runtime::{ErrorKind, Status};
+
 /// The `shoal` binary under test.
 pub fn shoal() -> Command {
     Command::new(env!("CARGO_BIN_EXE_shoal"))
@@ -99,12 +102,48 @@ pub fn spawn_pipeline(
         .expect("spawn shoal run")
 }
 
-/// Waits until `OUT/status/NAME.json` exists with `counter >= min` (`min` 0: the service
-/// wrote its status); returns the status.
-pub fn wait_status(out: &Path, file: &str, counter: &str, min: u64) -> serde_json::Value {
-    wait_status_until(out, file, &format!("{counter} >= {min}"), |v| {
-        v["counters"][counter].as_u64().unwrap_or(0) >= min
-    })
+/// Waits until `OUT/status/NAME.json` exists with counters, read as the service's counter
+/// type `C`, for which `done` holds (`what` names the condition in the failure); returns the
+/// status.
+pub fn wait_counters<C: DeserializeOwned + Default>(
+    out: &Path,
+    file: &str,
+    what: &str,
+    done: impl Fn(&C) -> bool,
+) -> Status {
+    let v = wait_status_until(out, file, what, |v| {
+        serde_json::from_value::<Status>(v.clone()).is_ok_and(|s| done(&s.counters_as()))
+    });
+    serde_json::from_value(v).expect("status")
+}
+
+/// Waits until `OUT/status/NAME.json` exists (the service wrote its status); returns it.
+pub fn wait_status_written(out: &Path, file: &str) -> Status {
+    let v = wait_status_until(out, file, "a status", |v| {
+        serde_json::from_value::<Status>(v.clone()).is_ok()
+    });
+    serde_json::from_value(v).expect("status")
+}
+
+/// The counters of service `name` in report.json, as the service's counter type `C`.
+pub fn service_counters<C: DeserializeOwned>(rep: &serde_json::Value, name: &str) -> C {
+    let v = rep["services"][name]["counters"].clone();
+    serde_json::from_value(v).unwrap_or_else(|e| panic!("counters of {name}: {e}"))
+}
+
+/// The counters a restarted service resumed from (a report.json fault's
+/// `counters_at_restart`), as the service's counter type `C`.
+pub fn counters_at_restart<C: DeserializeOwned>(fault: &serde_json::Value) -> C {
+    let v = fault["counters_at_restart"].clone();
+    serde_json::from_value(v).unwrap_or_else(|e| panic!("counters at restart: {e}: {fault}"))
+}
+
+/// The count of errors of `kind` met by service `name` in report.json (`error_counts`,
+/// keyed `service/kind`).
+pub fn error_count(rep: &serde_json::Value, name: &str, kind: ErrorKind) -> u64 {
+    rep["error_counts"][format!("{name}/{kind}")]
+        .as_u64()
+        .unwrap_or(0)
 }
 
 /// Waits (at most 120 s) until `OUT/status/NAME.json` parses and `done` holds for it

@@ -19,11 +19,42 @@ use std::time::Duration;
 
 use anyhow::Context;
 use iceoryx2::prelude::*;
+use serde::{Deserialize, Serialize};
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::FLAG_RESEND;
 use shm_schema::{FrameAck, FrameHeader, MsgMeta, PixelFormat, FLAG_END_OF_STREAM};
-use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status};
+use shoal_runtime::{ErrorKind, ReplayArgs, ReplayClock, ReplayMode, Status, StatusFile};
+
+/// Counters of the camera ingest (the status file's `counters`), carried on over restarts.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct CameraCounters {
+    /// Frames published (first sends; a restarted ingest publishes the frames after its
+    /// predecessor's last status write again).
+    pub frames_published: u64,
+    /// Frames the replay went through: published, skipped late or corrupt.
+    pub frames_offered: u64,
+    /// Real time: frames missed while this service was down (due long before it was back).
+    pub frames_skipped_late: u64,
+    /// Lock-step: re-sends of a frame whose acknowledgement did not come (consumer restarted).
+    pub frames_resent: u64,
+    /// Lock-step: frames never acknowledged within the ack timeout.
+    pub frames_unacked: u64,
+}
+
+/// Format version of [`CameraResume`].
+pub const RESUME_VERSION: u32 = 1;
+
+/// What a restarted camera ingest needs of its killed predecessor besides the counters.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CameraResume {
+    /// Dataset index of the next frame to replay.
+    pub next_index: u64,
+}
+
+/// How often the status file is written during the replay.
+const STATUS_PERIOD: Duration = Duration::from_millis(200);
 
 /// Parameters of the camera ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -84,7 +115,7 @@ impl Replay<'_> {
     }
 
     /// Real time: waits until frame `k` is due; lock-step: at once.
-    fn pace(&self, k: usize, status: &mut Status) -> Pace {
+    fn pace(&self, k: usize, counters: &mut CameraCounters) -> Pace {
         if self.params.replay.mode != ReplayMode::Realtime {
             return Pace::Go;
         }
@@ -94,7 +125,7 @@ impl Replay<'_> {
         // restart resumes "now"), not a scheduling hiccup of a loaded machine. Counted,
         // never silently skipped.
         if now > due + self.period_ns.max(250_000_000) {
-            status.add("frames_skipped_late", 1);
+            counters.frames_skipped_late += 1;
             return Pace::Skip;
         }
         if due > now
@@ -146,7 +177,7 @@ impl Replay<'_> {
         k: usize,
         header: FrameHeader,
         acked: &mut Option<u64>,
-        status: &mut Status,
+        p: &mut Progress,
     ) -> anyhow::Result<bool> {
         let resend = || {
             let mut h = header;
@@ -155,14 +186,14 @@ impl Replay<'_> {
         };
         match wait_for_ack(&self.node, &self.acks, k as u64, acked, self.params, resend)? {
             AckWait::Acked => {}
-            AckWait::Resent(n) => status.add("frames_resent", n),
+            AckWait::Resent(n) => p.counters.frames_resent += n,
             AckWait::TimedOut => {
                 let ms = self.params.ack_timeout_ms;
-                status.error(
-                    "ack_timeout",
+                p.status.error(
+                    ErrorKind::AckTimeout,
                     format!("no consumer took frame {k} within {ms} ms"),
                 );
-                status.add("frames_unacked", 1);
+                p.counters.frames_unacked += 1;
             }
             AckWait::Stopped => return Ok(false),
         }
@@ -220,41 +251,87 @@ fn open<'a>(
     })
 }
 
+/// The replay's state: the status (errors), the counters and the resume position, put
+/// together into the status when it is written.
+struct Progress {
+    status: Status,
+    counters: CameraCounters,
+    /// Dataset index of the next frame.
+    next: usize,
+}
+
+impl Progress {
+    /// Resumes what a killed predecessor left in `status` (a fresh start: zeros).
+    fn resume(mut status: Status) -> Self {
+        let counters = status.counters_as();
+        let resume: CameraResume = status.take_resume(RESUME_VERSION).unwrap_or_default();
+        Self {
+            status,
+            counters,
+            next: resume.next_index as usize,
+        }
+    }
+
+    /// The status with the counters and the resume position put in.
+    fn status(&mut self) -> &Status {
+        self.status.put_counters(&self.counters);
+        let resume = CameraResume {
+            next_index: self.next as u64,
+        };
+        self.status.set_resume(RESUME_VERSION, &resume);
+        &self.status
+    }
+
+    /// The final status (counters and resume position put in).
+    fn into_status(mut self) -> Status {
+        self.status();
+        self.status
+    }
+
+    /// Writes the status if a periodic write is due.
+    fn write_if_due(&mut self, file: &mut StatusFile) {
+        if file.due(STATUS_PERIOD) {
+            let _ = file.write(self.status());
+        }
+    }
+}
+
 /// Replays the dataset; returns the final status. Stops early (without error) on
 /// SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
     let c = params.replay.client;
     let start = params.replay.start(&service_name(c), "camera_ingest")?;
-    let (mut file, mut status) = (start.file, start.status);
-    let replay = open(params, &mut status, start.node)?;
+    let mut file = start.file;
+    let mut p = Progress::resume(start.status);
+    let replay = open(params, &mut p.status, start.node)?;
     shoal_runtime::signal_ready();
-    let session_id = status.starts as u32;
-    let mut next = status.values.get("next_index").copied().unwrap_or(0.0) as usize;
+    let session_id = p.status.starts as u32;
     let mut acked: Option<u64> = None;
-    while next < replay.n_frames {
-        match replay.pace(next, &mut status) {
+    while p.next < replay.n_frames {
+        let next = p.next;
+        match replay.pace(next, &mut p.counters) {
             Pace::Stop => break,
             Pace::Skip => {}
             Pace::Go => {
                 let header = replay.header(next, session_id);
                 match replay.send(next, header)? {
-                    Err(e) => status.error("corrupt_image", e),
+                    Err(e) => p.status.error(ErrorKind::CorruptImage, e),
                     Ok(()) => {
-                        status.add("frames_published", 1);
+                        p.counters.frames_published += 1;
                         let lockstep = params.replay.mode == ReplayMode::Lockstep;
-                        if lockstep
-                            && !replay.lockstep_ack(next, header, &mut acked, &mut status)?
-                        {
+                        if lockstep && !replay.lockstep_ack(next, header, &mut acked, &mut p)? {
                             break;
                         }
                     }
                 }
             }
         }
-        next += 1;
-        status.set_value("next_index", next as f64);
-        let _ = file.write_every(&status, Duration::from_millis(200));
+        p.next += 1;
+        p.counters.frames_offered += 1;
+        p.write_if_due(&mut file);
     }
+    let next = p.next;
+    let mut status = p.into_status();
     if next >= replay.n_frames {
         let r = &replay;
         send_end_of_stream(
@@ -348,4 +425,63 @@ fn send_end_of_stream(
     };
     let _ = wait_for_ack(node, acks, seq, &mut acked, &eos_params, send)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn left(counters: &CameraCounters, next: usize) -> Status {
+        let mut p = Progress::resume(Status::new(&service_name(0)));
+        p.counters = counters.clone();
+        p.next = next;
+        let text = serde_json::to_string(p.status()).unwrap();
+        let mut back: Status = serde_json::from_str(&text).unwrap();
+        back.starts += 1;
+        back
+    }
+
+    /// A restart resumes the counters and the position its predecessor wrote, under their
+    /// names in the status file.
+    #[test]
+    fn the_resume_state_round_trips() {
+        let c = CameraCounters {
+            frames_published: 11,
+            frames_offered: 12,
+            frames_resent: 1,
+            ..CameraCounters::default()
+        };
+        let s = left(&c, 12);
+        let json = serde_json::to_value(&s).unwrap();
+        assert_eq!(json["counters"]["frames_published"], 11);
+        assert_eq!(json["resume"]["version"], RESUME_VERSION);
+        assert_eq!(json["resume"]["state"]["next_index"], 12);
+        let p = Progress::resume(s);
+        assert_eq!((&p.counters, p.next), (&c, 12));
+        assert!(p.status.error_counts.is_empty());
+    }
+
+    /// A resume state of another format: counted, named, and the replay starts over (the
+    /// counters carry on).
+    #[test]
+    fn a_resume_state_of_another_version_starts_afresh() {
+        let c = CameraCounters {
+            frames_published: 11,
+            ..CameraCounters::default()
+        };
+        let mut s = left(&c, 12);
+        s.set_resume(RESUME_VERSION + 1, &CameraResume { next_index: 12 });
+        let p = Progress::resume(s);
+        assert_eq!((&p.counters, p.next), (&c, 0));
+        assert_eq!(p.status.errors_of(ErrorKind::ResumeState), 1);
+        assert!(p.status.errors[0].detail.contains("starting afresh"));
+    }
+
+    /// No resume section (first start): from the first frame, no error.
+    #[test]
+    fn no_resume_section_starts_at_the_first_frame() {
+        let p = Progress::resume(Status::new(&service_name(0)));
+        assert_eq!((&p.counters, p.next), (&CameraCounters::default(), 0));
+        assert!(p.status.error_counts.is_empty());
+    }
 }

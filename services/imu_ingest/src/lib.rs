@@ -18,10 +18,52 @@
 use std::time::Duration;
 
 use iceoryx2::node::Node;
+use serde::{Deserialize, Serialize};
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::{FrameAck, ImuMsg, MsgMeta, FLAG_END_OF_STREAM};
 use shoal_runtime::{ReplayArgs, ReplayClock, ReplayMode, Status};
+
+/// Counters of the IMU ingest (the status file's `counters`), carried on over restarts.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ImuCounters {
+    /// Samples published (a restarted ingest publishes the samples after its predecessor's
+    /// last status write again).
+    pub imu_samples_published: u64,
+    /// Real time: samples due while this service was down, skipped.
+    pub imu_samples_skipped_late: u64,
+}
+
+/// Format version of [`ImuResume`].
+pub const RESUME_VERSION: u32 = 1;
+
+/// What a restarted IMU ingest needs of its killed predecessor besides the counters.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ImuResume {
+    /// Index of the next sample to replay.
+    pub next_index: u64,
+}
+
+/// How often the status file is written during the replay.
+const STATUS_PERIOD: Duration = Duration::from_millis(200);
+
+/// The counters and the index of the next sample a killed predecessor left in `status` (a
+/// fresh start, or a resume state of another format: zeros).
+fn resume(status: &mut Status) -> (ImuCounters, usize) {
+    let counters = status.counters_as();
+    let resume: ImuResume = status.take_resume(RESUME_VERSION).unwrap_or_default();
+    (counters, resume.next_index as usize)
+}
+
+/// The status with `counters` and the resume position `next` put in.
+fn put_state(status: &mut Status, counters: &ImuCounters, next: usize) {
+    status.put_counters(counters);
+    let resume = ImuResume {
+        next_index: next as u64,
+    };
+    status.set_resume(RESUME_VERSION, &resume);
+}
 
 /// Parameters of the IMU ingest.
 #[derive(Debug, Clone, clap::Parser)]
@@ -144,12 +186,12 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     shoal_runtime::signal_ready();
     let (mut pacer, n) = pacer(params, &dataset, &status);
     let session_id = status.starts as u32;
-    let mut next = status.values.get("next_index").copied().unwrap_or(0.0) as usize;
+    let (mut counters, mut next) = resume(&mut status);
     while next < n {
         let s = dataset.imu[next];
         match pacer.wait(s.t_ns, &node, &acks)? {
             Pace::Stop => break,
-            Pace::Skip => status.add("imu_samples_skipped_late", 1),
+            Pace::Skip => counters.imu_samples_skipped_late += 1,
             Pace::Go => {
                 let meta = MsgMeta::new(c, session_id, next as u64, monotonic_ns());
                 let (t_ns, gyro, accel) = (s.t_ns, s.gyro, s.accel);
@@ -159,13 +201,16 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                     gyro,
                     accel,
                 })?;
-                status.add("imu_samples_published", 1);
+                counters.imu_samples_published += 1;
             }
         }
         next += 1;
-        status.set_value("next_index", next as f64);
-        let _ = file.write_every(&status, Duration::from_millis(200));
+        if file.due(STATUS_PERIOD) {
+            put_state(&mut status, &counters, next);
+            let _ = file.write(&status);
+        }
     }
+    put_state(&mut status, &counters, next);
     if next >= n {
         let mut meta = MsgMeta::new(c, session_id, n as u64, monotonic_ns());
         meta.flags = FLAG_END_OF_STREAM;
@@ -178,4 +223,58 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     }
     file.write(&status)?;
     Ok(status)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use shoal_runtime::ErrorKind;
+
+    fn left(counters: &ImuCounters, next: usize) -> Status {
+        let mut s = Status::new(&service_name(0));
+        put_state(&mut s, counters, next);
+        let text = serde_json::to_string(&s).unwrap();
+        let mut back: Status = serde_json::from_str(&text).unwrap();
+        back.starts += 1;
+        back
+    }
+
+    /// A restart resumes the counters and the position its predecessor wrote, under their
+    /// names in the status file.
+    #[test]
+    fn the_resume_state_round_trips() {
+        let c = ImuCounters {
+            imu_samples_published: 40,
+            imu_samples_skipped_late: 2,
+        };
+        let mut s = left(&c, 42);
+        let json = serde_json::to_value(&s).unwrap();
+        assert_eq!(json["counters"]["imu_samples_published"], 40);
+        assert_eq!(json["resume"]["version"], RESUME_VERSION);
+        assert_eq!(json["resume"]["state"]["next_index"], 42);
+        assert!(s.values.is_empty(), "no position among the values");
+        assert_eq!(resume(&mut s), (c, 42));
+        assert!(s.error_counts.is_empty());
+    }
+
+    /// A resume state of another format: counted, named, and the replay starts over.
+    #[test]
+    fn a_resume_state_of_another_version_starts_afresh() {
+        let c = ImuCounters {
+            imu_samples_published: 40,
+            ..ImuCounters::default()
+        };
+        let mut s = left(&c, 42);
+        s.set_resume(RESUME_VERSION + 1, &ImuResume { next_index: 42 });
+        assert_eq!(resume(&mut s), (c, 0));
+        assert_eq!(s.errors_of(ErrorKind::ResumeState), 1);
+    }
+
+    /// No resume section (first start): from the first sample, no error.
+    #[test]
+    fn no_resume_section_starts_at_the_first_sample() {
+        let mut s = Status::new(&service_name(0));
+        assert_eq!(resume(&mut s), (ImuCounters::default(), 0));
+        assert!(s.error_counts.is_empty());
+    }
 }

@@ -21,6 +21,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use iceoryx2::port::publisher::Publisher;
 use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::{
@@ -31,7 +32,7 @@ use shm_schema::{
 use shoal_runtime::wire::{
     camera_from_intrinsics, iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint,
 };
-use shoal_runtime::{ReplayMode, ServiceStart, Status};
+use shoal_runtime::{ErrorKind, PerClient, ReplayMode, ServiceStart, Status};
 use slam_core::features::OrbFeatures;
 use slam_core::ids::KeyframeId;
 use slam_core::lie::Sim3;
@@ -78,6 +79,45 @@ pub struct Params {
 
 /// The service's name in reports.
 pub const SERVICE_NAME: &str = "loop_closer";
+
+/// Counters and gauges of the loop closer (the status file's `counters`, per client
+/// `c{i}.{name}`), carried on over restarts. The loop closer has no crash-recovery state in
+/// its status file: a restarted loop closer rebuilds its keyframe database from the mapper
+/// (resynchronisation).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LoopCloserCounters {
+    /// Loops found within one map.
+    pub loops: u64,
+    /// Loops found between two maps (merges).
+    pub merges: u64,
+    /// Corrections sent to the mapper.
+    pub corrections_sent: u64,
+    /// Time spent in loop detection, µs.
+    pub detect_us: u64,
+    /// Gauge: keyframes in the database.
+    pub database_keyframes: u64,
+    /// Keyframes the mapper re-sent to this start (resynchronisation).
+    pub resync_keyframes: u64,
+    /// Per client (`c{i}.{name}`).
+    #[serde(flatten)]
+    pub clients: PerClient<LoopCloserClientCounters>,
+}
+
+/// Counters of one client at the loop closer.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LoopCloserClientCounters {
+    /// Live loop keyframes received (resynchronisation not counted).
+    pub keyframes_received: u64,
+}
+
+impl LoopCloserCounters {
+    /// Client `c`'s counters (zeros when nothing was counted for it).
+    pub fn client(&self, c: u32) -> LoopCloserClientCounters {
+        self.clients.get(c).cloned().unwrap_or_default()
+    }
+}
 
 /// Runs the service; returns the process exit code.
 pub fn main_with(params: Params) -> i32 {
@@ -408,8 +448,10 @@ pub struct LoopCloserCore {
     /// Lock-step synchronisation with the mapper.
     sync: bool,
     detect_only: bool,
-    /// Counters and errors.
+    /// Errors (the counters are put in by [`LoopCloserCore::status_now`]).
     pub status: Status,
+    /// The counters, carried on from a killed predecessor.
+    pub counters: LoopCloserCounters,
 }
 
 impl LoopCloserCore {
@@ -428,6 +470,7 @@ impl LoopCloserCore {
             },
             sync,
             detect_only: params.detect_only,
+            counters: status.counters_as(),
             status,
         };
         let mut out = vec![];
@@ -441,6 +484,12 @@ impl LoopCloserCore {
             out.push(core.resync.ask(0, now_ns));
         }
         (core, out)
+    }
+
+    /// The status as of now (the counters put in), to write.
+    pub fn status_now(&mut self) -> &Status {
+        self.status.put_counters(&self.counters);
+        &self.status
     }
 
     /// Periodic work: a resynchronisation without progress for 2 s (mapper not up yet, or
@@ -462,19 +511,19 @@ impl LoopCloserCore {
         now_ns: i64,
     ) -> Vec<Out> {
         if let Err(e) = h.meta.check() {
-            self.status
-                .error("schema_version", format!("loop keyframe: {e}"));
+            let detail = format!("loop keyframe: {e}");
+            self.status.error(ErrorKind::SchemaVersion, detail);
             return vec![];
         }
         if h.meta.flags & shm_schema::FLAG_RESYNC != 0 {
             return self.on_resync_keyframe(h, records, now_ns);
         }
         let c = h.meta.client_id;
-        self.status.add(&format!("c{c}.keyframes_received"), 1);
+        self.counters.clients.of(c).keyframes_received += 1;
         let mut out = vec![];
         match keyframe_from_wire(h, records) {
             Ok(kf) => self.search(kf, &mut out),
-            Err(e) => self.status.error("bad_keyframe", e),
+            Err(e) => self.status.error(ErrorKind::BadKeyframe, e),
         }
         if self.sync {
             out.push(Out::Correction(done_marker(h, now_ns)));
@@ -494,13 +543,14 @@ impl LoopCloserCore {
         }
         if h.meta.flags & shm_schema::FLAG_END_OF_STREAM != 0 {
             r.done = true;
-            let n = r.received;
-            self.status.counters.insert("resync_keyframes".into(), n);
+            self.counters.resync_keyframes = r.received;
             return vec![];
         }
         match keyframe_from_wire(h, records) {
             Ok(kf) => self.closer.insert(kf),
-            Err(e) => self.status.error("bad_keyframe", format!("resync: {e}")),
+            Err(e) => self
+                .status
+                .error(ErrorKind::BadKeyframe, format!("resync: {e}")),
         }
         let r = &mut self.resync;
         r.received += 1;
@@ -515,31 +565,29 @@ impl LoopCloserCore {
     fn search(&mut self, kf: KeptKeyframe, out: &mut Vec<Out>) {
         let t0 = Instant::now();
         let result = self.closer.add(kf);
-        let s = &mut self.status;
-        s.add("detect_us", t0.elapsed().as_micros() as u64);
-        let n = self.closer.keyframes() as u64;
-        s.counters.insert("database_keyframes".into(), n);
+        let (s, n) = (&mut self.status, &mut self.counters);
+        n.detect_us += t0.elapsed().as_micros() as u64;
+        n.database_keyframes = self.closer.keyframes() as u64;
         let c = match result {
             Ok(None) => return,
             Ok(Some(c)) => c,
-            Err(e) => return s.error("loop", e),
+            Err(e) => return s.error(ErrorKind::Loop, e),
         };
-        let kind = if c.header.kind == CORRECTION_MERGE {
-            "merges"
+        if c.header.kind == CORRECTION_MERGE {
+            n.merges += 1;
         } else {
-            "loops"
-        };
-        s.add(kind, 1);
+            n.loops += 1;
+        }
         eprintln!("loop_closer: {}", c.summary);
         if self.detect_only {
             return;
         }
         if c.records.len() > topics::MAX_CORRECTION_RECORDS {
             let detail = format!("{} records exceed the message", c.records.len());
-            s.error("correction", detail);
+            s.error(ErrorKind::Correction, detail);
         } else {
             out.push(Out::Correction(c));
-            s.add("corrections_sent", 1);
+            n.corrections_sent += 1;
         }
     }
 }
@@ -623,14 +671,46 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             drop(msg);
             publish(&corrections, &resync, out)?;
         }
-        let _ = start
-            .file
-            .write_every(&core.status, Duration::from_millis(200));
+        if start.file.due(Duration::from_millis(200)) {
+            let _ = start.file.write(core.status_now());
+        }
         if idle && node.wait(Duration::from_millis(1)).is_err() {
             break;
         }
     }
     core.status.finished = true;
-    start.file.write(&core.status)?;
+    start.file.write(core.status_now())?;
     Ok(core.status)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The counters keep the names report.json and its readers know (`loops`, `merges`,
+    /// `c0.keyframes_received`, ...) and come back whole from the status file.
+    #[test]
+    fn counter_names_in_the_status_file() {
+        let mut c = LoopCloserCounters {
+            merges: 1,
+            resync_keyframes: 4,
+            ..LoopCloserCounters::default()
+        };
+        c.clients.of(1).keyframes_received = 9;
+        let mut s = Status::new(SERVICE_NAME);
+        s.put_counters(&c);
+        for k in [
+            "loops",
+            "merges",
+            "resync_keyframes",
+            "c1.keyframes_received",
+        ] {
+            assert!(s.counters.contains_key(k), "{k}: {:?}", s.counters);
+        }
+        let text = serde_json::to_string(&s).unwrap();
+        let back: Status = serde_json::from_str(&text).unwrap();
+        assert_eq!(back.counters_as::<LoopCloserCounters>(), c);
+        assert_eq!(c.client(1).keyframes_received, 9);
+        assert_eq!(c.client(0).keyframes_received, 0);
+    }
 }

@@ -9,7 +9,7 @@ use shm_schema::{
     Intrinsics, LoopKeyframeHeader, LoopKeypointRecord, MsgMeta, ResyncRequest, CORRECTION_DONE,
     FLAG_END_OF_STREAM, FLAG_RESYNC,
 };
-use shoal_runtime::Status;
+use shoal_runtime::{ErrorKind, Status};
 
 const S: i64 = 1_000_000_000;
 
@@ -119,7 +119,7 @@ fn a_restarted_loop_closer_resynchronises_in_batches() {
     let (mut end, _) = keyframe(0, 70, 0, FLAG_RESYNC | FLAG_END_OF_STREAM);
     end.n_keypoints = 0;
     assert!(lc.on_keyframe(&end, &[], 5 * S).is_empty());
-    assert_eq!(lc.status.get("resync_keyframes"), 70);
+    assert_eq!(lc.counters.resync_keyframes, 70);
     assert!(lc.on_tick(10 * S).is_empty(), "done: nothing more asked");
     let (h, r) = keyframe(0, 71, 999, FLAG_RESYNC);
     assert!(
@@ -129,7 +129,7 @@ fn a_restarted_loop_closer_resynchronises_in_batches() {
     // The database holds the snapshot: a live keyframe is searched against 70 others.
     let (h, r) = keyframe(0, 0, 200, 0);
     lc.on_keyframe(&h, &r, 11 * S);
-    assert_eq!(lc.status.get("database_keyframes"), 71);
+    assert_eq!(lc.counters.database_keyframes, 71);
     assert!(lc.status.errors.is_empty(), "{:?}", lc.status.errors);
 }
 
@@ -157,15 +157,14 @@ fn lockstep_marks_every_live_keyframe_done() {
         );
         assert_eq!(done.header.query_kf, 500 + k);
     }
-    assert_eq!(lc.status.get("c1.keyframes_received"), 5);
+    assert_eq!(lc.counters.client(1).keyframes_received, 5);
     assert_eq!(
-        lc.status.get("database_keyframes"),
-        4,
+        lc.counters.database_keyframes, 4,
         "the malformed one left out"
     );
     assert_eq!(lc.status.errors.len(), 1, "{:?}", lc.status.errors);
     let e = &lc.status.errors[0];
-    assert_eq!(e.kind, "bad_keyframe");
+    assert_eq!(e.kind, ErrorKind::BadKeyframe);
     assert!(
         e.detail.contains("0x1f6"),
         "names the keyframe: {}",
@@ -181,7 +180,7 @@ fn a_foreign_schema_keyframe_is_refused() {
     let (mut h, r) = keyframe(0, 0, 7, 0);
     h.meta.schema_version += 1;
     assert!(lc.on_keyframe(&h, &r, S).is_empty());
-    assert_eq!(lc.status.get("c0.keyframes_received"), 0);
+    assert_eq!(lc.counters.client(0).keyframes_received, 0);
     assert_eq!(lc.status.errors.len(), 1);
-    assert_eq!(lc.status.errors[0].kind, "schema_version");
+    assert_eq!(lc.status.errors[0].kind, ErrorKind::SchemaVersion);
 }

@@ -16,12 +16,15 @@ use shm_schema::{
 };
 use shoal_runtime::journal::{Entry, Journal, OpenError};
 use shoal_runtime::wire::{intrinsics_from_camera, wire_from_iso};
-use shoal_runtime::{ReplayMode, Status};
+use shoal_runtime::{ErrorKind, ReplayMode, Status};
 use slam_core::ids::{KeyframeId, MapId};
 use slam_core::server::{HandlerParams, KeyframeStatus};
 
 use crate::convert::{self, Correction};
-use crate::worker::{CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker};
+use crate::counters::MapperCounters;
+use crate::worker::{
+    CorrectionKind, CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker,
+};
 use crate::{lockstep, Params};
 
 /// A message the mapper publishes.
@@ -63,8 +66,10 @@ pub struct Mapper {
     pub journal: Option<Journal>,
     out_dir: Option<PathBuf>,
     results_tx: crossbeam_channel::Sender<Report>,
-    /// Counters and errors.
+    /// Errors and gauges (the counters are put in by [`Mapper::status_now`]).
     pub status: Status,
+    /// The counters, carried on from a killed predecessor.
+    pub counters: MapperCounters,
     /// Lock-step synchronisation (`None`: free-running).
     sync: Option<lockstep::LockstepSync>,
     /// Messages to publish, in order.
@@ -91,6 +96,7 @@ impl Mapper {
         };
         let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
         Self {
+            counters: status.counters_as(),
             resync: Vec::new(),
             handler_params: HandlerParams {
                 spatial_keyframes: params.spatial_keyframes,
@@ -119,10 +125,10 @@ impl Mapper {
         let context = || format!("opening the journal {}", path.display());
         let (j, contents) = match Journal::open(path) {
             Err(OpenError::Version(e)) => {
-                self.status.add("journals_rejected", 1);
+                self.counters.journals_rejected += 1;
                 let aside = Journal::set_aside(path).with_context(context)?;
                 self.status.error(
-                    "journal",
+                    ErrorKind::Journal,
                     format!("{e}: not replayed, moved to {}", aside.display()),
                 );
                 Journal::open(path).with_context(context)?
@@ -131,7 +137,7 @@ impl Mapper {
         };
         if let Some(p) = contents.problem {
             self.status
-                .error("journal", format!("{}: {p}", path.display()));
+                .error(ErrorKind::Journal, format!("{}: {p}", path.display()));
         }
         let n = self.replay(contents.entries)?;
         self.status
@@ -154,7 +160,7 @@ impl Mapper {
                     )
                     .context("starting a handler thread")?,
                 );
-                self.status.add("handlers_started", 1);
+                self.counters.handlers_started += 1;
                 let w = self.workers.len() - 1;
                 self.clients[c as usize].worker = Some(w);
                 w
@@ -178,9 +184,9 @@ impl Mapper {
         let (w, from) = match &corr {
             Correction::Merge { from, into, .. } => {
                 let (Some(wf), Some(wi)) = (self.host_of(*from), self.host_of(*into)) else {
-                    self.status.add("corrections_refused", 1);
+                    self.counters.corrections_refused += 1;
                     self.status.error(
-                        "correction",
+                        ErrorKind::Correction,
                         format!(
                             "correction {}: merge of map {from:#x} into {into:#x}: a map has no handler",
                             corr.id()
@@ -201,15 +207,15 @@ impl Mapper {
                             cl.worker = Some(wi);
                         }
                     }
-                    self.status.add("handler_groups_joined", 1);
+                    self.counters.handler_groups_joined += 1;
                 }
                 (wi, Some(*from))
             }
             Correction::PoseGraph { map, .. } => {
                 let Some(w) = self.host_of(*map) else {
-                    self.status.add("corrections_refused", 1);
+                    self.counters.corrections_refused += 1;
                     self.status.error(
-                        "correction",
+                        ErrorKind::Correction,
                         format!("correction {}: map {map:#x} has no handler", corr.id()),
                     );
                     return Ok(());
@@ -245,12 +251,12 @@ impl Mapper {
             }
             return Ok(());
         }
-        self.status.add("corrections_received", 1);
+        self.counters.corrections_received += 1;
         let corr = match convert::correction(h, records) {
             Ok(c) => c,
             Err(e) => {
-                self.status.add("corrections_refused", 1);
-                self.status.error("bad_correction", e);
+                self.counters.corrections_refused += 1;
+                self.status.error(ErrorKind::BadCorrection, e);
                 return Ok(());
             }
         };
@@ -268,7 +274,7 @@ impl Mapper {
     /// snapshot of all maps (a new snapshot when `next` is 0), then, after the last one,
     /// an end marker.
     pub fn resync(&mut self, req: &shm_schema::ResyncRequest) {
-        self.status.add("resync_requests", 1);
+        self.counters.resync_requests += 1;
         if req.next == 0 {
             // A restarted loop closer: what it missed is in the snapshot.
             let next_seq = self.loop_seq;
@@ -297,7 +303,7 @@ impl Mapper {
             let (lh, recs) = convert::loop_keyframe(k, meta, &intr, w, h);
             self.out.push(Out::LoopKeyframe(Box::new(lh), recs));
             self.loop_seq += 1;
-            self.status.add("resync_keyframes_sent", 1);
+            self.counters.resync_keyframes_sent += 1;
         }
         if to == self.resync.len() {
             let mut meta = MsgMeta::new(0, 0, self.loop_seq, monotonic_ns());
@@ -318,22 +324,24 @@ impl Mapper {
         }
         match &o.result {
             Ok(summary) => {
-                self.status
-                    .add(&format!("corrections_applied_{}", o.kind), 1);
-                if o.replay {
-                    self.status.add("corrections_replayed", 1);
+                let n = &mut self.counters;
+                match o.kind {
+                    CorrectionKind::Merge => n.corrections_applied_merge += 1,
+                    CorrectionKind::PoseGraph => n.corrections_applied_pose_graph += 1,
                 }
-                self.status
-                    .add("correction_apply_us", (o.apply_ms * 1e3) as u64);
+                if o.replay {
+                    n.corrections_replayed += 1;
+                }
+                n.correction_apply_us += (o.apply_ms * 1e3) as u64;
                 eprintln!(
                     "mapper: correction {}: {summary} ({:.1} ms)",
                     o.id, o.apply_ms
                 );
             }
             Err(e) => {
-                self.status.add("corrections_refused", 1);
+                self.counters.corrections_refused += 1;
                 self.status
-                    .error("correction", format!("correction {}: {e}", o.id));
+                    .error(ErrorKind::Correction, format!("correction {}: {e}", o.id));
             }
         }
         for f in &o.feedback {
@@ -356,31 +364,23 @@ impl Mapper {
         let (n, kfs, pts) = self.map_sizes.values().fold((0, 0, 0), |a, m| {
             (a.0 + 1, a.1 + m.keyframes as u64, a.2 + m.points as u64)
         });
-        let c = &mut self.status.counters;
-        c.insert("maps".into(), n);
-        c.insert("keyframes".into(), kfs);
-        c.insert("points".into(), pts);
+        let c = &mut self.counters;
+        (c.maps, c.keyframes, c.points) = (n, kfs, pts);
     }
 
     fn set_figures(&mut self, c: u32, f: MapFigures) {
-        let s = &mut self.status;
-        let mut set = |k: String, v: u64| {
-            s.counters.insert(k, v);
-        };
-        set(format!("c{c}.keyframes_kept"), f.stats.kept);
-        set(format!("c{c}.keyframes_discarded"), f.stats.discarded);
-        set(format!("c{c}.keyframes_culled"), f.stats.culled);
-        set(format!("c{c}.revisit_global_ba"), f.stats.revisit_global_ba);
-        set(
-            format!("c{c}.kept_at_session_end"),
-            f.stats.kept_at_session_end,
-        );
-        set(format!("c{c}.maps"), f.stats.maps);
-        set(format!("c{c}.server_keyframes"), f.keyframes as u64);
+        let n = self.counters.clients.of(c);
+        n.keyframes_kept = f.stats.kept;
+        n.keyframes_discarded = f.stats.discarded;
+        n.keyframes_culled = f.stats.culled;
+        n.revisit_global_ba = f.stats.revisit_global_ba;
+        n.kept_at_session_end = f.stats.kept_at_session_end;
+        n.maps = f.stats.maps;
+        n.server_keyframes = f.keyframes as u64;
         if let Some(m) = f.map_id {
-            set(format!("c{c}.map_id"), m.raw());
+            n.map_id = Some(m.raw());
         }
-        s.set_value(&format!("c{c}.lambda"), f.lambda);
+        self.status.set_value(&format!("c{c}.lambda"), f.lambda);
         if let Some(cl) = self.clients.get_mut(c as usize) {
             cl.figures = f;
         }
@@ -406,7 +406,7 @@ impl Mapper {
         };
         self.out.push(Out::Feedback(msg));
         cl.fb_seq += 1;
-        self.status.add(&format!("c{c}.pose_feedback_sent"), 1);
+        self.counters.clients.of(c).pose_feedback_sent += 1;
     }
 
     /// Lock-step: tells the trackers which keyframes are finished ([`lockstep`]): a
@@ -417,7 +417,7 @@ impl Mapper {
         };
         for (k, timed_out) in sync.take_finished(Instant::now()) {
             if timed_out {
-                self.status.add("lockstep_loop_timeouts", 1);
+                self.counters.lockstep_loop_timeouts += 1;
             }
             let Some(cl) = self.clients.get_mut(k.client as usize) else {
                 continue;
@@ -437,10 +437,10 @@ impl Mapper {
                 server_map_id: map_id.raw(),
             }));
             cl.fb_seq += 1;
-            let c = k.client;
-            self.status.add(&format!("c{c}.keyframes_finished"), 1);
+            let n = self.counters.clients.of(k.client);
+            n.keyframes_finished += 1;
             if k.pose.is_some() {
-                self.status.add(&format!("c{c}.pose_feedback_sent"), 1);
+                n.pose_feedback_sent += 1;
             }
         }
     }
@@ -469,7 +469,7 @@ impl Mapper {
                 Entry::Correction { header, records } => {
                     match convert::correction(&header, &records) {
                         Ok(c) => self.dispatch(c, true)?,
-                        Err(e) => self.status.error("journal", e),
+                        Err(e) => self.status.error(ErrorKind::Journal, e),
                     }
                     continue;
                 }
@@ -477,7 +477,7 @@ impl Mapper {
             };
             if client as usize >= self.clients.len() {
                 self.status.error(
-                    "journal",
+                    ErrorKind::Journal,
                     format!("keyframe of client {client} in the journal, serving fewer"),
                 );
                 continue;
@@ -494,7 +494,7 @@ impl Mapper {
                     self.queue(client, job)?;
                     n += 1;
                 }
-                Err(e) => self.status.error("journal", e),
+                Err(e) => self.status.error(ErrorKind::Journal, e),
             }
         }
         Ok(n)
@@ -507,20 +507,19 @@ impl Mapper {
         h: &KeyframeHeader,
         records: &[KeypointRecord],
     ) -> anyhow::Result<()> {
-        let s = &mut self.status;
-        s.add(&format!("c{c}.keyframes_received"), 1);
-        s.add(
-            &format!("c{c}.keyframe_bytes"),
-            (std::mem::size_of::<KeyframeHeader>() + std::mem::size_of_val(records)) as u64,
-        );
+        let n = self.counters.clients.of(c);
+        n.keyframes_received += 1;
+        n.keyframe_bytes +=
+            (std::mem::size_of::<KeyframeHeader>() + std::mem::size_of_val(records)) as u64;
         let key = (h.meta.session_id, h.keyframe_id);
         if self.clients[c as usize].applied.contains(&key) {
-            s.add(&format!("c{c}.keyframes_duplicate"), 1);
+            n.keyframes_duplicate += 1;
         } else {
             match convert::server_keyframe(c, h, records) {
                 Err(e) => {
                     // Acknowledged (a re-send would not be better) but not applied.
-                    s.error("bad_keyframe", format!("client {c}: {e}"));
+                    let detail = format!("client {c}: {e}");
+                    self.status.error(ErrorKind::BadKeyframe, detail);
                 }
                 Ok(kf) => {
                     if let Some(j) = self.journal.as_mut() {
@@ -534,7 +533,7 @@ impl Mapper {
                     let cl = &mut self.clients[c as usize];
                     cl.applied.insert(key);
                     cl.waiting.insert(key, (*h, records.to_vec()));
-                    s.add(&format!("c{c}.keyframes_applied"), 1);
+                    self.counters.clients.of(c).keyframes_applied += 1;
                     self.queue(
                         c,
                         Job::Keyframe {
@@ -559,7 +558,7 @@ impl Mapper {
         };
         self.out.push(Out::Feedback(ack));
         cl.fb_seq += 1;
-        self.status.add(&format!("c{c}.keyframes_acked"), 1);
+        self.counters.clients.of(c).keyframes_acked += 1;
         Ok(())
     }
 
@@ -578,25 +577,25 @@ impl Mapper {
                 .context("writing the journal")?;
             }
         }
-        let s = &mut self.status;
+        let n = self.counters.clients.of(c);
         let cl = &mut self.clients[c as usize];
         let mut loop_seq = None;
         match &o.result {
             Err(e) => {
-                s.error("handler", format!("client {c} keyframe {}: {e}", o.kf_id));
+                let detail = format!("client {c} keyframe {}: {e}", o.kf_id);
+                self.status.error(ErrorKind::Handler, detail);
                 cl.waiting.remove(&key);
             }
             Ok(r) => {
-                let name = match r.status {
-                    KeyframeStatus::First => "first",
-                    KeyframeStatus::MapCreated => "map_created",
-                    KeyframeStatus::Kept => "kept",
-                    KeyframeStatus::Discarded => "discarded",
-                    KeyframeStatus::Duplicate => "duplicate",
-                };
-                s.add(&format!("c{c}.handled_{name}"), 1);
+                *match r.status {
+                    KeyframeStatus::First => &mut n.handled_first,
+                    KeyframeStatus::MapCreated => &mut n.handled_map_created,
+                    KeyframeStatus::Kept => &mut n.handled_kept,
+                    KeyframeStatus::Discarded => &mut n.handled_discarded,
+                    KeyframeStatus::Duplicate => &mut n.handled_duplicate,
+                } += 1;
                 if o.replay {
-                    s.add(&format!("c{c}.keyframes_replayed"), 1);
+                    n.keyframes_replayed += 1;
                 }
                 for k in &r.kept {
                     // Usually of this outcome's session; the previous session's last keyframe
@@ -616,7 +615,7 @@ impl Mapper {
                         self.out.push(Out::LoopKeyframe(Box::new(lh), recs));
                         loop_seq = Some(self.loop_seq);
                         self.loop_seq += 1;
-                        s.add(&format!("c{c}.keyframes_forwarded"), 1);
+                        n.keyframes_forwarded += 1;
                     }
                 }
                 // The first keyframe of a session waits for the second (map creation); the
@@ -625,8 +624,8 @@ impl Mapper {
                 cl.waiting.retain(|k, _| *k > key || (keep && *k == key));
             }
         }
-        s.add(&format!("c{c}.handle_us"), (o.handle_ms * 1e3) as u64);
-        s.add(&format!("c{c}.idle_us"), (o.idle_ms * 1e3) as u64);
+        n.handle_us += (o.handle_ms * 1e3) as u64;
+        n.idle_us += (o.idle_ms * 1e3) as u64;
         if let Some(sync) = self.sync.as_mut() {
             // Lock-step: the feedback goes out once the keyframe is finished.
             sync.push(lockstep::Settling {
@@ -659,6 +658,12 @@ impl Mapper {
         }
         self.send_finished();
         Ok(n)
+    }
+
+    /// The status as of now (the counters put in), to write.
+    pub fn status_now(&mut self) -> &Status {
+        self.status.put_counters(&self.counters);
+        &self.status
     }
 
     /// The messages to publish, in order (taken).

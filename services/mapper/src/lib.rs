@@ -28,6 +28,7 @@
 
 pub mod convert;
 pub mod core;
+pub mod counters;
 pub mod lockstep;
 pub mod ports;
 pub mod worker;
@@ -37,6 +38,7 @@ use std::path::PathBuf;
 use shoal_runtime::ReplayMode;
 use slam_core::server::HandlerParams;
 
+pub use counters::{MapperClientCounters, MapperCounters};
 pub use ports::run;
 
 /// Parameters of the mapper service.

@@ -11,7 +11,7 @@ use shm_schema::{
     CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeypointRecord,
     LoopKeyframeHeader, LoopKeypointRecord, ResyncRequest,
 };
-use shoal_runtime::{ServiceStart, Status};
+use shoal_runtime::{ErrorKind, ServiceStart, Status};
 
 use crate::core::{Mapper, Out};
 use crate::worker::Report;
@@ -77,7 +77,7 @@ impl Ports {
                 let h = *kf.user_header();
                 if let Err(e) = h.meta.check() {
                     let detail = format!("keyframe of client {c}: {e}");
-                    m.status.error("schema_version", detail);
+                    m.status.error(ErrorKind::SchemaVersion, detail);
                     continue;
                 }
                 m.receive(c as u32, &h, kf.payload())?;
@@ -94,7 +94,8 @@ impl Ports {
             n += 1;
             let h = *c.user_header();
             if let Err(e) = h.meta.check() {
-                m.status.error("schema_version", format!("correction: {e}"));
+                let detail = format!("correction: {e}");
+                m.status.error(ErrorKind::SchemaVersion, detail);
                 continue;
             }
             m.receive_correction(&h, c.payload())?;
@@ -110,8 +111,8 @@ impl Ports {
             n += 1;
             let req = *req;
             if let Err(e) = req.meta.check() {
-                m.status
-                    .error("schema_version", format!("resync request: {e}"));
+                let detail = format!("resync request: {e}");
+                m.status.error(ErrorKind::SchemaVersion, detail);
                 continue;
             }
             m.resync(&req);
@@ -157,8 +158,8 @@ fn drain(
     ports.outcomes(m, rx)?;
     for (i, w) in m.workers.iter_mut().enumerate() {
         if w.is_finished() && !w.join() {
-            m.status
-                .error("handler", format!("handler thread {i} panicked"));
+            let detail = format!("handler thread {i} panicked");
+            m.status.error(ErrorKind::Handler, detail);
         }
     }
     Ok(())
@@ -186,9 +187,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         busy |= ports.corrections(&mut m)? > 0;
         busy |= ports.outcomes(&mut m, &results_rx)? > 0;
         busy |= ports.resync(&mut m)? > 0;
-        let _ = start
-            .file
-            .write_every(&m.status, Duration::from_millis(200));
+        if start.file.due(Duration::from_millis(200)) {
+            let _ = start.file.write(m.status_now());
+        }
         if !busy {
             trimmer.maybe_trim();
             if ports.node.wait(Duration::from_millis(1)).is_err() {
@@ -198,6 +199,6 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     }
     drain(&mut m, &ports, &results_rx, params.drain_seconds)?;
     m.status.finished = true;
-    start.file.write(&m.status)?;
+    start.file.write(m.status_now())?;
     Ok(std::mem::take(&mut m.status))
 }

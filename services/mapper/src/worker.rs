@@ -122,13 +122,22 @@ pub struct Outcome {
     pub idle_ms: f64,
 }
 
+/// The two kinds of correction.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CorrectionKind {
+    /// A map merged into another.
+    Merge,
+    /// A pose graph correction within one map.
+    PoseGraph,
+}
+
 /// What a worker did with a correction.
 #[derive(Debug)]
 pub struct CorrectionOutcome {
     /// Correction id.
     pub id: u64,
-    /// `merge` or `pose_graph`.
-    pub kind: &'static str,
+    /// Merge or pose graph correction.
+    pub kind: CorrectionKind,
     /// A one-line summary, or why it was refused.
     pub result: Result<String, String>,
     /// Replayed from the journal.
@@ -358,8 +367,8 @@ fn correct(
     CorrectionOutcome {
         id: correction.id(),
         kind: match correction {
-            Correction::Merge { .. } => "merge",
-            Correction::PoseGraph { .. } => "pose_graph",
+            Correction::Merge { .. } => CorrectionKind::Merge,
+            Correction::PoseGraph { .. } => CorrectionKind::PoseGraph,
         },
         result,
         replay,

@@ -15,7 +15,7 @@ use mapper::Params;
 use shm_schema::{
     Feedback, FrameHeader, ImuMsg, Intrinsics, MsgMeta, FLAG_END_OF_STREAM, FLAG_HANDLED,
 };
-use shoal_runtime::Status;
+use shoal_runtime::{ErrorKind, Status};
 use tracker::core::{CoreConfig, FrameIn, FrameStep, Out as TrackerOut, TrackerCore};
 use tracker::outbox::KeyframeMsg;
 
@@ -172,8 +172,8 @@ impl Published {
     }
 }
 
-fn map_size(s: &Status) -> (u64, u64, u64) {
-    (s.get("maps"), s.get("keyframes"), s.get("points"))
+fn map_size(m: &Mapper) -> (u64, u64, u64) {
+    (m.counters.maps, m.counters.keyframes, m.counters.points)
 }
 
 /// Every keyframe of the tracker is journaled, acknowledged once and handled; the kept ones
@@ -194,22 +194,25 @@ fn tracker_keyframes_through_the_mapper_core() {
     let s = &m.status;
     eprintln!(
         "{sent} keyframes: kept {}, discarded {}, forwarded {}, server poses {}, map {:?}",
-        s.get("c0.keyframes_kept"),
-        s.get("c0.keyframes_discarded"),
+        m.counters.client(0).keyframes_kept,
+        m.counters.client(0).keyframes_discarded,
         out.loop_keyframes,
         out.poses,
-        map_size(s)
+        map_size(&m)
     );
     assert!(sent >= 8, "{sent} keyframes");
     assert_eq!(out.acks, msgs, "each keyframe acknowledged once, in order");
-    assert_eq!(s.get("c0.keyframes_applied"), sent as u64);
-    assert_eq!(s.get("c0.keyframes_duplicate"), 0);
-    assert_eq!(s.get("maps"), 1, "one map");
-    let kept = s.get("c0.keyframes_kept");
+    assert_eq!(m.counters.client(0).keyframes_applied, sent as u64);
+    assert_eq!(m.counters.client(0).keyframes_duplicate, 0);
+    assert_eq!(m.counters.maps, 1, "one map");
+    let kept = m.counters.client(0).keyframes_kept;
     assert!(kept >= 4, "{kept} kept");
-    assert!(s.get("keyframes") >= kept, "the map holds what was kept");
-    assert!(s.get("points") > 100, "{} points", s.get("points"));
-    assert_eq!(out.loop_keyframes as u64, s.get("c0.keyframes_forwarded"));
+    assert!(m.counters.keyframes >= kept, "the map holds what was kept");
+    assert!(m.counters.points > 100, "{} points", m.counters.points);
+    assert_eq!(
+        out.loop_keyframes as u64,
+        m.counters.client(0).keyframes_forwarded
+    );
     assert!(
         out.loop_keyframes as u64 >= kept - 1,
         "kept keyframes forwarded"
@@ -218,17 +221,19 @@ fn tracker_keyframes_through_the_mapper_core() {
     assert!(s.errors.is_empty(), "{:?}", s.errors);
 }
 
-fn handled(s: &Status) -> u64 {
-    ["kept", "discarded", "first", "map_created", "duplicate"]
-        .iter()
-        .map(|k| s.get(&format!("c0.handled_{k}")))
-        .sum()
+fn handled(m: &Mapper) -> u64 {
+    let c = m.counters.client(0);
+    c.handled_kept
+        + c.handled_discarded
+        + c.handled_first
+        + c.handled_map_created
+        + c.handled_duplicate
 }
 
 /// Handles all keyframes waiting in the handlers.
 fn finish(m: &mut Mapper, rx: &Receiver<Report>, n: u64, out: &mut Published) {
     let deadline = Instant::now() + Duration::from_secs(60);
-    while handled(&m.status) < n {
+    while handled(m) < n {
         m.drain_outcomes(rx).expect("outcomes");
         out.take(m);
         assert!(Instant::now() < deadline, "handlers did not finish");
@@ -253,7 +258,7 @@ fn a_restarted_mapper_rebuilds_its_map_from_the_journal() {
         out.take(&mut m)
     }) as u64;
     finish(&mut m, &rx, sent, &mut out);
-    let before = map_size(&m.status);
+    let before = map_size(&m);
     drop(m);
 
     let (mut m2, rx2) = mapper(Some(&journal));
@@ -261,8 +266,8 @@ fn a_restarted_mapper_rebuilds_its_map_from_the_journal() {
     assert_eq!(on_start, Some(sent as f64), "every keyframe replayed");
     let mut out2 = Published::default();
     finish(&mut m2, &rx2, sent, &mut out2);
-    assert_eq!(m2.status.get("c0.keyframes_replayed"), sent);
-    assert_eq!(map_size(&m2.status), before, "the same map rebuilt");
+    assert_eq!(m2.counters.client(0).keyframes_replayed, sent);
+    assert_eq!(map_size(&m2), before, "the same map rebuilt");
     assert_eq!(out2.acks.len(), 0, "a replay acknowledges nothing");
 
     let (first, rest) = msgs.split_at(1);
@@ -273,9 +278,9 @@ fn a_restarted_mapper_rebuilds_its_map_from_the_journal() {
     out2.take(&mut m2);
     let keys: Vec<_> = msgs.iter().map(KeyframeMsg::key).collect();
     assert_eq!(out2.acks, keys, "each re-send acknowledged again");
-    assert_eq!(m2.status.get("c0.keyframes_duplicate"), sent);
-    assert_eq!(m2.status.get("c0.keyframes_applied"), 0);
-    assert_eq!(map_size(&m2.status), before, "nothing applied twice");
+    assert_eq!(m2.counters.client(0).keyframes_duplicate, sent);
+    assert_eq!(m2.counters.client(0).keyframes_applied, 0);
+    assert_eq!(map_size(&m2), before, "nothing applied twice");
     assert!(m2.status.errors.is_empty(), "{:?}", m2.status.errors);
 }
 
@@ -302,16 +307,16 @@ fn a_malformed_keyframe_is_acknowledged_counted_and_skipped() {
     finish(&mut m, &rx, sent - 1, &mut out);
     let s = &m.status;
     assert_eq!(out.acks.len() as u64, sent, "all acknowledged");
-    assert_eq!(s.get("c0.keyframes_applied"), sent - 1);
+    assert_eq!(m.counters.client(0).keyframes_applied, sent - 1);
     let errs: Vec<_> = s
         .errors
         .iter()
-        .filter(|e| e.kind == "bad_keyframe")
+        .filter(|e| e.kind == ErrorKind::BadKeyframe)
         .collect();
     assert_eq!(errs.len(), 1, "{:?}", s.errors);
     assert!(errs[0].detail.contains("client 0"), "{}", errs[0].detail);
     assert!(
-        s.get("keyframes") >= 4,
+        m.counters.keyframes >= 4,
         "the map grew past the bad keyframe"
     );
 }

@@ -3,8 +3,13 @@
 //! resume), error records, the readiness line and the exit codes.
 #![deny(missing_docs)]
 
+mod error_kind;
 pub mod journal;
+mod per_client;
 pub mod wire;
+
+pub use error_kind::ErrorKind;
+pub use per_client::PerClient;
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -29,12 +34,16 @@ pub struct ErrorRecord {
     /// Service that met it, e.g. `camera_ingest:0`.
     pub service: String,
     /// Machine-friendly kind, e.g. `corrupt_image`, `malformed_line`, `schema_version`.
-    pub kind: String,
+    pub kind: ErrorKind,
     /// Human-readable detail naming the file/line or the message.
     pub detail: String,
 }
 
-/// The on-disk status of one service: counters, errors, and whether it finished.
+/// The on-disk status of one service: counters, errors, whether it finished, and its
+/// crash-recovery state. A service keeps its counters as its own struct (the one list of
+/// their names, [`Status::put_counters`]) and its crash-recovery state as another, with a
+/// format version ([`Status::set_resume`]); readers take the counters back with the same
+/// struct ([`Status::counters_as`]).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Status {
     /// Service name with client index, e.g. `tracker:0`.
@@ -45,12 +54,14 @@ pub struct Status {
     pub starts: u64,
     /// True once the service reached the end of its input and stopped by itself.
     pub finished: bool,
-    /// Named counters (frames_published, keyframes_acked, ...).
+    /// The counters by name (frames_published, keyframes_acked, ...), as the service's
+    /// counters struct put them ([`Status::put_counters`]).
     pub counters: BTreeMap<String, u64>,
-    /// Named values that are not counters (resume index, last sequence, ...).
+    /// Named gauges that are not counters and are not read back (scale ratio, queue length
+    /// at the stop, ...).
     pub values: BTreeMap<String, f64>,
     /// Error counts per kind (all errors, also those not kept in `errors`).
-    pub error_counts: BTreeMap<String, u64>,
+    pub error_counts: BTreeMap<ErrorKind, u64>,
     /// The first [`MAX_ERROR_RECORDS`] errors.
     pub errors: Vec<ErrorRecord>,
     /// The service's crash-recovery state ([`Status::set_resume`]), typed and versioned by
@@ -76,16 +87,6 @@ impl Status {
             starts: 1,
             ..Self::default()
         }
-    }
-
-    /// Adds `n` to counter `name`.
-    pub fn add(&mut self, name: &str, n: u64) {
-        *self.counters.entry(name.to_string()).or_insert(0) += n;
-    }
-
-    /// Value of counter `name` (0 when absent).
-    pub fn get(&self, name: &str) -> u64 {
-        self.counters.get(name).copied().unwrap_or(0)
     }
 
     /// Sets value `name`.
@@ -121,35 +122,47 @@ impl Status {
         self.resume = serde_json::to_value(Versioned { version, state }).ok();
     }
 
-    /// Takes the crash-recovery state a predecessor left, if it is of format `version`; one
-    /// of another version or unreadable is an error (`resume_state`) and the service starts
+    /// Takes the crash-recovery state a predecessor left, if it is of format `version`
+    /// (none left: `None`, no error). One of another version or unreadable is an error
+    /// ([`ErrorKind::ResumeState`], counted and named in the log) and the service starts
     /// afresh.
     pub fn take_resume<T: DeserializeOwned>(&mut self, version: u32) -> Option<T> {
         let v = self.resume.take()?;
-        match serde_json::from_value::<Versioned<T>>(v) {
-            Ok(r) if r.version == version => Some(r.state),
-            Ok(r) => {
-                let detail = format!("state of format {}, this build reads {version}", r.version);
-                self.error("resume_state", detail);
-                None
+        let version_of = |v: &serde_json::Value| v.get("version").and_then(|n| n.as_u64());
+        match version_of(&v) {
+            Some(found) if found != u64::from(version) => {
+                let detail =
+                    format!("state of format {found}, this build reads {version}: starting afresh");
+                self.error(ErrorKind::ResumeState, detail);
+                return None;
             }
+            _ => {}
+        }
+        match serde_json::from_value::<Versioned<T>>(v) {
+            Ok(r) => Some(r.state),
             Err(e) => {
-                self.error("resume_state", format!("unreadable: {e}"));
+                let detail = format!("unreadable ({e}): starting afresh");
+                self.error(ErrorKind::ResumeState, detail);
                 None
             }
         }
     }
 
+    /// Errors of `kind` counted so far.
+    pub fn errors_of(&self, kind: ErrorKind) -> u64 {
+        self.error_counts.get(&kind).copied().unwrap_or(0)
+    }
+
     /// Records an error: counted by kind, kept verbatim up to [`MAX_ERROR_RECORDS`], and
     /// printed on stderr (the service's log).
-    pub fn error(&mut self, kind: &str, detail: impl Into<String>) {
+    pub fn error(&mut self, kind: ErrorKind, detail: impl Into<String>) {
         let detail = detail.into();
         eprintln!("[{}] error {kind}: {detail}", self.service);
-        *self.error_counts.entry(kind.to_string()).or_insert(0) += 1;
+        *self.error_counts.entry(kind).or_insert(0) += 1;
         if self.errors.len() < MAX_ERROR_RECORDS {
             self.errors.push(ErrorRecord {
                 service: self.service.clone(),
-                kind: kind.to_string(),
+                kind,
                 detail,
             });
         }
@@ -320,7 +333,7 @@ pub fn report_dataset_issues(status: &mut Status, dataset: &datasets::Dataset, i
         .filter(|i| is_imu_file(&i.path) == imu)
     {
         let detail = format!("{}:{}: {}", i.path.display(), i.line, i.detail);
-        status.error(&i.kind, detail);
+        status.error(i.kind.into(), detail);
     }
 }
 
@@ -372,17 +385,22 @@ mod tests {
         let path = dir.join("s.json");
         let mut f = StatusFile::new(Some(path.clone()));
         let mut s = Status::new("tracker:0");
-        s.add("frames", 3);
-        s.error("corrupt_image", "x.png: bad");
+        s.put_counters(&Counts {
+            frames: 3,
+            flag: None,
+        });
+        s.error(ErrorKind::CorruptImage, "x.png: bad");
         f.write(&s).unwrap();
         let r = resume_status(&f, "tracker:0");
-        assert_eq!(r.get("frames"), 3);
+        assert_eq!(r.counters_as::<Counts>().frames, 3);
         assert_eq!(r.starts, 2);
-        assert_eq!(r.error_counts["corrupt_image"], 1);
+        assert_eq!(r.errors_of(ErrorKind::CorruptImage), 1);
         let other = resume_status(&f, "tracker:1");
         assert_eq!(other.starts, 1);
         let json: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        assert_eq!(json["error_counts"]["corrupt_image"], 1, "{json}");
+        assert_eq!(json["errors"][0]["kind"], "corrupt_image", "{json}");
         if cfg!(all(target_os = "linux", target_env = "gnu")) {
             assert!(json["heap_in_use_bytes"].as_u64().unwrap() > 0, "{json}");
         }
@@ -425,10 +443,31 @@ mod tests {
         assert!(back.resume.is_none(), "taken");
         let mut old: Status = serde_json::from_str(&text).unwrap();
         assert_eq!(old.take_resume::<State>(3), None);
-        assert_eq!(old.error_counts["resume_state"], 1);
+        assert_eq!(old.errors_of(ErrorKind::ResumeState), 1);
         assert!(old.errors[0]
             .detail
             .contains("format 2, this build reads 3"));
+    }
+
+    /// No resume section (a first start, or a predecessor that never wrote one): nothing to
+    /// resume and no error; a section of the right version that does not parse as the
+    /// state: an error and a fresh start, never a panic.
+    #[test]
+    fn missing_or_unreadable_resume_state() {
+        let mut s = Status::new("x:0");
+        assert_eq!(s.take_resume::<State>(1), None);
+        assert!(s.error_counts.is_empty());
+        let mut text = serde_json::to_value(&s).unwrap();
+        assert!(text.get("resume").is_none(), "no section written: {text}");
+        text["resume"] = serde_json::json!({"version": 1, "state": {"nxt": 4}});
+        let mut bad: Status = serde_json::from_value(text).unwrap();
+        assert_eq!(bad.take_resume::<State>(1), None);
+        assert_eq!(bad.errors_of(ErrorKind::ResumeState), 1);
+        assert!(
+            bad.errors[0].detail.contains("unreadable"),
+            "{:?}",
+            bad.errors
+        );
     }
 
     // The heap statistics and the trimmer are tested in their own process

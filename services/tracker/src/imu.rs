@@ -6,7 +6,7 @@ use std::collections::VecDeque;
 
 use nalgebra::Vector3;
 use shm_schema::{FrameHeader, ImuMsg};
-use shoal_runtime::Status;
+use shoal_runtime::{ErrorKind, Status};
 
 use crate::core::TrackerCounters;
 
@@ -43,7 +43,10 @@ impl ImuInput {
         client: u32,
     ) -> bool {
         if let Err(e) = m.meta.check() {
-            status.error("schema_version", format!("imu of client {client}: {e}"));
+            status.error(
+                ErrorKind::SchemaVersion,
+                format!("imu of client {client}: {e}"),
+            );
             return false;
         }
         if m.meta.is_end_of_stream() {
@@ -63,7 +66,7 @@ impl ImuInput {
             if m.t_ns <= t {
                 let (seq, t_ns) = (m.meta.seq, m.t_ns);
                 status.error(
-                    "non_monotonic",
+                    ErrorKind::NonMonotonic,
                     format!("imu sample {seq} at {t_ns} ns not after {t} ns"),
                 );
                 return false;

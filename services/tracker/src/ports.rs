@@ -13,7 +13,7 @@ use shm_schema::topics::{self, Ipc};
 use shm_schema::{
     Feedback, FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeypointRecord, TrackedPose,
 };
-use shoal_runtime::{ServiceStart, Status, StatusFile};
+use shoal_runtime::{ErrorKind, ServiceStart, Status, StatusFile};
 
 use crate::core::{CoreConfig, FrameIn, FrameStep, KeyframeKey, Out, TrackerCore};
 use crate::outbox::KeyframeMsg;
@@ -101,7 +101,8 @@ impl Ports {
             return;
         };
         if let Err(e) = sp.write(c, &m.header, &m.records) {
-            status.error("spool", format!("keyframe {}: {e}", m.header.keyframe_id));
+            let detail = format!("keyframe {}: {e}", m.header.keyframe_id);
+            status.error(ErrorKind::Spool, detail);
         }
     }
 
@@ -293,14 +294,14 @@ fn open_spool(params: &Params, ports: &mut Ports, core: &mut TrackerCore) -> any
     let mut sp = match spool::Spool::open(dir) {
         Ok(s) => s,
         Err(e) => {
-            core.status_mut()
-                .error("spool", format!("{}: {e}", dir.display()));
+            let detail = format!("{}: {e}", dir.display());
+            core.status_mut().error(ErrorKind::Spool, detail);
             return Ok(());
         }
     };
     let rec = sp.recover(params.client);
     for e in rec.errors {
-        core.status_mut().error("spool", e);
+        core.status_mut().error(ErrorKind::Spool, e);
     }
     ports.spool = Some(sp);
     for k in rec.keyframes {

@@ -6,6 +6,7 @@ use nalgebra::{Isometry3, Vector3};
 use shm_schema::{
     stage, FrameAck, FrameHeader, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL,
 };
+use shoal_runtime::ErrorKind;
 use slam_core::features::GrayImage;
 use slam_core::vo::{VoFrame, VoOutput};
 
@@ -139,7 +140,7 @@ impl TrackerCore {
         if f.pixels.len() != h.payload_len() {
             let (seq, n, want) = (h.meta.seq, f.pixels.len(), h.payload_len());
             let detail = format!("frame {seq}: {n} bytes, header says {want}");
-            self.status.error("bad_frame", detail);
+            self.status.error(ErrorKind::BadFrame, detail);
         }
         let mut t = Tracked::untracked(h, f.recv_ns, self.session_id());
         if self.trackable(&h, f.pixels.len()) {
@@ -152,8 +153,8 @@ impl TrackerCore {
     fn admit(&mut self, h: &FrameHeader, now_ns: i64) -> Option<FrameStep> {
         let c = self.cfg.client;
         if let Err(e) = h.meta.check() {
-            self.status
-                .error("schema_version", format!("frame of client {c}: {e}"));
+            let detail = format!("frame of client {c}: {e}");
+            self.status.error(ErrorKind::SchemaVersion, detail);
             return Some(FrameStep::Done(vec![]));
         }
         if h.meta.is_end_of_stream() {
@@ -235,8 +236,8 @@ impl TrackerCore {
         let mut o = match result {
             Ok(o) => o,
             Err(e) => {
-                self.status
-                    .error("vo", format!("frame {}: {e}", h.meta.seq));
+                let detail = format!("frame {}: {e}", h.meta.seq);
+                self.status.error(ErrorKind::Vo, detail);
                 return Ok(());
             }
         };

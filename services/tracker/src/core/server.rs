@@ -5,7 +5,7 @@ use std::collections::HashSet;
 
 use nalgebra::Isometry3;
 use shm_schema::{Feedback, Pose, FLAG_HANDLED};
-use shoal_runtime::Status;
+use shoal_runtime::{ErrorKind, Status};
 use slam_core::ids::MapId;
 
 use super::counters::{TrackerCounters, TrackerResume};
@@ -90,7 +90,7 @@ impl ServerState {
     ) {
         if f.meta.check().is_err() {
             let c = self.client;
-            status.error("schema_version", format!("feedback of client {c}"));
+            status.error(ErrorKind::SchemaVersion, format!("feedback of client {c}"));
             return;
         }
         counters.feedback_received += 1;

@@ -8,7 +8,7 @@ use shm_schema::{
     Feedback, FrameHeader, ImuMsg, MsgMeta, Pose, TrackState, FLAG_BACKFILL, FLAG_END_OF_STREAM,
     FLAG_HANDLED, FLAG_RESEND,
 };
-use shoal_runtime::Status;
+use shoal_runtime::{ErrorKind, Status};
 use slam_core::ids::SessionId;
 
 use super::*;
@@ -86,10 +86,11 @@ fn transport_counts_gaps_duplicates_foreign_frames_and_the_end() {
     assert!(matches!(&out[0], Out::Ack(a) if a.frame_t_ns == i64::MAX));
     assert!(matches!(&out[1], Out::Pose(p) if p.meta.flags & FLAG_END_OF_STREAM != 0));
     let s = core.finish();
-    assert_eq!(s.get("frames_received"), 3);
-    assert_eq!(s.get("frames_gap"), 2);
-    assert_eq!(s.get("frames_duplicate"), 1);
-    assert_eq!(s.error_counts["schema_version"], 1);
+    let c: TrackerCounters = s.counters_as();
+    assert_eq!(c.frames_received, 3);
+    assert_eq!(c.frames_gap, 2);
+    assert_eq!(c.frames_duplicate, 1);
+    assert_eq!(s.errors_of(ErrorKind::SchemaVersion), 1);
     assert!(s.finished);
 }
 
@@ -97,8 +98,11 @@ fn transport_counts_gaps_duplicates_foreign_frames_and_the_end() {
 fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     let mut prev = Status::new("tracker:0");
     prev.starts = 3;
-    prev.add("keyframes_sent", 10);
-    prev.add("keyframes_acked_seen", 7);
+    prev.put_counters(&TrackerCounters {
+        keyframes_sent: 10,
+        keyframes_acked_seen: 7,
+        ..TrackerCounters::default()
+    });
     let left = TrackerResume {
         last_frame_seq: Some(41),
         keyframes_unacked: 2,
@@ -132,8 +136,9 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     );
     assert!(matches!(&out[0], Out::Keyframe(m) if m.key() == (StartIds::new(2).session(1), 9)));
     let mut s = core.finish();
-    assert_eq!(s.get("keyframes_sent"), 11);
-    assert_eq!(s.get("keyframes_recovered"), 1);
+    let c: TrackerCounters = s.counters_as();
+    assert_eq!(c.keyframes_sent, 11);
+    assert_eq!(c.keyframes_recovered, 1);
     let next: TrackerResume = s.take_resume(RESUME_VERSION).expect("resume state");
     assert_eq!((next.last_frame_seq, next.keyframes_unacked), (Some(47), 1));
 }
@@ -153,7 +158,7 @@ fn a_resume_state_of_another_format_is_refused_and_the_tracker_starts_afresh() {
     step(&mut core, header(0), &[]);
     let c = core.counters().clone();
     assert_eq!((c.frames_received, c.frames_gap_at_restart), (1, 0));
-    assert_eq!(core.status().error_counts["resume_state"], 1);
+    assert_eq!(core.status().errors_of(ErrorKind::ResumeState), 1);
 }
 
 /// A mapper that applies every keyframe at once and answers with its client pose as server
@@ -325,10 +330,11 @@ fn check_run(run: &Run, s: Status) {
         run.awaited
     );
     assert!(checked >= 60, "{checked} frames with a server pose");
-    assert_eq!(s.get("keyframes_sent"), run.sent.len() as u64);
-    assert_eq!(s.get("keyframes_acked_seen"), run.sent.len() as u64);
-    assert_eq!(s.get("frames_gyro_rs"), 120);
-    assert_eq!(s.get("lockstep_imu_timeouts"), 0);
+    let c: TrackerCounters = s.counters_as();
+    assert_eq!(c.keyframes_sent, run.sent.len() as u64);
+    assert_eq!(c.keyframes_acked_seen, run.sent.len() as u64);
+    assert_eq!(c.frames_gyro_rs, 120);
+    assert_eq!(c.lockstep_imu_timeouts, 0);
     assert!(s.errors.is_empty(), "{:?}", s.errors);
 }
 
