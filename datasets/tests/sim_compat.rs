@@ -77,5 +77,9 @@ fn ground_truth_states_read_back() {
     // A short line is skipped and recorded.
     std::fs::write(&csv, "#t\n1,2,3\n").expect("write");
     let states = euroc::read_gt_states_csv(&csv, &mut issues).expect("read");
-    assert!(states.is_empty() && issues.len() == 1 && issues[0].kind == datasets::IssueKind::MalformedLine);
+    assert!(
+        states.is_empty()
+            && issues.len() == 1
+            && issues[0].kind == datasets::IssueKind::MalformedLine
+    );
 }
