@@ -671,3 +671,48 @@ impl Mapper {
         self.out.drain(..)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    /// A journal without the version header (as an older binary wrote it) is not replayed:
+    /// the mapper records and counts the error, moves the file aside and starts a new
+    /// journal, which it then replays like any other.
+    #[test]
+    fn a_journal_of_another_version_is_set_aside_and_counted() {
+        let dir = std::env::temp_dir().join(format!("shoal_mapper_journal_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("mapper_journal.bin");
+        let old = shoal_runtime::journal::encode_entry(&Entry::Idle {
+            client: 0,
+            session: 1,
+            kf_id: 3,
+        });
+        std::fs::write(&path, &old).expect("write");
+        let params = crate::Params::parse_from(["mapper", "--clients", "1"]);
+        let (tx, _rx) = crossbeam_channel::unbounded();
+        let mut m = Mapper::new(&params, Status::new("mapper"), tx);
+        m.open_journal(&path).expect("starts fresh");
+        assert_eq!(m.status.get("journals_rejected"), 1);
+        assert_eq!(m.status.error_counts["journal"], 1);
+        let detail = &m.status.errors[0].detail;
+        assert!(detail.contains("no journal header"), "{detail}");
+        assert!(detail.contains(&path.display().to_string()), "{detail}");
+        assert_eq!(
+            std::fs::read(dir.join("mapper_journal.bin.rejected")).expect("set aside"),
+            old
+        );
+        drop(m);
+        // The new journal is of this version: a second start replays it without an error.
+        let (tx, _rx) = crossbeam_channel::unbounded();
+        let mut m = Mapper::new(&params, Status::new("mapper"), tx);
+        m.open_journal(&path).expect("reopen");
+        assert_eq!(m.status.get("journals_rejected"), 0);
+        assert!(m.status.errors.is_empty(), "{:?}", m.status.errors);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
