@@ -1,6 +1,8 @@
 //! Camera models: pinhole with radial-tangential (Brown) distortion, seed eq. 2.57-2.60.
 
-use nalgebra::{Matrix2, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix2x3, Matrix2x6, Vector2, Vector3};
+
+use crate::lie::skew;
 
 /// Pinhole camera with radial-tangential distortion (seed eq. 2.57-2.60).
 ///
@@ -79,6 +81,32 @@ impl PinholeRadtan {
             self.fx * xd.x + self.cx,
             self.fy * xd.y + self.cy,
         ))
+    }
+
+    /// [`PinholeRadtan::project`] with the Jacobian `∂uv/∂p_c` (2x3) of the pixel with respect
+    /// to the camera-frame point, through the distortion:
+    /// `∂uv/∂p_c = diag(fx, fy) · ∂distort/∂x_n · ∂x_n/∂p_c`,
+    /// `∂x_n/∂p_c = [1/z, 0, -x/z²; 0, 1/z, -y/z²]`. `None` when the point is not in front of
+    /// the camera (as [`PinholeRadtan::project`]). The one copy of the projection Jacobian:
+    /// bundle adjustment, the pose-only optimiser and the Sim(3) refinement chain it with
+    /// `∂p_c/∂(their unknowns)` ([`pose_jacobian`] for an SE(3) pose).
+    #[inline]
+    pub fn project_with_jacobian(
+        &self,
+        p_c: &Vector3<f64>,
+    ) -> Option<(Vector2<f64>, Matrix2x3<f64>)> {
+        let uv = self.project(p_c)?;
+        let iz = 1.0 / p_c.z;
+        let xn = Vector2::new(p_c.x * iz, p_c.y * iz);
+        let dxn_dp = Matrix2x3::new(iz, 0.0, -xn.x * iz, 0.0, iz, -xn.y * iz);
+        let mut du_dp = if self.is_undistorted() {
+            dxn_dp
+        } else {
+            self.distort_jacobian(&xn) * dxn_dp
+        };
+        du_dp.row_mut(0).scale_mut(self.fx);
+        du_dp.row_mut(1).scale_mut(self.fy);
+        Some((uv, du_dp))
     }
 
     /// Applies the radial-tangential distortion to normalised coordinates `x_n = (x/z, y/z)`
@@ -222,6 +250,20 @@ impl PinholeRadtan {
     }
 }
 
+/// Jacobian (2x6) of a pixel with respect to the left pose increment `T_cw ← Exp(δ) T_cw`,
+/// `δ = [ω; v]` (rotation first, as [`crate::lie`]), given `∂uv/∂p` (from
+/// [`PinholeRadtan::project_with_jacobian`], possibly chained with a fixed rotation) and the
+/// point `p = T_cw p_w` the increment moves: `∂p/∂δ = [-[p]x | I]`, so the columns are
+/// `[-∂uv/∂p [p]x | ∂uv/∂p]`.
+#[inline]
+pub fn pose_jacobian(d_uv_dp: &Matrix2x3<f64>, p: &Vector3<f64>) -> Matrix2x6<f64> {
+    let mut j = Matrix2x6::zeros();
+    j.fixed_view_mut::<2, 3>(0, 0)
+        .copy_from(&(-(d_uv_dp * skew(p))));
+    j.fixed_view_mut::<2, 3>(0, 3).copy_from(d_uv_dp);
+    j
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -291,6 +333,42 @@ mod tests {
             let num = (cam.distort(&(x + dx)) - cam.distort(&(x - dx))) / (2.0 * h);
             assert!((num - j.column(c)).norm() < 1e-8);
         }
+    }
+
+    #[test]
+    fn projection_jacobians_match_finite_differences() {
+        let h = 1e-6;
+        for cam in [
+            euroc(),
+            PinholeRadtan::pinhole(640, 480, 500.0, 510.0, 320.0, 240.0),
+        ] {
+            let p = Vector3::new(0.4, -0.3, 2.5);
+            let (uv, j) = cam.project_with_jacobian(&p).expect("in front");
+            assert_eq!(Some(uv), cam.project(&p));
+            for c in 0..3 {
+                let mut d = Vector3::zeros();
+                d[c] = h;
+                let num =
+                    (cam.project(&(p + d)).unwrap() - cam.project(&(p - d)).unwrap()) / (2.0 * h);
+                assert!((num - j.column(c)).norm() < 1e-5, "column {c}");
+            }
+            // Pose Jacobian: left increment Exp(δ) applied to p.
+            let jp = pose_jacobian(&j, &p);
+            for c in 0..6 {
+                let mut d = nalgebra::Vector6::zeros();
+                d[c] = h;
+                let f = |d: &nalgebra::Vector6<f64>| {
+                    let t = crate::lie::se3_exp(d);
+                    cam.project(&(t * nalgebra::Point3::from(p)).coords)
+                        .unwrap()
+                };
+                let num = (f(&d) - f(&-d)) / (2.0 * h);
+                assert!((num - jp.column(c)).norm() < 1e-4, "pose column {c}");
+            }
+        }
+        assert!(euroc()
+            .project_with_jacobian(&Vector3::new(0.0, 0.0, -1.0))
+            .is_none());
     }
 
     #[test]

@@ -7,7 +7,7 @@
 //! Left perturbation `S ← Exp(ξ) S`, `ξ = [ω; ρ; σ]` (rotation first, [`Sim3::exp`]). Accumulation is in
 //! place into a 7x7 system on the stack: nothing is allocated per residual.
 
-use nalgebra::{Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
+use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
 
 use crate::camera::PinholeRadtan;
 use crate::lie::{skew, Matrix7, Sim3, Vector7};
@@ -50,24 +50,6 @@ impl Default for RefineParams {
     }
 }
 
-/// Pixel projection and its Jacobian with respect to the point (camera frame).
-#[inline]
-pub(crate) fn project_with_jacobian(
-    cam: &PinholeRadtan,
-    p: &Vector3<f64>,
-) -> Option<(Vector2<f64>, Matrix2x3<f64>)> {
-    if p.z <= 1e-9 || !p.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    let iz = 1.0 / p.z;
-    let xn = Vector2::new(p.x * iz, p.y * iz);
-    let xd = cam.distort(&xn);
-    let uv = Vector2::new(cam.fx * xd.x + cam.cx, cam.fy * xd.y + cam.cy);
-    let dxn_dp = Matrix2x3::new(iz, 0.0, -xn.x * iz, 0.0, iz, -xn.y * iz);
-    let f = nalgebra::Matrix2::new(cam.fx, 0.0, 0.0, cam.fy);
-    Some((uv, f * cam.distort_jacobian(&xn) * dxn_dp))
-}
-
 /// Huber cost `ρ(χ²)` and IRLS weight of a whitened squared error.
 #[inline]
 fn huber(chi2: f64, delta: f64) -> (f64, f64) {
@@ -105,7 +87,7 @@ fn evaluate(
         }
         // Forward: S p_m into the query image. d(S p_m)/dξ = [-[p']×, I, p'].
         let p1 = s.transform_point(&c.p_m);
-        match project_with_jacobian(cam_q, &p1) {
+        match cam_q.project_with_jacobian(&p1) {
             Some((uv, jp)) => {
                 let e = uv - c.uv_q;
                 let (rho, w) = huber(e.norm_squared() * c.inv_sigma2_q, delta);
@@ -126,7 +108,7 @@ fn evaluate(
         // Backward: S⁻¹ p_q into the matched image.
         // d(S⁻¹ Exp(-ξ) p_q)/dξ = (1/s) Rᵀ [[p_q]×, -I, -p_q].
         let p2 = s_inv.transform_point(&c.p_q);
-        match project_with_jacobian(cam_m, &p2) {
+        match cam_m.project_with_jacobian(&p2) {
             Some((uv, jp)) => {
                 let e = uv - c.uv_m;
                 let (rho, w) = huber(e.norm_squared() * c.inv_sigma2_m, delta);

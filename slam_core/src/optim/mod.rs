@@ -13,9 +13,9 @@
 //! - Levenberg-Marquardt with multiplicative damping of the diagonal (`H + λ diag(H)`).
 
 pub mod ba;
+pub mod block_sparse;
 pub mod pose_only;
 pub mod robust;
-pub(crate) mod sparse_llt;
 
 pub use pose_only::{PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, Velocity};
 pub use robust::RobustKernel;

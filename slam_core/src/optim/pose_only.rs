@@ -30,13 +30,11 @@
 //! **Memory.** [`PoseOptimizer`] keeps its per-observation buffers between calls; once they
 //! have grown to the largest problem, nothing is allocated.
 
-use nalgebra::{
-    Isometry3, Matrix2x3, Matrix2x6, Matrix3, Matrix6, Point3, Vector2, Vector3, Vector6,
-};
+use nalgebra::{Isometry3, Matrix2x6, Matrix6, Point3, Vector2, Vector3, Vector6};
 
 use super::robust::RobustKernel;
-use crate::camera::PinholeRadtan;
-use crate::lie::{se3_exp, skew};
+use crate::camera::{pose_jacobian, PinholeRadtan};
+use crate::lie::se3_exp;
 use crate::CoreError;
 
 /// One observation of a fixed map point.
@@ -191,28 +189,14 @@ impl PoseOptimizer {
         o: &PoseObservation,
     ) -> Option<Linearised> {
         let (p, q) = self.camera_point(t_cw, i, &o.point_w);
-        if p.z <= 1e-9 {
-            return None;
-        }
-        let uv = cam.project(&p)?;
-        let iz = 1.0 / p.z;
-        let xn = Vector2::new(p.x * iz, p.y * iz);
-        let d = cam.distort_jacobian(&xn);
-        let dxn_dp = Matrix2x3::new(iz, 0.0, -xn.x * iz, 0.0, iz, -xn.y * iz);
-        let mut du_dp = d * dxn_dp;
-        du_dp.row_mut(0).scale_mut(cam.fx);
-        du_dp.row_mut(1).scale_mut(cam.fy);
-        let r_a: Matrix3<f64> = if self.rolling {
-            self.shutter[i].rotation.to_rotation_matrix().into_inner()
+        let (uv, du_dp) = cam.project_with_jacobian(&p)?;
+        // The increment moves q = T_cw p_w; p = A q with the rolling-shutter rotation A.
+        let a = if self.rolling {
+            du_dp * self.shutter[i].rotation.to_rotation_matrix().into_inner()
         } else {
-            Matrix3::identity()
+            du_dp
         };
-        let a = du_dp * r_a;
-        let b = -(a * skew(&q));
-        // Columns [ω; v]: ∂/∂ω = -A [q]x, ∂/∂v = A.
-        let mut j = Matrix2x6::zeros();
-        j.fixed_view_mut::<2, 3>(0, 0).copy_from(&b);
-        j.fixed_view_mut::<2, 3>(0, 3).copy_from(&a);
+        let j = pose_jacobian(&a, &q);
         Some(Linearised { r: uv - o.pixel, j })
     }
 

@@ -8,7 +8,7 @@
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 
 use super::graph::Se3Graph;
-use super::sparse::BlockSystem;
+use crate::optim::block_sparse::{BlockSparseSystem, Factorization};
 use crate::CoreError;
 
 /// The closest rotation (Frobenius norm) to `m`, via SVD with the determinant fixed.
@@ -44,7 +44,7 @@ pub fn chordal_init(graph: &mut Se3Graph, anchored: &[bool]) -> Result<(), CoreE
     if nv == 0 {
         return Ok(());
     }
-    let pairs: Vec<(u32, u32)> = graph
+    let mut pairs: Vec<(u32, u32)> = graph
         .edges
         .iter()
         .filter_map(|e| match (var[e.i], var[e.j]) {
@@ -52,11 +52,11 @@ pub fn chordal_init(graph: &mut Se3Graph, anchored: &[bool]) -> Result<(), CoreE
             _ => None,
         })
         .collect();
-    let mut sys = BlockSystem::default();
+    let mut sys = BlockSparseSystem::new("pgo");
 
     // Rotations: unknown X_i = R_iᵀ (3 columns = 3 right-hand sides), residual
     // R_ijᵀ X_i - X_j; normal blocks H_ii += I, H_jj += I, H_ij += -R_ij.
-    sys.setup(nv, 3, 3, &pairs)?;
+    sys.setup_uniform(nv, 3, 3, &mut pairs, Factorization::SparseBlockAmd)?;
     let eye = Matrix3::<f64>::identity();
     for e in &graph.edges {
         let rij = e.measurement.rotation.to_rotation_matrix().into_inner();
@@ -98,7 +98,7 @@ pub fn chordal_init(graph: &mut Se3Graph, anchored: &[bool]) -> Result<(), CoreE
             (None, None) => {}
         }
     }
-    sys.solve(0.0)
+    sys.solve()
         .map_err(|e| CoreError::Degenerate(format!("chordal rotations: {e}")))?;
     let dim = 3 * nv;
     let mut rot = vec![Matrix3::<f64>::identity(); n];
@@ -109,13 +109,13 @@ pub fn chordal_init(graph: &mut Se3Graph, anchored: &[bool]) -> Result<(), CoreE
             .to_rotation_matrix()
             .into_inner();
         if let Some(x) = var[v] {
-            let xm = Matrix3::from_fn(|r, c| sys.x[c * dim + 3 * x + r]);
+            let xm = Matrix3::from_fn(|r, c| sys.x()[c * dim + 3 * x + r]);
             rot[v] = project_to_so3(&xm.transpose())?;
         }
     }
 
     // Translations: t_j - t_i = R_i t_ij, scalar Laplacian with x, y, z as 3 right-hand sides.
-    sys.setup(nv, 1, 3, &pairs)?;
+    sys.setup_uniform(nv, 1, 3, &mut pairs, Factorization::SparseBlockAmd)?;
     for e in &graph.edges {
         let c = rot[e.i] * e.measurement.translation.vector;
         let ti = graph.vertices[e.i].pose.translation.vector;
@@ -147,11 +147,11 @@ pub fn chordal_init(graph: &mut Se3Graph, anchored: &[bool]) -> Result<(), CoreE
             (None, None) => {}
         }
     }
-    sys.solve(0.0)
+    sys.solve()
         .map_err(|e| CoreError::Degenerate(format!("chordal translations: {e}")))?;
     for v in 0..n {
         if let Some(x) = var[v] {
-            let t = nalgebra::Vector3::new(sys.x[x], sys.x[nv + x], sys.x[2 * nv + x]);
+            let t = nalgebra::Vector3::new(sys.x()[x], sys.x()[nv + x], sys.x()[2 * nv + x]);
             let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rot[v]));
             graph.vertices[v].pose = Isometry3::from_parts(Translation3::from(t), q);
         }

@@ -16,8 +16,8 @@
 use nalgebra::{Isometry3, SMatrix, SVector};
 
 use super::graph::{Edge, GraphPose};
-use super::sparse::BlockSystem;
 use crate::lie::{se3_adjoint, se3_exp, se3_jr_inv, se3_log, sim3_jr_inv, Sim3};
+use crate::optim::block_sparse::{BlockSparseSystem, Factorization};
 use crate::CoreError;
 
 /// Stopping and damping parameters (defaults = GTSAM's `LevenbergMarquardtParams()`).
@@ -196,7 +196,7 @@ impl<'a, P: LiePose<D>, const D: usize> BetweenProblem<'a, P, D> {
         fixed: &[bool],
         prior: Option<Prior<P>>,
         active: &[usize],
-        sys: &mut BlockSystem,
+        sys: &mut BlockSparseSystem,
     ) -> Result<Self, CoreError> {
         let n = poses.len();
         if fixed.len() != n || active.is_empty() || active.iter().any(|&a| a >= D) {
@@ -217,7 +217,7 @@ impl<'a, P: LiePose<D>, const D: usize> BetweenProblem<'a, P, D> {
                 "pgo: every vertex is fixed".into(),
             ));
         }
-        let mut pairs = Vec::with_capacity(edges.len());
+        let mut pairs: Vec<(u32, u32)> = Vec::with_capacity(edges.len() + nv);
         for e in edges {
             if e.i >= n || e.j >= n {
                 return Err(CoreError::InvalidArgument(
@@ -231,7 +231,7 @@ impl<'a, P: LiePose<D>, const D: usize> BetweenProblem<'a, P, D> {
             }
         }
         let m = active.len();
-        sys.setup(nv, m, 1, &pairs)?;
+        sys.setup_uniform(nv, m, 1, &mut pairs, Factorization::SparseBlockAmd)?;
         let mut slots = Vec::with_capacity(edges.len());
         for e in edges {
             let (vi, vj) = (var[e.i], var[e.j]);
@@ -271,7 +271,13 @@ impl<'a, P: LiePose<D>, const D: usize> BetweenProblem<'a, P, D> {
         })
     }
 
-    fn add_h(&mut self, sys: &mut BlockSystem, k: usize, h: &SMatrix<f64, D, D>, transpose: bool) {
+    fn add_h(
+        &mut self,
+        sys: &mut BlockSparseSystem,
+        k: usize,
+        h: &SMatrix<f64, D, D>,
+        transpose: bool,
+    ) {
         let m = self.active.len();
         for (b, &cb) in self.active.iter().enumerate() {
             for (a, &ca) in self.active.iter().enumerate() {
@@ -281,7 +287,7 @@ impl<'a, P: LiePose<D>, const D: usize> BetweenProblem<'a, P, D> {
         sys.add_block(k, &self.buf, transpose);
     }
 
-    fn add_g(&mut self, sys: &mut BlockSystem, v: usize, g: &SVector<f64, D>) {
+    fn add_g(&mut self, sys: &mut BlockSparseSystem, v: usize, g: &SVector<f64, D>) {
         for (a, &ca) in self.active.iter().enumerate() {
             self.vbuf[a] = -g[ca];
         }
@@ -294,7 +300,7 @@ pub(crate) trait LmProblem {
     /// Cost at the current state.
     fn cost(&self) -> f64;
     /// Fills `sys` (already cleared) with `H = JᵀΩJ` and `rhs = -JᵀΩr` at the current state.
-    fn linearize(&mut self, sys: &mut BlockSystem);
+    fn linearize(&mut self, sys: &mut BlockSparseSystem);
     /// Current state ← last committed state ⊕ `delta`.
     fn retract(&mut self, delta: &[f64]);
     /// Keeps the current state.
@@ -308,7 +314,7 @@ impl<P: LiePose<D>, const D: usize> LmProblem for BetweenProblem<'_, P, D> {
         graph_cost(&self.poses, self.edges, self.prior.as_ref())
     }
 
-    fn linearize(&mut self, sys: &mut BlockSystem) {
+    fn linearize(&mut self, sys: &mut BlockSparseSystem) {
         for k in 0..self.slots.len() {
             let s = self.slots[k];
             let e = &self.edges[k];
@@ -370,7 +376,7 @@ impl<P: LiePose<D>, const D: usize> LmProblem for BetweenProblem<'_, P, D> {
 /// `problem`. Allocates nothing per iteration beyond what `problem` does.
 pub(crate) fn levenberg_marquardt(
     problem: &mut impl LmProblem,
-    sys: &mut BlockSystem,
+    sys: &mut BlockSparseSystem,
     params: &LmParams,
 ) -> Result<LmSummary, CoreError> {
     let initial_cost = problem.cost();
@@ -392,18 +398,18 @@ pub(crate) fn levenberg_marquardt(
             if lambda > params.lambda_upper {
                 break;
             }
-            if sys.solve(lambda).is_err() {
+            if sys.solve_shifted(Some(lambda)).is_err() {
                 lambda *= params.lambda_factor;
                 continue;
             }
             // Predicted decrease of the undamped model: ½(δᵀb + λ|δ|²) with (H+λI)δ = b.
             let (mut db, mut dd) = (0.0, 0.0);
-            for (x, b) in sys.x.iter().zip(&sys.rhs) {
+            for (x, b) in sys.x().iter().zip(sys.rhs()) {
                 db += x * b;
                 dd += x * x;
             }
             let predicted = 0.5 * (db + lambda * dd);
-            problem.retract(&sys.x);
+            problem.retract(sys.x());
             let new_cost = problem.cost();
             let actual = cost - new_cost;
             if new_cost.is_finite()

@@ -54,7 +54,6 @@ mod graph;
 mod information;
 mod lm;
 mod loop_graph;
-mod sparse;
 mod stepwise;
 
 use std::time::Instant;
@@ -72,9 +71,9 @@ pub use loop_graph::{
 pub use stepwise::{solve_scales, STEP2_ACTIVE};
 
 use lm::{levenberg_marquardt, BetweenProblem};
-use sparse::BlockSystem;
 
 use crate::lie::Sim3;
+use crate::optim::block_sparse::BlockSparseSystem;
 use crate::CoreError;
 
 /// How a Sim(3) graph is optimised.
@@ -199,7 +198,7 @@ fn lm_stage<P: LiePose<D>, const D: usize>(
     name: &'static str,
 ) -> Result<StageReport, CoreError> {
     let t0 = Instant::now();
-    let mut sys = BlockSystem::default();
+    let mut sys = BlockSparseSystem::new("pgo");
     let poses = graph.poses();
     let (summary, poses) = {
         let mut problem = BetweenProblem::new(poses, &graph.edges, fixed, prior, active, &mut sys)?;

@@ -3,16 +3,14 @@
 //! the local keyframes (the reference keyframe, its best covisible keyframes, and keyframes
 //! near the predicted pose, so that a revisited area is found again) are matched by
 //! projection, then the pose-only optimiser (Huber, inlier rounds) refines the pose.
-use std::collections::HashSet;
-
-use nalgebra::{Isometry3, Vector2, Vector3};
+use nalgebra::{Isometry3, Vector3};
 
 use super::handler::HandlerParams;
 use super::server_map::ServerMap;
 use super::types::ServerKeyframe;
 use crate::features::FeatureGrid;
 use crate::optim::{PoseObservation, PoseOptimizer};
-use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
+use crate::vo::search::{pose_observations, LocalMapMatcher, ProjSearchParams};
 use crate::vo::{KfId, PointId};
 use crate::CoreError;
 
@@ -21,12 +19,8 @@ use crate::CoreError;
 pub(crate) struct Refiner {
     grid: Option<((u32, u32), FeatureGrid)>,
     optimizer: PoseOptimizer,
-    local: Vec<KfId>,
+    matcher: LocalMapMatcher,
     near: Vec<(f64, KfId)>,
-    cands: Vec<ProjCandidate>,
-    seen: HashSet<PointId>,
-    found: Vec<Option<(usize, u32)>>,
-    taken: Vec<bool>,
     obs: Vec<PoseObservation>,
     obs_kp: Vec<usize>,
     inliers: Vec<bool>,
@@ -76,12 +70,17 @@ impl Refiner {
         let wide = ProjSearchParams {
             radius: params.search_radius,
             ratio: 0.8,
+            skip_matched_points: true,
             ..ProjSearchParams::motion_model()
         };
         self.search(kf, &t_sk, &wide, frame_points);
         let mut inliers = self.optimize(map, kf, &mut t_sk, params, frame_points)?;
         if inliers >= params.min_refine_inliers {
-            self.search(kf, &t_sk, &ProjSearchParams::local_map(), frame_points);
+            let local = ProjSearchParams {
+                skip_matched_points: true,
+                ..ProjSearchParams::local_map()
+            };
+            self.search(kf, &t_sk, &local, frame_points);
             inliers = self.optimize(map, kf, &mut t_sk, params, frame_points)?;
         }
         if inliers < params.min_refine_inliers {
@@ -105,11 +104,8 @@ impl Refiner {
         frame_points: &[Option<PointId>],
     ) {
         let m = &map.map;
-        self.local.clear();
-        if let Some(r) = reference.filter(|r| m.keyframes.contains_key(r)) {
-            self.local.push(r);
-            self.local.extend(m.covisible(r, params.local_keyframes, 1));
-        }
+        self.matcher
+            .select_keyframes(m, reference, params.local_keyframes);
         // Keyframes near the prediction, looking the same way.
         let depth = reference
             .and_then(|r| m.median_depth(r))
@@ -129,32 +125,9 @@ impl Refiner {
         self.near
             .sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         for (_, id) in self.near.iter().take(params.spatial_keyframes) {
-            if !self.local.contains(id) {
-                self.local.push(*id);
-            }
+            self.matcher.add_keyframe(*id);
         }
-        self.seen.clear();
-        self.seen.extend(frame_points.iter().flatten().copied());
-        self.cands.clear();
-        for k in &self.local {
-            let Some(kf) = m.keyframes.get(k) else {
-                continue;
-            };
-            for (i, p) in kf.points.iter().enumerate() {
-                let Some(p) = p else { continue };
-                if !self.seen.insert(*p) {
-                    continue;
-                }
-                if let Some(mp) = m.points.get(p) {
-                    self.cands.push(ProjCandidate {
-                        p_w: mp.p_w,
-                        descriptor: mp.descriptor,
-                        octave: kf.features.keypoints.get(i).map_or(0, |kp| kp.octave),
-                        tag: *p,
-                    });
-                }
-            }
-        }
+        self.matcher.gather_local_map(m, frame_points);
     }
 
     /// Projection search of the candidates not yet matched; fills free `frame_points`.
@@ -168,28 +141,14 @@ impl Refiner {
         let Some((_, grid)) = self.grid.as_ref() else {
             return;
         };
-        self.taken.clear();
-        self.taken.extend(frame_points.iter().map(|x| x.is_some()));
-        // Points already matched are not looked for twice.
-        self.seen.clear();
-        self.seen.extend(frame_points.iter().flatten().copied());
-        let seen = &self.seen;
-        self.cands.retain(|c| !seen.contains(&c.tag));
-        search_by_projection(
-            &self.cands,
+        self.matcher.search(
             &t_sk.inverse(),
             &kf.camera,
             &kf.features,
             grid,
             p,
-            &self.taken,
-            &mut self.found,
+            frame_points,
         );
-        for (k, f) in self.found.iter().enumerate() {
-            if let Some((ci, _)) = f {
-                frame_points[k] = Some(self.cands[*ci].tag);
-            }
-        }
     }
 
     /// Pose-only optimisation over the matches; outliers are unmatched. Returns the inliers
@@ -202,23 +161,14 @@ impl Refiner {
         params: &HandlerParams,
         frame_points: &mut [Option<PointId>],
     ) -> Result<usize, CoreError> {
-        self.obs.clear();
-        self.obs_kp.clear();
-        for (k, p) in frame_points.iter().enumerate() {
-            let Some(mp) = p.and_then(|p| map.map.points.get(&p)) else {
-                continue;
-            };
-            let Some(kp) = kf.features.keypoints.get(k) else {
-                continue;
-            };
-            self.obs.push(PoseObservation {
-                point_w: mp.p_w,
-                pixel: Vector2::new(kp.x as f64, kp.y as f64),
-                inv_sigma2: kf.features.scale.inv_sigma2(kp.octave),
-                dt: 0.0,
-            });
-            self.obs_kp.push(k);
-        }
+        pose_observations(
+            &map.map,
+            &kf.features,
+            frame_points,
+            (0, kf.camera.height),
+            &mut self.obs,
+            &mut self.obs_kp,
+        );
         if self.obs.len() < 6 {
             return Ok(0);
         }

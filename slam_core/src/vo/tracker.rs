@@ -11,7 +11,7 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Vector3};
 
 use super::map::{ClientMap, Keyframe, KfId, PointId};
-use super::search::ProjCandidate;
+use super::search::LocalMapMatcher;
 use super::{KeyframeRule, KeyframeRuleParams};
 use crate::camera::PinholeRadtan;
 use crate::features::{FeatureGrid, GrayImage, OrbExtractor, OrbFeatures, OrbParams};
@@ -226,12 +226,9 @@ pub struct VoTracker {
     derotated: bool,
     // Reusable buffers.
     feats: OrbFeatures,
-    cands: Vec<ProjCandidate>,
-    found: Vec<Option<(usize, u32)>>,
-    taken: Vec<bool>,
+    /// Matching by projection (last frame, local map).
+    matcher: LocalMapMatcher,
     frame_points: Vec<Option<PointId>>,
-    local_kfs: Vec<KfId>,
-    seen: std::collections::HashSet<PointId>,
     kf_counts: std::collections::HashMap<KfId, u32>,
     obs: Vec<PoseObservation>,
     obs_kp: Vec<usize>,
@@ -292,12 +289,8 @@ impl VoTracker {
             failures: 0,
             derotated: false,
             feats: OrbFeatures::with_capacity(params.orb.n_features),
-            cands: Vec::new(),
-            found: Vec::new(),
-            taken: Vec::new(),
+            matcher: LocalMapMatcher::new(),
             frame_points: Vec::new(),
-            local_kfs: Vec::new(),
-            seen: std::collections::HashSet::new(),
             kf_counts: std::collections::HashMap::new(),
             obs: Vec::new(),
             obs_kp: Vec::new(),

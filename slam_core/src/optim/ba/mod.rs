@@ -10,8 +10,9 @@
 //!
 //! **Solver.** Levenberg-Marquardt (damping `λ · clamp(diag H)`, Nielsen's update of `λ`)
 //! on the normal equations with the points eliminated by the Schur complement (3x3 point
-//! blocks inverted); the reduced camera system is solved with faer: dense LLᵀ for few free
-//! keyframes, sparse LLᵀ (AMD ordering, symbolic analysis once per call) above
+//! blocks inverted); the reduced camera system (a
+//! [`crate::optim::block_sparse::BlockSparseSystem`]) is solved with faer: dense LLᵀ for few
+//! free keyframes, sparse LLᵀ (AMD ordering, symbolic analysis once per call) above
 //! [`BaParams::dense_max_keyframes`]; then the points are back-substituted.
 //!
 //! **Stages (ORB-SLAM's local BA).** [`BaParams::first_stage_iterations`] (5) iterations with
@@ -43,18 +44,16 @@
 //! assert!((problem.points[p].p_w - Vector3::new(0.0, 0.0, 4.0)).norm() < 1e-6);
 //! ```
 
-mod linear;
 mod problem;
 mod schur;
 mod solve;
 pub mod synth;
 
-pub use linear::LinearSolverKind;
 pub use problem::{
     linearize_reprojection, reprojection_residual, BaKeyframe, BaObservation, BaPoint, BaProblem,
     ReprojectionLinearization,
 };
-pub use solve::{BaParams, BaReport, BundleAdjuster};
+pub use solve::{BaParams, BaReport, BundleAdjuster, LinearSolverKind};
 
 #[cfg(test)]
 mod tests;

@@ -4,8 +4,7 @@
 
 use nalgebra::{Isometry3, Matrix2x3, Matrix2x6, Point3, Vector2, Vector3};
 
-use crate::camera::PinholeRadtan;
-use crate::lie::skew;
+use crate::camera::{pose_jacobian, PinholeRadtan};
 use crate::CoreError;
 
 /// A keyframe of a bundle-adjustment problem.
@@ -203,8 +202,8 @@ pub struct ReprojectionLinearization {
     pub d_point: Matrix2x3<f64>,
 }
 
-/// Residual and analytic Jacobians of one observation, through the distortion:
-/// `∂π/∂p_c = diag(fx, fy) · ∂distort/∂x_n · ∂x_n/∂p_c`, `∂p_c/∂δ = [-[p_c]x | I]`,
+/// Residual and analytic Jacobians of one observation, through the distortion
+/// ([`PinholeRadtan::project_with_jacobian`]): `∂p_c/∂δ = [-[p_c]x | I]` ([`pose_jacobian`]),
 /// `∂p_c/∂p_w = R_cw`. `None` when the point is not in front of the camera.
 #[inline]
 pub fn linearize_reprojection(
@@ -215,26 +214,10 @@ pub fn linearize_reprojection(
 ) -> Option<ReprojectionLinearization> {
     let r_cw = t_cw.rotation.to_rotation_matrix();
     let p_c = r_cw * p_w + t_cw.translation.vector;
-    let uv = camera.project(&p_c)?;
-    let iz = 1.0 / p_c.z;
-    let xn = Vector2::new(p_c.x * iz, p_c.y * iz);
-    let dxn_dp = Matrix2x3::new(iz, 0.0, -xn.x * iz, 0.0, iz, -xn.y * iz);
-    let mut du_dp = if camera.is_undistorted() {
-        dxn_dp
-    } else {
-        camera.distort_jacobian(&xn) * dxn_dp
-    };
-    du_dp.row_mut(0).scale_mut(camera.fx);
-    du_dp.row_mut(1).scale_mut(camera.fy);
-    // Columns [ω; v]: ∂/∂ω = -∂π/∂p_c [p_c]x, ∂/∂v = ∂π/∂p_c.
-    let mut d_pose = Matrix2x6::zeros();
-    d_pose
-        .fixed_view_mut::<2, 3>(0, 0)
-        .copy_from(&(-(du_dp * skew(&p_c))));
-    d_pose.fixed_view_mut::<2, 3>(0, 3).copy_from(&du_dp);
+    let (uv, du_dp) = camera.project_with_jacobian(&p_c)?;
     Some(ReprojectionLinearization {
         residual: uv - pixel,
-        d_pose,
+        d_pose: pose_jacobian(&du_dp, &p_c),
         d_point: du_dp * r_cw.matrix(),
     })
 }

@@ -5,13 +5,13 @@
 //! gradients `b = Σ w Jᵀ r`, one LM step solves
 //! `[U* W; Wᵀ V*] [δc; δp] = -[b_c; b_p]` (`*`: damped diagonal). Eliminating the points:
 //! `S δc = -b_c + Σ W V*⁻¹ b_p` with `S = U* - Σ_p W_p V*_p⁻¹ W_pᵀ` (the reduced camera
-//! system, [`super::linear::ReducedSystem`]); then `δp = V*⁻¹ (-b_p - Wᵀ δc)` per point.
+//! system, a [`BlockSparseSystem`] of 6x6 blocks); then `δp = V*⁻¹ (-b_p - Wᵀ δc)` per point.
 //! `w = Ω ρ'(χ²)` is the IRLS weight of the robust kernel.
 
 use nalgebra::{Isometry3, Matrix3, Matrix6, Matrix6x3, Vector3, Vector6};
 
-use super::linear::ReducedSystem;
 use super::problem::{linearize_reprojection, BaProblem};
+use crate::optim::block_sparse::{BlockSparseSystem, Factorization};
 use crate::optim::robust::RobustKernel;
 use crate::CoreError;
 
@@ -23,7 +23,7 @@ const MIN_DIAG: f64 = 1e-6;
 const MAX_DIAG: f64 = 1e32;
 
 /// Preallocated normal equations (sizes fixed by [`NormalEquations::setup`]).
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(super) struct NormalEquations {
     /// Free-keyframe index of each keyframe ([`NONE`] when fixed).
     pub cam_of_kf: Vec<u32>,
@@ -47,13 +47,39 @@ pub(super) struct NormalEquations {
     /// Camera increments (solution of the reduced system) and point increments.
     pub dc: Vec<Vector6<f64>>,
     pub dp: Vec<Vector3<f64>>,
-    /// The reduced camera system.
-    pub rcs: ReducedSystem,
+    /// The reduced camera system (one 6x6 block row per free keyframe).
+    rcs: BlockSparseSystem,
     /// Scratch for the block pattern and the CSR fill.
     pairs: Vec<(u32, u32)>,
     cursor: Vec<usize>,
     /// Reduced-system block of each visited observation pair (see `setup`).
     pair_blk: Vec<u32>,
+}
+
+impl Default for NormalEquations {
+    fn default() -> Self {
+        Self {
+            cam_of_kf: Vec::new(),
+            pt_of_point: Vec::new(),
+            n_pts: 0,
+            pt_start: Vec::new(),
+            pt_obs: Vec::new(),
+            wblk: Vec::new(),
+            yblk: Vec::new(),
+            u: Vec::new(),
+            bc: Vec::new(),
+            v: Vec::new(),
+            bp: Vec::new(),
+            vinv: Vec::new(),
+            pt_ok: Vec::new(),
+            dc: Vec::new(),
+            dp: Vec::new(),
+            rcs: BlockSparseSystem::new("ba"),
+            pairs: Vec::new(),
+            cursor: Vec::new(),
+            pair_blk: Vec::new(),
+        }
+    }
 }
 
 #[inline]
@@ -143,7 +169,12 @@ impl NormalEquations {
         let n_c = n_cams as usize;
         let sparse = force.unwrap_or(n_c > sparse_above);
         let mut pairs = std::mem::take(&mut self.pairs);
-        let res = self.rcs.setup(n_c, &mut pairs, sparse);
+        let factorization = if sparse {
+            Factorization::SparseScalarAmd
+        } else {
+            Factorization::Dense
+        };
+        let res = self.rcs.setup_uniform(n_c, 6, 1, &mut pairs, factorization);
         self.pairs = pairs;
         res?;
         // Block index of every (a, b) pair of each point's coupled observations with
@@ -156,9 +187,12 @@ impl NormalEquations {
                 for &b in list {
                     let cb = self.cam_of_kf[problem.observations[b as usize].keyframe];
                     if ca <= cb {
-                        let k = self.rcs.block_index(ca, cb).ok_or_else(|| {
-                            CoreError::Degenerate("ba: block pattern is incomplete".into())
-                        })?;
+                        let k =
+                            self.rcs
+                                .block_index(ca as usize, cb as usize)
+                                .ok_or_else(|| {
+                                    CoreError::Degenerate("ba: block pattern is incomplete".into())
+                                })?;
                         self.pair_blk.push(k as u32);
                     }
                 }
@@ -245,8 +279,8 @@ impl NormalEquations {
                 blk[(k, k)] += damp(blk[(k, k)], lambda);
             }
             let d = self.rcs.diag_index(c);
-            self.rcs.blocks[d] = blk;
-            self.rcs.rhs[c] = -self.bc[c];
+            self.rcs.block_mut::<6, 6>(d).copy_from(&blk);
+            self.rcs.rhs_block_mut::<6>(c).copy_from(&(-self.bc[c]));
         }
         let mut pair = 0usize;
         for p in 0..self.n_pts {
@@ -268,7 +302,8 @@ impl NormalEquations {
                 let y = self.wblk[i] * vinv;
                 self.yblk[i] = y;
                 let c = self.cam_of_kf[problem.observations[i].keyframe] as usize;
-                self.rcs.rhs[c] += y * bp;
+                let mut rhs = self.rcs.rhs_block_mut::<6>(c);
+                rhs += y * bp;
             }
             for &a in &self.pt_obs[s..e] {
                 let a = a as usize;
@@ -281,12 +316,14 @@ impl NormalEquations {
                     }
                     let k = self.pair_blk[pair] as usize;
                     pair += 1;
-                    sub_y_wt(&mut self.rcs.blocks[k], &self.yblk[a], &self.wblk[b]);
+                    sub_y_wt(self.rcs.block_values_mut(k), &self.yblk[a], &self.wblk[b]);
                 }
             }
         }
         self.rcs.solve()?;
-        self.dc.copy_from_slice(&self.rcs.rhs);
+        for (c, dc) in self.dc.iter_mut().enumerate() {
+            *dc = self.rcs.x_block::<6>(c);
+        }
         for p in 0..self.n_pts {
             if !self.pt_ok[p] {
                 self.dp[p] = Vector3::zeros();
@@ -337,13 +374,15 @@ impl NormalEquations {
     }
 }
 
-/// `blk -= y wᵀ` for 6x3 factors: three rank-one column updates (vectorises well).
+/// `blk -= y wᵀ` for 6x3 factors (`blk`: a 6x6 block, column-major): three rank-one
+/// column updates (vectorises well).
 #[inline]
-fn sub_y_wt(blk: &mut Matrix6<f64>, y: &Matrix6x3<f64>, w: &Matrix6x3<f64>) {
+fn sub_y_wt(blk: &mut [f64], y: &Matrix6x3<f64>, w: &Matrix6x3<f64>) {
+    let blk = &mut blk[..36];
     for c in 0..6 {
         let (w0, w1, w2) = (w[(c, 0)], w[(c, 1)], w[(c, 2)]);
         for r in 0..6 {
-            blk[(r, c)] -= y[(r, 0)] * w0 + y[(r, 1)] * w1 + y[(r, 2)] * w2;
+            blk[r + 6 * c] -= y[(r, 0)] * w0 + y[(r, 1)] * w1 + y[(r, 2)] * w2;
         }
     }
 }

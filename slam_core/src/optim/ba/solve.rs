@@ -7,7 +7,6 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Vector3, Vector6};
 
-use super::linear::LinearSolverKind;
 use super::problem::{reprojection_residual, BaProblem};
 use super::schur::{NormalEquations, NONE};
 use crate::lie::se3_exp;
@@ -17,6 +16,18 @@ use crate::CoreError;
 /// Squared error charged to an active observation whose point falls behind its camera during
 /// the optimisation (it then has no Jacobian); makes steps that flip points unattractive.
 const BEHIND_CAMERA_CHI2: f64 = 1e4;
+
+/// Which factorisation solves the reduced camera system
+/// ([`crate::optim::block_sparse::Factorization`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinearSolverKind {
+    /// Dense LLᵀ up to [`BaParams::dense_max_keyframes`] free keyframes, sparse above.
+    Auto,
+    /// Dense LLᵀ (faer) of the full reduced matrix.
+    Dense,
+    /// Sparse LLᵀ (faer, AMD ordering, symbolic analysis reused across iterations).
+    Sparse,
+}
 
 /// Parameters of [`BundleAdjuster::optimize`]; the defaults are ORB-SLAM's local BA.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -17,7 +17,6 @@ use std::collections::VecDeque;
 
 use nalgebra::Isometry3;
 
-use super::track::push_frame_candidates;
 use super::{LastFrame, VoOutput, VoTracker};
 use crate::features::OrbFeatures;
 use crate::lie::{se3_exp, se3_log};
@@ -166,8 +165,8 @@ impl VoTracker {
         self.grid.build(&feats.keypoints);
         self.frame_points.clear();
         self.frame_points.resize(feats.len(), None);
-        self.cands.clear();
-        push_frame_candidates(&mut self.cands, &self.map, next);
+        self.matcher
+            .gather_frame(&self.map, &next.points, &next.features);
         let mut t_cw = *guess;
         let mut n = self.search(&t_cw, feats, &ProjSearchParams::motion_model());
         if n < 20 {

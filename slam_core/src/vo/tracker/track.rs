@@ -2,14 +2,14 @@
 //! keyframe creation (seed §3.3).
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Vector2};
+use nalgebra::Isometry3;
 
 use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
-use crate::optim::{PoseObservation, PoseOptParams, Velocity};
+use crate::optim::{PoseOptParams, Velocity};
 use crate::vo::local_mapping::create_points_with_neighbours;
 use crate::vo::map::{Keyframe, KfId};
-use crate::vo::search::{search_by_projection, ProjCandidate, ProjSearchParams};
+use crate::vo::search::{pose_observations, ProjSearchParams};
 use crate::CoreError;
 
 /// How a frame got its first pose (steps 1-3 of [`VoTracker::track`]).
@@ -281,70 +281,38 @@ impl VoTracker {
     }
 
     fn gather_last_frame_candidates(&mut self) {
-        self.cands.clear();
-        if let Some(last) = &self.last {
-            push_frame_candidates(&mut self.cands, &self.map, last);
+        match &self.last {
+            Some(last) => self
+                .matcher
+                .gather_frame(&self.map, &last.points, &last.features),
+            None => self.matcher.clear_candidates(),
         }
     }
 
+    /// The local map's candidates: the points of the reference keyframe and its best
+    /// covisible keyframes not matched yet.
     pub(super) fn gather_local_map_candidates(&mut self) {
-        self.cands.clear();
-        let Some(r) = self.ref_kf else { return };
-        self.local_kfs.clear();
-        self.local_kfs.push(r);
-        self.local_kfs
-            .extend(self.map.covisible(r, self.params.local_keyframes, 1));
-        // Reused sets (cleared, capacity kept): no allocation per frame once grown.
-        self.seen.clear();
-        self.seen
-            .extend(self.frame_points.iter().flatten().copied());
-        for k in &self.local_kfs {
-            let Some(kf) = self.map.keyframes.get(k) else {
-                continue;
-            };
-            for (i, p) in kf.points.iter().enumerate() {
-                let Some(p) = p else { continue };
-                if !self.seen.insert(*p) {
-                    continue;
-                }
-                if let Some(mp) = self.map.points.get(p) {
-                    self.cands.push(ProjCandidate {
-                        p_w: mp.p_w,
-                        descriptor: mp.descriptor,
-                        octave: kf.features.keypoints[i].octave,
-                        tag: *p,
-                    });
-                }
-            }
-        }
+        self.matcher
+            .select_keyframes(&self.map, self.ref_kf, self.params.local_keyframes);
+        self.matcher.gather_local_map(&self.map, &self.frame_points);
     }
 
-    /// Projection search of `self.cands` into the frame; fills the free `frame_points`.
+    /// Projection search of the matcher's candidates into the frame; fills the free
+    /// `frame_points`.
     pub(super) fn search(
         &mut self,
         t_cw: &Isometry3<f64>,
         feats: &OrbFeatures,
         p: &ProjSearchParams,
     ) -> usize {
-        self.taken.clear();
-        self.taken
-            .extend(self.frame_points.iter().map(|x| x.is_some()));
-        search_by_projection(
-            &self.cands,
+        self.matcher.search(
             t_cw,
             &self.camera,
             feats,
             &self.grid,
             p,
-            &self.taken,
-            &mut self.found,
-        );
-        for (k, f) in self.found.iter().enumerate() {
-            if let Some((ci, _)) = f {
-                self.frame_points[k] = Some(self.cands[*ci].tag);
-            }
-        }
-        self.frame_points.iter().filter(|x| x.is_some()).count()
+            &mut self.frame_points,
+        )
     }
 
     pub(super) fn match_reference_keyframe(&mut self, feats: &OrbFeatures) -> usize {
@@ -384,22 +352,14 @@ impl VoTracker {
         guess: &Isometry3<f64>,
         vel: Option<&Velocity>,
     ) -> Option<(Isometry3<f64>, usize)> {
-        self.obs.clear();
-        self.obs_kp.clear();
-        let rows = self.camera.height;
-        for (k, p) in self.frame_points.iter().enumerate() {
-            let Some(mp) = p.and_then(|p| self.map.points.get(&p)) else {
-                continue;
-            };
-            let kp = feats.keypoints[k];
-            self.obs.push(PoseObservation {
-                point_w: mp.p_w,
-                pixel: Vector2::new(kp.x as f64, kp.y as f64),
-                inv_sigma2: feats.scale.inv_sigma2(kp.octave),
-                dt: crate::rolling_shutter::row_offset_s(readout_ns, kp.y as f64, rows),
-            });
-            self.obs_kp.push(k);
-        }
+        pose_observations(
+            &self.map,
+            feats,
+            &self.frame_points,
+            (readout_ns, self.camera.height),
+            &mut self.obs,
+            &mut self.obs_kp,
+        );
         if self.obs.len() < 6 {
             return None;
         }
@@ -508,25 +468,5 @@ impl VoTracker {
         self.ref_kf = Some(id);
         self.frames_since_kf = 0;
         id
-    }
-}
-
-/// Appends the map points matched in `frame` to `cands` (the motion-model search's
-/// candidates, forwards from the last frame or backwards from the next one).
-pub(super) fn push_frame_candidates(
-    cands: &mut Vec<ProjCandidate>,
-    map: &crate::vo::map::ClientMap,
-    frame: &LastFrame,
-) {
-    for (i, p) in frame.points.iter().enumerate() {
-        let Some(mp) = p.and_then(|p| map.points.get(&p)) else {
-            continue;
-        };
-        cands.push(ProjCandidate {
-            p_w: mp.p_w,
-            descriptor: mp.descriptor,
-            octave: frame.features.keypoints[i].octave,
-            tag: mp.id,
-        });
     }
 }
