@@ -20,7 +20,7 @@ use slam_core::server::{types, HandlerParams, KeyframeStatus, MapId};
 
 use crate::convert::{self, Correction};
 use crate::worker::{CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker};
-use crate::{lockstep, Params};
+use crate::{lockstep, MapperConfig, Params};
 
 /// A message the mapper publishes.
 #[derive(Debug, Clone)]
@@ -70,9 +70,11 @@ pub struct Mapper {
 }
 
 impl Mapper {
-    /// A mapper for `params`' clients resuming `status`; the handlers report on `results_tx`.
+    /// A mapper for `params`' clients with configuration `cfg`, resuming `status`; the
+    /// handlers report on `results_tx`.
     pub fn new(
         params: &Params,
+        cfg: &MapperConfig,
         status: Status,
         results_tx: crossbeam_channel::Sender<Report>,
     ) -> Self {
@@ -87,13 +89,13 @@ impl Mapper {
             fb_seq: 0,
             figures: MapFigures::default(),
         };
-        let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
+        let sync = params.mode == ReplayMode::Lockstep && cfg.lockstep_sync;
         Self {
             resync: Vec::new(),
             handler_params: HandlerParams {
-                spatial_keyframes: params.spatial_keyframes,
-                revisit_min_points: params.revisit_points,
-                assoc_horizon_kfs: params.assoc_horizon,
+                spatial_keyframes: cfg.spatial_keyframes,
+                revisit_min_points: cfg.revisit_points,
+                assoc_horizon_kfs: cfg.assoc_horizon,
                 ..HandlerParams::default()
             },
             workers: Vec::new(),

@@ -7,7 +7,7 @@ use shm_schema::{
     stage, FrameAck, FrameHeader, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL,
 };
 use slam_core::features::GrayImage;
-use slam_core::vo::{VoFrame, VoOutput, VoState};
+use slam_core::vo::{VoDiagnostic, VoFrame, VoOutput, VoState};
 
 use super::{KeyframeKey, Out, TrackerCore};
 use crate::outbox::{keyframe_message, wire_pose};
@@ -54,6 +54,8 @@ pub struct Tracked {
     stage_ms: [f32; stage::COUNT],
     /// Poses of frames seen while initialising, `(t_ns, T_cw)`.
     backfill: Vec<(i64, Isometry3<f64>)>,
+    /// The VO's diagnostics of the frame (the ports print them with `debug_init`).
+    pub diagnostics: Vec<VoDiagnostic>,
 }
 
 impl Tracked {
@@ -70,6 +72,7 @@ impl Tracked {
             vo_session: session,
             stage_ms: [0.0; stage::COUNT],
             backfill: vec![],
+            diagnostics: vec![],
         }
     }
 
@@ -95,6 +98,7 @@ impl Tracked {
         s[stage::LOCAL_MAP] = t.local_map;
         s[stage::KEYFRAME] = t.keyframe;
         self.backfill = std::mem::take(&mut o.backfill);
+        self.diagnostics = std::mem::take(&mut o.diagnostics);
     }
 }
 

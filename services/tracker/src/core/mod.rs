@@ -15,6 +15,7 @@ use shoal_runtime::Status;
 use slam_core::vo::{VoParams, VoTracker};
 
 use crate::imu::ImuInput;
+use crate::mapping_thread::LocalMappingThread;
 use crate::outbox::{keyframe_message, KeyframeMsg, Outbox};
 
 mod counters;
@@ -83,7 +84,7 @@ pub enum Out {
     SpoolSent(KeyframeKey),
 }
 
-/// The tracker's settings that the core uses (from the service's parameters).
+/// The tracker's settings that the core uses (from the service's configuration).
 #[derive(Debug, Clone)]
 pub struct CoreConfig {
     /// Client index.
@@ -105,16 +106,16 @@ pub struct CoreConfig {
 }
 
 impl CoreConfig {
-    /// The core's settings from the service's parameters.
-    pub fn from_params(p: &crate::Params) -> Self {
+    /// The core's settings from the service's command line and configuration.
+    pub fn new(p: &crate::Params, cfg: &crate::TrackerConfig) -> Self {
         Self {
             client: p.client,
-            no_vo: p.no_vo,
-            no_rs: p.no_rs,
-            window: p.window,
-            features: p.features,
-            inline_mapping: p.inline_mapping,
-            lockstep_sync: p.lockstep_sync(),
+            no_vo: !cfg.vo,
+            no_rs: !cfg.rolling_shutter,
+            window: cfg.window,
+            features: cfg.features,
+            inline_mapping: cfg.local_mapping == crate::LocalMapping::Inline,
+            lockstep_sync: p.lockstep_sync(cfg),
             spool: p.spool.is_some(),
         }
     }
@@ -330,18 +331,22 @@ impl TrackerCore {
     }
 
     /// A new VO for frames like `h`, its keyframe ids in this start's own range (the server
-    /// names keyframes by them, so they stay unique per client across restarts).
+    /// names keyframes by them, so they stay unique per client across restarts), its local
+    /// mapping on this service's thread ([`crate::mapping_thread`]) unless inline.
     fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
         let camera = shoal_runtime::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
         let mut vp = VoParams {
             rolling_shutter: !self.cfg.no_rs,
             window: self.cfg.window.max(2),
-            local_mapping_thread: !self.cfg.inline_mapping,
             sync_local_mapping: self.cfg.lockstep_sync,
             ..VoParams::default()
         };
         vp.orb.n_features = self.cfg.features;
         let mut v = VoTracker::new(vp, camera)?;
+        if !self.cfg.inline_mapping {
+            LocalMappingThread::attach(&mut v)
+                .map_err(|e| anyhow::anyhow!("local-mapping thread: {e}"))?;
+        }
         v.start_keyframe_ids_at(self.ids.first_keyframe_id());
         self.counters.local_mapping_thread = Some(!self.cfg.inline_mapping as u64);
         Ok(v)
