@@ -5,7 +5,7 @@
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use slam_core::features::GrayImage;
 use slam_core::metrics::{evaluate, Alignment, EvalParams};
-use slam_core::vo::{VoFrame, VoParams, VoState, VoTracker};
+use slam_core::vo::{VoDiagnostic, VoFrame, VoParams, VoState, VoTracker};
 use tracker::mapping_thread::LocalMappingThread;
 
 struct VoRun {
@@ -274,6 +274,7 @@ fn frames_before_the_reference_are_tracked_backwards() {
     const COVERED: usize = 12;
     let (mut est_t, mut est) = (vec![], vec![]);
     let mut init_frame = None;
+    let mut diagnostics = vec![];
     for (i, &k) in fed.iter().enumerate() {
         world.render_frame_into(k, &mut img).unwrap();
         if k < COVERED {
@@ -292,6 +293,7 @@ fn frames_before_the_reference_are_tracked_backwards() {
         if init_frame.is_none() && out.state == VoState::Tracking {
             init_frame = Some(i);
         }
+        diagnostics.extend(out.diagnostics.iter().cloned());
         if !out.backfill.is_empty() {
             eprintln!("frame {k}: {} late poses", out.backfill.len());
         }
@@ -339,6 +341,14 @@ fn frames_before_the_reference_are_tracked_backwards() {
         "initialised on the uncovered frames: at {init_frame}"
     );
     assert_eq!(est_t.len(), fed.len(), "every fed frame has a pose");
+    // What the walk did comes back with the frames (`debug_init` prints it).
+    assert!(
+        diagnostics.iter().any(|d| matches!(
+            d,
+            VoDiagnostic::BackwardStart { before, .. } if *before >= COVERED
+        )),
+        "{diagnostics:?}"
+    );
     assert!(r.ape.rmse < 0.02, "ATE {:.4} m", r.ape.rmse);
     assert!(r.ape.max < 0.07, "worst pose {:.4} m", r.ape.max);
 }

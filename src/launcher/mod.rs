@@ -1,10 +1,12 @@
 //! The launcher: the one place that knows the whole topology ([`topology`]: per client
 //! camera_ingest, imu_ingest, tracker; per host mapper, loop_closer, each with its role). It
-//! starts every service as a child process, consumers before producers, waits until they are
-//! ready, reaps and restarts crashed ones with back-off after cleaning their stale iceoryx2
-//! resources, injects faults, records poses and latencies, stops everything in the reverse
-//! order at the end of the data or on Ctrl-C, writes `OUT/report.json` (with its
-//! [`provenance`]) and leaves nothing of the run in shared memory.
+//! writes each service's section of the run's [`RunConfig`] to `OUT/config/` and starts
+//! every service as a child process with it (`--config FILE`), consumers before producers,
+//! waits until they are ready, reaps and restarts crashed ones with back-off after cleaning
+//! their stale iceoryx2 resources, injects faults, records poses and latencies, stops
+//! everything in the reverse order at the end of the data or on Ctrl-C, writes
+//! `OUT/report.json` (with its [`provenance`]) and leaves nothing of the run in shared
+//! memory.
 pub mod child;
 pub mod faults;
 pub mod provenance;

@@ -237,15 +237,16 @@ impl Ports {
             recv_ns,
             now_ns: monotonic_ns(),
         };
-        match core.track(frame)? {
+        let step = core.track(frame)?;
+        if cfg.debug_init {
+            for d in core.diagnostics() {
+                eprintln!("{d}");
+            }
+        }
+        match step {
             FrameStep::Done(out) => self.exec(out, core.status_mut())?,
             FrameStep::EndOfStream(h) => self.end_of_stream(core, &h)?,
             FrameStep::Tracked(mut t) => {
-                if cfg.debug_init {
-                    for d in &t.diagnostics {
-                        eprintln!("{d}");
-                    }
-                }
                 if let Some(l) = self.log.as_mut() {
                     write_frame_log(l, &header, pixels)?;
                 }

@@ -621,6 +621,40 @@ impl VoTracker {
     }
 }
 
+#[cfg(test)]
+mod tests {
+    use super::VoDiagnostic;
+
+    /// The diagnostics print as `SHOAL_DEBUG_INIT` printed them before they were returned.
+    #[test]
+    fn diagnostics_print_as_before() {
+        let d = VoDiagnostic::InitFailed {
+            matches: 120,
+            frames: 3,
+            reason: "ambiguous".into(),
+        };
+        assert_eq!(d.to_string(), "init: 120 matches after 3 frames: ambiguous");
+        let d = VoDiagnostic::BackwardStart {
+            before: 12,
+            kept: 14,
+            t_ref_ns: 5,
+        };
+        assert_eq!(
+            d.to_string(),
+            "backward: 12 of 14 kept frames before the oldest keyframe (t 5 ns)"
+        );
+        let d = VoDiagnostic::BackwardStopped {
+            kept: 14,
+            t_ns: 3,
+            inliers: 9,
+        };
+        assert_eq!(
+            d.to_string(),
+            "backward: 14 frames kept, stopped at t 3 ns (9 inliers)"
+        );
+    }
+}
+
 mod backward;
 mod init;
 mod local_mapper;

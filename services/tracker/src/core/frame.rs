@@ -7,7 +7,7 @@ use shm_schema::{
     stage, FrameAck, FrameHeader, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL,
 };
 use slam_core::features::GrayImage;
-use slam_core::vo::{VoDiagnostic, VoFrame, VoOutput, VoState};
+use slam_core::vo::{VoFrame, VoOutput, VoState};
 
 use super::{KeyframeKey, Out, TrackerCore};
 use crate::outbox::{keyframe_message, wire_pose};
@@ -54,8 +54,6 @@ pub struct Tracked {
     stage_ms: [f32; stage::COUNT],
     /// Poses of frames seen while initialising, `(t_ns, T_cw)`.
     backfill: Vec<(i64, Isometry3<f64>)>,
-    /// The VO's diagnostics of the frame (the ports print them with `debug_init`).
-    pub diagnostics: Vec<VoDiagnostic>,
 }
 
 impl Tracked {
@@ -72,7 +70,6 @@ impl Tracked {
             vo_session: session,
             stage_ms: [0.0; stage::COUNT],
             backfill: vec![],
-            diagnostics: vec![],
         }
     }
 
@@ -98,7 +95,6 @@ impl Tracked {
         s[stage::LOCAL_MAP] = t.local_map;
         s[stage::KEYFRAME] = t.keyframe;
         self.backfill = std::mem::take(&mut o.backfill);
-        self.diagnostics = std::mem::take(&mut o.diagnostics);
     }
 }
 
@@ -141,6 +137,7 @@ impl TrackerCore {
     /// Takes a frame (after the ports waited for its gyro samples, see
     /// [`TrackerCore::imu_needed_ns`]): checks it and runs the VO on it.
     pub fn track(&mut self, f: FrameIn) -> anyhow::Result<FrameStep> {
+        self.diagnostics.clear();
         let h = f.header;
         if let Some(step) = self.admit(&h, f.now_ns) {
             return Ok(step);
@@ -254,6 +251,7 @@ impl TrackerCore {
             .ids
             .session(v.session_id().saturating_sub(o.new_session as u32));
         t.vo_session = self.ids.session(v.session_id());
+        self.diagnostics = std::mem::take(&mut o.diagnostics);
         t.take_vo_output(&mut o);
         if o.new_session {
             self.counters.vo_sessions_started += 1;

@@ -12,7 +12,7 @@ use shm_schema::{
     Feedback, FrameAck, FrameHeader, ImuMsg, MsgMeta, TrackedPose, FLAG_END_OF_STREAM,
 };
 use shoal_runtime::Status;
-use slam_core::vo::{VoParams, VoTracker};
+use slam_core::vo::{VoDiagnostic, VoParams, VoTracker};
 
 use crate::imu::ImuInput;
 use crate::mapping_thread::LocalMappingThread;
@@ -146,6 +146,8 @@ pub struct TrackerCore {
     spooled: Option<KeyframeKey>,
     /// Local-mapping waits that timed out before this start.
     vo_timeouts_base: u64,
+    /// The VO's diagnostics of the last frame tracked.
+    diagnostics: Vec<VoDiagnostic>,
 }
 
 impl TrackerCore {
@@ -171,6 +173,7 @@ impl TrackerCore {
             ended: false,
             spooled: None,
             vo_timeouts_base: counters.local_mapping_sync_timeouts,
+            diagnostics: Vec::new(),
             cfg,
             status,
             counters,
@@ -203,6 +206,12 @@ impl TrackerCore {
     /// The settings.
     pub fn config(&self) -> &CoreConfig {
         &self.cfg
+    }
+
+    /// What the VO's initialiser and backward walk tried on the last frame given to
+    /// [`TrackerCore::track`] (the ports print them with `debug_init`).
+    pub fn diagnostics(&self) -> &[VoDiagnostic] {
+        &self.diagnostics
     }
 
     /// The session id of this start's non-VO messages (acks, end of stream).
