@@ -21,6 +21,7 @@ fn main() -> anyhow::Result<()> {
         ..VoParams::default()
     };
     let mut vo = VoTracker::new(params, cam)?;
+    tracker::mapping_thread::LocalMappingThread::attach(&mut vo)?;
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let (mut est_t, mut est) = (vec![], vec![]);
     let mut first_tracked = None;

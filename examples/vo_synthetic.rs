@@ -34,10 +34,13 @@ fn main() -> anyhow::Result<()> {
     let readout = world.calib().readout_ns;
     let params = VoParams {
         rolling_shutter: rs,
-        local_mapping_thread: !args.iter().any(|a| a == "--inline"),
         ..VoParams::default()
     };
     let mut vo = VoTracker::new(params, cam)?;
+    if !args.iter().any(|a| a == "--inline") {
+        // Local mapping on its own thread, as in the tracker service.
+        tracker::mapping_thread::LocalMappingThread::attach(&mut vo)?;
+    }
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let (mut est_t, mut est, mut gt_t, mut gt) = (vec![], vec![], vec![], vec![]);
     let mut totals = vec![];

@@ -1,4 +1,5 @@
-//! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `sim`, `eval`, `pgo`, `bench`;
+//! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `config`, `sim`, `eval`,
+//! `pgo`, `vocab`, `bench`;
 //! `service` (hidden) is how the launcher starts each service as its own process.
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -6,6 +7,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod config;
 mod demo;
 mod eval;
 mod launcher;
@@ -28,6 +30,8 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Run the pipeline on one or more datasets (one client each).
     Run(RunArgs),
+    /// The run configuration: `config --print` shows every key with its default.
+    Config(ConfigArgs),
     /// Generate a synthetic sequence (EuRoC ASL layout + ground truth).
     Sim(sim_cmd::SimArgs),
     /// Trajectory error (ATE, RPE) of an estimate against ground truth, as evo computes it.
@@ -45,12 +49,19 @@ enum Command {
     Service(ServiceCommand),
 }
 
-/// Arguments of `shoal run`.
+/// Arguments of `shoal run`. The run's configuration is [`config::RunConfig`]: the
+/// defaults, then `--config FILE`, then `--set KEY=VALUE`, then these flags.
 #[derive(clap::Args, Debug)]
 struct RunArgs {
+    /// Configuration file (TOML; `shoal config --print` shows every key and its default).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Set one configuration key over the file, e.g. `tracker.window=10` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    sets: Vec<String>,
     /// Dataset folder (EuRoC ASL, KITTI odometry, phone logger; auto-detected). Repeat for
-    /// more clients.
-    #[arg(long = "dataset", required = true)]
+    /// more clients. Replaces the file's `datasets`.
+    #[arg(long = "dataset")]
     datasets: Vec<PathBuf>,
     /// Lock-step replay: nothing dropped, deterministic (the default).
     #[arg(long, conflicts_with = "rate")]
@@ -58,9 +69,9 @@ struct RunArgs {
     /// Real-time replay at this speed factor (1.0 = the dataset's clock).
     #[arg(long)]
     rate: Option<f64>,
-    /// Output folder (report.json, trajectories, logs, status).
-    #[arg(long, default_value = "out")]
-    out: PathBuf,
+    /// Output folder (report.json, trajectories, logs, status; default `out`).
+    #[arg(long)]
+    out: Option<PathBuf>,
     /// Replay at most this many frames per client.
     #[arg(long)]
     max_frames: Option<usize>,
@@ -70,13 +81,14 @@ struct RunArgs {
     /// iceoryx2 resource prefix (isolates concurrent runs; default $SHOAL_IPC_PREFIX or shoal_).
     #[arg(long)]
     ipc_prefix: Option<String>,
-    /// Extra argument for every tracker, `{c}` = client index (repeatable).
+    /// Deprecated: a tracker flag, mapped onto `[tracker]` (e.g. `--window=10` sets
+    /// `tracker.window`); `{c}` = client index (repeatable). Use `--set` or `--config`.
     #[arg(long = "tracker-arg", allow_hyphen_values = true)]
     tracker_args: Vec<String>,
-    /// Extra argument for the mapper (repeatable).
+    /// Deprecated: a mapper flag, mapped onto `[mapper]` (repeatable).
     #[arg(long = "mapper-arg", allow_hyphen_values = true)]
     mapper_args: Vec<String>,
-    /// Extra argument for the loop closer (repeatable), e.g. `--loop-closer-arg=--detect-only`.
+    /// Deprecated: a loop closer flag, mapped onto `[loop_closer]` (repeatable).
     #[arg(long = "loop-closer-arg", allow_hyphen_values = true)]
     loop_closer_args: Vec<String>,
     /// SIGKILL a service at a time after start-up, e.g. `tracker:0@3.5` or `mapper@10`
@@ -90,6 +102,21 @@ struct RunArgs {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+}
+
+/// Arguments of `shoal config`.
+#[derive(clap::Args, Debug)]
+struct ConfigArgs {
+    /// Print the configuration as TOML: the defaults, or those of `--config FILE` and
+    /// `--set` (what `shoal run` would use).
+    #[arg(long)]
+    print: bool,
+    /// Configuration file to read (checked: an unknown key is an error).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Set one key, as `shoal run --set` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    sets: Vec<String>,
 }
 
 #[derive(Subcommand)]
@@ -115,26 +142,69 @@ fn init_tracing() {
         .try_init();
 }
 
-fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
-    let mut cfg = launcher::RunConfig::new(args.datasets, args.out);
+/// The run's configuration from `args`: file, `--set`, flags, then the deprecated
+/// pass-through flags (one warning on stderr when they are used).
+fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
+    let mut cfg = config::RunConfig::resolve(args.config.as_deref(), &args.sets)?;
+    if !args.datasets.is_empty() {
+        cfg.datasets = args.datasets;
+    }
+    if args.lockstep {
+        cfg.mode = shoal_runtime::ReplayMode::Lockstep;
+    }
     if let Some(r) = args.rate {
         anyhow::ensure!(r > 0.0, "--rate must be positive");
         cfg.mode = shoal_runtime::ReplayMode::Realtime;
         cfg.rate = r;
     }
+    if let Some(o) = args.out {
+        cfg.out = o;
+    }
     if let Some(p) = args.ipc_prefix {
         cfg.ipc_prefix = p;
     }
-    cfg.max_frames = args.max_frames;
-    cfg.max_duration = args.max_seconds.map(std::time::Duration::from_secs_f64);
-    cfg.tracker_args = args.tracker_args;
-    cfg.mapper_args = args.mapper_args;
-    cfg.loop_closer_args = args.loop_closer_args;
-    cfg.kills = args.kills;
-    cfg.chaos = args.chaos;
-    cfg.progress = !args.quiet;
+    if args.max_frames.is_some() {
+        cfg.max_frames = args.max_frames;
+    }
+    if args.max_seconds.is_some() {
+        cfg.max_seconds = args.max_seconds;
+    }
+    if !args.kills.is_empty() {
+        cfg.kills = args.kills;
+    }
+    if args.chaos.is_some() {
+        cfg.chaos = args.chaos;
+    }
+    if args.quiet {
+        cfg.progress = false;
+    }
+    let deprecated = config::Deprecated {
+        tracker: args.tracker_args,
+        mapper: args.mapper_args,
+        loop_closer: args.loop_closer_args,
+    };
+    if !deprecated.is_empty() {
+        let set = deprecated.apply(&mut cfg)?;
+        eprintln!("{}", config::Deprecated::warning(&set));
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
+    let cfg = run_config(args)?;
     let rep = launcher::run(&cfg)?;
     launcher::summary::print(&rep, &cfg.out);
+    Ok(())
+}
+
+fn config_cmd(args: &ConfigArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.print,
+        "nothing to do: `shoal config --print [--config FILE] [--set KEY=VALUE ...]`"
+    );
+    let cfg = config::RunConfig::resolve(args.config.as_deref(), &args.sets)?;
+    print!("{}", cfg.to_toml_with_header()?);
     Ok(())
 }
 
@@ -153,6 +223,7 @@ fn main() -> ExitCode {
             let result = match command {
                 Command::Demo(a) => demo::run(a),
                 Command::Run(a) => run_cmd(a),
+                Command::Config(a) => config_cmd(&a),
                 Command::Sim(a) => sim_cmd::run(&a),
                 Command::Eval(a) => eval::run(&a).map(|r| eval::print(&r, a.json)),
                 Command::Pgo(a) => pgo_cmd::run(&a),

@@ -4,8 +4,8 @@
 //! latencies, CPU, process ids and heap figures aside).
 //!
 //! The sequence is the `loop` scenario (seed 3, 320 frames) with a client window of 10
-//! keyframes, so that keyframes reach the server (and its pose feedback the tracker) all
-//! along the run. Without the lock-step synchronisation, three runs of it differ (client
+//! keyframes (set in a `--config` file), so that keyframes reach the server (and its pose
+//! feedback the tracker) all along the run. Without the lock-step synchronisation, three runs of it differ (client
 //! keyframes 39-40, server keyframes kept 24-25, per-frame ATE 8.8-9.2 mm on one machine).
 mod common;
 
@@ -91,17 +91,21 @@ fn read(path: &Path) -> Vec<u8> {
 fn lockstep_runs_with_mapping_thread_are_identical() {
     let tmp = tempdir();
     let seq = sequence(tmp.path());
+    // The client window comes from a user's configuration file (`shoal run --config`),
+    // which the launcher hands to the tracker whole (`OUT/config/tracker_c0.toml`).
+    let config = tmp.path().join("shoal.toml");
+    std::fs::write(&config, "mode = \"lockstep\"\n\n[tracker]\nwindow = 10\n").expect("config");
+    let config = config.to_str().expect("utf-8 path").to_string();
     let mut runs = Vec::new();
     for r in 0..RUNS {
         let out = tmp.path().join(format!("run{r}"));
-        let res = run_pipeline(
-            &[&seq],
-            &out,
-            &format!("det{r}"),
-            &["--lockstep", "--tracker-arg=--window=10"],
-        );
+        let res = run_pipeline(&[&seq], &out, &format!("det{r}"), &["--config", &config]);
         assert!(res.status.success(), "run {r} failed");
+        let tracker_cfg = std::fs::read_to_string(out.join("config/tracker_c0.toml"))
+            .expect("the tracker's configuration file");
+        assert!(tracker_cfg.contains("window = 10"), "{tracker_cfg}");
         let rep = report(&out);
+        assert_eq!(rep["provenance"]["config"]["tracker"]["window"], 10);
         let c = &rep["clients"][0];
         assert_eq!(c["frames_received"], FRAMES as u64, "run {r}");
         // The server took part: keyframes were sent, kept and forwarded to loop closing,

@@ -171,8 +171,10 @@ fn report_records_provenance() {
     assert_eq!(cfg["datasets"][0], ds[0].to_str().unwrap());
     assert_eq!(cfg["mode"], "lockstep");
     assert_eq!(cfg["max_frames"], 20);
-    assert_eq!(cfg["max_duration_s"], 240.0);
-    assert_eq!(cfg["tracker_args"][0], "--no-vo");
+    assert_eq!(cfg["max_seconds"], 240.0);
+    // `--tracker-arg=--no-vo` (deprecated) mapped onto the tracker's section.
+    assert_eq!(cfg["tracker"]["vo"], false);
+    assert_eq!(cfg["tracker"]["window"], 100);
     assert_eq!(cfg["ipc_prefix"], prefix("prov"));
     let sum = &p["datasets"][0];
     assert_eq!(sum["path"], ds[0].to_str().unwrap());

@@ -5,7 +5,8 @@
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use slam_core::features::GrayImage;
 use slam_core::metrics::{evaluate, Alignment, EvalParams};
-use slam_core::vo::{VoFrame, VoParams, VoState, VoTracker};
+use slam_core::vo::{VoDiagnostic, VoFrame, VoParams, VoState, VoTracker};
+use tracker::mapping_thread::LocalMappingThread;
 
 struct VoRun {
     frames: usize,
@@ -15,6 +16,7 @@ struct VoRun {
     path: f64,
 }
 
+/// The VO with local mapping on the tracker service's thread (as in a run).
 fn run_vo(scenario: Scenario, frames: usize, params: VoParams) -> VoRun {
     let mut p = SimParams::new(scenario);
     p.frames = Some(frames);
@@ -23,6 +25,7 @@ fn run_vo(scenario: Scenario, frames: usize, params: VoParams) -> VoRun {
     let cal = world.calib();
     let cam = cal.model;
     let mut vo = VoTracker::new(params, cam).unwrap();
+    LocalMappingThread::attach(&mut vo).unwrap();
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let (mut est_t, mut est, mut gt_t, mut gt) = (vec![], vec![], vec![], vec![]);
     let mut sessions = 1;
@@ -91,11 +94,8 @@ fn relocalises_at_a_known_place() {
     let world = SimWorld::new(p).unwrap();
     let cal = world.calib();
     let cam = cal.model;
-    let params = VoParams {
-        local_mapping_thread: false,
-        ..VoParams::default()
-    };
-    let mut vo = VoTracker::new(params, cam).unwrap();
+    // Local mapping inline (`VoTracker::new` starts no thread).
+    let mut vo = VoTracker::new(VoParams::default(), cam).unwrap();
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let dt = world.frame_time_ns(1) - world.frame_time_ns(0);
     let mut t = 0;
@@ -172,6 +172,7 @@ fn vo_poses(
     scenario: Scenario,
     frames: usize,
     params: VoParams,
+    thread: bool,
 ) -> Vec<(i64, Option<nalgebra::Isometry3<f64>>, Option<u64>)> {
     let mut p = SimParams::new(scenario);
     p.frames = Some(frames);
@@ -180,6 +181,9 @@ fn vo_poses(
     let cal = world.calib();
     let cam = cal.model;
     let mut vo = VoTracker::new(params, cam).unwrap();
+    if thread {
+        LocalMappingThread::attach(&mut vo).unwrap();
+    }
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let mut out = Vec::new();
     for k in 0..world.n_frames() {
@@ -208,22 +212,15 @@ fn vo_poses(
 #[test]
 fn mapping_thread_with_sync_matches_inline_mapping() {
     let frames = 200;
-    let inline = vo_poses(
-        Scenario::Loop,
-        frames,
-        VoParams {
-            local_mapping_thread: false,
-            ..VoParams::default()
-        },
-    );
+    let inline = vo_poses(Scenario::Loop, frames, VoParams::default(), false);
     let threaded = vo_poses(
         Scenario::Loop,
         frames,
         VoParams {
-            local_mapping_thread: true,
             sync_local_mapping: true,
             ..VoParams::default()
         },
+        true,
     );
     let keyframes = inline.iter().filter(|f| f.2.is_some()).count();
     assert!(
@@ -267,7 +264,6 @@ fn frames_before_the_reference_are_tracked_backwards() {
     let cam = world.calib().model;
     // A reference needs 250 features (the covered frames have fewer).
     let params = VoParams {
-        local_mapping_thread: false,
         init_min_matches: 250,
         ..VoParams::default()
     };
@@ -278,6 +274,7 @@ fn frames_before_the_reference_are_tracked_backwards() {
     const COVERED: usize = 12;
     let (mut est_t, mut est) = (vec![], vec![]);
     let mut init_frame = None;
+    let mut diagnostics = vec![];
     for (i, &k) in fed.iter().enumerate() {
         world.render_frame_into(k, &mut img).unwrap();
         if k < COVERED {
@@ -296,6 +293,7 @@ fn frames_before_the_reference_are_tracked_backwards() {
         if init_frame.is_none() && out.state == VoState::Tracking {
             init_frame = Some(i);
         }
+        diagnostics.extend(out.diagnostics.iter().cloned());
         if !out.backfill.is_empty() {
             eprintln!("frame {k}: {} late poses", out.backfill.len());
         }
@@ -343,6 +341,14 @@ fn frames_before_the_reference_are_tracked_backwards() {
         "initialised on the uncovered frames: at {init_frame}"
     );
     assert_eq!(est_t.len(), fed.len(), "every fed frame has a pose");
+    // What the walk did comes back with the frames (`debug_init` prints it).
+    assert!(
+        diagnostics.iter().any(|d| matches!(
+            d,
+            VoDiagnostic::BackwardStart { before, .. } if *before >= COVERED
+        )),
+        "{diagnostics:?}"
+    );
     assert!(r.ape.rmse < 0.02, "ATE {:.4} m", r.ape.rmse);
     assert!(r.ape.max < 0.07, "worst pose {:.4} m", r.ape.max);
 }

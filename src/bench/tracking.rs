@@ -64,6 +64,8 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let mut params = VoParams::default();
     params.orb.n_features = args.features;
     let mut vo = VoTracker::new(params, cam)?;
+    // Local mapping on its own thread, as in the tracker service.
+    tracker::mapping_thread::LocalMappingThread::attach(&mut vo)?;
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let mut h: [LatencyHist; 9] = Default::default();
     let mut tracked = 0;

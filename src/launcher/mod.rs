@@ -1,10 +1,12 @@
 //! The launcher: the one place that knows the whole topology ([`topology`]: per client
 //! camera_ingest, imu_ingest, tracker; per host mapper, loop_closer, each with its role). It
-//! starts every service as a child process, consumers before producers, waits until they are
-//! ready, reaps and restarts crashed ones with back-off after cleaning their stale iceoryx2
-//! resources, injects faults, records poses and latencies, stops everything in the reverse
-//! order at the end of the data or on Ctrl-C, writes `OUT/report.json` (with its
-//! [`provenance`]) and leaves nothing of the run in shared memory.
+//! writes each service's section of the run's [`RunConfig`] to `OUT/config/` and starts
+//! every service as a child process with it (`--config FILE`), consumers before producers,
+//! waits until they are ready, reaps and restarts crashed ones with back-off after cleaning
+//! their stale iceoryx2 resources, injects faults, records poses and latencies, stops
+//! everything in the reverse order at the end of the data or on Ctrl-C, writes
+//! `OUT/report.json` (with its [`provenance`]) and leaves nothing of the run in shared
+//! memory.
 pub mod child;
 pub mod faults;
 pub mod provenance;
@@ -27,104 +29,7 @@ use shoal_runtime::{ErrorKind, ErrorRecord, ReplayMode};
 use child::{describe_exit, Phase, Supervised};
 use recorder::Recorder;
 
-/// Everything a run needs (recorded in full in the report's `provenance.config`).
-#[derive(Debug, Clone, serde::Serialize)]
-pub struct RunConfig {
-    /// One dataset per client.
-    #[serde(serialize_with = "ser::paths")]
-    pub datasets: Vec<PathBuf>,
-    /// Replay mode.
-    pub mode: ReplayMode,
-    /// Speed factor in real time.
-    pub rate: f64,
-    /// Output folder.
-    #[serde(serialize_with = "ser::path")]
-    pub out: PathBuf,
-    /// iceoryx2 resource prefix of the run.
-    pub ipc_prefix: String,
-    /// Show a progress bar (on a terminal).
-    pub progress: bool,
-    /// Replay at most this many frames per client.
-    pub max_frames: Option<usize>,
-    /// Extra arguments for every tracker (e.g. `--frame-log`), `{c}` replaced by the client.
-    pub tracker_args: Vec<String>,
-    /// Extra arguments for the mapper.
-    pub mapper_args: Vec<String>,
-    /// Extra arguments for the loop closer.
-    pub loop_closer_args: Vec<String>,
-    /// Give up (stop everything, report) after this long.
-    #[serde(rename = "max_duration_s", serialize_with = "ser::seconds")]
-    pub max_duration: Option<Duration>,
-    /// Most restarts of a crash-looping service before it is given up: crashes in a row,
-    /// each within `child::STABLE_AFTER` of being ready (a service that runs a while between
-    /// kills, e.g. under `--chaos`, is always restarted).
-    pub max_restarts: u32,
-    /// Kill schedule (`--kill SERVICE@SECONDS`).
-    #[serde(serialize_with = "ser::kills")]
-    pub kills: Vec<faults::KillSpec>,
-    /// Chaos (`--chaos SEED:PERIOD`).
-    #[serde(serialize_with = "ser::chaos")]
-    pub chaos: Option<faults::ChaosSpec>,
-}
-
-/// How [`RunConfig`]'s fields that are not plain data appear in the report: paths as text
-/// (lossy for non-UTF-8 names), durations in seconds, kill and chaos specs as given.
-mod ser {
-    use serde::Serializer;
-    use std::path::{Path, PathBuf};
-    use std::time::Duration;
-
-    pub fn path<S: Serializer>(p: &Path, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(&p.display().to_string())
-    }
-
-    pub fn paths<S: Serializer>(p: &[PathBuf], s: S) -> Result<S::Ok, S::Error> {
-        s.collect_seq(p.iter().map(|p| p.display().to_string()))
-    }
-
-    pub fn seconds<S: Serializer>(d: &Option<Duration>, s: S) -> Result<S::Ok, S::Error> {
-        match d {
-            Some(d) => s.serialize_some(&d.as_secs_f64()),
-            None => s.serialize_none(),
-        }
-    }
-
-    pub fn kills<S: Serializer>(k: &[super::faults::KillSpec], s: S) -> Result<S::Ok, S::Error> {
-        s.collect_seq(k.iter().map(|k| k.text.as_str()))
-    }
-
-    pub fn chaos<S: Serializer>(
-        c: &Option<super::faults::ChaosSpec>,
-        s: S,
-    ) -> Result<S::Ok, S::Error> {
-        match c {
-            Some(c) => s.serialize_some(&c.text),
-            None => s.serialize_none(),
-        }
-    }
-}
-
-impl RunConfig {
-    /// Defaults for `datasets` written to `out`.
-    pub fn new(datasets: Vec<PathBuf>, out: PathBuf) -> Self {
-        Self {
-            datasets,
-            mode: ReplayMode::Lockstep,
-            rate: 1.0,
-            out,
-            ipc_prefix: topics::prefix_from_env(),
-            progress: true,
-            max_frames: None,
-            tracker_args: Vec::new(),
-            mapper_args: Vec::new(),
-            loop_closer_args: Vec::new(),
-            max_duration: None,
-            max_restarts: 20,
-            kills: Vec::new(),
-            chaos: None,
-        }
-    }
-}
+pub use crate::config::RunConfig;
 
 /// Removes the stale resources of dead nodes on `prefix`; returns how many were removed.
 pub fn cleanup_dead_nodes(prefix: &str) -> anyhow::Result<usize> {
@@ -174,8 +79,38 @@ pub const TRACKER_SPOOL: &str = "spool";
 /// How long the mapper may take at the end to finish its handlers' queues.
 const MAPPER_STOP_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// The command-line arguments of `desc` after `shoal service` (`--status` is added by
-/// [`Supervised::spawn`]).
+/// Folder of the services' configuration files, in the output folder.
+pub const CONFIG_DIR: &str = "config";
+
+/// The configuration file of service `desc` in `out` (`tracker_c0.toml`, `mapper.toml`, ...;
+/// the ingests of all clients share one).
+pub fn service_config_path(out: &Path, desc: &topology::ServiceDesc) -> PathBuf {
+    use topology::Kind;
+    let name = match (desc.kind, desc.client) {
+        (Kind::Tracker, Some(c)) => format!("tracker_c{c}.toml"),
+        (kind, _) => format!("{}.toml", kind.name()),
+    };
+    out.join(CONFIG_DIR).join(name)
+}
+
+/// Writes the whole run's configuration (`OUT/config/run.toml`, which `shoal run --config`
+/// takes back) and every service's section (`OUT/config/<service>.toml`, see
+/// [`service_config_path`]), which each service is started with.
+fn write_configs(cfg: &RunConfig, topology: &[topology::ServiceDesc]) -> anyhow::Result<()> {
+    let dir = cfg.out.join(CONFIG_DIR);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let write = |path: PathBuf, text: String| {
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
+    };
+    write(dir.join("run.toml"), cfg.to_toml_with_header()?)?;
+    for desc in topology {
+        write(service_config_path(&cfg.out, desc), cfg.service_toml(desc)?)?;
+    }
+    Ok(())
+}
+
+/// The command-line arguments of `desc` after `shoal service`: the launcher's wiring and
+/// the service's configuration file (`--status` is added by [`Supervised::spawn`]).
 fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) -> Vec<String> {
     use topology::Kind;
     let out = &cfg.out;
@@ -192,25 +127,17 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) 
             args.extend(["--clients".to_string(), cfg.datasets.len().to_string()]);
             args.extend(["--journal".to_string(), path_arg(&out.join(MAPPER_JOURNAL))]);
             args.extend(["--out".to_string(), path_arg(out)]);
-            args.extend(["--mode".to_string(), mode.to_string()]);
-            args.extend(cfg.mapper_args.iter().cloned());
         }
-        Kind::LoopCloser => {
-            args.extend(["--mode".to_string(), mode.to_string()]);
-            args.extend(cfg.loop_closer_args.iter().cloned());
-        }
+        Kind::LoopCloser => {}
         Kind::Tracker => {
             let spool = out.join(TRACKER_SPOOL).join(format!("c{c}"));
             args.extend(["--client".to_string(), c.clone()]);
-            args.extend(["--mode".to_string(), mode.to_string()]);
             args.extend(["--spool".to_string(), path_arg(&spool)]);
-            args.extend(cfg.tracker_args.iter().map(|a| a.replace("{c}", &c)));
         }
         Kind::ImuIngest | Kind::CameraIngest => {
             let ds = &cfg.datasets[desc.client.unwrap_or(0) as usize];
             args.extend(["--client".to_string(), c.clone()]);
             args.extend(["--dataset".to_string(), path_arg(ds)]);
-            args.extend(["--mode".to_string(), mode.to_string()]);
             args.extend(["--rate".to_string(), cfg.rate.to_string()]);
             args.extend(["--t0-mono-ns".to_string(), t0_mono_ns.to_string()]);
             if let Some(m) = cfg.max_frames {
@@ -218,6 +145,9 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) 
             }
         }
     }
+    args.extend(["--mode".to_string(), mode.to_string()]);
+    let config = service_config_path(out, desc);
+    args.extend(["--config".to_string(), path_arg(&config)]);
     args
 }
 
@@ -273,6 +203,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     // All sensors on one stream origin a little in the future.
     let t0 = monotonic_ns() + 2_000_000_000;
     let topology = topology::topology(cfg.datasets.len() as u32);
+    write_configs(cfg, &topology)?;
     let mut services = services_for(cfg, &topology, t0);
     start_services(&mut services, &topology, &exe)?;
     tracing::info!("all {} services ready", services.len());
@@ -341,6 +272,7 @@ fn prepare_out_dir(out: &Path) -> anyhow::Result<()> {
     let _ = std::fs::remove_dir_all(out.join("status"));
     let _ = std::fs::remove_file(out.join(MAPPER_JOURNAL));
     let _ = std::fs::remove_dir_all(out.join(TRACKER_SPOOL));
+    let _ = std::fs::remove_dir_all(out.join(CONFIG_DIR));
     if let Ok(rd) = std::fs::read_dir(out) {
         for e in rd.flatten() {
             let name = e.file_name().to_string_lossy().to_string();
@@ -485,7 +417,7 @@ impl Watch {
             if (0..cfg.datasets.len()).all(|c| client_done(&self.services, c)) {
                 return Ok(RunEnd::Done);
             }
-            if cfg.max_duration.is_some_and(|d| started.elapsed() > d) {
+            if cfg.max_duration().is_some_and(|d| started.elapsed() > d) {
                 self.errors.push(ErrorRecord {
                     service: "launcher".into(),
                     kind: ErrorKind::Timeout,

@@ -115,10 +115,10 @@ pub struct ClientReport {
     /// `trajectory_c{i}.txt`, which could not be, and why.
     pub sessions: super::sessions::SessionsReport,
     /// Where the client VO's local mapping ran: `"thread"` (its own thread, the default) or
-    /// `"inline"` (in the tracking thread, `--tracker-arg=--inline-mapping`); `"none"` when
+    /// `"inline"` (in the tracking thread, `tracker.local_mapping = "inline"`); `"none"` when
     /// the tracker ran no VO.
     pub local_mapping: String,
-    /// Lock-step synchronisation was on (lock-step replay without `--no-lockstep-sync`):
+    /// Lock-step synchronisation was on (lock-step replay with `tracker.lockstep_sync`):
     /// the tracker waited for its local-mapping thread before each frame used the map and
     /// for the server's handling of each keyframe it sent, so the run is reproducible.
     pub lockstep_sync: bool,

@@ -15,6 +15,11 @@
 //! real time at the frame due now, counting the frames it missed as dropped.
 #![deny(missing_docs)]
 
+pub mod config;
+
+pub use config::{CameraIngestConfig, CameraIngestFlags};
+
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -56,7 +61,9 @@ pub struct CameraResume {
 /// How often the status file is written during the replay.
 const STATUS_PERIOD: Duration = Duration::from_millis(200);
 
-/// Parameters of the camera ingest.
+/// The camera ingest's command line: the run's replay (dataset, client, pacing, status,
+/// IPC prefix) and the configuration ([`CameraIngestConfig`]: a `--config` file, which the
+/// launcher writes, and flags overriding it).
 #[derive(Debug, Clone, clap::Parser)]
 #[command(
     name = "camera_ingest",
@@ -66,13 +73,21 @@ pub struct Params {
     /// Dataset, client, pacing, status and IPC prefix.
     #[command(flatten)]
     pub replay: ReplayArgs,
-    /// Lock-step: re-send a frame when its ack has not come after this many ms.
-    #[arg(long, default_value_t = 1000)]
-    pub resend_ms: u64,
-    /// Lock-step: give up waiting for an ack (and count the frame as dropped) after this
-    /// many ms.
-    #[arg(long, default_value_t = 60_000)]
-    pub ack_timeout_ms: u64,
+    /// Configuration file (TOML, the keys of `[camera_ingest]` in `shoal config --print`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Options overriding the configuration file.
+    #[command(flatten)]
+    pub options: CameraIngestFlags,
+}
+
+impl Params {
+    /// The configuration: the `--config` file (else the defaults) and the flags over it.
+    pub fn config(&self) -> Result<CameraIngestConfig, shoal_runtime::config::ConfigError> {
+        shoal_runtime::config::resolve(self.config.as_ref(), |c: &mut CameraIngestConfig| {
+            self.options.apply(c)
+        })
+    }
 }
 
 /// The service's name in reports.
@@ -88,6 +103,7 @@ pub fn main_with(params: Params) -> i32 {
 /// The replay of one dataset's frames: what stays fixed over the run.
 struct Replay<'a> {
     params: &'a Params,
+    cfg: CameraIngestConfig,
     dataset: datasets::Dataset,
     n_frames: usize,
     /// Header fields shared by every frame (intrinsics, `T_BS`, size).
@@ -184,11 +200,11 @@ impl Replay<'_> {
             h.meta.flags |= FLAG_RESEND;
             self.send(k, h)?.map_err(anyhow::Error::msg)
         };
-        match wait_for_ack(&self.node, &self.acks, k as u64, acked, self.params, resend)? {
+        match wait_for_ack(&self.node, &self.acks, k as u64, acked, &self.cfg, resend)? {
             AckWait::Acked => {}
             AckWait::Resent(n) => p.counters.frames_resent += n,
             AckWait::TimedOut => {
-                let ms = self.params.ack_timeout_ms;
+                let ms = self.cfg.ack_timeout_ms;
                 p.status.error(
                     ErrorKind::AckTimeout,
                     format!("no consumer took frame {k} within {ms} ms"),
@@ -204,6 +220,7 @@ impl Replay<'_> {
 /// Opens the dataset and the ports; reports the reader's problems on a first start.
 fn open<'a>(
     params: &'a Params,
+    cfg: CameraIngestConfig,
     status: &mut Status,
     node: Node<Ipc>,
 ) -> anyhow::Result<Replay<'a>> {
@@ -240,6 +257,7 @@ fn open<'a>(
     let acks = topics::subscriber(&topics::frame_ack_service(&node, c)?)?;
     Ok(Replay {
         params,
+        cfg,
         dataset,
         n_frames,
         template,
@@ -299,11 +317,12 @@ impl Progress {
 /// Replays the dataset; returns the final status. Stops early (without error) on
 /// SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let cfg = params.config()?;
     let c = params.replay.client;
     let start = params.replay.start(&service_name(c), "camera_ingest")?;
     let mut file = start.file;
     let mut p = Progress::resume(start.status);
-    let replay = open(params, &mut p.status, start.node)?;
+    let replay = open(params, cfg, &mut p.status, start.node)?;
     shoal_runtime::signal_ready();
     let session_id = p.status.starts as u32;
     let mut acked: Option<u64> = None;
@@ -338,7 +357,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             &r.node,
             &r.publisher,
             &r.acks,
-            params,
+            c,
+            &r.cfg,
             next as u64,
             session_id,
         )?;
@@ -360,7 +380,7 @@ fn wait_for_ack(
     acks: &iceoryx2::port::subscriber::Subscriber<Ipc, FrameAck, ()>,
     seq: u64,
     acked: &mut Option<u64>,
-    params: &Params,
+    cfg: &CameraIngestConfig,
     mut resend: impl FnMut() -> anyhow::Result<()>,
 ) -> anyhow::Result<AckWait> {
     let start = monotonic_ns();
@@ -381,10 +401,10 @@ fn wait_for_ack(
             });
         }
         let now = monotonic_ns();
-        if now - start > params.ack_timeout_ms as i64 * 1_000_000 {
+        if now - start > cfg.ack_timeout_ms as i64 * 1_000_000 {
             return Ok(AckWait::TimedOut);
         }
-        if now - last_send > params.resend_ms as i64 * 1_000_000 {
+        if now - last_send > cfg.resend_ms as i64 * 1_000_000 {
             resend()?;
             resent += 1;
             last_send = now;
@@ -399,13 +419,14 @@ fn send_end_of_stream(
     node: &Node<Ipc>,
     publisher: &iceoryx2::port::publisher::Publisher<Ipc, [u8], FrameHeader>,
     acks: &iceoryx2::port::subscriber::Subscriber<Ipc, FrameAck, ()>,
-    params: &Params,
+    client: u32,
+    cfg: &CameraIngestConfig,
     seq: u64,
     session_id: u32,
 ) -> anyhow::Result<()> {
     let send = || -> anyhow::Result<()> {
         let mut s = publisher.loan_slice(0)?;
-        let mut meta = MsgMeta::new(params.replay.client, session_id, seq, monotonic_ns());
+        let mut meta = MsgMeta::new(client, session_id, seq, monotonic_ns());
         meta.flags = FLAG_END_OF_STREAM;
         *s.user_header_mut() = FrameHeader {
             meta,
@@ -418,12 +439,11 @@ fn send_end_of_stream(
     // The end of stream must reach the consumer even if it restarts now: re-send until it is
     // acknowledged (bounded).
     let mut acked = None;
-    let eos_params = Params {
+    let eos = CameraIngestConfig {
         resend_ms: 250,
-        ack_timeout_ms: params.ack_timeout_ms,
-        ..params.clone()
+        ..cfg.clone()
     };
-    let _ = wait_for_ack(node, acks, seq, &mut acked, &eos_params, send)?;
+    let _ = wait_for_ack(node, acks, seq, &mut acked, &eos, send)?;
     Ok(())
 }
 

@@ -15,6 +15,11 @@
 //! counted as dropped.
 #![deny(missing_docs)]
 
+pub mod config;
+
+pub use config::{ImuIngestConfig, ImuIngestFlags};
+
+use std::path::PathBuf;
 use std::time::Duration;
 
 use iceoryx2::node::Node;
@@ -65,7 +70,9 @@ fn put_state(status: &mut Status, counters: &ImuCounters, next: usize) {
     status.set_resume(RESUME_VERSION, &resume);
 }
 
-/// Parameters of the IMU ingest.
+/// The IMU ingest's command line: the run's replay (dataset, client, pacing, status, IPC
+/// prefix) and the configuration ([`ImuIngestConfig`]: a `--config` file, which the
+/// launcher writes, and flags overriding it).
 #[derive(Debug, Clone, clap::Parser)]
 #[command(
     name = "imu_ingest",
@@ -75,9 +82,21 @@ pub struct Params {
     /// Dataset, client, pacing, status and IPC prefix.
     #[command(flatten)]
     pub replay: ReplayArgs,
-    /// Lock-step: publish samples up to this many ms past the last acknowledged frame.
-    #[arg(long, default_value_t = 100)]
-    pub lookahead_ms: u64,
+    /// Configuration file (TOML, the keys of `[imu_ingest]` in `shoal config --print`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Options overriding the configuration file.
+    #[command(flatten)]
+    pub options: ImuIngestFlags,
+}
+
+impl Params {
+    /// The configuration: the `--config` file (else the defaults) and the flags over it.
+    pub fn config(&self) -> Result<ImuIngestConfig, shoal_runtime::config::ConfigError> {
+        shoal_runtime::config::resolve(self.config.as_ref(), |c: &mut ImuIngestConfig| {
+            self.options.apply(c)
+        })
+    }
 }
 
 /// The service's name in reports.
@@ -150,7 +169,12 @@ impl Pacer {
 type AckSub = iceoryx2::port::subscriber::Subscriber<Ipc, FrameAck, ()>;
 
 /// The pacing of `dataset` for `params`, and how many samples to replay.
-fn pacer(params: &Params, dataset: &datasets::Dataset, status: &Status) -> (Pacer, usize) {
+fn pacer(
+    params: &Params,
+    cfg: &ImuIngestConfig,
+    dataset: &datasets::Dataset,
+    status: &Status,
+) -> (Pacer, usize) {
     // Samples after the last frame replayed are not needed.
     let t_end = match params.replay.max_frames {
         Some(n) if n < dataset.frames.len() => dataset.frames[n].t_ns,
@@ -163,7 +187,7 @@ fn pacer(params: &Params, dataset: &datasets::Dataset, status: &Status) -> (Pace
         rate: params.replay.rate,
     };
     let first_frame_t = dataset.frames.first().map_or(i64::MIN, |f| f.t_ns);
-    let lookahead_ns = params.lookahead_ms as i64 * 1_000_000;
+    let lookahead_ns = cfg.lookahead_ms as i64 * 1_000_000;
     let pacer = Pacer {
         lockstep: params.replay.mode == ReplayMode::Lockstep && !dataset.frames.is_empty(),
         clock,
@@ -176,6 +200,7 @@ fn pacer(params: &Params, dataset: &datasets::Dataset, status: &Status) -> (Pace
 
 /// Replays the IMU samples; returns the final status. Stops early on SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let cfg = params.config()?;
     let c = params.replay.client;
     let start = params.replay.start(&service_name(c), "imu_ingest")?;
     let (mut file, mut status, node) = (start.file, start.status, start.node);
@@ -184,7 +209,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let publisher = topics::publisher(&topics::imu_service(&node, c)?)?;
     let acks = topics::subscriber(&topics::frame_ack_service(&node, c)?)?;
     shoal_runtime::signal_ready();
-    let (mut pacer, n) = pacer(params, &dataset, &status);
+    let (mut pacer, n) = pacer(params, &cfg, &dataset, &status);
     let session_id = status.starts as u32;
     let (mut counters, mut next) = resume(&mut status);
     while next < n {

@@ -13,6 +13,10 @@
 //! closer keeps its own copy of keyframe poses and moves them with its own corrections.
 #![deny(missing_docs)]
 
+pub mod config;
+
+pub use config::{LoopCloserConfig, LoopCloserFlags};
+
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -44,7 +48,9 @@ use slam_core::server::{KeptKeyframe, KeptPoint, MapId};
 /// The vocabulary shipped with the project (`assets/orb_vocab.bin`), built in.
 static SHIPPED_VOCABULARY: &[u8] = include_bytes!("../../../assets/orb_vocab.bin");
 
-/// Parameters of the loop closer service.
+/// The loop closer service's command line: the launcher's wiring (status, IPC prefix,
+/// replay mode) and the configuration ([`LoopCloserConfig`]: a `--config` file, which the
+/// launcher writes, and flags overriding it).
 #[derive(Debug, Clone, clap::Parser)]
 #[command(name = "loop_closer", about = "Loop closer service")]
 pub struct Params {
@@ -54,27 +60,29 @@ pub struct Params {
     /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
     #[arg(long)]
     pub ipc_prefix: Option<String>,
-    /// Vocabulary file (default: the shipped `assets/orb_vocab.bin`, built in).
-    #[arg(long)]
-    pub vocabulary: Option<PathBuf>,
-    /// Pose graph optimisation of loops within one map. Default by measurement (BENCHMARKS.md,
-    /// "Loop closing"): on the drifting `loop` the stepwise solution gave the lowest server
-    /// keyframe ATE after the correction and global BA (0.0054 m mean of 2 runs, against
-    /// 0.0076 m direct and 0.0064 m stepwise + direct) in 1 ms instead of 15-22 ms.
-    #[arg(long, default_value = "stepwise", value_parser = clap::value_parser!(PgoMethod))]
-    pub method: PgoMethod,
-    /// Detect and report loops but send no correction.
-    #[arg(long)]
-    pub detect_only: bool,
     /// Replay mode of the run (the launcher passes it). In lock-step the loop closer tells
     /// the mapper when it has finished each loop keyframe ([`shm_schema::CORRECTION_DONE`],
-    /// after any correction it found), so corrections land at the same point of the
-    /// keyframe stream on every run.
+    /// after any correction it found; unless `lockstep_sync = false`), so corrections land
+    /// at the same point of the keyframe stream on every run.
     #[arg(long, default_value = "realtime")]
     pub mode: ReplayMode,
-    /// In lock-step, do not synchronise (as in real time; for benchmarks).
+    /// Configuration file (TOML, the keys of `[loop_closer]` in `shoal config --print`).
     #[arg(long)]
-    pub no_lockstep_sync: bool,
+    pub config: Option<PathBuf>,
+    /// Options overriding the configuration file.
+    #[command(flatten)]
+    pub options: LoopCloserFlags,
+}
+
+impl Params {
+    /// The configuration: the `--config` file (else the defaults), the flags over it, and
+    /// `SHOAL_DEBUG_LOOP` (set: `debug_loop = true`).
+    pub fn config(&self) -> Result<LoopCloserConfig, shoal_runtime::config::ConfigError> {
+        shoal_runtime::config::resolve(self.config.as_ref(), |c: &mut LoopCloserConfig| {
+            self.options.apply(c);
+            c.debug_loop |= std::env::var_os("SHOAL_DEBUG_LOOP").is_some();
+        })
+    }
 }
 
 /// The service's name in reports.
@@ -194,6 +202,8 @@ pub struct Closer {
     loops: HashMap<MapId, Vec<LoopConstraint>>,
     graph: LoopGraphParams,
     next_id: u64,
+    /// Print every query's statistics on stderr.
+    debug_queries: bool,
 }
 
 /// A correction ready to send.
@@ -218,7 +228,13 @@ impl Closer {
                 ..LoopGraphParams::default()
             },
             next_id: 1,
+            debug_queries: false,
         }
+    }
+
+    /// Every query's statistics go to stderr (`debug_loop`).
+    pub fn set_debug_queries(&mut self, on: bool) {
+        self.debug_queries = on;
     }
 
     /// Keyframes stored.
@@ -232,11 +248,11 @@ impl Closer {
     }
 
     /// Adds a keyframe: a verified loop gives the correction to send. With
-    /// `SHOAL_DEBUG_LOOP` set, every query's statistics go to stderr.
+    /// [`Closer::set_debug_queries`], every query's statistics go to stderr.
     pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
         let client = KeyframeId::from_raw(kf.kf_id).client().raw();
         let found = self.detector.add(kf);
-        if std::env::var_os("SHOAL_DEBUG_LOOP").is_some() {
+        if self.debug_queries {
             eprintln!("loop_closer: query {:?}", self.detector.last_query());
         }
         let Some(m) = found else {
@@ -457,8 +473,14 @@ pub struct LoopCloserCore {
 impl LoopCloserCore {
     /// A core resuming `status`; its first outputs (a resync request, unless this is the
     /// first start of a lock-step run) are in the returned list.
-    pub fn new(closer: Closer, params: &Params, status: Status, now_ns: i64) -> (Self, Vec<Out>) {
-        let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
+    pub fn new(
+        closer: Closer,
+        params: &Params,
+        cfg: &LoopCloserConfig,
+        status: Status,
+        now_ns: i64,
+    ) -> (Self, Vec<Out>) {
+        let sync = params.mode == ReplayMode::Lockstep && cfg.lockstep_sync;
         let mut core = Self {
             closer,
             resync: Resync {
@@ -469,7 +491,7 @@ impl LoopCloserCore {
                 done: false,
             },
             sync,
-            detect_only: params.detect_only,
+            detect_only: cfg.detect_only,
             counters: status.counters_as(),
             status,
         };
@@ -629,9 +651,9 @@ fn publish(
     Ok(())
 }
 
-/// The vocabulary of `--vocabulary`, else the shipped one.
-pub fn vocabulary(params: &Params) -> anyhow::Result<Vocabulary> {
-    Ok(match &params.vocabulary {
+/// The configured vocabulary, else the shipped one.
+pub fn vocabulary(cfg: &LoopCloserConfig) -> anyhow::Result<Vocabulary> {
+    Ok(match &cfg.vocabulary {
         Some(p) => Vocabulary::load(p)
             .with_context(|| format!("loading the vocabulary {}", p.display()))?,
         None => Vocabulary::from_bytes(SHIPPED_VOCABULARY)
@@ -641,7 +663,9 @@ pub fn vocabulary(params: &Params) -> anyhow::Result<Vocabulary> {
 
 /// Receives keyframes until SIGINT/SIGTERM; detects loops and sends corrections.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
-    let closer = Closer::new(vocabulary(params)?, params.method);
+    let cfg = params.config()?;
+    let mut closer = Closer::new(vocabulary(&cfg)?, cfg.method);
+    closer.set_debug_queries(cfg.debug_loop);
     let mut start = ServiceStart::open(
         SERVICE_NAME,
         "loop_closer",
@@ -659,7 +683,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     )?;
     let resync = topics::publisher(&topics::resync_service(node)?)?;
     let status = std::mem::take(&mut start.status);
-    let (mut core, out) = LoopCloserCore::new(closer, params, status, monotonic_ns());
+    let (mut core, out) = LoopCloserCore::new(closer, params, &cfg, status, monotonic_ns());
     publish(&corrections, &resync, out)?;
     shoal_runtime::signal_ready();
     loop {

@@ -21,10 +21,11 @@ fn params(lockstep: bool) -> Params {
 /// A core as started for the `starts`-th time (1: the first start of a run).
 fn core(lockstep: bool, starts: u64) -> (LoopCloserCore, Vec<Out>) {
     let p = params(lockstep);
-    let vocabulary = loop_closer::vocabulary(&p).expect("shipped vocabulary");
+    let cfg = p.config().expect("default configuration");
+    let vocabulary = loop_closer::vocabulary(&cfg).expect("shipped vocabulary");
     let mut status = Status::new("loop_closer");
     status.starts = starts;
-    LoopCloserCore::new(Closer::new(vocabulary, p.method), &p, status, 0)
+    LoopCloserCore::new(Closer::new(vocabulary, cfg.method), &p, &cfg, status, 0)
 }
 
 /// A plausible loop keyframe of client `c`: 60 keypoints with pseudo-random descriptors,

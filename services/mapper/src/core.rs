@@ -25,7 +25,7 @@ use crate::counters::MapperCounters;
 use crate::worker::{
     CorrectionKind, CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker,
 };
-use crate::{lockstep, Params};
+use crate::{lockstep, MapperConfig, Params};
 
 /// A message the mapper publishes.
 #[derive(Debug, Clone)]
@@ -77,9 +77,11 @@ pub struct Mapper {
 }
 
 impl Mapper {
-    /// A mapper for `params`' clients resuming `status`; the handlers report on `results_tx`.
+    /// A mapper for `params`' clients with configuration `cfg`, resuming `status`; the
+    /// handlers report on `results_tx`.
     pub fn new(
         params: &Params,
+        cfg: &MapperConfig,
         status: Status,
         results_tx: crossbeam_channel::Sender<Report>,
     ) -> Self {
@@ -94,14 +96,14 @@ impl Mapper {
             fb_seq: 0,
             figures: MapFigures::default(),
         };
-        let sync = params.mode == ReplayMode::Lockstep && !params.no_lockstep_sync;
+        let sync = params.mode == ReplayMode::Lockstep && cfg.lockstep_sync;
         Self {
             counters: status.counters_as(),
             resync: Vec::new(),
             handler_params: HandlerParams {
-                spatial_keyframes: params.spatial_keyframes,
-                revisit_min_points: params.revisit_points,
-                assoc_horizon_kfs: params.assoc_horizon,
+                spatial_keyframes: cfg.spatial_keyframes,
+                revisit_min_points: cfg.revisit_points,
+                assoc_horizon_kfs: cfg.assoc_horizon,
                 ..HandlerParams::default()
             },
             workers: Vec::new(),
@@ -695,10 +697,11 @@ mod tests {
         std::fs::write(&path, &old).expect("write");
         let params = crate::Params::parse_from(["mapper", "--clients", "1"]);
         let (tx, _rx) = crossbeam_channel::unbounded();
-        let mut m = Mapper::new(&params, Status::new("mapper"), tx);
+        let cfg = params.config().expect("default configuration");
+        let mut m = Mapper::new(&params, &cfg, Status::new("mapper"), tx);
         m.open_journal(&path).expect("starts fresh");
-        assert_eq!(m.status.get("journals_rejected"), 1);
-        assert_eq!(m.status.error_counts["journal"], 1);
+        assert_eq!(m.counters.journals_rejected, 1);
+        assert_eq!(m.status.errors_of(ErrorKind::Journal), 1);
         let detail = &m.status.errors[0].detail;
         assert!(detail.contains("no journal header"), "{detail}");
         assert!(detail.contains(&path.display().to_string()), "{detail}");
@@ -709,9 +712,9 @@ mod tests {
         drop(m);
         // The new journal is of this version: a second start replays it without an error.
         let (tx, _rx) = crossbeam_channel::unbounded();
-        let mut m = Mapper::new(&params, Status::new("mapper"), tx);
+        let mut m = Mapper::new(&params, &cfg, Status::new("mapper"), tx);
         m.open_journal(&path).expect("reopen");
-        assert_eq!(m.status.get("journals_rejected"), 0);
+        assert_eq!(m.counters.journals_rejected, 0);
         assert!(m.status.errors.is_empty(), "{:?}", m.status.errors);
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -163,7 +163,8 @@ mod tests {
         s.starts = 2;
         let (tx, _rx) = crossbeam_channel::unbounded();
         let params = crate::Params::parse_from(["mapper"]);
-        let mut m = crate::core::Mapper::new(&params, s, tx);
+        let cfg = params.config().expect("default configuration");
+        let mut m = crate::core::Mapper::new(&params, &cfg, s, tx);
         assert_eq!(m.counters, prev);
         m.counters.clients.of(0).keyframes_applied += 1;
         let s = m.status_now();

@@ -26,6 +26,7 @@
 //! loop, the drain at the end).
 #![deny(missing_docs)]
 
+pub mod config;
 pub mod convert;
 pub mod core;
 pub mod counters;
@@ -36,12 +37,14 @@ pub mod worker;
 use std::path::PathBuf;
 
 use shoal_runtime::ReplayMode;
-use slam_core::server::HandlerParams;
 
+pub use config::{MapperConfig, MapperFlags};
 pub use counters::{MapperClientCounters, MapperCounters};
 pub use ports::run;
 
-/// Parameters of the mapper service.
+/// The mapper service's command line: the launcher's wiring (clients, status, journal,
+/// output folder, IPC prefix, replay mode) and the configuration ([`MapperConfig`]: a
+/// `--config` file, which the launcher writes, and flags overriding it).
 #[derive(Debug, Clone, clap::Parser)]
 #[command(name = "mapper", about = "Server mapper service")]
 pub struct Params {
@@ -60,31 +63,27 @@ pub struct Params {
     /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
     #[arg(long)]
     pub ipc_prefix: Option<String>,
-    /// Keyframes near the predicted pose searched for a revisit (0: none, so that a revisit
-    /// is left to loop closing; for ablations).
-    #[arg(long, default_value_t = HandlerParams::default().spatial_keyframes)]
-    pub spatial_keyframes: usize,
-    /// Global BA when a kept keyframe re-observes at least this many points of a place
-    /// seen more than 5 s before (a revisit; at most one per 5 s of data). 0: never (an
-    /// ablation: the revisit then only links the keyframes locally).
-    #[arg(long, default_value_t = HandlerParams::default().revisit_min_points)]
-    pub revisit_points: usize,
-    /// Forget a client point not referenced by the last this-many keyframe ids of its
-    /// client session (must exceed the id span of the client VO's window; 0: never; memory
-    /// on long runs, BENCHMARKS.md "Long run").
-    #[arg(long, default_value_t = HandlerParams::default().assoc_horizon_kfs)]
-    pub assoc_horizon: u64,
-    /// At the end, wait at most this long (s) for the handlers to finish their queues.
-    #[arg(long, default_value_t = 50.0)]
-    pub drain_seconds: f64,
     /// Replay mode of the run (the launcher passes it). In lock-step the mapper runs the
     /// idle step after every keyframe and tells the tracker when a keyframe is finished
-    /// ([`lockstep`]), so the server maps are the same on every run.
+    /// ([`lockstep`]; unless `lockstep_sync = false`), so the server maps are the same on
+    /// every run.
     #[arg(long, default_value = "realtime")]
     pub mode: ReplayMode,
-    /// In lock-step, do not synchronise (as in real time; for benchmarks).
+    /// Configuration file (TOML, the keys of `[mapper]` in `shoal config --print`).
     #[arg(long)]
-    pub no_lockstep_sync: bool,
+    pub config: Option<PathBuf>,
+    /// Options overriding the configuration file.
+    #[command(flatten)]
+    pub options: MapperFlags,
+}
+
+impl Params {
+    /// The configuration: the `--config` file (else the defaults) and the flags over it.
+    pub fn config(&self) -> Result<MapperConfig, shoal_runtime::config::ConfigError> {
+        shoal_runtime::config::resolve(self.config.as_ref(), |c: &mut MapperConfig| {
+            self.options.apply(c)
+        })
+    }
 }
 
 /// The service's name in reports.

@@ -167,6 +167,7 @@ fn drain(
 
 /// Serves keyframes until SIGINT/SIGTERM, then lets the handlers finish their queues.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let cfg = params.config()?;
     let mut start = ServiceStart::open(
         SERVICE_NAME,
         "mapper",
@@ -174,7 +175,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         params.ipc_prefix.clone(),
     )?;
     let (results_tx, results_rx) = crossbeam_channel::unbounded();
-    let mut m = Mapper::new(params, std::mem::take(&mut start.status), results_tx);
+    let mut m = Mapper::new(params, &cfg, std::mem::take(&mut start.status), results_tx);
     // Rebuild the maps from the journal before taking new keyframes.
     if let Some(path) = &params.journal {
         m.open_journal(path)?;
@@ -197,7 +198,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             }
         }
     }
-    drain(&mut m, &ports, &results_rx, params.drain_seconds)?;
+    drain(&mut m, &ports, &results_rx, cfg.drain_seconds)?;
     m.status.finished = true;
     start.file.write(m.status_now())?;
     Ok(std::mem::take(&mut m.status))

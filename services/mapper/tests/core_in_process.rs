@@ -130,7 +130,8 @@ fn mapper(journal: Option<&std::path::Path>) -> (Mapper, Receiver<Report>) {
     }
     let params = Params::parse_from(args);
     let (tx, rx) = crossbeam_channel::unbounded();
-    let mut m = Mapper::new(&params, Status::new("mapper"), tx);
+    let cfg = params.config().expect("default configuration");
+    let mut m = Mapper::new(&params, &cfg, Status::new("mapper"), tx);
     if let Some(j) = journal {
         m.open_journal(j).expect("journal");
     }

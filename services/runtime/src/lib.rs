@@ -3,6 +3,7 @@
 //! resume), error records, the readiness line and the exit codes.
 #![deny(missing_docs)]
 
+pub mod config;
 mod error_kind;
 pub mod journal;
 mod per_client;
@@ -545,7 +546,9 @@ pub fn exit_code<T>(service: &str, result: anyhow::Result<T>) -> i32 {
         Ok(_) => 0,
         Err(e) => {
             eprintln!("[{service}] fatal: {e:#}");
-            if e.downcast_ref::<datasets::DatasetError>().is_some() {
+            if e.downcast_ref::<datasets::DatasetError>().is_some()
+                || e.downcast_ref::<config::ConfigError>().is_some()
+            {
                 EXIT_CONFIG
             } else {
                 1

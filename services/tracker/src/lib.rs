@@ -17,7 +17,11 @@
 //! out, no IPC or files, tested in-process); [`ports`] is the service around it (iceoryx2
 //! ports, spool, frame log, status file, the event loop).
 //!
-//! With `--frame-log` it writes, per frame, sequence number, dataset index,
+//! Configuration: [`TrackerConfig`] (`--config FILE`, written by the launcher; flags
+//! override it). The client VO's local-mapping thread is this service's
+//! ([`mapping_thread`]); `slam_core` keeps the steps.
+//!
+//! With `frame_log` it writes, per frame, sequence number, dataset index,
 //! timestamps, size and an FNV-1a checksum of the pixels it read from shared memory (and per
 //! IMU sample its time), which the end-to-end tests compare with the dataset.
 #![deny(missing_docs)]
@@ -26,7 +30,9 @@ use std::path::PathBuf;
 
 use shoal_runtime::ReplayMode;
 
-/// Parameters of the tracker service.
+/// The tracker service's command line: the launcher's wiring (client, status, IPC prefix,
+/// spool, replay mode) and the configuration ([`TrackerConfig`]: a `--config` file, which
+/// the launcher writes, and flags overriding it in a manual run).
 #[derive(Debug, Clone, clap::Parser)]
 #[command(name = "tracker", about = "Client tracker service")]
 pub struct Params {
@@ -39,64 +45,53 @@ pub struct Params {
     /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
     #[arg(long)]
     pub ipc_prefix: Option<String>,
-    /// Write a per-frame / per-IMU-sample log (tests).
-    #[arg(long)]
-    pub frame_log: Option<PathBuf>,
-    /// Sleep this many ms per frame (to simulate a slow consumer in tests).
-    #[arg(long, default_value_t = 0)]
-    pub work_ms: u64,
-    /// Do not run the VO (transport only: replay and IPC tests).
-    #[arg(long)]
-    pub no_vo: bool,
-    /// Turn rolling-shutter compensation off (for comparison).
-    #[arg(long)]
-    pub no_rs: bool,
     /// Keyframe spool folder: keyframes created and not yet sent are kept there, so that a
     /// restarted tracker sends its killed predecessor's VO window (none: not kept).
     #[arg(long)]
     pub spool: Option<PathBuf>,
-    /// Most keyframes in the client map (seed: N = 100).
-    #[arg(long, default_value_t = 100)]
-    pub window: usize,
-    /// ORB features per frame.
-    #[arg(long, default_value_t = 1000)]
-    pub features: usize,
-    /// Wait at most this long (ms) for the gyro samples up to a frame's last row.
-    #[arg(long, default_value_t = 40)]
-    pub imu_wait_ms: u64,
-    /// Local mapping inline in the tracking thread (after each new keyframe) instead of its
-    /// own thread: slower per keyframe, but a lock-step replay then takes the same
-    /// decisions on every run and machine.
-    #[arg(long)]
-    pub inline_mapping: bool,
     /// Replay mode of the run (the launcher passes it): in lock-step the tracker
     /// synchronises with its local-mapping thread and with the server (see
-    /// [`Params::lockstep_sync`]).
+    /// [`TrackerConfig::lockstep_sync`]).
     #[arg(long, default_value = "realtime")]
     pub mode: ReplayMode,
-    /// In lock-step, do not synchronise (free-running threads and server, as in real time:
-    /// faster, but not reproducible; for benchmarks).
+    /// Configuration file (TOML, the keys of `[tracker]` in `shoal config --print`).
     #[arg(long)]
-    pub no_lockstep_sync: bool,
+    pub config: Option<PathBuf>,
+    /// Options overriding the configuration file.
+    #[command(flatten)]
+    pub options: TrackerFlags,
 }
 
 impl Params {
-    /// Lock-step synchronisation: each frame waits for local mapping to finish before it
-    /// uses the map (its ORB extraction overlaps the mapping), and a frame that sent
-    /// keyframes waits, before its pose is published and acknowledged, until the server has
-    /// finished them ([`shm_schema::FLAG_HANDLED`]); the gyro wait has no short deadline.
-    /// So no decision depends on thread timing: a lock-step replay is reproducible.
-    pub fn lockstep_sync(&self) -> bool {
-        self.mode == ReplayMode::Lockstep && !self.no_lockstep_sync
+    /// The configuration: the `--config` file (else the defaults), the flags over it, and
+    /// `SHOAL_DEBUG_INIT` (set: `debug_init = true`).
+    pub fn config(&self) -> Result<TrackerConfig, shoal_runtime::config::ConfigError> {
+        shoal_runtime::config::resolve(self.config.as_ref(), |c: &mut TrackerConfig| {
+            self.options.apply(c);
+            c.debug_init |= std::env::var_os("SHOAL_DEBUG_INIT").is_some();
+        })
+    }
+
+    /// Lock-step synchronisation with configuration `cfg`: each frame waits for local
+    /// mapping to finish before it uses the map (its ORB extraction overlaps the mapping),
+    /// and a frame that sent keyframes waits, before its pose is published and
+    /// acknowledged, until the server has finished them ([`shm_schema::FLAG_HANDLED`]); the
+    /// gyro wait has no short deadline. So no decision depends on thread timing: a lock-step
+    /// replay is reproducible.
+    pub fn lockstep_sync(&self, cfg: &TrackerConfig) -> bool {
+        self.mode == ReplayMode::Lockstep && cfg.lockstep_sync
     }
 }
 
+pub mod config;
 pub mod core;
 pub mod imu;
+pub mod mapping_thread;
 pub mod outbox;
 pub mod ports;
 pub mod spool;
 
+pub use config::{LocalMapping, TrackerConfig, TrackerFlags};
 pub use ports::run;
 
 /// The service's name in reports.

@@ -17,7 +17,7 @@ use shoal_runtime::{ErrorKind, ServiceStart, Status, StatusFile};
 
 use crate::core::{CoreConfig, FrameIn, FrameStep, KeyframeKey, Out, TrackerCore};
 use crate::outbox::KeyframeMsg;
-use crate::{fnv1a, spool, Params};
+use crate::{fnv1a, spool, Params, TrackerConfig};
 
 /// Lock-step: longest wait for the server to finish a keyframe ([`shm_schema::FLAG_HANDLED`]);
 /// a longer wait is counted in `lockstep_server_timeouts` and the tracker goes on.
@@ -46,10 +46,15 @@ struct Ports {
 }
 
 impl Ports {
-    fn open(params: &Params, node: Node<Ipc>, file: StatusFile) -> anyhow::Result<Self> {
+    fn open(
+        params: &Params,
+        cfg: &TrackerConfig,
+        node: Node<Ipc>,
+        file: StatusFile,
+    ) -> anyhow::Result<Self> {
         let c = params.client;
         let frames = topics::frame_subscriber(&topics::frames_service(&node, c)?, c)?;
-        let log = match &params.frame_log {
+        let log = match &cfg.frame_log {
             Some(p) => Some(std::io::BufWriter::new(
                 std::fs::OpenOptions::new()
                     .create(true)
@@ -211,7 +216,7 @@ impl Ports {
     }
 
     /// Takes one frame, if one is waiting; returns whether one was.
-    fn frame(&mut self, core: &mut TrackerCore, params: &Params) -> anyhow::Result<bool> {
+    fn frame(&mut self, core: &mut TrackerCore, cfg: &TrackerConfig) -> anyhow::Result<bool> {
         let Some(sample) = self.frames.receive()? else {
             return Ok(false);
         };
@@ -222,10 +227,10 @@ impl Ports {
             core,
             &header,
             pixels.len(),
-            params.imu_wait_ms as i64 * 1_000_000,
+            cfg.imu_wait_ms as i64 * 1_000_000,
         )?;
-        if params.work_ms > 0 && !header.meta.is_end_of_stream() {
-            std::thread::sleep(Duration::from_millis(params.work_ms));
+        if cfg.work_ms > 0 && !header.meta.is_end_of_stream() {
+            std::thread::sleep(Duration::from_millis(cfg.work_ms));
         }
         let frame = FrameIn {
             header,
@@ -233,7 +238,13 @@ impl Ports {
             recv_ns,
             now_ns: monotonic_ns(),
         };
-        match core.track(frame)? {
+        let step = core.track(frame)?;
+        if cfg.debug_init {
+            for d in core.diagnostics() {
+                eprintln!("{d}");
+            }
+        }
+        match step {
             FrameStep::Done(out) => self.exec(out, core.status_mut())?,
             FrameStep::EndOfStream(h) => self.end_of_stream(core, &h)?,
             FrameStep::Tracked(mut t) => {
@@ -317,6 +328,7 @@ fn open_spool(params: &Params, ports: &mut Ports, core: &mut TrackerCore) -> any
 
 /// Consumes frames until the end of the stream or SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
+    let cfg = params.config()?;
     let c = params.client;
     let start = ServiceStart::open(
         &crate::service_name(c),
@@ -324,8 +336,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         params.status.clone(),
         params.ipc_prefix.clone(),
     )?;
-    let mut core = TrackerCore::new(CoreConfig::from_params(params), start.status);
-    let mut ports = Ports::open(params, start.node, start.file)?;
+    let mut core = TrackerCore::new(CoreConfig::new(params, &cfg), start.status);
+    let mut ports = Ports::open(params, &cfg, start.node, start.file)?;
     open_spool(params, &mut ports, &mut core)?;
     ports.sync_status(&mut core);
     shoal_runtime::signal_ready();
@@ -344,7 +356,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             }
             continue;
         }
-        busy |= ports.frame(&mut core, params)?;
+        busy |= ports.frame(&mut core, &cfg)?;
         if core.ended() && end_deadline.is_none() {
             end_deadline = Some(monotonic_ns() + END_WAIT_NS);
         }

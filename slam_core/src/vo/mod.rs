@@ -1,5 +1,9 @@
 //! Monocular visual odometry of a client (seed §3.3, "ORB-VO"): the client map and the
-//! rules of the tracking and local-mapping threads, as pure functions on plain data.
+//! rules of the tracking and local-mapping threads, as pure functions on plain data. This
+//! crate starts no thread and reads no environment: local mapping is a synchronous step
+//! ([`LocalMapper::step`]) that the tracker service runs on its own thread
+//! ([`VoTracker::set_local_mapping`]; inline by default), and what the initialiser tried
+//! comes back with each frame ([`VoOutput::diagnostics`]).
 //!
 //! **Status:** the map structures and the keyframe rule are here; the tracking state machine
 //! (initialisation, motion-model / reference-keyframe tracking, relocalisation, local-map
@@ -17,5 +21,6 @@ pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
 pub use kf_culling::{cull_redundant_keyframes, KfCullingParams};
 pub use map::{ClientMap, Keyframe, KfId, MapPoint, PointId};
 pub use tracker::{
-    StageTimes, VoFrame, VoOutput, VoParams, VoState, VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,
+    LocalMapper, LocalMappingRunner, LocalMappingStep, SharedMap, StageTimes, VoDiagnostic,
+    VoFrame, VoOutput, VoParams, VoState, VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,
 };

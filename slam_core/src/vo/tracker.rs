@@ -42,14 +42,13 @@ pub struct VoParams {
     pub local_ba: bool,
     /// The initialisation extracts this many times `orb.n_features` (ORB-SLAM: 2).
     pub init_feature_factor: usize,
-    /// Run local mapping (triangulation with neighbours, culling, local BA) in its own
-    /// thread (seed §3.3); `false` runs it inline at keyframe creation (deterministic).
-    pub local_mapping_thread: bool,
-    /// With the local-mapping thread: every frame waits, after its ORB extraction (which
-    /// overlaps the mapping) and before it reads the map, until local mapping has finished
-    /// every keyframe given to it (at most [`LOCAL_MAPPING_SYNC_TIMEOUT`]). Tracking and the
-    /// keyframe decision then never depend on thread timing: a lock-step replay gives the
-    /// same result on every run. `false`: free-running (real time).
+    /// With a local-mapping thread ([`VoTracker::set_local_mapping`]; without one, local
+    /// mapping runs inline at keyframe creation, deterministic): every frame waits, after
+    /// its ORB extraction (which overlaps the mapping) and before it reads the map, until
+    /// local mapping has finished every keyframe given to it (at most
+    /// [`LOCAL_MAPPING_SYNC_TIMEOUT`]). Tracking and the keyframe decision then never
+    /// depend on thread timing: a lock-step replay gives the same result on every run.
+    /// `false`: free-running (real time).
     pub sync_local_mapping: bool,
     /// Neighbour keyframes of local mapping (triangulation and local BA).
     pub mapping_neighbours: usize,
@@ -79,7 +78,6 @@ impl Default for VoParams {
             local_keyframes: 15,
             local_ba: true,
             init_feature_factor: 2,
-            local_mapping_thread: true,
             sync_local_mapping: false,
             mapping_neighbours: 10,
             reloc_candidates: 8,
@@ -149,6 +147,70 @@ pub struct VoOutput {
     pub backfill: Vec<(i64, Isometry3<f64>)>,
     /// Stage times.
     pub times: StageTimes,
+    /// What the initialiser and the backward walk tried and why it failed (the caller
+    /// prints them on request: the tracker service's `debug_init`).
+    pub diagnostics: Vec<VoDiagnostic>,
+}
+
+/// A diagnostic of the VO's initialisation (issue 15: where and why frames stay unposed).
+#[derive(Debug, Clone, PartialEq)]
+pub enum VoDiagnostic {
+    /// A two-view initialisation attempt failed: matches to the reference, frames matched
+    /// since the reference, and why.
+    InitFailed {
+        /// Matches of the frame to the reference.
+        matches: usize,
+        /// Frames matched to the reference so far.
+        frames: usize,
+        /// Why the two-view geometry was rejected.
+        reason: String,
+    },
+    /// The backward walk starts: frames kept before the oldest keyframe (at `t_ref_ns`).
+    BackwardStart {
+        /// Kept frames before the oldest keyframe.
+        before: usize,
+        /// Kept frames.
+        kept: usize,
+        /// Time of the oldest keyframe, ns.
+        t_ref_ns: i64,
+    },
+    /// The backward walk stopped at a frame it could not track.
+    BackwardStopped {
+        /// Kept frames.
+        kept: usize,
+        /// The frame's time, ns.
+        t_ns: i64,
+        /// Its inliers.
+        inliers: usize,
+    },
+}
+
+impl std::fmt::Display for VoDiagnostic {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            VoDiagnostic::InitFailed {
+                matches,
+                frames,
+                reason,
+            } => write!(f, "init: {matches} matches after {frames} frames: {reason}"),
+            VoDiagnostic::BackwardStart {
+                before,
+                kept,
+                t_ref_ns,
+            } => write!(
+                f,
+                "backward: {before} of {kept} kept frames before the oldest keyframe (t {t_ref_ns} ns)"
+            ),
+            VoDiagnostic::BackwardStopped {
+                kept,
+                t_ns,
+                inliers,
+            } => write!(
+                f,
+                "backward: {kept} frames kept, stopped at t {t_ns} ns ({inliers} inliers)"
+            ),
+        }
+    }
 }
 
 /// One frame given to the tracker.
@@ -185,9 +247,12 @@ pub struct VoTracker {
     /// `shared`, whose lock is held meanwhile); an empty placeholder between frames.
     map: ClientMap,
     /// The client map, shared with the local-mapping thread.
-    shared: Arc<Mutex<ClientMap>>,
-    /// The local-mapping thread (`None`: local mapping runs inline at keyframe creation).
-    mapping: Option<local_mapper::LocalMappingThread>,
+    shared: SharedMap,
+    /// Where local mapping runs off the tracking thread (`None`: inline at keyframe
+    /// creation, with `inline_mapper`).
+    mapping: Option<Box<dyn LocalMappingRunner>>,
+    /// Inline local mapping (its buffers).
+    inline_mapper: LocalMapper,
     /// Keyframes culled by inline local mapping.
     culled_inline: usize,
     /// Frames that waited for the local-mapping thread ([`VoParams::sync_local_mapping`]).
@@ -203,7 +268,6 @@ pub struct VoTracker {
     /// Successful relocalisations.
     relocalized: usize,
     pnp: crate::pnp::PnpSolver,
-    /// Buffers of inline local mapping.
     state: VoState,
     session_id: u32,
     next_kf_id: KfId,
@@ -233,23 +297,14 @@ pub struct VoTracker {
     obs: Vec<PoseObservation>,
     obs_kp: Vec<usize>,
     inliers: Vec<bool>,
-    ba: crate::optim::ba::BundleAdjuster,
-    ba_problem: crate::optim::ba::BaProblem,
 }
 
 impl VoTracker {
-    /// A tracker for `camera` images.
+    /// A tracker for `camera` images, its local mapping inline (see
+    /// [`VoTracker::set_local_mapping`] for a thread).
     pub fn new(params: VoParams, camera: PinholeRadtan) -> Result<Self, CoreError> {
         let (w, h) = (camera.width as usize, camera.height as usize);
         let shared = Arc::new(Mutex::new(ClientMap::new(1, 0)));
-        let mapping = if params.local_mapping_thread {
-            Some(local_mapper::LocalMappingThread::spawn(
-                Arc::clone(&shared),
-                params.local_mapping(),
-            )?)
-        } else {
-            None
-        };
         Ok(Self {
             extractor: OrbExtractor::new(params.orb.clone(), w, h)?,
             grid: FeatureGrid::new(w, h, 16.0)?,
@@ -258,8 +313,9 @@ impl VoTracker {
                 params: params.keyframe_rule,
             },
             map: ClientMap::new(1, 0),
-            shared: Arc::clone(&shared),
-            mapping,
+            shared,
+            mapping: None,
+            inline_mapper: LocalMapper::new(params.local_mapping()),
             culled_inline: 0,
             sync_waits: 0,
             sync_timeouts: 0,
@@ -295,11 +351,31 @@ impl VoTracker {
             obs: Vec::new(),
             obs_kp: Vec::new(),
             inliers: Vec::new(),
-            ba: crate::optim::ba::BundleAdjuster::new(),
-            ba_problem: crate::optim::ba::BaProblem::new(),
             params,
             camera,
         })
+    }
+
+    /// The client map as shared with a local-mapping runner.
+    pub fn shared_map(&self) -> SharedMap {
+        Arc::clone(&self.shared)
+    }
+
+    /// The local-mapping steps with this VO's parameters, for a runner to own.
+    pub fn local_mapper(&self) -> LocalMapper {
+        LocalMapper::new(self.params.local_mapping())
+    }
+
+    /// Local mapping runs behind `runner` from now on (e.g. a thread calling
+    /// [`LocalMapper::step`] on [`VoTracker::shared_map`]): each new keyframe is submitted to
+    /// it instead of being mapped inline. To be called before the first frame.
+    pub fn set_local_mapping(&mut self, runner: Box<dyn LocalMappingRunner>) {
+        self.mapping = Some(runner);
+    }
+
+    /// Whether local mapping runs behind a runner (not inline).
+    pub fn local_mapping_runner(&self) -> bool {
+        self.mapping.is_some()
     }
 
     /// Current VO session id.
@@ -358,6 +434,7 @@ impl VoTracker {
             evicted: Vec::new(),
             backfill: Vec::new(),
             times,
+            diagnostics: Vec::new(),
         };
         // Lock-step: local mapping of earlier keyframes has finished before the map is used.
         self.sync_with_local_mapping(LOCAL_MAPPING_SYNC_TIMEOUT);
@@ -537,6 +614,40 @@ impl VoTracker {
     }
 }
 
+#[cfg(test)]
+mod tests {
+    use super::VoDiagnostic;
+
+    /// The diagnostics print as `SHOAL_DEBUG_INIT` printed them before they were returned.
+    #[test]
+    fn diagnostics_print_as_before() {
+        let d = VoDiagnostic::InitFailed {
+            matches: 120,
+            frames: 3,
+            reason: "ambiguous".into(),
+        };
+        assert_eq!(d.to_string(), "init: 120 matches after 3 frames: ambiguous");
+        let d = VoDiagnostic::BackwardStart {
+            before: 12,
+            kept: 14,
+            t_ref_ns: 5,
+        };
+        assert_eq!(
+            d.to_string(),
+            "backward: 12 of 14 kept frames before the oldest keyframe (t 5 ns)"
+        );
+        let d = VoDiagnostic::BackwardStopped {
+            kept: 14,
+            t_ns: 3,
+            inliers: 9,
+        };
+        assert_eq!(
+            d.to_string(),
+            "backward: 14 frames kept, stopped at t 3 ns (9 inliers)"
+        );
+    }
+}
+
 mod backward;
 mod init;
 mod local_mapper;
@@ -544,3 +655,4 @@ mod reloc;
 mod track;
 
 use local_mapper::lock;
+pub use local_mapper::{LocalMapper, LocalMappingRunner, LocalMappingStep, SharedMap};

@@ -133,6 +133,7 @@ impl TrackerCore {
     /// Takes a frame (after the ports waited for its gyro samples, see
     /// [`TrackerCore::imu_needed_ns`]): checks it and runs the VO on it.
     pub fn track(&mut self, f: FrameIn) -> anyhow::Result<FrameStep> {
+        self.diagnostics.clear();
         let h = f.header;
         if let Some(step) = self.admit(&h, f.now_ns) {
             return Ok(step);
@@ -246,6 +247,7 @@ impl TrackerCore {
             .ids
             .session(v.session_id().saturating_sub(o.new_session as u32));
         t.vo_session = self.ids.session(v.session_id());
+        self.diagnostics = std::mem::take(&mut o.diagnostics);
         t.take_vo_output(&mut o);
         if o.new_session {
             self.counters.vo_sessions_started += 1;

@@ -13,9 +13,10 @@ use shm_schema::{
 };
 use shoal_runtime::Status;
 use slam_core::ids::{ClientKeyframeId, SessionId};
-use slam_core::vo::{VoParams, VoTracker};
+use slam_core::vo::{VoDiagnostic, VoParams, VoTracker};
 
 use crate::imu::ImuInput;
+use crate::mapping_thread::LocalMappingThread;
 use crate::outbox::{keyframe_message, KeyframeMsg, Outbox};
 
 mod counters;
@@ -75,7 +76,7 @@ pub enum Out {
     SpoolSent(KeyframeKey),
 }
 
-/// The tracker's settings that the core uses (from the service's parameters).
+/// The tracker's settings that the core uses (from the service's configuration).
 #[derive(Debug, Clone)]
 pub struct CoreConfig {
     /// Client index.
@@ -97,16 +98,16 @@ pub struct CoreConfig {
 }
 
 impl CoreConfig {
-    /// The core's settings from the service's parameters.
-    pub fn from_params(p: &crate::Params) -> Self {
+    /// The core's settings from the service's command line and configuration.
+    pub fn new(p: &crate::Params, cfg: &crate::TrackerConfig) -> Self {
         Self {
             client: p.client,
-            no_vo: p.no_vo,
-            no_rs: p.no_rs,
-            window: p.window,
-            features: p.features,
-            inline_mapping: p.inline_mapping,
-            lockstep_sync: p.lockstep_sync(),
+            no_vo: !cfg.vo,
+            no_rs: !cfg.rolling_shutter,
+            window: cfg.window,
+            features: cfg.features,
+            inline_mapping: cfg.local_mapping == crate::LocalMapping::Inline,
+            lockstep_sync: p.lockstep_sync(cfg),
             spool: p.spool.is_some(),
         }
     }
@@ -137,6 +138,8 @@ pub struct TrackerCore {
     spooled: Option<KeyframeKey>,
     /// Local-mapping waits that timed out before this start.
     vo_timeouts_base: u64,
+    /// The VO's diagnostics of the last frame tracked.
+    diagnostics: Vec<VoDiagnostic>,
 }
 
 impl TrackerCore {
@@ -162,6 +165,7 @@ impl TrackerCore {
             ended: false,
             spooled: None,
             vo_timeouts_base: counters.local_mapping_sync_timeouts,
+            diagnostics: Vec::new(),
             cfg,
             status,
             counters,
@@ -194,6 +198,12 @@ impl TrackerCore {
     /// The settings.
     pub fn config(&self) -> &CoreConfig {
         &self.cfg
+    }
+
+    /// What the VO's initialiser and backward walk tried on the last frame given to
+    /// [`TrackerCore::track`] (the ports print them with `debug_init`).
+    pub fn diagnostics(&self) -> &[VoDiagnostic] {
+        &self.diagnostics
     }
 
     /// The session id of this start's non-VO messages (acks, end of stream).
@@ -322,18 +332,22 @@ impl TrackerCore {
     }
 
     /// A new VO for frames like `h`, its keyframe ids in this start's own range (the server
-    /// names keyframes by them, so they stay unique per client across restarts).
+    /// names keyframes by them, so they stay unique per client across restarts), its local
+    /// mapping on this service's thread ([`crate::mapping_thread`]) unless inline.
     fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
         let camera = shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
         let mut vp = VoParams {
             rolling_shutter: !self.cfg.no_rs,
             window: self.cfg.window.max(2),
-            local_mapping_thread: !self.cfg.inline_mapping,
             sync_local_mapping: self.cfg.lockstep_sync,
             ..VoParams::default()
         };
         vp.orb.n_features = self.cfg.features;
         let mut v = VoTracker::new(vp, camera)?;
+        if !self.cfg.inline_mapping {
+            LocalMappingThread::attach(&mut v)
+                .map_err(|e| anyhow::anyhow!("local-mapping thread: {e}"))?;
+        }
         v.start_keyframe_ids_at(self.ids.first_keyframe_id());
         self.counters.local_mapping_thread = Some(!self.cfg.inline_mapping as u64);
         Ok(v)

@@ -17,7 +17,7 @@ use std::collections::VecDeque;
 
 use nalgebra::Isometry3;
 
-use super::{LastFrame, VoOutput, VoTracker};
+use super::{LastFrame, VoDiagnostic, VoOutput, VoTracker};
 use crate::features::OrbFeatures;
 use crate::lie::{se3_exp, se3_log};
 use crate::vo::map::KfId;
@@ -108,13 +108,11 @@ impl VoTracker {
             .collect();
         kfs.sort_unstable();
         if let [(t_ref, first), (t_later, second), ..] = kfs[..] {
-            if super::init::debug_init() {
-                let before = frames.0.iter().filter(|f| f.t_ns < t_ref).count();
-                eprintln!(
-                    "backward: {before} of {} kept frames before the oldest keyframe (t {t_ref} ns)",
-                    frames.0.len()
-                );
-            }
+            out.diagnostics.push(VoDiagnostic::BackwardStart {
+                before: frames.0.iter().filter(|f| f.t_ns < t_ref).count(),
+                kept: frames.0.len(),
+                t_ref_ns: t_ref,
+            });
             let mut next = self.last_from_kf(first);
             let t_cw_later = self.map.keyframes[&second].t_cw;
             let mut motion = BackwardMotion {
@@ -125,14 +123,11 @@ impl VoTracker {
                 let dt_s = (next.t_ns - f.t_ns) as f64 * 1e-9;
                 let guess = motion.predict(&next.t_cw, dt_s);
                 let Some(t_cw) = self.track_one_backwards(f, &next, &guess) else {
-                    if super::init::debug_init() {
-                        eprintln!(
-                            "backward: {} frames kept, stopped at t {} ns ({} inliers)",
-                            frames.0.len(),
-                            f.t_ns,
-                            self.inliers.iter().filter(|&&i| i).count()
-                        );
-                    }
+                    out.diagnostics.push(VoDiagnostic::BackwardStopped {
+                        kept: frames.0.len(),
+                        t_ns: f.t_ns,
+                        inliers: self.inliers.iter().filter(|&&i| i).count(),
+                    });
                     break;
                 };
                 out.backfill.push((f.t_ns, t_cw));

@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Translation3, Vector2, Vector3};
 
-use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
+use super::{LastFrame, VoDiagnostic, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_two_frames_windowed, OrbFeatures, WindowMatchParams};
 use crate::optim::{PoseObservation, PoseOptParams};
 use crate::twoview::{initialize, normalize_pixels, TwoViewParams, TwoViewResult};
@@ -38,14 +38,6 @@ pub(super) struct InitState {
 /// A reference feature's map point and its position (world = reference camera frame),
 /// indexed by reference feature; `None` where no point was made.
 type RefPoints = Vec<Option<(PointId, Vector3<f64>)>>;
-
-/// Whether `SHOAL_DEBUG_INIT` asks for the initialiser's (and the backward walk's)
-/// diagnostics on stderr: the one place it is read. (The diagnostics stay here rather than in
-/// [`VoOutput`]: returning them would need the tracker service, `services/tracker`, to print
-/// them.)
-pub(super) fn debug_init() -> bool {
-    std::env::var_os("SHOAL_DEBUG_INIT").is_some()
-}
 
 /// Milliseconds since `t0`.
 fn ms_since(t0: Instant) -> f32 {
@@ -105,11 +97,11 @@ impl VoTracker {
         let res = match initialize(&x1, &x2, &tv) {
             Ok(r) => r,
             Err(e) => {
-                if debug_init() {
-                    let frames = self.init.as_ref().map_or(0, |i| i.frames.len());
-                    let n = matches.len();
-                    eprintln!("init: {n} matches after {frames} frames: {e}");
-                }
+                out.diagnostics.push(VoDiagnostic::InitFailed {
+                    matches: matches.len(),
+                    frames: self.init.as_ref().map_or(0, |i| i.frames.len()),
+                    reason: e.to_string(),
+                });
                 self.init_matches = matches;
                 return;
             }

@@ -1,20 +1,20 @@
-//! The local-mapping thread of the client VO (seed §3.3: "two threads, tracking and local
-//! mapping"). The tracking thread inserts a keyframe (and triangulates with its reference
-//! keyframe itself, seed change 3) and hands its id over a crossbeam channel; this thread
-//! then triangulates with the other neighbours, culls recent points, runs the local bundle
-//! adjustment on a snapshot of the local map (the map is not locked while it is solved),
-//! writes the result back and culls redundant keyframes (`vo::kf_culling`; culled
-//! keyframes are dropped, not sent to the server, as the seed's trash list).
+//! Local mapping of the client VO (seed §3.3: "two threads, tracking and local mapping"), as
+//! synchronous steps. The tracking thread inserts a keyframe (and triangulates with its
+//! reference keyframe itself, seed change 3); local mapping then triangulates with the other
+//! neighbours, culls recent points, runs the local bundle adjustment and culls redundant
+//! keyframes (`vo::kf_culling`; culled keyframes are dropped, not sent to the server, as the
+//! seed's trash list).
 //!
-//! The map is shared as `Arc<Mutex<ClientMap>>`; each step holds the lock only for its own
-//! reads and writes. While keyframes wait in the channel, only the newest one gets a BA
-//! (ORB-SLAM aborts a running BA when a keyframe arrives, to the same effect).
-use std::sync::atomic::{AtomicUsize, Ordering};
+//! Where it runs is not decided here (this crate starts no thread): inline at keyframe
+//! creation ([`LocalMapper::step_inline`], the default of [`super::VoTracker`]), or behind
+//! a [`LocalMappingRunner`] that [`super::VoTracker::set_local_mapping`] installs, e.g. the
+//! tracker service's thread (`services/tracker/src/mapping_thread.rs`), which calls
+//! [`LocalMapper::step`] for each keyframe it is given. The map is then shared as
+//! [`SharedMap`]; each step holds the lock only for its own reads and writes and solves the
+//! local BA on a snapshot with the map unlocked. While newer keyframes wait, a step skips
+//! the BA (ORB-SLAM aborts a running BA when a keyframe arrives, to the same effect).
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
-
-use crossbeam_channel::{Receiver, Sender};
+use std::time::Duration;
 
 use crate::optim::ba::{BaParams, BaProblem, BundleAdjuster};
 use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
@@ -22,11 +22,13 @@ use crate::vo::local_mapping::{
     apply_local_ba, create_points_with_neighbours, cull_recent_points, prepare_local_ba,
 };
 use crate::vo::map::{ClientMap, KfId};
-use crate::CoreError;
+
+/// The client map shared between the tracking and the local-mapping thread.
+pub type SharedMap = Arc<Mutex<ClientMap>>;
 
 /// Locks the shared map; a panic elsewhere while holding it does not make the map unusable
 /// (its invariants are restored by every step before it unlocks).
-pub(crate) fn lock(map: &Mutex<ClientMap>) -> MutexGuard<'_, ClientMap> {
+pub fn lock(map: &Mutex<ClientMap>) -> MutexGuard<'_, ClientMap> {
     map.lock().unwrap_or_else(|e| e.into_inner())
 }
 
@@ -39,114 +41,51 @@ pub(crate) struct LocalMappingParams {
     pub local_ba: bool,
 }
 
-/// The local-mapping steps for keyframe `k`, inline (single-threaded mode): triangulation
-/// with neighbours, culling of recent points, local BA, culling of redundant keyframes.
-/// Returns the keyframes culled.
-pub(crate) fn map_keyframe_inline(
-    map: &mut ClientMap,
-    k: KfId,
-    p: &LocalMappingParams,
-    ba: &mut BundleAdjuster,
-    problem: &mut BaProblem,
-) -> usize {
-    create_points_with_neighbours(map, k, p.neighbours);
-    cull_recent_points(map, k);
-    if p.local_ba {
-        if let Some(job) = prepare_local_ba(map, k, problem, p.neighbours) {
-            if ba.optimize(problem, &BaParams::local()).is_ok() {
-                apply_local_ba(map, &job, problem, ba.inliers());
-            }
-        }
-    }
-    cull_redundant_keyframes(map, k, &[], &KfCullingParams::default()).len()
+/// What one local-mapping step did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LocalMappingStep {
+    /// Keyframes culled as redundant.
+    pub culled: usize,
+    /// A local bundle adjustment was solved and applied.
+    pub local_ba: bool,
 }
 
-/// Handle of the local-mapping thread.
-pub(crate) struct LocalMappingThread {
-    tx: Option<Sender<KfId>>,
-    pending: Arc<AtomicUsize>,
-    culled: Arc<AtomicUsize>,
-    handle: Option<JoinHandle<()>>,
+/// The local-mapping steps of one VO with their reusable buffers (bundle adjuster and
+/// problem). Synchronous: whoever owns it decides on which thread a step runs.
+pub struct LocalMapper {
+    params: LocalMappingParams,
+    ba: BundleAdjuster,
+    problem: BaProblem,
 }
 
-impl LocalMappingThread {
-    /// Starts the thread on `map`.
-    pub fn spawn(map: Arc<Mutex<ClientMap>>, p: LocalMappingParams) -> Result<Self, CoreError> {
-        let (tx, rx) = crossbeam_channel::unbounded();
-        let pending = Arc::new(AtomicUsize::new(0));
-        let culled = Arc::new(AtomicUsize::new(0));
-        let (pending_t, culled_t) = (Arc::clone(&pending), Arc::clone(&culled));
-        let handle = std::thread::Builder::new()
-            .name("local-mapping".into())
-            .spawn(move || run(&map, &rx, &pending_t, &culled_t, &p))
-            .map_err(|e| CoreError::InvalidArgument(format!("local-mapping thread: {e}")))?;
-        Ok(Self {
-            tx: Some(tx),
-            pending,
-            culled,
-            handle: Some(handle),
-        })
-    }
-
-    /// Keyframes culled as redundant so far.
-    pub fn culled(&self) -> usize {
-        self.culled.load(Ordering::Relaxed)
-    }
-
-    /// Queues keyframe `k`.
-    pub fn submit(&self, k: KfId) {
-        if let Some(tx) = &self.tx {
-            self.pending.fetch_add(1, Ordering::SeqCst);
-            if tx.send(k).is_err() {
-                self.pending.fetch_sub(1, Ordering::SeqCst);
-            }
+impl LocalMapper {
+    pub(crate) fn new(params: LocalMappingParams) -> Self {
+        Self {
+            params,
+            ba: BundleAdjuster::new(),
+            problem: BaProblem::new(),
         }
     }
 
-    /// No keyframe waiting or being mapped.
-    pub fn idle(&self) -> bool {
-        self.pending.load(Ordering::SeqCst) == 0
-    }
-
-    /// Waits until idle (at most `timeout`); returns whether it is.
-    pub fn wait_idle(&self, timeout: Duration) -> bool {
-        let start = Instant::now();
-        while !self.idle() {
-            if start.elapsed() > timeout || self.handle.as_ref().is_none_or(|h| h.is_finished()) {
-                return self.idle();
-            }
-            std::thread::sleep(Duration::from_micros(200));
-        }
-        true
-    }
-}
-
-impl Drop for LocalMappingThread {
-    fn drop(&mut self) {
-        self.tx = None;
-        if let Some(h) = self.handle.take() {
-            let _ = h.join();
-        }
-    }
-}
-
-fn run(
-    map: &Mutex<ClientMap>,
-    rx: &Receiver<KfId>,
-    pending: &AtomicUsize,
-    culled: &AtomicUsize,
-    p: &LocalMappingParams,
-) {
-    let mut ba = BundleAdjuster::new();
-    let mut problem = BaProblem::new();
-    while let Ok(k) = rx.recv() {
+    /// Local mapping of keyframe `k` on the shared `map` (the body of a local-mapping
+    /// thread): triangulation with neighbours and culling of recent points under the lock;
+    /// the local BA (skipped when `newer_waiting()` says another keyframe is queued) solved
+    /// with the map unlocked; its result applied and redundant keyframes culled under the
+    /// lock. A keyframe no longer in the map (evicted meanwhile) is skipped.
+    pub fn step(
+        &mut self,
+        map: &Mutex<ClientMap>,
+        k: KfId,
+        newer_waiting: impl Fn() -> bool,
+    ) -> LocalMappingStep {
+        let p = self.params;
         let job = {
             let mut m = lock(map);
             if m.keyframes.contains_key(&k) {
                 create_points_with_neighbours(&mut m, k, p.neighbours);
                 cull_recent_points(&mut m, k);
-                if p.local_ba && rx.is_empty() {
-                    prepare_local_ba(&m, k, &mut problem, p.neighbours)
+                if p.local_ba && !newer_waiting() {
+                    prepare_local_ba(&m, k, &mut self.problem, p.neighbours)
                 } else {
                     None
                 }
@@ -154,17 +93,55 @@ fn run(
                 None
             }
         };
-        let solved = job.filter(|_| ba.optimize(&mut problem, &BaParams::local()).is_ok());
-        {
-            let mut m = lock(map);
-            if let Some(job) = solved {
-                apply_local_ba(&mut m, &job, &problem, ba.inliers());
-            }
-            if m.keyframes.contains_key(&k) {
-                let n = cull_redundant_keyframes(&mut m, k, &[], &KfCullingParams::default());
-                culled.fetch_add(n.len(), Ordering::Relaxed);
+        let (ba, problem) = (&mut self.ba, &mut self.problem);
+        let solved = job.filter(|_| ba.optimize(problem, &BaParams::local()).is_ok());
+        let mut step = LocalMappingStep::default();
+        let mut m = lock(map);
+        if let Some(job) = solved {
+            apply_local_ba(&mut m, &job, &self.problem, self.ba.inliers());
+            step.local_ba = true;
+        }
+        if m.keyframes.contains_key(&k) {
+            let n = cull_redundant_keyframes(&mut m, k, &[], &KfCullingParams::default());
+            step.culled = n.len();
+        }
+        step
+    }
+
+    /// Local mapping of keyframe `k` inline, in the tracking thread at keyframe creation
+    /// (the same steps, the map already at hand).
+    pub(crate) fn step_inline(&mut self, map: &mut ClientMap, k: KfId) -> LocalMappingStep {
+        let p = self.params;
+        let mut step = LocalMappingStep::default();
+        create_points_with_neighbours(map, k, p.neighbours);
+        cull_recent_points(map, k);
+        if p.local_ba {
+            if let Some(job) = prepare_local_ba(map, k, &mut self.problem, p.neighbours) {
+                if self
+                    .ba
+                    .optimize(&mut self.problem, &BaParams::local())
+                    .is_ok()
+                {
+                    apply_local_ba(map, &job, &self.problem, self.ba.inliers());
+                    step.local_ba = true;
+                }
             }
         }
-        pending.fetch_sub(1, Ordering::SeqCst);
+        step.culled = cull_redundant_keyframes(map, k, &[], &KfCullingParams::default()).len();
+        step
     }
+}
+
+/// Local mapping off the tracking thread, as the VO sees it
+/// ([`super::VoTracker::set_local_mapping`]): keyframes are queued to it and mapped with
+/// [`LocalMapper::step`] on the [`SharedMap`], in the order given.
+pub trait LocalMappingRunner: Send {
+    /// Queues keyframe `k` (already in the shared map).
+    fn submit(&self, k: KfId);
+    /// No keyframe waiting or being mapped.
+    fn idle(&self) -> bool;
+    /// Waits until idle (at most `timeout`); returns whether it is.
+    fn wait_idle(&self, timeout: Duration) -> bool;
+    /// Keyframes culled as redundant so far.
+    fn culled(&self) -> usize;
 }

@@ -442,14 +442,7 @@ impl VoTracker {
                 }
             }
             None => {
-                let p = self.params.local_mapping();
-                self.culled_inline += super::local_mapper::map_keyframe_inline(
-                    &mut self.map,
-                    id,
-                    &p,
-                    &mut self.ba,
-                    &mut self.ba_problem,
-                );
+                self.culled_inline += self.inline_mapper.step_inline(&mut self.map, id).culled;
             }
         }
         // The new points are seen by this frame too; points culled are not.
