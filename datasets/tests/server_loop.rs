@@ -199,17 +199,17 @@ fn server_map_is_better_than_client_keyframes_and_grows_little_on_the_second_lap
     );
     // What the design promises: the server map beats the client's keyframes, and on the
     // revisits (lap 2, matched into the lap-1 map) the server's live poses beat the client's.
-    // Measured (seed 3, deterministic: the same figures on every run): client keyframes
-    // 0.0540 m, server map 0.0108 m (0.20x), server poses of the handled keyframes 0.0288 m
-    // (0.53x); lap 2 alone 0.0118 m vs the client's 0.0275 m (0.43x). The bounds leave
-    // about 1.5-2x of margin for changes of the VO, and fail for a server merely on par.
+    // Measured (seed 3, deterministic) with the client's local mapping at every keyframe (as
+    // a lock-step pipeline maps; `slam_core` runs it inline since issue 16 moved the thread
+    // into the tracker service): client keyframes 0.0324 m, server map 0.0136 m (0.42x);
+    // lap 2 alone 0.0134 m vs the client's 0.0232 m (0.58x). The server's live poses of
+    // lap 1 (first visits, 0.0492 m) are worse than such a client's (0.0241 m): only a
+    // client whose mapping thread skipped BAs (0.0540 m, the figures before) was beaten on
+    // all handled keyframes (0.0288 m), so that is no longer asserted. The bounds leave
+    // margin for changes of the VO, and fail for a server merely on par.
     assert!(
         ate_server_map < 0.5 * ate_client,
         "server map {ate_server_map} vs client {ate_client}: not 2x better"
-    );
-    assert!(
-        ate_server_handled < 0.8 * ate_client,
-        "server poses {ate_server_handled} vs client {ate_client}"
     );
     assert!(
         ate_h2 < 0.7 * ate_c2,
