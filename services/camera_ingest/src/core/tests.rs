@@ -86,7 +86,10 @@ fn a_restart_resumes_position_and_counters() {
     assert_eq!(lockstep_acked(&mut first, 4, 0), [0, 1, 2, 3]);
     // Frame 4 published, then the process dies before its acknowledgement.
     assert!(matches!(first.step(0), CameraStep::Continue));
-    assert!(matches!(first.step(0), CameraStep::Publish { index: 4, .. }));
+    assert!(matches!(
+        first.step(0),
+        CameraStep::Publish { index: 4, .. }
+    ));
     first.on_sent(0);
     let left = restarted(&mut first);
     let json = serde_json::to_value(&left).unwrap();
@@ -132,7 +135,10 @@ fn a_resume_state_of_another_version_starts_afresh() {
     let s = second.status_mut();
     assert_eq!(s.errors_of(ErrorKind::ResumeState), 1);
     assert!(s.errors[0].detail.contains("starting afresh"));
-    assert!(matches!(second.step(0), CameraStep::Publish { index: 0, .. }));
+    assert!(matches!(
+        second.step(0),
+        CameraStep::Publish { index: 0, .. }
+    ));
 }
 
 /// Real time, restarted 1 s into the stream: the frames due more than 250 ms ago (0..=7) are
@@ -205,7 +211,10 @@ fn lockstep_resends_to_a_restarted_consumer() {
     assert!(matches!(core.step(2600 * MS), CameraStep::Continue));
     assert_eq!(core.next_index(), 3);
     let c = core.counters();
-    assert_eq!((c.frames_resent, c.frames_unacked, c.frames_published), (2, 0, 3));
+    assert_eq!(
+        (c.frames_resent, c.frames_unacked, c.frames_published),
+        (2, 0, 3)
+    );
 }
 
 /// Lock-step, a consumer that never acknowledges: after the ack timeout the frame is counted
@@ -230,10 +239,20 @@ fn lockstep_gives_up_after_the_ack_timeout() {
         }
     }
     // Frame 0 at 0, re-sent at 1100 and 2200 ms; given up at 3100 ms; frame 1 alike.
-    let expect = [(0, 0), (0, 1100), (0, 2200), (1, 3100), (1, 4200), (1, 5300)];
+    let expect = [
+        (0, 0),
+        (0, 1100),
+        (0, 2200),
+        (1, 3100),
+        (1, 4200),
+        (1, 5300),
+    ];
     assert_eq!(events, expect);
     let c = core.counters();
-    assert_eq!((c.frames_unacked, c.frames_resent, c.frames_offered), (2, 0, 2));
+    assert_eq!(
+        (c.frames_unacked, c.frames_resent, c.frames_offered),
+        (2, 0, 2)
+    );
     let s = core.status_mut();
     assert_eq!(s.errors_of(ErrorKind::AckTimeout), 2);
     assert!(s.errors[1].detail.contains("frame 1 within 3000 ms"));
@@ -249,9 +268,15 @@ fn a_corrupt_image_is_counted_and_skipped() {
         Status::new(&service_name(3)),
     );
     let now = 150 * MS;
-    assert!(matches!(core.step(now), CameraStep::Publish { index: 0, .. }));
+    assert!(matches!(
+        core.step(now),
+        CameraStep::Publish { index: 0, .. }
+    ));
     core.on_sent(now);
-    assert!(matches!(core.step(now), CameraStep::Publish { index: 1, .. }));
+    assert!(matches!(
+        core.step(now),
+        CameraStep::Publish { index: 1, .. }
+    ));
     core.on_corrupt("cam0/1.png: bad PNG".into()).unwrap();
     assert!(matches!(core.step(now), CameraStep::Wait { .. }));
     let c = core.counters().clone();

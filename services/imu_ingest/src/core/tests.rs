@@ -78,7 +78,10 @@ fn restarted(core: &mut ImuReplayCore) -> Status {
 fn a_restart_resumes_position_and_counters() {
     let s = samples(0, 300, 10);
     let mut first = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), Status::new("imu"));
-    assert_eq!(run_at(&mut first, 0), ((0..=10).map(|k| k * 10).collect(), Some(ACK_POLL_NS)));
+    assert_eq!(
+        run_at(&mut first, 0),
+        ((0..=10).map(|k| k * 10).collect(), Some(ACK_POLL_NS))
+    );
     let left = restarted(&mut first);
     let json = serde_json::to_value(&left).unwrap();
     assert_eq!(json["counters"]["imu_samples_published"], 11);
@@ -90,13 +93,21 @@ fn a_restart_resumes_position_and_counters() {
     assert_eq!(second.next_index(), 11);
     second.on_ack(&ack(100 * MS));
     match second.step(0) {
-        ImuStep::Publish(m) => assert_eq!((m.meta.seq, m.meta.session_id, m.t_ns), (11, 2, 110 * MS)),
+        ImuStep::Publish(m) => {
+            assert_eq!((m.meta.seq, m.meta.session_id, m.t_ns), (11, 2, 110 * MS))
+        }
         other => panic!("unexpected {other:?}"),
     }
     second.on_sent();
-    assert_eq!(run_at(&mut second, 0).0, [120, 130, 140, 150, 160, 170, 180, 190, 200]);
+    assert_eq!(
+        run_at(&mut second, 0).0,
+        [120, 130, 140, 150, 160, 170, 180, 190, 200]
+    );
     let c = second.counters();
-    assert_eq!((c.imu_samples_published, c.imu_samples_skipped_late), (21, 0));
+    assert_eq!(
+        (c.imu_samples_published, c.imu_samples_skipped_late),
+        (21, 0)
+    );
     assert!(second.status_mut().error_counts.is_empty());
 }
 
@@ -111,7 +122,10 @@ fn a_resume_state_of_another_version_starts_afresh() {
     let mut left = restarted(&mut first);
     left.set_resume(RESUME_VERSION + 1, &ImuResume { next_index: 11 });
     let mut second = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), left);
-    assert_eq!((second.next_index(), second.counters().imu_samples_published), (0, 11));
+    assert_eq!(
+        (second.next_index(), second.counters().imu_samples_published),
+        (0, 11)
+    );
     assert_eq!(second.status_mut().errors_of(ErrorKind::ResumeState), 1);
     assert!(first.status_mut().error_counts.is_empty());
 }
@@ -129,7 +143,10 @@ fn a_real_time_restart_skips_the_samples_due_long_ago() {
     assert_eq!(out, (950..=1000).step_by(5).collect::<Vec<_>>());
     assert_eq!(wait, Some(5 * MS as u64), "sample 201 is due in 5 ms");
     let c = core.counters().clone();
-    assert_eq!((c.imu_samples_skipped_late, c.imu_samples_published), (190, 11));
+    assert_eq!(
+        (c.imu_samples_skipped_late, c.imu_samples_published),
+        (190, 11)
+    );
     // Waited for: published even if the wait overran.
     assert!(matches!(core.step(1200 * MS), ImuStep::Publish(m) if m.t_ns == 1005 * MS));
 
@@ -147,7 +164,10 @@ fn lockstep_publishes_up_to_the_horizon_over_a_gap() {
     s.extend(samples(400, 450, 10));
     let mut core = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), Status::new("imu"));
     let (out, wait) = run_at(&mut core, 0);
-    assert_eq!((out.len(), out.last(), wait), (11, Some(&100), Some(ACK_POLL_NS)));
+    assert_eq!(
+        (out.len(), out.last(), wait),
+        (11, Some(&100), Some(ACK_POLL_NS))
+    );
     core.on_ack(&ack(100 * MS));
     assert_eq!(run_at(&mut core, 0).0, [110, 120, 130, 140, 150]);
     core.on_ack(&ack(200 * MS));
@@ -171,7 +191,10 @@ fn without_frames_lockstep_paces_in_real_time() {
     p.first_frame_t_ns = None;
     let mut core = ImuReplayCore::new(p, Status::new("imu"));
     assert_eq!(run_at(&mut core, 0), (vec![], Some(50 * MS as u64)));
-    assert_eq!(run_at(&mut core, 75 * MS), (vec![50, 60, 70], Some(5 * MS as u64)));
+    assert_eq!(
+        run_at(&mut core, 75 * MS),
+        (vec![50, 60, 70], Some(5 * MS as u64))
+    );
 }
 
 /// The lines the reader skipped (non-monotonic, malformed) are reported once, on a first
@@ -195,11 +218,19 @@ fn skipped_imu_lines_are_reported_on_the_first_start() {
     let st = core.status_mut();
     assert_eq!(st.errors_of(ErrorKind::NonMonotonic), 1);
     assert_eq!(st.errors_of(ErrorKind::MalformedLine), 1);
-    assert_eq!(st.errors_of(ErrorKind::MissingImage), 0, "the camera ingest's");
+    assert_eq!(
+        st.errors_of(ErrorKind::MissingImage),
+        0,
+        "the camera ingest's"
+    );
     assert!(st.errors[0].detail.starts_with("mav0/imu0/data.csv:7"));
     let mut again = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), restarted(&mut core));
     shoal_runtime::report_input_issues(again.status_mut(), &issues, true);
-    assert_eq!(again.status_mut().errors_of(ErrorKind::NonMonotonic), 1, "not twice");
+    assert_eq!(
+        again.status_mut().errors_of(ErrorKind::NonMonotonic),
+        1,
+        "not twice"
+    );
 }
 
 /// After the last sample: one end of stream (sequence number: the sample count), then done;
