@@ -38,6 +38,11 @@ fn plan(mode: ReplayMode, frames: &[datasets::FrameRecord]) -> CameraReplayPlan<
     }
 }
 
+/// A core on a first start.
+fn fresh(mode: ReplayMode, frames: &[datasets::FrameRecord]) -> CameraReplayCore<'_> {
+    CameraReplayCore::new(plan(mode, frames), Status::new(&service_name(3)))
+}
+
 fn ack(seq: u64) -> FrameAck {
     FrameAck {
         meta: MsgMeta::new(3, 1, seq, 0),
@@ -79,10 +84,7 @@ fn lockstep_acked(core: &mut CameraReplayCore, n: usize, now_ns: i64) -> Vec<usi
 #[test]
 fn a_restart_resumes_position_and_counters() {
     let fr = frames(10);
-    let mut first = CameraReplayCore::new(
-        plan(ReplayMode::Lockstep, &fr),
-        Status::new(&service_name(3)),
-    );
+    let mut first = fresh(ReplayMode::Lockstep, &fr);
     assert_eq!(lockstep_acked(&mut first, 4, 0), [0, 1, 2, 3]);
     // Frame 4 published, then the process dies before its acknowledgement.
     assert!(matches!(first.step(0), CameraStep::Continue));
@@ -122,10 +124,7 @@ fn a_restart_resumes_position_and_counters() {
 #[test]
 fn a_resume_state_of_another_version_starts_afresh() {
     let fr = frames(10);
-    let mut first = CameraReplayCore::new(
-        plan(ReplayMode::Lockstep, &fr),
-        Status::new(&service_name(3)),
-    );
+    let mut first = fresh(ReplayMode::Lockstep, &fr);
     lockstep_acked(&mut first, 3, 0);
     let mut left = restarted(&mut first);
     left.set_resume(RESUME_VERSION + 1, &CameraResume { next_index: 3 });
@@ -181,10 +180,7 @@ fn a_real_time_restart_skips_the_frames_due_long_ago() {
 #[test]
 fn lockstep_resends_to_a_restarted_consumer() {
     let fr = frames(5);
-    let mut core = CameraReplayCore::new(
-        plan(ReplayMode::Lockstep, &fr),
-        Status::new(&service_name(3)),
-    );
+    let mut core = fresh(ReplayMode::Lockstep, &fr);
     lockstep_acked(&mut core, 2, 0);
     assert!(matches!(core.step(0), CameraStep::Continue));
     assert!(matches!(core.step(0), CameraStep::Publish { index: 2, .. }));
@@ -263,10 +259,7 @@ fn lockstep_gives_up_after_the_ack_timeout() {
 #[test]
 fn a_corrupt_image_is_counted_and_skipped() {
     let fr = frames(3);
-    let mut core = CameraReplayCore::new(
-        plan(ReplayMode::Realtime, &fr),
-        Status::new(&service_name(3)),
-    );
+    let mut core = fresh(ReplayMode::Realtime, &fr);
     let now = 150 * MS;
     assert!(matches!(
         core.step(now),
@@ -285,10 +278,7 @@ fn a_corrupt_image_is_counted_and_skipped() {
     assert_eq!(s.errors_of(ErrorKind::CorruptImage), 1);
     assert!(s.errors[0].detail.contains("cam0/1.png"));
 
-    let mut lock = CameraReplayCore::new(
-        plan(ReplayMode::Lockstep, &fr),
-        Status::new(&service_name(3)),
-    );
+    let mut lock = fresh(ReplayMode::Lockstep, &fr);
     assert!(matches!(lock.step(0), CameraStep::Publish { .. }));
     lock.on_sent(0);
     assert!(matches!(lock.step(1001 * MS), CameraStep::Publish { .. }));
@@ -300,10 +290,7 @@ fn a_corrupt_image_is_counted_and_skipped() {
 #[test]
 fn the_end_of_stream_is_resent_until_acknowledged() {
     let fr = frames(2);
-    let mut core = CameraReplayCore::new(
-        plan(ReplayMode::Lockstep, &fr),
-        Status::new(&service_name(3)),
-    );
+    let mut core = fresh(ReplayMode::Lockstep, &fr);
     lockstep_acked(&mut core, 2, 0);
     assert!(matches!(core.step(0), CameraStep::Continue));
     let mut eos_at = Vec::new();

@@ -38,6 +38,11 @@ fn plan(mode: ReplayMode, samples: &[datasets::ImuSample]) -> ImuReplayPlan<'_> 
     }
 }
 
+/// A core on a first start.
+fn fresh(mode: ReplayMode, samples: &[datasets::ImuSample]) -> ImuReplayCore<'_> {
+    ImuReplayCore::new(plan(mode, samples), Status::new("imu"))
+}
+
 fn ack(frame_t_ns: i64) -> FrameAck {
     FrameAck {
         meta: MsgMeta::new(1, 1, 0, 0),
@@ -77,7 +82,7 @@ fn restarted(core: &mut ImuReplayCore) -> Status {
 #[test]
 fn a_restart_resumes_position_and_counters() {
     let s = samples(0, 300, 10);
-    let mut first = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), Status::new("imu"));
+    let mut first = fresh(ReplayMode::Lockstep, &s);
     assert_eq!(
         run_at(&mut first, 0),
         ((0..=10).map(|k| k * 10).collect(), Some(ACK_POLL_NS))
@@ -116,7 +121,7 @@ fn a_restart_resumes_position_and_counters() {
 #[test]
 fn a_resume_state_of_another_version_starts_afresh() {
     let s = samples(0, 100, 10);
-    let mut first = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), Status::new("imu"));
+    let mut first = fresh(ReplayMode::Lockstep, &s);
     run_at(&mut first, 0);
     assert_eq!(first.next_index(), 11);
     let mut left = restarted(&mut first);
@@ -150,7 +155,7 @@ fn a_real_time_restart_skips_the_samples_due_long_ago() {
     // Waited for: published even if the wait overran.
     assert!(matches!(core.step(1200 * MS), ImuStep::Publish(m) if m.t_ns == 1005 * MS));
 
-    let mut fresh = ImuReplayCore::new(plan(ReplayMode::Realtime, &s), Status::new("imu"));
+    let mut fresh = fresh(ReplayMode::Realtime, &s);
     assert_eq!(run_at(&mut fresh, 1000 * MS).0.len(), 201);
     assert_eq!(fresh.counters().imu_samples_skipped_late, 0);
 }
@@ -162,7 +167,7 @@ fn a_real_time_restart_skips_the_samples_due_long_ago() {
 fn lockstep_publishes_up_to_the_horizon_over_a_gap() {
     let mut s = samples(0, 150, 10);
     s.extend(samples(400, 450, 10));
-    let mut core = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), Status::new("imu"));
+    let mut core = fresh(ReplayMode::Lockstep, &s);
     let (out, wait) = run_at(&mut core, 0);
     assert_eq!(
         (out.len(), out.last(), wait),
@@ -213,7 +218,7 @@ fn skipped_imu_lines_are_reported_on_the_first_start() {
         issue("mav0/cam0/data.csv", 3, datasets::IssueKind::MissingImage),
     ];
     let s = samples(0, 50, 10);
-    let mut core = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), Status::new("imu"));
+    let mut core = fresh(ReplayMode::Lockstep, &s);
     shoal_runtime::report_input_issues(core.status_mut(), &issues, true);
     let st = core.status_mut();
     assert_eq!(st.errors_of(ErrorKind::NonMonotonic), 1);
@@ -238,7 +243,7 @@ fn skipped_imu_lines_are_reported_on_the_first_start() {
 #[test]
 fn the_end_of_stream_follows_the_last_sample_once() {
     let s = samples(0, 40, 10);
-    let mut core = ImuReplayCore::new(plan(ReplayMode::Lockstep, &s), Status::new("imu"));
+    let mut core = fresh(ReplayMode::Lockstep, &s);
     for _ in 0..5 {
         assert!(matches!(core.step(0), ImuStep::Publish(_)));
         core.on_sent();
