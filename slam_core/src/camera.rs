@@ -282,19 +282,13 @@ mod tests {
     use super::*;
 
     fn euroc() -> PinholeRadtan {
-        PinholeRadtan {
-            width: 752,
-            height: 480,
-            fx: 458.654,
-            fy: 457.296,
-            cx: 367.215,
-            cy: 248.375,
-            k1: -0.2834,
-            k2: 0.0740,
-            p1: 0.00019,
-            p2: 1.76e-5,
-            k3: 0.0,
-        }
+        let pinhole = [458.654, 457.296, 367.215, 248.375];
+        PinholeRadtan::from_coefficients(
+            752,
+            480,
+            pinhole,
+            [-0.2834, 0.0740, 0.00019, 1.76e-5, 0.0],
+        )
     }
 
     #[test]
