@@ -39,6 +39,19 @@ pub struct PinholeRadtan {
 impl PinholeRadtan {
     /// A pinhole camera without distortion.
     pub fn pinhole(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> Self {
+        Self::from_coefficients(width, height, [fx, fy, cx, cy], [0.0; 5])
+    }
+
+    /// A camera of pinhole coefficients `[fx, fy, cx, cy]` and radial-tangential ones
+    /// `[k1, k2, p1, p2, k3]` (eq. 2.57-2.60), the order of calibration files and messages.
+    pub fn from_coefficients(
+        width: u32,
+        height: u32,
+        pinhole: [f64; 4],
+        distortion: [f64; 5],
+    ) -> Self {
+        let [fx, fy, cx, cy] = pinhole;
+        let [k1, k2, p1, p2, k3] = distortion;
         Self {
             width,
             height,
@@ -46,11 +59,11 @@ impl PinholeRadtan {
             fy,
             cx,
             cy,
-            k1: 0.0,
-            k2: 0.0,
-            p1: 0.0,
-            p2: 0.0,
-            k3: 0.0,
+            k1,
+            k2,
+            p1,
+            p2,
+            k3,
         }
     }
 
@@ -269,19 +282,13 @@ mod tests {
     use super::*;
 
     fn euroc() -> PinholeRadtan {
-        PinholeRadtan {
-            width: 752,
-            height: 480,
-            fx: 458.654,
-            fy: 457.296,
-            cx: 367.215,
-            cy: 248.375,
-            k1: -0.2834,
-            k2: 0.0740,
-            p1: 0.00019,
-            p2: 1.76e-5,
-            k3: 0.0,
-        }
+        let pinhole = [458.654, 457.296, 367.215, 248.375];
+        PinholeRadtan::from_coefficients(
+            752,
+            480,
+            pinhole,
+            [-0.2834, 0.0740, 0.00019, 1.76e-5, 0.0],
+        )
     }
 
     #[test]

@@ -1,46 +1,15 @@
 //! The pose-graph LM allocates only in its setup: a run with more iterations allocates
 //! exactly as often as a run with one. Own test binary: it installs a counting global
-//! allocator.
+//! allocator (`common`).
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
+mod common;
 
+use common::allocations;
 use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion, Vector3};
 use slam_core::lie::{Matrix7, Sim3};
 use slam_core::pgo::{
     optimize_se3, optimize_sim3, Edge, LmParams, PgoMethod, PgoParams, Se3Graph, Sim3Graph, Vertex,
 };
-
-struct Counting;
-
-thread_local! {
-    static ALLOCS: Cell<usize> = const { Cell::new(0) };
-}
-
-// SAFETY: forwards to the system allocator; only counts calls of the current thread.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: same contract as the caller's.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
-
-fn allocations() -> usize {
-    ALLOCS.with(|c| c.get())
-}
 
 fn loop_graph() -> Se3Graph {
     let n = 40;

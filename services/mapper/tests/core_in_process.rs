@@ -12,12 +12,11 @@ use datasets::sim::{Scenario, SimParams, SimWorld};
 use mapper::core::{Mapper, Out as MapperOut};
 use mapper::worker::Report;
 use mapper::Params;
-use shm_schema::{
-    Feedback, FrameHeader, ImuMsg, Intrinsics, MsgMeta, FLAG_END_OF_STREAM, FLAG_HANDLED,
-};
+use shm_schema::{Feedback, ImuMsg, MsgMeta, FLAG_END_OF_STREAM, FLAG_HANDLED};
 use shoal_runtime::{ErrorKind, Status};
 use tracker::core::{CoreConfig, FrameIn, FrameStep, Out as TrackerOut, TrackerCore};
 use tracker::outbox::KeyframeMsg;
+use tracker::testing::{frame_header, imu_msg};
 
 const FRAMES: usize = 120;
 
@@ -91,34 +90,6 @@ fn keyframes_of_the_tracker(mut answer: impl FnMut(&KeyframeMsg) -> Vec<Feedback
     take(&mut core, out);
     assert!(core.drained(), "the mapper acknowledged every keyframe");
     sent
-}
-
-fn frame_header(world: &SimWorld, k: usize) -> FrameHeader {
-    let c = world.calib().model;
-    FrameHeader {
-        meta: MsgMeta::new(0, 1, k as u64, 0),
-        width: c.width,
-        height: c.height,
-        stride: c.width,
-        dataset_index: k as u64,
-        t_mid_ns: world.frame_time_ns(k.min(world.n_frames() - 1)),
-        readout_ns: world.readout_ns(),
-        intrinsics: Intrinsics {
-            pinhole: [c.fx, c.fy, c.cx, c.cy],
-            distortion: [c.k1, c.k2, c.p1, c.p2, c.k3],
-        },
-        t_bs: shoal_runtime::wire::wire_from_iso(&world.calib().t_bs),
-        ..FrameHeader::default()
-    }
-}
-
-fn imu_msg(seq: u64, s: &datasets::ImuSample) -> ImuMsg {
-    ImuMsg {
-        meta: MsgMeta::new(0, 1, seq, 0),
-        t_ns: s.t_ns,
-        gyro: s.gyro,
-        accel: s.accel,
-    }
 }
 
 /// A mapper core for one client, free-running (no lock-step synchronisation with a loop

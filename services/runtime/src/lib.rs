@@ -325,14 +325,16 @@ pub fn resume_status(file: &StatusFile, service: &str) -> Status {
 /// line), as errors: the IMU files' (`imu`) or the others' (the camera ingest's), so each
 /// is reported once.
 pub fn report_dataset_issues(status: &mut Status, dataset: &datasets::Dataset, imu: bool) {
+    report_input_issues(status, &dataset.issues, imu);
+}
+
+/// [`report_dataset_issues`] of a reader's `issues` (those of the IMU files when `imu`, the
+/// others otherwise), on a first start only.
+pub fn report_input_issues(status: &mut Status, issues: &[datasets::InputIssue], imu: bool) {
     if status.starts != 1 {
         return;
     }
-    for i in dataset
-        .issues
-        .iter()
-        .filter(|i| is_imu_file(&i.path) == imu)
-    {
+    for i in issues.iter().filter(|i| is_imu_file(&i.path) == imu) {
         let detail = format!("{}:{}: {}", i.path.display(), i.line, i.detail);
         status.error(i.kind.into(), detail);
     }

@@ -92,21 +92,7 @@ pub fn intrinsics_from_camera(c: &PinholeRadtan) -> (Intrinsics, u32, u32) {
 /// [`Intrinsics`]): pinhole `[fx, fy, cx, cy]` and radial-tangential `[k1, k2, p1, p2, k3]`.
 /// Not checked: see [`valid_intrinsics`].
 pub fn camera_from_intrinsics(intrinsics: &Intrinsics, width: u32, height: u32) -> PinholeRadtan {
-    let [fx, fy, cx, cy] = intrinsics.pinhole;
-    let [k1, k2, p1, p2, k3] = intrinsics.distortion;
-    PinholeRadtan {
-        width,
-        height,
-        fx,
-        fy,
-        cx,
-        cy,
-        k1,
-        k2,
-        p1,
-        p2,
-        k3,
-    }
+    PinholeRadtan::from_coefficients(width, height, intrinsics.pinhole, intrinsics.distortion)
 }
 
 /// Whether message intrinsics can make a camera: positive focal lengths, a finite principal

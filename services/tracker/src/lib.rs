@@ -90,6 +90,8 @@ pub mod mapping_thread;
 pub mod outbox;
 pub mod ports;
 pub mod spool;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 
 pub use config::{LocalMapping, TrackerConfig, TrackerFlags};
 pub use ports::run;

@@ -12,6 +12,7 @@ use shoal_runtime::{ErrorKind, Status};
 use slam_core::ids::SessionId;
 
 use super::*;
+use crate::testing::{frame_header, imu_msg};
 
 fn config(no_vo: bool) -> CoreConfig {
     CoreConfig {
@@ -204,31 +205,6 @@ impl Run {
                 Out::Ack(_) => {}
             }
         }
-    }
-}
-
-fn imu_msg(seq: u64, s: &datasets::ImuSample) -> ImuMsg {
-    ImuMsg {
-        meta: MsgMeta::new(0, 1, seq, 0),
-        t_ns: s.t_ns,
-        gyro: s.gyro,
-        accel: s.accel,
-    }
-}
-
-fn frame_header(world: &SimWorld, k: usize) -> FrameHeader {
-    let c = world.calib().model;
-    FrameHeader {
-        meta: MsgMeta::new(0, 1, k as u64, 0),
-        width: c.width,
-        height: c.height,
-        stride: c.width,
-        dataset_index: k as u64,
-        t_mid_ns: world.frame_time_ns(k),
-        readout_ns: world.readout_ns(),
-        intrinsics: shoal_runtime::wire::intrinsics_from_camera(&c).0,
-        t_bs: shoal_runtime::wire::wire_from_iso(&world.calib().t_bs),
-        ..FrameHeader::default()
     }
 }
 
