@@ -38,7 +38,9 @@
 //! **Solver.** Levenberg-Marquardt on `(H + λI) δ = -g`. The points are eliminated by the
 //! Schur complement (each point's 3x3 block, damped by the same λ); the reduced keyframe
 //! system (15-dof blocks: the IMU factors couple neighbours, co-observed points any pair) is
-//! [`BlockSparseSystem`] with a dense LLᵀ (a window has ≤ ~20 free keyframes). Keep one
+//! [`BlockSparseSystem`] with a dense LLᵀ (a window has ≤ ~20 free keyframes). A point with
+//! fewer than two valid observations in the window has no depth information and is held
+//! fixed (its observation still constrains its keyframe). Keep one
 //! [`ViSolver`] per thread: after the first call on a window of a given size, `optimize`
 //! allocates nothing (the Jacobians of every factor go into reused buffers).
 
@@ -130,6 +132,9 @@ pub struct ViParams {
     pub cost_tolerance: f64,
     /// Stop when the largest step component is below this.
     pub step_tolerance: f64,
+    /// Observations of points closer than this to the camera (or behind it) are left out
+    /// (counted in [`ViChi2::behind`]), m.
+    pub min_depth_m: f64,
 }
 
 impl Default for ViParams {
@@ -142,6 +147,7 @@ impl Default for ViParams {
             initial_lambda: 1e-4,
             cost_tolerance: 1e-6,
             step_tolerance: 1e-8,
+            min_depth_m: 0.05,
         }
     }
 }
@@ -153,7 +159,8 @@ pub struct ViChi2 {
     pub reprojection: f64,
     /// Reprojections above the 95 % χ²(2) gate 5.991.
     pub reprojection_outliers: usize,
-    /// Observations behind their camera (no residual).
+    /// Observations behind their camera, closer than [`ViParams::min_depth_m`] or outside
+    /// `|x/z|, |y/z| ≤ 2` (no residual).
     pub behind: usize,
     /// IMU preintegration rows (9 per factor).
     pub imu: f64,

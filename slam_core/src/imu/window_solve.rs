@@ -9,6 +9,9 @@ use super::{
 };
 use crate::CoreError;
 
+/// Largest `|x/z|`, `|y/z|` of a valid observation (about ±63°).
+const MAX_TAN: f64 = 2.0;
+
 /// The 95 % gate of χ²(2).
 const CHI2_2DOF_95: f64 = 5.991;
 
@@ -26,7 +29,8 @@ fn evaluate(
     for (k, o) in w.observations.iter().enumerate() {
         let st = &states[o.kf as usize];
         let pt = &points[o.point as usize];
-        let Some((uv, j_x, j_p)) = reprojection_jacobians(&w.camera, &w.t_bc, st, pt) else {
+        let proj = reprojection_jacobians(&w.camera, &w.t_bc, st, pt);
+        let Some((uv, j_x, j_p)) = proj.filter(|_| in_view(w, st, pt, p.min_depth_m)) else {
             chi.behind += 1;
             if let Some(l) = lin.as_deref_mut() {
                 l.obs[k].valid = false;
@@ -76,6 +80,16 @@ fn evaluate(
         }
     }
     chi
+}
+
+/// Whether `p_w` lies in the camera of body state `st` at a depth of at least `min_depth`
+/// and within the normalised field `|x/z|, |y/z| ≤ MAX_TAN` (beyond it the distortion
+/// polynomial is meaningless and its Jacobian explodes).
+#[inline]
+fn in_view(w: &ViWindow, st: &NavState, p_w: &Vector3<f64>, min_depth: f64) -> bool {
+    let p_b = st.r.inverse() * (p_w - st.p);
+    let p_c = w.t_bc.rotation.inverse() * (p_b - w.t_bc.translation.vector);
+    p_c.z >= min_depth && p_c.x.abs() <= MAX_TAN * p_c.z && p_c.y.abs() <= MAX_TAN * p_c.z
 }
 
 /// Adds the 6x6 `m` (or its transpose) to the top-left corner of a 15x15 column-major block.
@@ -192,21 +206,30 @@ impl ViSolver {
         );
         let mut v = Matrix3::identity() * lambda;
         let mut g = Vector3::zeros();
+        let mut n_valid = 0;
         for &oi in &self.obs_order[s..e] {
             let l = &self.lin.obs[oi as usize];
             if l.valid {
                 v += l.j_p.transpose() * l.j_p * l.w;
                 g += l.j_p.transpose() * l.r * l.w;
+                n_valid += 1;
             }
         }
-        let v_inv = v.try_inverse().unwrap_or_else(Matrix3::zeros);
+        // A point seen once has no depth information: it is held fixed (a known landmark
+        // for its keyframe): no step, no Schur term.
+        let v_inv = if n_valid >= 2 {
+            v.try_inverse().unwrap_or_else(Matrix3::zeros)
+        } else {
+            g = Vector3::zeros();
+            Matrix3::zeros()
+        };
         self.v_inv[pt] = v_inv;
         self.g_p[pt] = g;
         let vg = v_inv * g;
         for &oi in &self.obs_order[s..e] {
             let (o, l) = (&w.observations[oi as usize], &self.lin.obs[oi as usize]);
             let a = self.var_of_kf[o.kf as usize];
-            self.w_blk[oi as usize] = if l.valid && a != u32::MAX {
+            self.w_blk[oi as usize] = if l.valid && a != u32::MAX && n_valid >= 2 {
                 l.j_x.transpose() * l.j_p * l.w
             } else {
                 Matrix6x3::zeros()

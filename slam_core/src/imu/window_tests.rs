@@ -75,7 +75,7 @@ fn consistent_window(n: usize, seed: u64) -> ViWindow {
         for _ in 0..25 {
             let uv = Vector2::new(rng.uniform(40.0, 710.0), rng.uniform(40.0, 440.0));
             let depth = rng.uniform(3.0, 8.0);
-            points_w.push(t_wc * (camera.unproject(&uv) * depth));
+            points_w.push(t_wc.transform_point(&(camera.unproject(&uv) * depth).into()).coords);
         }
     }
     let mut observations = Vec::new();

@@ -1,0 +1,543 @@
+//! The sliding-window visual-inertial optimisation (`slam_core::imu::window`) on the `drone`
+//! world: keyframes every 0.25 s, IMU from the world (exact or with the ADIS16448 noise of
+//! the scenario), landmarks spawned in each keyframe's view (depth 2-8 m, seen from the
+//! keyframes within ±3 s of their birth, no occlusion), pixels with 1 px noise.
+//!
+//! 1. From the truth perturbed (0.1 m, 2°, 0.2 m/s, biases zeroed, points 5 cm): back to the
+//!    truth (exact IMU), to errors of the order of the noise (noisy IMU).
+//! 2. From a 5 % wrong scale: the IMU factors bring it back to metric.
+//! 3. A 10-keyframe window slid over 25 s: bounded window, trajectory error (SE(3)-aligned)
+//!    and gravity (roll/pitch) error against the truth.
+//! 4. A second `optimize` on a window of the same size allocates nothing.
+//!
+//! Figures are printed (`--nocapture`); times are printed, never asserted.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::time::Instant;
+
+use datasets::sim::{Scenario, SimParams, SimWorld};
+use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
+use slam_core::imu::window::{
+    reprojection_jacobians, ViKeyframe, ViObservation, ViParams, ViReport, ViSolver, ViWindow,
+};
+use slam_core::imu::{gravity_w, ImuBiases, ImuNoise, NavState, Preintegrated, PreintegrationParams};
+use slam_core::lie::{so3_exp, so3_log};
+use slam_core::metrics::{evaluate_by_index, Alignment, EvalParams};
+
+struct Counting;
+
+thread_local! {
+    static ALLOCS: Cell<usize> = const { Cell::new(0) };
+}
+
+// SAFETY: forwards to the system allocator; only counts calls of the current thread.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
+        // SAFETY: same contract as the caller's.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: same contract as the caller's.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
+        // SAFETY: same contract as the caller's.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocations() -> usize {
+    ALLOCS.with(|c| c.get())
+}
+
+const KF_STEP_NS: i64 = 250_000_000;
+const IMU_STEP_NS: i64 = 5_000_000;
+const PX_SIGMA: f64 = 1.0;
+/// Landmarks spawned per keyframe.
+const PER_KF: usize = 40;
+/// A landmark is seen from keyframes within this many keyframes of its birth.
+const VIS_KFS: usize = 12;
+/// Free keyframes of the sliding window (plus the fixed one before them).
+const WINDOW: usize = 10;
+
+/// Deterministic generator (SplitMix64, Box-Muller).
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.next()
+    }
+    fn normal(&mut self) -> f64 {
+        let (u, v) = (self.next().max(1e-300), self.next());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+    fn vec3(&mut self, sigma: f64) -> Vector3<f64> {
+        Vector3::new(self.normal(), self.normal(), self.normal()) * sigma
+    }
+}
+
+/// The `drone` world, its keyframes, landmarks and noisy observations.
+struct Sim {
+    world: SimWorld,
+    kf_ns: Vec<i64>,
+    truth: Vec<NavState>,
+    landmarks: Vec<Vector3<f64>>,
+    birth: Vec<usize>,
+    /// Per keyframe: (landmark, noisy pixel).
+    obs: Vec<Vec<(u32, Vector2<f64>)>>,
+    params: PreintegrationParams,
+}
+
+impl Sim {
+    /// `n_kf` keyframes from `t0_s` on, IMU noise `noise` in the world.
+    fn new(noise: ImuNoise, n_kf: usize, t0_s: f64, seed: u64) -> Self {
+        let mut p = SimParams::new(Scenario::Drone);
+        p.seed = seed;
+        p.noise = noise;
+        p.frames = Some(((t0_s + n_kf as f64 * 0.25 + 2.0) * 20.0) as usize);
+        let world = SimWorld::new(p).expect("world");
+        let start = world.params().start_ns;
+        let t0 = start + (t0_s * 200.0).round() as i64 * IMU_STEP_NS;
+        let kf_ns: Vec<i64> = (0..n_kf as i64).map(|k| t0 + k * KF_STEP_NS).collect();
+        let gt = world.ground_truth_states();
+        let truth = kf_ns
+            .iter()
+            .map(|&t| {
+                let s = &gt[((t - gt[0].t_ns) / IMU_STEP_NS) as usize];
+                assert_eq!(s.t_ns, t, "keyframes on the IMU grid");
+                NavState {
+                    r: s.q_wb.to_rotation_matrix(),
+                    p: s.p_wb,
+                    v: s.v_w,
+                    biases: s.biases,
+                }
+            })
+            .collect();
+        let mut sim = Self {
+            params: PreintegrationParams::new(&ImuNoise::default(), &Default::default())
+                .expect("params"),
+            world,
+            kf_ns,
+            truth,
+            landmarks: Vec::new(),
+            birth: Vec::new(),
+            obs: Vec::new(),
+        };
+        sim.spawn_and_observe(&mut Rng(seed * 7 + 1));
+        sim
+    }
+
+    fn t_bc(&self) -> Isometry3<f64> {
+        self.world.calib().t_bs
+    }
+
+    fn t_wc(&self, s: &NavState) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(s.p),
+            UnitQuaternion::from_rotation_matrix(&s.r),
+        ) * self.t_bc()
+    }
+
+    fn spawn_and_observe(&mut self, rng: &mut Rng) {
+        let cam = *self.world.camera();
+        let (w, h) = (f64::from(cam.width), f64::from(cam.height));
+        for k in 0..self.kf_ns.len() {
+            let t_wc = self.t_wc(&self.truth[k]);
+            for _ in 0..PER_KF {
+                let uv = Vector2::new(rng.uniform(20.0, w - 20.0), rng.uniform(20.0, h - 20.0));
+                let d = rng.uniform(2.0, 8.0);
+                self.landmarks.push(t_wc.transform_point(&(cam.unproject(&uv) * d).into()).coords);
+                self.birth.push(k);
+            }
+        }
+        let t_bc = self.t_bc();
+        for k in 0..self.kf_ns.len() {
+            let mut v = Vec::new();
+            for (i, p) in self.landmarks.iter().enumerate() {
+                if self.birth[i].abs_diff(k) > VIS_KFS {
+                    continue;
+                }
+                if let Some((uv, _, _)) = reprojection_jacobians(&cam, &t_bc, &self.truth[k], p) {
+                    if cam.contains(&uv) {
+                        let n = Vector2::new(rng.normal(), rng.normal()) * PX_SIGMA;
+                        v.push((i as u32, uv + n));
+                    }
+                }
+            }
+            self.obs.push(v);
+        }
+    }
+
+    /// IMU preintegration from keyframe `k` to `k + 1`, linearised at `bias_lin`.
+    fn preint(&self, k: usize, bias_lin: ImuBiases) -> Preintegrated {
+        Preintegrated::from_window(
+            self.world.imu_samples(),
+            self.kf_ns[k],
+            self.kf_ns[k + 1],
+            bias_lin,
+            self.params,
+        )
+        .expect("IMU brackets the keyframes")
+    }
+
+    /// The window over keyframes `first..=last` (the first fixed) at the estimates `states`
+    /// and `points` (landmarks without an estimate are left out); returns it with the
+    /// landmark of each window point.
+    fn window(
+        &self,
+        first: usize,
+        last: usize,
+        states: &[NavState],
+        points: &[Option<Vector3<f64>>],
+    ) -> (ViWindow, Vec<u32>) {
+        let mut slot = vec![u32::MAX; self.landmarks.len()];
+        let mut ids = Vec::new();
+        let mut points_w = Vec::new();
+        let mut observations = Vec::new();
+        for k in first..=last {
+            for &(i, uv) in &self.obs[k] {
+                let Some(p) = points[i as usize] else { continue };
+                if slot[i as usize] == u32::MAX {
+                    slot[i as usize] = ids.len() as u32;
+                    ids.push(i);
+                    points_w.push(p);
+                }
+                observations.push(ViObservation {
+                    kf: (k - first) as u32,
+                    point: slot[i as usize],
+                    uv,
+                    sigma_px: PX_SIGMA,
+                });
+            }
+        }
+        let w = ViWindow {
+            keyframes: (first..=last)
+                .map(|k| ViKeyframe {
+                    t_ns: self.kf_ns[k],
+                    state: states[k],
+                    fixed: k == first,
+                })
+                .collect(),
+            preints: (first..last).map(|k| self.preint(k, states[k].biases)).collect(),
+            points_w,
+            observations,
+            t_bc: self.t_bc(),
+            camera: *self.world.camera(),
+            gravity_w: gravity_w(),
+            prior: None,
+        };
+        (w, ids)
+    }
+}
+
+/// RMS errors of the window's free keyframes against the truth: position m, rotation °,
+/// velocity m/s, gyro bias rad/s, accel bias m/s².
+fn rms_errors(w: &ViWindow, truth: &[NavState]) -> [f64; 5] {
+    let mut e = [0.0f64; 5];
+    let mut n = 0.0;
+    for (kf, t) in w.keyframes.iter().zip(truth).filter(|(k, _)| !k.fixed) {
+        let s = &kf.state;
+        e[0] += (s.p - t.p).norm_squared();
+        e[1] += so3_log(&(t.r.inverse() * s.r)).norm().to_degrees().powi(2);
+        e[2] += (s.v - t.v).norm_squared();
+        e[3] += (s.biases.gyro - t.biases.gyro).norm_squared();
+        e[4] += (s.biases.accel - t.biases.accel).norm_squared();
+        n += 1.0;
+    }
+    e.map(|x| (x / n).sqrt())
+}
+
+fn print_report(label: &str, r: &ViReport, secs: f64) {
+    eprintln!(
+        "{label}: {} iterations ({} solves), cost {:.1} -> {:.1}; final χ² reprojection {:.1} \
+         ({} above 5.991), IMU {:.2}, bias walk {:.2}; {:.1} ms",
+        r.iterations,
+        r.solves,
+        r.initial.cost,
+        r.last.cost,
+        r.last.reprojection,
+        r.last.reprojection_outliers,
+        r.last.imu,
+        r.last.bias_walk,
+        secs * 1e3
+    );
+}
+
+/// Window of 11 keyframes at 5 s, truth perturbed; optimised. Returns the errors before and
+/// after, the window and its report.
+fn perturbed_window(noise: ImuNoise, seed: u64) -> ([f64; 5], [f64; 5], ViWindow, ViReport) {
+    let sim = Sim::new(noise, WINDOW + 1, 5.0, seed);
+    let mut rng = Rng(seed + 100);
+    let mut states = sim.truth.clone();
+    for s in states.iter_mut().skip(1) {
+        s.r *= so3_exp(&(rng.vec3(1.0).normalize() * 2f64.to_radians()));
+        s.p += rng.vec3(0.1 / 3f64.sqrt());
+        s.v += rng.vec3(0.2 / 3f64.sqrt());
+        s.biases = ImuBiases::default();
+    }
+    let points: Vec<_> = sim
+        .landmarks
+        .iter()
+        .map(|p| Some(p + rng.vec3(0.05)))
+        .collect();
+    let (mut w, _) = sim.window(0, WINDOW, &states, &points);
+    let before = rms_errors(&w, &sim.truth);
+    let mut solver = ViSolver::new();
+    let t = Instant::now();
+    let rep = solver.optimize(&mut w, &ViParams::default()).expect("optimised");
+    let secs = t.elapsed().as_secs_f64();
+    print_report(&format!("perturbed window {noise:?}"), &rep, secs);
+    eprintln!(
+        "  {} keyframes, {} points, {} observations",
+        w.keyframes.len(),
+        w.points_w.len(),
+        w.observations.len()
+    );
+    (before, rms_errors(&w, &sim.truth), w, rep)
+}
+
+fn print_errors(label: &str, e: &[f64; 5]) {
+    eprintln!(
+        "  {label}: p {:.4} m, R {:.4}°, v {:.4} m/s, b_g {:.2e} rad/s, b_a {:.4} m/s²",
+        e[0], e[1], e[2], e[3], e[4]
+    );
+}
+
+/// Exact IMU, 1 px pixels: the perturbed window goes back to the truth.
+#[test]
+fn perturbed_window_converges_exact_imu() {
+    let (before, after, _, rep) = perturbed_window(ImuNoise::zero(), 3);
+    print_errors("before", &before);
+    print_errors("after", &after);
+    assert!(rep.converged && rep.last.cost < 0.01 * rep.initial.cost, "{rep:?}");
+    assert!(after[0] < 0.01 && after[1] < 0.1 && after[2] < 0.01, "{after:?}");
+    assert!(after[3] < 1e-3 && after[4] < 0.05, "{after:?}");
+}
+
+/// ADIS16448 noise in the IMU: errors of the order of what the noise allows.
+#[test]
+fn perturbed_window_converges_noisy_imu() {
+    let (before, after, _, rep) = perturbed_window(ImuNoise::default(), 4);
+    print_errors("before", &before);
+    print_errors("after", &after);
+    assert!(rep.last.cost < 0.01 * rep.initial.cost, "{rep:?}");
+    assert!(after[0] < 0.02 && after[1] < 0.2 && after[2] < 0.02, "{after:?}");
+    assert!(after[3] < 2e-3 && after[4] < 0.1, "{after:?}");
+}
+
+/// Positions (about the fixed keyframe), velocities and points 5 % too large: the IMU
+/// factors restore the metric scale.
+#[test]
+fn wrong_scale_is_pulled_back_to_metric() {
+    let sim = Sim::new(ImuNoise::default(), WINDOW + 1, 8.0, 6);
+    let s0 = 1.05;
+    let o = sim.truth[0].p;
+    let mut states = sim.truth.clone();
+    for s in states.iter_mut().skip(1) {
+        s.p = o + (s.p - o) * s0;
+        s.v *= s0;
+    }
+    let points: Vec<_> = sim.landmarks.iter().map(|p| Some(o + (p - o) * s0)).collect();
+    let (mut w, _) = sim.window(0, WINDOW, &states, &points);
+    let scale = |w: &ViWindow| {
+        let num: f64 = w.keyframes.iter().map(|k| (k.state.p - o).norm()).sum();
+        let den: f64 = sim.truth.iter().map(|t| (t.p - o).norm()).sum();
+        num / den
+    };
+    let before = scale(&w);
+    let t = Instant::now();
+    let rep = ViSolver::new()
+        .optimize(&mut w, &ViParams::default())
+        .expect("optimised");
+    print_report("wrong scale", &rep, t.elapsed().as_secs_f64());
+    let after = scale(&w);
+    eprintln!("  scale {before:.4} -> {after:.5} (path {:.2} m)", {
+        sim.truth.windows(2).map(|p| (p[1].p - p[0].p).norm()).sum::<f64>()
+    });
+    print_errors("after", &rms_errors(&w, &sim.truth));
+    assert!((before - 1.05).abs() < 1e-9);
+    assert!((after - 1.0).abs() < 0.01, "scale {after}");
+}
+
+/// Tilt (roll/pitch) error, °: the angle between the estimated and true gravity direction
+/// in the body frame.
+fn tilt_deg(est: &NavState, truth: &NavState) -> f64 {
+    let z = Vector3::z();
+    (est.r.inverse() * z).angle(&(truth.r.inverse() * z)).to_degrees()
+}
+
+fn iso(s: &NavState) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(s.p),
+        UnitQuaternion::from_rotation_matrix(&s.r),
+    )
+}
+
+/// Initial estimate of the landmarks born at keyframe `k`: the first noisy pixel back-
+/// projected from the *estimated* keyframe pose at the true depth with 5 % noise (a stand-in
+/// for the local mapper's triangulation).
+fn init_points(sim: &Sim, k: usize, est: &NavState, points: &mut [Option<Vector3<f64>>], rng: &mut Rng) {
+    let t_wc_true = sim.t_wc(&sim.truth[k]);
+    let t_wc = sim.t_wc(est);
+    for &(i, uv) in &sim.obs[k] {
+        if sim.birth[i as usize] != k {
+            continue;
+        }
+        let d = (sim.landmarks[i as usize] - t_wc_true.translation.vector).norm();
+        let b = sim.world.camera().unproject(&uv);
+        points[i as usize] = Some(t_wc.transform_point(&(b * d * (1.0 + 0.05 * rng.normal())).into()).coords);
+    }
+}
+
+/// The window slid over 25 s of the drone flight (noisy IMU, 1 px): bounded size, trajectory
+/// and gravity errors against the truth.
+#[test]
+fn sliding_window_over_the_drone_flight() {
+    let n_kf = 101;
+    let sim = Sim::new(ImuNoise::default(), n_kf, 2.0, 8);
+    let mut rng = Rng(77);
+    let g = gravity_w();
+    // The first window starts at the truth (the inertial initialisation's output).
+    let mut est = sim.truth.clone();
+    let mut points = vec![None; sim.landmarks.len()];
+    let mut solver = ViSolver::new();
+    let (mut times, mut iters, mut max_points) = (Vec::new(), 0usize, 0usize);
+    let mut chi2_per_obs = Vec::new();
+    for n in WINDOW..n_kf {
+        if n > WINDOW {
+            est[n] = sim.preint(n - 1, est[n - 1].biases).predict(&est[n - 1], &g);
+            init_points(&sim, n, &est[n].clone(), &mut points, &mut rng);
+        } else {
+            for k in 0..=WINDOW {
+                init_points(&sim, k, &est[k].clone(), &mut points, &mut rng);
+            }
+        }
+        let first = n - WINDOW;
+        let (mut w, ids) = sim.window(first, n, &est, &points);
+        assert_eq!(w.keyframes.len(), WINDOW + 1);
+        max_points = max_points.max(w.points_w.len());
+        let t = Instant::now();
+        let rep = match solver.optimize(&mut w, &ViParams::default()) {
+            Ok(r) => r,
+            Err(e) => {
+                let bad_pts = w.points_w.iter().filter(|p| !p.iter().all(|v| v.is_finite())).count();
+                for kf in &w.keyframes {
+                    eprintln!("{:?}", kf.state);
+                }
+                let mut min_z = f64::MAX;
+                for o in &w.observations {
+                    let s = &w.keyframes[o.kf as usize].state;
+                    let pb = s.r.inverse() * (w.points_w[o.point as usize] - s.p);
+                    let pc = w.t_bc.inverse() * nalgebra::Point3::from(pb);
+                    min_z = min_z.min(pc.z);
+                }
+                panic!("window {n}: {e}; bad points {bad_pts}, min z {min_z}, {} obs {} pts", w.observations.len(), w.points_w.len());
+            }
+        };
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        iters += rep.iterations;
+        chi2_per_obs.push(rep.last.reprojection / w.observations.len() as f64);
+        if std::env::var("VI_DEBUG").is_ok() {
+            let e_new = (w.keyframes[WINDOW].state.p - sim.truth[n].p).norm();
+            eprintln!(
+                "window {n}: {} it, cost {:.1} -> {:.1}, χ²/obs {:.2} -> {:.2}, {} obs, {} pts, {} -> {} invalid, newest kf error {e_new:.3} m",
+                rep.iterations, rep.initial.cost, rep.last.cost, rep.initial.reprojection / w.observations.len() as f64, chi2_per_obs[chi2_per_obs.len() - 1], rep.initial.behind,
+                w.observations.len(), w.points_w.len(), rep.last.behind
+            );
+        }
+        for (k, kf) in w.keyframes.iter().enumerate() {
+            est[first + k] = kf.state;
+        }
+        for (i, p) in ids.iter().zip(&w.points_w) {
+            points[*i as usize] = Some(*p);
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    let reference: Vec<_> = sim.truth.iter().map(iso).collect();
+    let estimate: Vec<_> = est.iter().map(iso).collect();
+    let params = |alignment| EvalParams {
+        alignment,
+        ..Default::default()
+    };
+    let ate = evaluate_by_index(&reference, &estimate, &params(Alignment::Se3)).expect("ate");
+    let raw = evaluate_by_index(&reference, &estimate, &params(Alignment::None)).expect("ape");
+    let tilt: Vec<f64> = est.iter().zip(&sim.truth).map(|(e, t)| tilt_deg(e, t)).collect();
+    let tilt_max = tilt.iter().cloned().fold(0.0, f64::max);
+    let v_rms = (est.iter().zip(&sim.truth).map(|(e, t)| (e.v - t.v).norm_squared()).sum::<f64>()
+        / n_kf as f64)
+        .sqrt();
+    let (last, truth_last) = (est[n_kf - 1], sim.truth[n_kf - 1]);
+    let chi_max = chi2_per_obs.iter().cloned().fold(0.0, f64::max);
+    eprintln!(
+        "sliding: {} windows of {} keyframes over {:.1} s ({:.1} m), ≤ {max_points} points; \
+         {:.1} iterations/window; time median {:.1} ms, max {:.1} ms",
+        n_kf - WINDOW,
+        WINDOW + 1,
+        (n_kf - 1) as f64 * 0.25,
+        ate.ref_path_length_m,
+        iters as f64 / (n_kf - WINDOW) as f64,
+        times[times.len() / 2],
+        times[times.len() - 1]
+    );
+    eprintln!(
+        "  ATE (SE(3)-aligned) rmse {:.4} m, max {:.4} m; unaligned rmse {:.4} m, max {:.4} m; \
+         final position error {:.4} m",
+        ate.ape.rmse,
+        ate.ape.max,
+        raw.ape.rmse,
+        raw.ape.max,
+        (last.p - truth_last.p).norm()
+    );
+    eprintln!(
+        "  tilt (roll/pitch) error max {tilt_max:.4}°, last {:.4}°; velocity rmse {v_rms:.4} m/s; \
+         final b_g error {:.2e}, b_a error {:.4}; reprojection χ²/observation max {chi_max:.2}",
+        tilt[n_kf - 1],
+        (last.biases.gyro - truth_last.biases.gyro).norm(),
+        (last.biases.accel - truth_last.biases.accel).norm()
+    );
+    assert!(ate.ape.rmse < 0.1, "ATE {}", ate.ape.rmse);
+    assert!(tilt_max < 0.5, "tilt {tilt_max}°");
+    assert!(v_rms < 0.05, "velocity rmse {v_rms}");
+    assert!(chi_max < 3.0, "χ²/observation {chi_max}");
+}
+
+/// A second `optimize` on a window of the same size (another window of the flight)
+/// allocates nothing.
+#[test]
+fn second_optimize_allocates_nothing() {
+    let sim = Sim::new(ImuNoise::default(), 2 * WINDOW + 2, 4.0, 9);
+    let points: Vec<_> = sim.landmarks.iter().map(|p| Some(*p)).collect();
+    let (mut w1, _) = sim.window(0, WINDOW, &sim.truth, &points);
+    let mut solver = ViSolver::new();
+    let p = ViParams::default();
+    solver.optimize(&mut w1, &p).expect("first");
+    // The same window again, from a perturbed start.
+    for kf in w1.keyframes.iter_mut().skip(1) {
+        kf.state.p += Vector3::new(0.02, -0.01, 0.01);
+        kf.state.r *= Rotation3::from_scaled_axis(Vector3::new(0.005, 0.0, -0.005));
+    }
+    let a0 = allocations();
+    let rep = solver.optimize(&mut w1, &p).expect("second");
+    let n = allocations() - a0;
+    eprintln!(
+        "second optimize: {} iterations, {} solves, {n} allocations ({} observations)",
+        rep.iterations,
+        rep.solves,
+        w1.observations.len()
+    );
+    assert!(rep.iterations >= 2, "{rep:?}");
+    assert_eq!(n, 0, "allocations in the second optimize");
+}
