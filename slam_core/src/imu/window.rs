@@ -284,6 +284,8 @@ pub struct ViSolver {
     dp: Vec<Vector3<f64>>,
     /// Per observation: `W = w J_xᵀ J_p` (6x3).
     w_blk: Vec<Matrix6x3>,
+    /// Schur terms per free keyframe pair `(a ≤ b)`, `a * n + b`.
+    pair_acc: Vec<Matrix6>,
     cand_states: Vec<NavState>,
     cand_points: Vec<Vector3<f64>>,
 }
@@ -320,6 +322,7 @@ impl ViSolver {
             g_p: Vec::new(),
             dp: Vec::new(),
             w_blk: Vec::new(),
+            pair_acc: Vec::new(),
             cand_states: Vec::new(),
             cand_points: Vec::new(),
         }
@@ -376,6 +379,42 @@ impl ViSolver {
         }
         report.last = chi;
         Ok(report)
+    }
+
+    /// Marginal covariance of keyframe `kf`'s state (tangent order `[θ; p; v; b_g; b_a]`)
+    /// at the window's current estimate: the keyframe's 15x15 block of the inverse of the
+    /// undamped Gauss-Newton information, points and the other free keyframes marginalised,
+    /// the fixed keyframes taken as exact (robust weights of the current residuals
+    /// included). A diagnostic (consistency checks) or the source of a [`StatePrior`]; it
+    /// factorises the reduced system 15 times. Errors when `kf` is fixed or out of range or
+    /// the information is singular.
+    pub fn keyframe_covariance(
+        &mut self,
+        w: &ViWindow,
+        p: &ViParams,
+        kf: usize,
+    ) -> Result<Matrix15, CoreError> {
+        self.setup(w)?;
+        let v = match self.var_of_kf.get(kf) {
+            Some(&v) if v != u32::MAX => v as usize,
+            _ => {
+                return Err(CoreError::InvalidArgument(format!(
+                    "vi window: keyframe {kf} is fixed or out of range"
+                )))
+            }
+        };
+        self.linearize(w, p);
+        self.assemble_reduced(w, 0.0)?;
+        let mut cov = Matrix15::zeros();
+        for c in 0..15 {
+            for i in 0..self.sys.n() {
+                self.sys.rhs_mut(i, 0).fill(0.0);
+            }
+            self.sys.rhs_mut(v, 0)[c] = 1.0;
+            self.sys.solve()?;
+            cov.set_column(c, &self.sys.x_block::<15>(v));
+        }
+        Ok((cov + cov.transpose()) * 0.5)
     }
 
     /// Checks the window and prepares variables, the block pattern, the observation order
@@ -459,6 +498,8 @@ impl ViSolver {
         let no = w.observations.len();
         self.lin.obs.resize(no, ObsLin::default());
         self.w_blk.resize(no, Matrix6x3::zeros());
+        let nv = n_var as usize;
+        self.pair_acc.resize(nv * nv, Matrix6::zeros());
         self.lin.imu.resize(w.preints.len(), ImuLin::default());
         self.v_inv.resize(np, Matrix3::zeros());
         self.g_p.resize(np, Vector3::zeros());

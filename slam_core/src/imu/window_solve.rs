@@ -198,8 +198,10 @@ impl ViSolver {
     }
 
     /// Eliminates point `pt` (Schur complement, damping `lambda` on its 3x3 block): stores
-    /// `(V + λI)⁻¹`, `g_p` and the `W` blocks, and updates the reduced system.
-    fn eliminate_point(&mut self, w: &ViWindow, pt: usize, lambda: f64) -> Result<(), CoreError> {
+    /// `(V + λI)⁻¹`, `g_p` and the `W` blocks, updates the reduced right-hand side and
+    /// accumulates `-W V⁻¹ Wᵀ` per keyframe pair (6x6 pose corners) in `pair_acc`.
+    fn eliminate_point(&mut self, w: &ViWindow, pt: usize, lambda: f64) {
+        let n = self.sys.n();
         let (s, e) = (
             self.point_start[pt] as usize,
             self.point_start[pt + 1] as usize,
@@ -248,6 +250,9 @@ impl ViSolver {
             if a == u32::MAX {
                 continue;
             }
+            if n_valid < 2 {
+                break;
+            }
             let wv = self.w_blk[ox] * v_inv;
             for y in x..e {
                 let oy = self.obs_order[y] as usize;
@@ -256,31 +261,57 @@ impl ViSolver {
                     continue;
                 }
                 let m = -(wv * self.w_blk[oy].transpose());
+                let (a, b) = (a as usize, b as usize);
+                if a == b {
+                    self.pair_acc[a * n + a] += m;
+                    if x != y {
+                        self.pair_acc[a * n + a] += m.transpose();
+                    }
+                } else if a < b {
+                    self.pair_acc[a * n + b] += m;
+                } else {
+                    self.pair_acc[b * n + a] += m.transpose();
+                }
+            }
+        }
+    }
+
+    /// Adds the accumulated 6x6 Schur terms of the points into the system's blocks.
+    fn flush_pair_acc(&mut self) -> Result<(), CoreError> {
+        let n = self.sys.n();
+        for a in 0..n {
+            for b in a..n {
+                let m = self.pair_acc[a * n + b];
+                if m == Matrix6::zeros() {
+                    continue;
+                }
                 let k = self
                     .sys
-                    .block_index(a as usize, b as usize)
+                    .block_index(a, b)
                     .ok_or_else(|| CoreError::Degenerate("vi window: pattern".into()))?;
-                let blk = self.sys.block_values_mut(k);
-                if a == b {
-                    add6(blk, &m, false);
-                    if x != y {
-                        add6(blk, &m, true);
-                    }
-                } else {
-                    add6(blk, &m, a > b);
-                }
+                add6(self.sys.block_values_mut(k), &m, false);
             }
         }
         Ok(())
     }
 
+    /// Assembles the reduced keyframe system (points eliminated with damping `lambda` on
+    /// their blocks; the keyframe blocks are not damped here).
+    pub(super) fn assemble_reduced(&mut self, w: &ViWindow, lambda: f64) -> Result<(), CoreError> {
+        self.assemble_keyframe_factors(w)?;
+        let n = self.sys.n();
+        self.pair_acc.clear();
+        self.pair_acc.resize(n * n, Matrix6::zeros());
+        for pt in 0..w.points_w.len() {
+            self.eliminate_point(w, pt, lambda);
+        }
+        self.flush_pair_acc()
+    }
+
     /// Solves the damped normal equations for the keyframe step (into the system's `x`) and
     /// the point steps (`dp`). Returns the largest step component.
     pub(super) fn solve_step(&mut self, w: &ViWindow, lambda: f64) -> Result<f64, CoreError> {
-        self.assemble_keyframe_factors(w)?;
-        for pt in 0..w.points_w.len() {
-            self.eliminate_point(w, pt, lambda)?;
-        }
+        self.assemble_reduced(w, lambda)?;
         self.sys.solve_shifted(Some(lambda))?;
         let x = self.sys.x();
         let mut step_max = x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
