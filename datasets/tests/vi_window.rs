@@ -18,11 +18,13 @@ use std::time::Instant;
 
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
+use slam_core::imu::preint::Vector15;
 use slam_core::imu::window::{
     reprojection_jacobians, ViKeyframe, ViObservation, ViParams, ViReport, ViSolver, ViWindow,
 };
-use slam_core::imu::preint::Vector15;
-use slam_core::imu::{gravity_w, ImuBiases, ImuNoise, NavState, Preintegrated, PreintegrationParams};
+use slam_core::imu::{
+    gravity_w, ImuBiases, ImuNoise, NavState, Preintegrated, PreintegrationParams,
+};
 use slam_core::lie::{so3_exp, so3_log};
 use slam_core::metrics::{evaluate_by_index, Alignment, EvalParams};
 
@@ -66,6 +68,15 @@ const PER_KF: usize = 40;
 const VIS_KFS: usize = 12;
 /// Free keyframes of the sliding window (plus the fixed one before them).
 const WINDOW: usize = 10;
+
+/// CPU time of the current thread, ms (Linux `/proc/thread-self/schedstat`; 0 elsewhere):
+/// the machine is shared, so wall time says little.
+fn cpu_ms() -> f64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<f64>().ok())
+        .map_or(0.0, |ns| ns * 1e-6)
+}
 
 /// Deterministic generator (SplitMix64, Box-Muller).
 struct Rng(u64);
@@ -160,7 +171,10 @@ impl Sim {
             for _ in 0..PER_KF {
                 let uv = Vector2::new(rng.uniform(20.0, w - 20.0), rng.uniform(20.0, h - 20.0));
                 let d = rng.uniform(2.0, 8.0);
-                self.landmarks.push(t_wc.transform_point(&(cam.unproject(&uv) * d).into()).coords);
+                self.landmarks.push(
+                    t_wc.transform_point(&(cam.unproject(&uv) * d).into())
+                        .coords,
+                );
                 self.birth.push(k);
             }
         }
@@ -210,7 +224,9 @@ impl Sim {
         let mut observations = Vec::new();
         for k in first..=last {
             for &(i, uv) in &self.obs[k] {
-                let Some(p) = points[i as usize] else { continue };
+                let Some(p) = points[i as usize] else {
+                    continue;
+                };
                 if slot[i as usize] == u32::MAX {
                     slot[i as usize] = ids.len() as u32;
                     ids.push(i);
@@ -232,7 +248,9 @@ impl Sim {
                     fixed: k == first,
                 })
                 .collect(),
-            preints: (first..last).map(|k| self.preint(k, states[k].biases)).collect(),
+            preints: (first..last)
+                .map(|k| self.preint(k, states[k].biases))
+                .collect(),
             points_w,
             observations,
             t_bc: self.t_bc(),
@@ -297,10 +315,13 @@ fn perturbed_window(noise: ImuNoise, seed: u64) -> ([f64; 5], [f64; 5], ViWindow
     let (mut w, _) = sim.window(0, WINDOW, &states, &points);
     let before = rms_errors(&w, &sim.truth);
     let mut solver = ViSolver::new();
-    let t = Instant::now();
-    let rep = solver.optimize(&mut w, &ViParams::default()).expect("optimised");
+    let (t, c) = (Instant::now(), cpu_ms());
+    let rep = solver
+        .optimize(&mut w, &ViParams::default())
+        .expect("optimised");
     let secs = t.elapsed().as_secs_f64();
     print_report(&format!("perturbed window {noise:?}"), &rep, secs);
+    eprintln!("  CPU {:.1} ms (first call on this solver)", cpu_ms() - c);
     eprintln!(
         "  {} keyframes, {} points, {} observations",
         w.keyframes.len(),
@@ -327,11 +348,14 @@ fn nees(solver: &mut ViSolver, w: &ViWindow, truth: &[NavState]) -> (f64, f64, f
             .expect("covariance");
         let s = &kf.state;
         let mut e = Vector15::zeros();
-        e.fixed_rows_mut::<3>(0).copy_from(&so3_log(&(t.r.inverse() * s.r)));
+        e.fixed_rows_mut::<3>(0)
+            .copy_from(&so3_log(&(t.r.inverse() * s.r)));
         e.fixed_rows_mut::<3>(3).copy_from(&(s.p - t.p));
         e.fixed_rows_mut::<3>(6).copy_from(&(s.v - t.v));
-        e.fixed_rows_mut::<3>(9).copy_from(&(s.biases.gyro - t.biases.gyro));
-        e.fixed_rows_mut::<3>(12).copy_from(&(s.biases.accel - t.biases.accel));
+        e.fixed_rows_mut::<3>(9)
+            .copy_from(&(s.biases.gyro - t.biases.gyro));
+        e.fixed_rows_mut::<3>(12)
+            .copy_from(&(s.biases.accel - t.biases.accel));
         let v = e.dot(&(cov.try_inverse().expect("invertible") * e));
         (sum, max, n) = (sum + v, max.max(v), n + 1.0);
         sig = (
@@ -355,8 +379,14 @@ fn perturbed_window_converges_exact_imu() {
     let (before, after, _, rep, _) = perturbed_window(ImuNoise::zero(), 3);
     print_errors("before", &before);
     print_errors("after", &after);
-    assert!(rep.converged && rep.last.cost < 0.01 * rep.initial.cost, "{rep:?}");
-    assert!(after[0] < 0.01 && after[1] < 0.1 && after[2] < 0.01, "{after:?}");
+    assert!(
+        rep.converged && rep.last.cost < 0.01 * rep.initial.cost,
+        "{rep:?}"
+    );
+    assert!(
+        after[0] < 0.01 && after[1] < 0.1 && after[2] < 0.01,
+        "{after:?}"
+    );
     assert!(after[3] < 1e-3 && after[4] < 0.05, "{after:?}");
 }
 
@@ -370,7 +400,10 @@ fn perturbed_window_converges_noisy_imu() {
     // correlated and one run is one sample).
     assert!(nees < 45.0, "NEES {nees}");
     assert!(rep.last.cost < 0.01 * rep.initial.cost, "{rep:?}");
-    assert!(after[0] < 0.02 && after[1] < 0.2 && after[2] < 0.02, "{after:?}");
+    assert!(
+        after[0] < 0.02 && after[1] < 0.2 && after[2] < 0.02,
+        "{after:?}"
+    );
     assert!(after[3] < 2e-3 && after[4] < 0.1, "{after:?}");
 }
 
@@ -386,7 +419,11 @@ fn wrong_scale_is_pulled_back_to_metric() {
         s.p = o + (s.p - o) * s0;
         s.v *= s0;
     }
-    let points: Vec<_> = sim.landmarks.iter().map(|p| Some(o + (p - o) * s0)).collect();
+    let points: Vec<_> = sim
+        .landmarks
+        .iter()
+        .map(|p| Some(o + (p - o) * s0))
+        .collect();
     let (mut w, _) = sim.window(0, WINDOW, &states, &points);
     let scale = |w: &ViWindow| {
         let num: f64 = w.keyframes.iter().map(|k| (k.state.p - o).norm()).sum();
@@ -401,7 +438,10 @@ fn wrong_scale_is_pulled_back_to_metric() {
     print_report("wrong scale", &rep, t.elapsed().as_secs_f64());
     let after = scale(&w);
     eprintln!("  scale {before:.4} -> {after:.5} (path {:.2} m)", {
-        sim.truth.windows(2).map(|p| (p[1].p - p[0].p).norm()).sum::<f64>()
+        sim.truth
+            .windows(2)
+            .map(|p| (p[1].p - p[0].p).norm())
+            .sum::<f64>()
     });
     print_errors("after", &rms_errors(&w, &sim.truth));
     assert!((before - 1.05).abs() < 1e-9);
@@ -412,7 +452,9 @@ fn wrong_scale_is_pulled_back_to_metric() {
 /// in the body frame.
 fn tilt_deg(est: &NavState, truth: &NavState) -> f64 {
     let z = Vector3::z();
-    (est.r.inverse() * z).angle(&(truth.r.inverse() * z)).to_degrees()
+    (est.r.inverse() * z)
+        .angle(&(truth.r.inverse() * z))
+        .to_degrees()
 }
 
 fn iso(s: &NavState) -> Isometry3<f64> {
@@ -425,7 +467,13 @@ fn iso(s: &NavState) -> Isometry3<f64> {
 /// Initial estimate of the landmarks born at keyframe `k`: the first noisy pixel back-
 /// projected from the *estimated* keyframe pose at the true depth with 5 % noise (a stand-in
 /// for the local mapper's triangulation).
-fn init_points(sim: &Sim, k: usize, est: &NavState, points: &mut [Option<Vector3<f64>>], rng: &mut Rng) {
+fn init_points(
+    sim: &Sim,
+    k: usize,
+    est: &NavState,
+    points: &mut [Option<Vector3<f64>>],
+    rng: &mut Rng,
+) {
     let t_wc_true = sim.t_wc(&sim.truth[k]);
     let t_wc = sim.t_wc(est);
     for &(i, uv) in &sim.obs[k] {
@@ -434,7 +482,10 @@ fn init_points(sim: &Sim, k: usize, est: &NavState, points: &mut [Option<Vector3
         }
         let d = (sim.landmarks[i as usize] - t_wc_true.translation.vector).norm();
         let b = sim.world.camera().unproject(&uv);
-        points[i as usize] = Some(t_wc.transform_point(&(b * d * (1.0 + 0.05 * rng.normal())).into()).coords);
+        points[i as usize] = Some(
+            t_wc.transform_point(&(b * d * (1.0 + 0.05 * rng.normal())).into())
+                .coords,
+        );
     }
 }
 
@@ -451,23 +502,29 @@ fn sliding_window_over_the_drone_flight() {
     let mut points = vec![None; sim.landmarks.len()];
     let mut solver = ViSolver::new();
     let (mut times, mut iters, mut max_points) = (Vec::new(), 0usize, 0usize);
+    let mut cpu = Vec::new();
     let mut chi2_per_obs = Vec::new();
     for n in WINDOW..n_kf {
         if n > WINDOW {
-            est[n] = sim.preint(n - 1, est[n - 1].biases).predict(&est[n - 1], &g);
-            init_points(&sim, n, &est[n].clone(), &mut points, &mut rng);
+            est[n] = sim
+                .preint(n - 1, est[n - 1].biases)
+                .predict(&est[n - 1], &g);
+            init_points(&sim, n, &est[n], &mut points, &mut rng);
         } else {
-            for k in 0..=WINDOW {
-                init_points(&sim, k, &est[k].clone(), &mut points, &mut rng);
+            for (k, s) in est.iter().enumerate().take(WINDOW + 1) {
+                init_points(&sim, k, s, &mut points, &mut rng);
             }
         }
         let first = n - WINDOW;
         let (mut w, ids) = sim.window(first, n, &est, &points);
         assert_eq!(w.keyframes.len(), WINDOW + 1);
         max_points = max_points.max(w.points_w.len());
-        let t = Instant::now();
-        let rep = solver.optimize(&mut w, &ViParams::default()).expect("optimised");
+        let (t, c) = (Instant::now(), cpu_ms());
+        let rep = solver
+            .optimize(&mut w, &ViParams::default())
+            .expect("optimised");
         times.push(t.elapsed().as_secs_f64() * 1e3);
+        cpu.push(cpu_ms() - c);
         iters += rep.iterations;
         chi2_per_obs.push(rep.last.reprojection / w.observations.len() as f64);
         for (k, kf) in w.keyframes.iter().enumerate() {
@@ -478,6 +535,7 @@ fn sliding_window_over_the_drone_flight() {
         }
     }
     times.sort_by(f64::total_cmp);
+    cpu.sort_by(f64::total_cmp);
     let reference: Vec<_> = sim.truth.iter().map(iso).collect();
     let estimate: Vec<_> = est.iter().map(iso).collect();
     let params = |alignment| EvalParams {
@@ -486,23 +544,34 @@ fn sliding_window_over_the_drone_flight() {
     };
     let ate = evaluate_by_index(&reference, &estimate, &params(Alignment::Se3)).expect("ate");
     let raw = evaluate_by_index(&reference, &estimate, &params(Alignment::None)).expect("ape");
-    let tilt: Vec<f64> = est.iter().zip(&sim.truth).map(|(e, t)| tilt_deg(e, t)).collect();
+    let tilt: Vec<f64> = est
+        .iter()
+        .zip(&sim.truth)
+        .map(|(e, t)| tilt_deg(e, t))
+        .collect();
     let tilt_max = tilt.iter().cloned().fold(0.0, f64::max);
-    let v_rms = (est.iter().zip(&sim.truth).map(|(e, t)| (e.v - t.v).norm_squared()).sum::<f64>()
+    let v_rms = (est
+        .iter()
+        .zip(&sim.truth)
+        .map(|(e, t)| (e.v - t.v).norm_squared())
+        .sum::<f64>()
         / n_kf as f64)
         .sqrt();
     let (last, truth_last) = (est[n_kf - 1], sim.truth[n_kf - 1]);
     let chi_max = chi2_per_obs.iter().cloned().fold(0.0, f64::max);
     eprintln!(
         "sliding: {} windows of {} keyframes over {:.1} s ({:.1} m), ≤ {max_points} points; \
-         {:.1} iterations/window; time median {:.1} ms, max {:.1} ms",
+         {:.1} iterations/window; wall time median {:.1} ms, max {:.1} ms; CPU median {:.1} ms, \
+         max {:.1} ms",
         n_kf - WINDOW,
         WINDOW + 1,
         (n_kf - 1) as f64 * 0.25,
         ate.ref_path_length_m,
         iters as f64 / (n_kf - WINDOW) as f64,
         times[times.len() / 2],
-        times[times.len() - 1]
+        times[times.len() - 1],
+        cpu[cpu.len() / 2],
+        cpu[cpu.len() - 1]
     );
     eprintln!(
         "  ATE (SE(3)-aligned) rmse {:.4} m, max {:.4} m; unaligned rmse {:.4} m, max {:.4} m; \

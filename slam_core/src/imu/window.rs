@@ -44,9 +44,7 @@
 //! [`ViSolver`] per thread: after the first call on a window of a given size, `optimize`
 //! allocates nothing (the Jacobians of every factor go into reused buffers).
 
-use nalgebra::{
-    Cholesky, Isometry3, Matrix2x3, Matrix3, Rotation3, SMatrix, Vector2, Vector3,
-};
+use nalgebra::{Cholesky, Isometry3, Matrix2x3, Matrix3, Rotation3, SMatrix, Vector2, Vector3};
 
 use super::preint::{Matrix15, NavState, Preintegrated, Vector15};
 use crate::camera::PinholeRadtan;
@@ -425,11 +423,12 @@ impl ViSolver {
         if w.preints.len() + 1 != nk.max(1) {
             return bad("need one preintegration per consecutive keyframe pair");
         }
-        if w
-            .observations
-            .iter()
-            .any(|o| o.kf as usize >= nk || o.point as usize >= np || !(o.sigma_px > 0.0))
-        {
+        if w.observations.iter().any(|o| {
+            o.kf as usize >= nk
+                || o.point as usize >= np
+                || o.sigma_px.is_nan()
+                || o.sigma_px <= 0.0
+        }) {
             return bad("observation index out of range or sigma <= 0");
         }
         if w.prior.is_some_and(|pr| pr.kf >= nk) {
@@ -438,8 +437,7 @@ impl ViSolver {
         self.var_of_kf.clear();
         let mut n_var = 0u32;
         for kf in &w.keyframes {
-            self.var_of_kf
-                .push(if kf.fixed { u32::MAX } else { n_var });
+            self.var_of_kf.push(if kf.fixed { u32::MAX } else { n_var });
             n_var += u32::from(!kf.fixed);
         }
         if n_var == 0 {
@@ -473,7 +471,8 @@ impl ViSolver {
             }
         }
         for pt in 0..np {
-            let obs = &self.obs_order[self.point_start[pt] as usize..self.point_start[pt + 1] as usize];
+            let obs =
+                &self.obs_order[self.point_start[pt] as usize..self.point_start[pt + 1] as usize];
             for (x, &oa) in obs.iter().enumerate() {
                 let a = self.var_of_kf[w.observations[oa as usize].kf as usize];
                 for &ob in &obs[x + 1..] {
@@ -484,13 +483,8 @@ impl ViSolver {
                 }
             }
         }
-        self.sys.setup_uniform(
-            n_var as usize,
-            15,
-            1,
-            &mut self.pairs,
-            Factorization::Dense,
-        )?;
+        self.sys
+            .setup_uniform(n_var as usize, 15, 1, &mut self.pairs, Factorization::Dense)?;
         self.imu_sqrt_info.clear();
         for pre in &w.preints {
             self.imu_sqrt_info.push(imu_sqrt_information(pre)?);

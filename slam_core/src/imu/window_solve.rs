@@ -4,8 +4,8 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::{
-    prior_residual, reprojection_jacobians, ImuLin, Linearization, Matrix15, Matrix6,
-    Matrix6x3, NavState, ObsLin, ViChi2, ViParams, ViSolver, ViWindow, Vector15,
+    prior_residual, reprojection_jacobians, ImuLin, Linearization, Matrix15, Matrix6, Matrix6x3,
+    NavState, ObsLin, Vector15, ViChi2, ViParams, ViSolver, ViWindow,
 };
 use crate::CoreError;
 
@@ -75,7 +75,7 @@ fn evaluate(
         let e = r.dot(&(pr.info * r));
         chi.prior = e;
         chi.cost += e;
-        if let Some(l) = lin.as_deref_mut() {
+        if let Some(l) = lin {
             l.prior = (r, j);
         }
     }
@@ -176,9 +176,9 @@ impl ViSolver {
             if a != u32::MAX {
                 let (r, j) = &self.lin.prior;
                 let jt_info = j.transpose() * pr.info;
-                self.sys.add_to_block(a as usize, a as usize, &(jt_info * j))?;
                 self.sys
-                    .add_rhs(a as usize, 0, (-(jt_info * r)).as_slice());
+                    .add_to_block(a as usize, a as usize, &(jt_info * j))?;
+                self.sys.add_rhs(a as usize, 0, (-(jt_info * r)).as_slice());
             }
         }
         for (o, l) in w.observations.iter().zip(&self.lin.obs) {
@@ -317,7 +317,9 @@ impl ViSolver {
         let mut step_max = x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         for pt in 0..w.points_w.len() {
             let mut rhs = -self.g_p[pt];
-            for &oi in &self.obs_order[self.point_start[pt] as usize..self.point_start[pt + 1] as usize] {
+            for &oi in
+                &self.obs_order[self.point_start[pt] as usize..self.point_start[pt + 1] as usize]
+            {
                 let a = self.var_of_kf[w.observations[oi as usize].kf as usize];
                 if a != u32::MAX {
                     let o = a as usize * 15;

@@ -75,7 +75,10 @@ fn consistent_window(n: usize, seed: u64) -> ViWindow {
         for _ in 0..25 {
             let uv = Vector2::new(rng.uniform(40.0, 710.0), rng.uniform(40.0, 440.0));
             let depth = rng.uniform(3.0, 8.0);
-            points_w.push(t_wc.transform_point(&(camera.unproject(&uv) * depth).into()).coords);
+            points_w.push(
+                t_wc.transform_point(&(camera.unproject(&uv) * depth).into())
+                    .coords,
+            );
         }
     }
     let mut observations = Vec::new();
@@ -126,7 +129,10 @@ fn reprojection_jacobians_match_finite_differences() {
                 Vector2::zeros()
             };
             let e = (num - ana).norm();
-            assert!(e < 1e-5 * (1.0 + num.norm()), "∂uv/∂x col {c}: {num} vs {ana}");
+            assert!(
+                e < 1e-5 * (1.0 + num.norm()),
+                "∂uv/∂x col {c}: {num} vs {ana}"
+            );
         }
         for c in 0..3 {
             let mut d = Vector3::zeros();
@@ -211,8 +217,14 @@ fn consistent_window_is_recovered() {
     let after = errors(&w, &truth);
     eprintln!("consistent window: {rep:?}\nerrors before {before:?}\nafter {after:?}");
     assert!(rep.initial.cost > 1e3 && rep.last.cost < 1e-6, "{rep:?}");
-    assert!(after[0] < 1e-5 && after[1] < 1e-6 && after[2] < 1e-5, "{after:?}");
-    assert!(after[3] < 1e-6 && after[4] < 1e-4 && after[5] < 1e-5, "{after:?}");
+    assert!(
+        after[0] < 1e-5 && after[1] < 1e-6 && after[2] < 1e-5,
+        "{after:?}"
+    );
+    assert!(
+        after[3] < 1e-6 && after[4] < 1e-4 && after[5] < 1e-5,
+        "{after:?}"
+    );
 
     // A prior at the truth on the last keyframe: zero cost, still at the truth.
     let last = w.keyframes.len() - 1;
@@ -222,7 +234,10 @@ fn consistent_window_is_recovered() {
         info: Matrix15::identity() * 100.0,
     });
     let rep = solver.optimize(&mut w, &params).unwrap();
-    assert!(rep.last.prior < 1e-9 && errors(&w, &truth)[0] < 1e-5, "{rep:?}");
+    assert!(
+        rep.last.prior < 1e-9 && errors(&w, &truth)[0] < 1e-5,
+        "{rep:?}"
+    );
 
     let mut bad = truth.clone();
     bad.preints.pop();
