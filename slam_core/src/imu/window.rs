@@ -21,7 +21,13 @@
 //! accuracy. The price is that the window is over-confident about the fixed state (no
 //! uncertainty flows from older keyframes). [`StatePrior`] is there for the ORB-SLAM3
 //! variant that keeps a Gaussian prior (from the previous window) on the first free state,
-//! or a bias prior; it is a plain Gaussian, not a marginal.
+//! or a bias prior; it is a plain Gaussian, not a marginal. The first window after the
+//! inertial initialisation has no refined state to fix: leave every keyframe free and put
+//! [`gauge_prior`] (position and yaw only, the 4 unobservable directions) on the first one,
+//! so that the window also corrects the initialisation's gravity direction and scale
+//! ([`states_from_init`], [`point_from_init`] map the initialisation into the window).
+//! [`ViSolver::keyframe_covariance`] gives a keyframe's marginal covariance (consistency
+//! checks, or a prior for the next window).
 //!
 //! **Factors.** Body `b` = IMU, world `w` gravity-aligned (`g = (0, 0, -9.81)`,
 //! [`super::gravity_w`]); `t_bc` maps camera points to the body (`p_b = R_bc p_c + p_bc`,
@@ -46,6 +52,7 @@
 
 use nalgebra::{Cholesky, Isometry3, Matrix2x3, Matrix3, Rotation3, SMatrix, Vector2, Vector3};
 
+use super::init::InertialInit;
 use super::preint::{Matrix15, NavState, Preintegrated, Vector15};
 use crate::camera::PinholeRadtan;
 use crate::lie::{skew, so3_jr_inv, so3_log};
@@ -235,6 +242,57 @@ pub fn imu_sqrt_information(preint: &Preintegrated) -> Result<Matrix15, CoreErro
     chol.l()
         .solve_lower_triangular(&Matrix15::identity())
         .ok_or_else(|| CoreError::Degenerate("vi window: IMU covariance singular".into()))
+}
+
+/// The keyframe states of a window started from the inertial initialisation
+/// ([`super::init::initialize`]) of monocular keyframe poses `t_wc` (camera to the monocular
+/// world, up to scale): in the gravity-aligned metric world `g`,
+/// `R_gb = R_gw R_wc R_cb`, `p_gb = R_gw (s p_wc + R_wc p_cb)`, `v_gb = R_gw v_w`, the
+/// initialisation's biases (`p_cb` = the body origin in the camera, `t_bc⁻¹`).
+pub fn states_from_init(
+    init: &InertialInit,
+    t_wc: &[Isometry3<f64>],
+    t_bc: &Isometry3<f64>,
+) -> Vec<NavState> {
+    let t_cb = t_bc.inverse();
+    let r_cb = t_cb.rotation.to_rotation_matrix();
+    t_wc.iter()
+        .zip(&init.velocities_w)
+        .map(|(t, v)| {
+            let r_wc = t.rotation.to_rotation_matrix();
+            NavState {
+                r: init.r_gw * r_wc * r_cb,
+                p: init.r_gw * (t.translation.vector * init.scale + r_wc * t_cb.translation.vector),
+                v: init.r_gw * v,
+                biases: init.biases,
+            }
+        })
+        .collect()
+}
+
+/// A 4-DoF gauge prior for a window with no fixed keyframe (e.g. the first window after the
+/// inertial initialisation): keyframe `kf`'s position (σ `sigma_p_m`) and yaw about world z
+/// (σ `sigma_yaw_rad`) held near `state`, roll, pitch, velocity and biases free (only
+/// position and yaw are unobservable, `VI_NOTES.md` §3). With the right perturbation
+/// `R Exp(δθ)`, yaw is the body-frame direction `u = R_gbᵀ e_z`: `Ω_θ = u uᵀ / σ_yaw²`.
+pub fn gauge_prior(kf: usize, state: &NavState, sigma_p_m: f64, sigma_yaw_rad: f64) -> StatePrior {
+    let u = state.r.inverse() * Vector3::z();
+    let mut info = Matrix15::zeros();
+    info.fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&(u * u.transpose() / (sigma_yaw_rad * sigma_yaw_rad)));
+    info.fixed_view_mut::<3, 3>(3, 3)
+        .copy_from(&(Matrix3::identity() / (sigma_p_m * sigma_p_m)));
+    StatePrior {
+        kf,
+        mean: *state,
+        info,
+    }
+}
+
+/// A monocular map point in the gravity-aligned metric world of [`states_from_init`]:
+/// `R_gw (s p_w)`.
+pub fn point_from_init(init: &InertialInit, p_w: &Vector3<f64>) -> Vector3<f64> {
+    init.r_gw * (p_w * init.scale)
 }
 
 /// A linearised reprojection (whitened, Huber weight applied through `w`).
