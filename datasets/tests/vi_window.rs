@@ -625,9 +625,12 @@ fn second_optimize_allocates_nothing() {
     assert_eq!(n, 0, "allocations in the second optimize");
 }
 
+/// (scale, tilt °, body velocity m/s, gyro bias, accel bias) errors.
+type GaugeFree = (f64, f64, f64, f64, f64);
+
 /// Gauge-free errors of keyframe states against the truth: (scale of the path, max tilt °,
 /// RMS body-frame velocity m/s, gyro bias, accel bias of the last keyframe).
-fn gauge_free_errors(est: &[NavState], truth: &[NavState]) -> (f64, f64, f64, f64, f64) {
+fn gauge_free_errors(est: &[NavState], truth: &[NavState]) -> GaugeFree {
     let path = |s: &[NavState]| s.windows(2).map(|p| (p[1].p - p[0].p).norm()).sum::<f64>();
     let tilt = est
         .iter()
@@ -653,7 +656,7 @@ fn gauge_free_errors(est: &[NavState], truth: &[NavState]) -> (f64, f64, f64, f6
 /// scale 1/2.5, poses with 3 mm / 0.17° noise, noisy IMU), all keyframes free with a 4-DoF
 /// gauge prior on the first: scale, gravity, velocities and biases refined. Returns the
 /// gauge-free errors of the initialisation and of the window.
-fn from_inertial_init(n_kf: usize) -> ((f64, f64, f64, f64, f64), (f64, f64, f64, f64, f64)) {
+fn from_inertial_init(n_kf: usize) -> (GaugeFree, GaugeFree) {
     let sim = Sim::new(ImuNoise::default(), n_kf, 5.0, 11);
     let (r_vw, t_vw, s_true) = (
         Rotation3::from_scaled_axis(Vector3::new(0.3, -0.5, 1.0)),
