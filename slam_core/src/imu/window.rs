@@ -333,6 +333,8 @@ pub struct ViSolver {
     point_start: Vec<u32>,
     imu_sqrt_info: Vec<Matrix15>,
     lin: Linearization,
+    /// The factors linearised at the candidate (swapped in when it is accepted).
+    lin_cand: Linearization,
     cur_states: Vec<NavState>,
     /// Per point: `(V + λI)⁻¹`, `g_p` (gradient), and the step.
     v_inv: Vec<Matrix3<f64>>,
@@ -373,6 +375,7 @@ impl ViSolver {
             point_start: Vec::new(),
             imu_sqrt_info: Vec::new(),
             lin: Linearization::default(),
+            lin_cand: Linearization::default(),
             cur_states: Vec::new(),
             v_inv: Vec::new(),
             g_p: Vec::new(),
@@ -418,7 +421,8 @@ impl ViSolver {
                     }
                     report.iterations += 1;
                     let rel = (chi.cost - cand.cost) / chi.cost.max(1e-300);
-                    chi = self.linearize(w, p);
+                    std::mem::swap(&mut self.lin, &mut self.lin_cand);
+                    chi = cand;
                     lambda = (lambda * 0.2).max(1e-12);
                     if rel < p.cost_tolerance || step_max < p.step_tolerance {
                         report.converged = true;
@@ -549,6 +553,8 @@ impl ViSolver {
         }
         let no = w.observations.len();
         self.lin.obs.resize(no, ObsLin::default());
+        self.lin_cand.obs.resize(no, ObsLin::default());
+        self.lin_cand.imu.resize(w.preints.len(), ImuLin::default());
         self.w_blk.resize(no, Matrix6x3::zeros());
         let nv = n_var as usize;
         self.pair_acc.resize(nv * nv, Matrix6::zeros());

@@ -118,7 +118,7 @@ impl ViSolver {
         )
     }
 
-    /// The factors at the candidate estimate (no linearisation stored).
+    /// The factors at the candidate estimate, linearised into `lin_cand`.
     pub(super) fn evaluate_candidate(&mut self, w: &ViWindow, p: &ViParams) -> ViChi2 {
         evaluate(
             w,
@@ -126,7 +126,7 @@ impl ViSolver {
             &self.cand_points,
             p,
             &self.imu_sqrt_info,
-            None,
+            Some(&mut self.lin_cand),
         )
     }
 
