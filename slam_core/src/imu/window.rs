@@ -11,7 +11,7 @@
 //! to the first free keyframe, which anchors position, yaw, velocity, biases and, through the
 //! IMU factor, gravity (roll/pitch); older covisible keyframes may be added fixed with their
 //! observations only (ORB-SLAM3's local inertial BA, Mur-Artal & Tardós 2017, `VI_NOTES.md`
-//! §4 Fig. 5.5 [P]). Why not a marginalisation prior (OKVIS, VINS): (1) a Schur-complement
+//! §4 Fig. 5.5, our proposal). Why not a marginalisation prior (OKVIS, VINS): (1) a Schur-complement
 //! prior must stay at its linearisation point (first-estimate Jacobians) or it injects
 //! spurious information along the 4 unobservable directions (x, y, z, yaw); fixing a state
 //! adds none; (2) the prior becomes dense over every state it touches (the marginalised
