@@ -49,6 +49,17 @@
 //! fixed (its observation still constrains its keyframe). Keep one
 //! [`ViSolver`] per thread: after the first call on a window of a given size, `optimize`
 //! allocates nothing (the Jacobians of every factor go into reused buffers).
+//!
+//! **Use in the local mapper** (per new keyframe, not per frame):
+//! ```text
+//! keyframes = [K_{n-N-1} fixed, K_{n-N} .. K_n free]   // N ≈ 10; the first window after the
+//!                                                      // initialisation: all free + gauge_prior
+//! preints[k] = Preintegrated::from_window(imu, t_k, t_k+1, K_k.state.biases, params)
+//!                                                      // re-integrated at the current biases
+//! points/observations = the map points seen by the window's keyframes (σ = 1.2^octave px)
+//! report = solver.optimize(&mut window, &ViParams::default())?   // one ViSolver per thread
+//! write back keyframes[1..] states and points_w; drop observations with χ² > 5.991
+//! ```
 
 use nalgebra::{Cholesky, Isometry3, Matrix2x3, Matrix3, Rotation3, SMatrix, Vector2, Vector3};
 
