@@ -17,6 +17,7 @@ use nalgebra::{Matrix3, Vector3};
 
 pub mod init;
 pub mod preint;
+pub mod window;
 
 pub use preint::{
     ImuMeasurement, ImuResidual, MeasurementCorrection, NavState, Preintegrated,
