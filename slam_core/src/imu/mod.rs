@@ -18,6 +18,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+pub mod coupler;
 pub mod extrinsic_rotation;
 pub mod init;
 pub mod preint;
