@@ -212,3 +212,33 @@ fn bad_input_is_an_error_not_a_panic() {
         Err(InitError::BadInput { .. })
     ));
 }
+
+/// A device whose camera-IMU rotation is not given: `R_bc` and the gyro bias from the
+/// visual rotations of the keyframes (0.1° pose noise) and the noisy gyro of the `drone`
+/// scenario, 5 s of keyframes every 0.25 s (issue 17: estimated before the initialisation).
+#[test]
+fn camera_imu_rotation_from_gyro_and_visual_rotations() {
+    use slam_core::imu::extrinsic_rotation::estimate_extrinsic_rotation;
+    let noise = ImuNoise::default();
+    let case = Case::new(Scenario::Drone, noise, 5.0, 0.25);
+    let poses = case.vo_poses((0.002, 0.1f64.to_radians()));
+    let r_c: Vec<Rotation3<f64>> = poses
+        .windows(2)
+        .map(|w| (w[0].rotation.inverse() * w[1].rotation).to_rotation_matrix())
+        .collect();
+    let est = estimate_extrinsic_rotation(&r_c, &case.preints(&noise), &Default::default())
+        .expect("estimated");
+    let r_bc_true = case.world.calib().t_bs.rotation.to_rotation_matrix();
+    let err = (est.r_bc.inverse() * r_bc_true).angle().to_degrees();
+    let bg_err = (est.gyro_bias - true_biases().gyro).norm();
+    eprintln!(
+        "R_bc error {err:.4}° (1σ {:.4}°), b_g error {bg_err:.2e} rad/s, rms {:.4}°, {} outliers of {}",
+        est.sigma_rad.to_degrees(),
+        est.rms_rad.to_degrees(),
+        est.outliers,
+        r_c.len()
+    );
+    assert!(err < 0.3, "R_bc error {err}°");
+    assert!(err < 3.0 * est.sigma_rad.to_degrees() + 0.01, "beyond 3σ");
+    assert!(bg_err < 2e-3, "gyro bias error {bg_err}");
+}

@@ -11,10 +11,15 @@
 //! a random-walk step of `σ_c · sqrt(dt)` per sample. This module holds no random generator:
 //! callers pass standard-normal draws, so simulations stay deterministic and testable.
 //!
-//! [`preint`] preintegrates the measurements between keyframes (Forster et al. 2017).
+//! [`preint`] preintegrates the measurements between keyframes (Forster et al. 2017);
+//! [`init`] finds scale, gravity, velocities and biases from a monocular map's first
+//! seconds; [`extrinsic_rotation`] finds the camera-IMU rotation from gyro vs visual
+//! rotations when it is not given.
 
 use nalgebra::{Matrix3, Vector3};
 
+pub mod coupler;
+pub mod extrinsic_rotation;
 pub mod init;
 pub mod preint;
 pub mod window;
