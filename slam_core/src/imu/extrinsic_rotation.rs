@@ -218,7 +218,7 @@ fn refine(
     let dof = (3 * (used - n.outliers.min(used))).saturating_sub(6).max(1) as f64;
     let spread = (n.chi2_inliers / dof).max(1.0);
     let sigma = rotation_sigma(&n.h, spread);
-    if !(sigma <= params.max_sigma_rad) {
+    if sigma.is_nan() || sigma > params.max_sigma_rad {
         return Err(ExtrinsicRotationError::NotObservable {
             sigma_deg: sigma.to_degrees(),
         });

@@ -13,8 +13,9 @@
 //!
 //! [`preint`] preintegrates the measurements between keyframes (Forster et al. 2017);
 //! [`init`] finds scale, gravity, velocities and biases from a monocular map's first
-//! seconds; [`extrinsic_rotation`] finds the camera-IMU rotation from gyro vs visual
-//! rotations when it is not given.
+//! seconds, and [`coupler`] decides when to run it beside a live VO; [`extrinsic_rotation`]
+//! finds the camera-IMU rotation from gyro vs visual rotations when it is not given;
+//! [`window`] is the sliding-window visual-inertial optimisation of local mapping.
 
 use nalgebra::{Matrix3, Vector3};
 
