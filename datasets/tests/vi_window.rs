@@ -12,9 +12,12 @@
 //!
 //! Figures are printed (`--nocapture`); times are printed, never asserted.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::time::Instant;
+
+// The counting allocator of slam_core's no-allocation tests (one copy).
+#[path = "../../slam_core/tests/common/mod.rs"]
+mod common;
+use common::allocations;
 
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
@@ -29,37 +32,6 @@ use slam_core::imu::{
 };
 use slam_core::lie::{so3_exp, so3_log};
 use slam_core::metrics::{evaluate_by_index, Alignment, EvalParams};
-
-struct Counting;
-
-thread_local! {
-    static ALLOCS: Cell<usize> = const { Cell::new(0) };
-}
-
-// SAFETY: forwards to the system allocator; only counts calls of the current thread.
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        // SAFETY: same contract as the caller's.
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        let _ = ALLOCS.try_with(|c| c.set(c.get() + 1));
-        // SAFETY: same contract as the caller's.
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
-
-#[global_allocator]
-static GLOBAL: Counting = Counting;
-
-fn allocations() -> usize {
-    ALLOCS.with(|c| c.get())
-}
 
 const KF_STEP_NS: i64 = 250_000_000;
 const IMU_STEP_NS: i64 = 5_000_000;

@@ -19,6 +19,24 @@
 //! boundary. [`MapId`] is used as the type of server map ids throughout the server code.
 use core::fmt;
 
+/// `From` conversions between an id newtype and its raw integer (the wire and the journal
+/// carry the raw value).
+macro_rules! raw_conversions {
+    ($id:ident, $raw:ty) => {
+        impl From<$raw> for $id {
+            fn from(v: $raw) -> Self {
+                Self(v)
+            }
+        }
+
+        impl From<$id> for $raw {
+            fn from(v: $id) -> Self {
+                v.0
+            }
+        }
+    };
+}
+
 /// A client (agent, camera) index.
 #[repr(transparent)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -48,17 +66,7 @@ impl fmt::Display for ClientId {
     }
 }
 
-impl From<u32> for ClientId {
-    fn from(v: u32) -> Self {
-        Self(v)
-    }
-}
-
-impl From<ClientId> for u32 {
-    fn from(v: ClientId) -> Self {
-        v.0
-    }
-}
+raw_conversions!(ClientId, u32);
 
 /// Bits of the VO session counter in a [`SessionId`].
 const SESSION_VO_BITS: u32 = 16;
@@ -107,17 +115,7 @@ impl fmt::Display for SessionId {
     }
 }
 
-impl From<u32> for SessionId {
-    fn from(v: u32) -> Self {
-        Self(v)
-    }
-}
-
-impl From<SessionId> for u32 {
-    fn from(v: SessionId) -> Self {
-        v.0
-    }
-}
+raw_conversions!(SessionId, u32);
 
 /// Bits of the client's own keyframe id in a server [`KeyframeId`] (and of the counter in
 /// a [`MapPointId`]).
@@ -169,17 +167,7 @@ impl fmt::Display for ClientKeyframeId {
     }
 }
 
-impl From<u64> for ClientKeyframeId {
-    fn from(v: u64) -> Self {
-        Self(v)
-    }
-}
-
-impl From<ClientKeyframeId> for u64 {
-    fn from(v: ClientKeyframeId) -> Self {
-        v.0
-    }
-}
+raw_conversions!(ClientKeyframeId, u64);
 
 /// A server keyframe id: the client in the bits above 40, the client's own keyframe id
 /// below; unique across clients, so that maps of several clients can be merged.
@@ -222,17 +210,7 @@ impl fmt::Display for KeyframeId {
     }
 }
 
-impl From<u64> for KeyframeId {
-    fn from(v: u64) -> Self {
-        Self(v)
-    }
-}
-
-impl From<KeyframeId> for u64 {
-    fn from(v: KeyframeId) -> Self {
-        v.0
-    }
-}
+raw_conversions!(KeyframeId, u64);
 
 /// A server map-point id: the client whose handler created the point in the bits above 40,
 /// that handler's counter below (a point keeps its id when maps merge).
@@ -274,17 +252,7 @@ impl fmt::Display for MapPointId {
     }
 }
 
-impl From<u64> for MapPointId {
-    fn from(v: u64) -> Self {
-        Self(v)
-    }
-}
-
-impl From<MapPointId> for u64 {
-    fn from(v: MapPointId) -> Self {
-        v.0
-    }
-}
+raw_conversions!(MapPointId, u64);
 
 /// Bits of the per-client index in a [`MapId`].
 const MAP_INDEX_BITS: u32 = 32;
@@ -338,17 +306,7 @@ impl fmt::LowerHex for MapId {
     }
 }
 
-impl From<u64> for MapId {
-    fn from(v: u64) -> Self {
-        Self(v)
-    }
-}
-
-impl From<MapId> for u64 {
-    fn from(v: MapId) -> Self {
-        v.0
-    }
-}
+raw_conversions!(MapId, u64);
 
 #[cfg(test)]
 mod tests {
