@@ -4,7 +4,7 @@
 //! Poses are `t_cw` (world → camera, `p_c = R_cw p_w + t_cw`), as in the pose optimiser.
 use std::collections::{BTreeMap, HashMap};
 
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use crate::camera::PinholeRadtan;
 use crate::features::{hamming, OrbFeatures};
@@ -92,6 +92,20 @@ pub struct ClientMap {
 }
 
 impl ClientMap {
+    /// Moves the map into another world frame by the similarity `x' = s R x` (the metric,
+    /// gravity-aligned world of an inertial initialisation, `imu::init`): points
+    /// `p' = s R p`, viewing directions `R n`, keyframe poses `T_c'w' = (R_cw Rᵀ, s t_cw)`
+    /// (the camera frame keeps its orientation, its coordinates scale by `s`).
+    pub fn transform_world(&mut self, s: f64, r: &UnitQuaternion<f64>) {
+        for kf in self.keyframes.values_mut() {
+            kf.t_cw = transform_pose_cw(&kf.t_cw, s, r);
+        }
+        for p in self.points.values_mut() {
+            p.p_w = r * (p.p_w * s);
+            p.normal = r * p.normal;
+        }
+    }
+
     /// An empty map for session `session_id`; point ids start at `first_point_id`.
     pub fn new(session_id: u32, first_point_id: PointId) -> Self {
         Self {
@@ -439,6 +453,42 @@ mod tests {
         }
     }
 
+    /// Moving the world by a similarity leaves every point where each keyframe sees it:
+    /// the camera-frame direction of each point is unchanged (its depth scales by `s`).
+    #[test]
+    fn a_world_move_keeps_what_each_keyframe_sees() {
+        let mut m = ClientMap::new(1, 100);
+        let mut k2 = kf(2, 10, 1.0);
+        k2.t_cw = Isometry3::new(Vector3::new(-1.0, 0.2, 0.3), Vector3::new(0.1, -0.3, 0.2));
+        m.insert_keyframe(kf(1, 10, 0.0));
+        m.insert_keyframe(k2);
+        for i in 0..4u32 {
+            m.add_point(Vector3::new(i as f64, 0.5, 5.0), 1, &[(1, i), (2, i)]);
+        }
+        let seen = |m: &ClientMap| -> Vec<Vector3<f64>> {
+            let mut v = Vec::new();
+            for kf in m.keyframes.values() {
+                let mut ps: Vec<_> = m.points.values().collect();
+                ps.sort_by_key(|p| p.id);
+                v.extend(
+                    ps.iter()
+                        .map(|p| kf.t_cw * nalgebra::Point3::from(p.p_w))
+                        .map(|c| c.coords),
+                );
+            }
+            v
+        };
+        let before = seen(&m);
+        let (s, r) = (
+            2.5,
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.4, 0.1, -1.2)),
+        );
+        m.transform_world(s, &r);
+        for (a, b) in before.iter().zip(seen(&m)) {
+            assert!((a * s - b).norm() < 1e-12, "{a} vs {b}");
+        }
+    }
+
     #[test]
     fn observations_covisibility_and_removal_stay_consistent() {
         let mut m = ClientMap::new(1, 100);
@@ -478,4 +528,12 @@ mod tests {
         let d = [[0u8; 32], [1u8; 32], [3u8; 32], [7u8; 32], [255u8; 32]];
         assert_eq!(best_descriptor(&d), Some([1u8; 32]));
     }
+}
+
+/// A world → camera pose after the world moved by `x' = s R x` ([`ClientMap::transform_world`]).
+pub fn transform_pose_cw(t_cw: &Isometry3<f64>, s: f64, r: &UnitQuaternion<f64>) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(t_cw.translation.vector * s),
+        t_cw.rotation * r.inverse(),
+    )
 }

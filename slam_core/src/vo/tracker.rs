@@ -560,6 +560,32 @@ impl VoTracker {
         f(&lock(&self.shared))
     }
 
+    /// Moves the session's map and the tracking state into another world frame by the
+    /// similarity `x' = s R x` (the metric, gravity-aligned world an inertial
+    /// initialisation found, `imu::coupler`): map ([`ClientMap::transform_world`]), the last
+    /// frame's pose, the motion model's translation (scaled by `s`). Waits for the
+    /// local-mapping runner to be idle first (a BA solved on a snapshot of the old frame
+    /// must not land afterwards); `false`, and nothing moved, when it does not become idle
+    /// within `timeout`. Keyframes already evicted (sent) are not this map's any more.
+    pub fn transform_world(
+        &mut self,
+        s: f64,
+        r: &nalgebra::UnitQuaternion<f64>,
+        timeout: std::time::Duration,
+    ) -> bool {
+        if !self.wait_local_mapping(timeout) {
+            return false;
+        }
+        lock(&self.shared).transform_world(s, r);
+        if let Some(last) = self.last.as_mut() {
+            last.t_cw = super::map::transform_pose_cw(&last.t_cw, s, r);
+        }
+        if let Some((v, _)) = self.velocity.as_mut() {
+            v.translation.vector *= s;
+        }
+        true
+    }
+
     /// Waits until the local-mapping thread has mapped every keyframe (at most `timeout`).
     pub fn wait_local_mapping(&self, timeout: std::time::Duration) -> bool {
         self.mapping.as_ref().is_none_or(|m| m.wait_idle(timeout))
@@ -617,6 +643,37 @@ impl VoTracker {
 #[cfg(test)]
 mod tests {
     use super::VoDiagnostic;
+
+    /// After a world move the motion model predicts the moved pose of what it predicted
+    /// before: `V' T'_last = move(V T_last)` (velocity translation scaled, last pose moved).
+    #[test]
+    fn a_world_move_moves_the_motion_model_prediction() {
+        use nalgebra::{Isometry3, UnitQuaternion, Vector3};
+        let cam = crate::camera::PinholeRadtan::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0);
+        let mut vo = super::VoTracker::new(super::VoParams::default(), cam).expect("vo");
+        let t_last = Isometry3::new(Vector3::new(0.5, -0.2, 1.0), Vector3::new(0.2, 0.1, -0.3));
+        let v = Isometry3::new(
+            Vector3::new(0.05, 0.01, -0.02),
+            Vector3::new(0.01, 0.02, 0.0),
+        );
+        vo.last = Some(super::LastFrame {
+            t_ns: 0,
+            t_cw: t_last,
+            features: Default::default(),
+            points: vec![],
+        });
+        vo.velocity = Some((v, 0.05));
+        let (s, r) = (
+            0.4,
+            UnitQuaternion::from_scaled_axis(Vector3::new(-0.3, 0.8, 0.2)),
+        );
+        let expected = crate::vo::map::transform_pose_cw(&(v * t_last), s, &r);
+        assert!(vo.transform_world(s, &r, std::time::Duration::from_secs(1)));
+        let (v2, _) = vo.velocity.expect("velocity");
+        let got = v2 * vo.last.as_ref().expect("last").t_cw;
+        assert!((got.translation.vector - expected.translation.vector).norm() < 1e-12);
+        assert!(got.rotation.angle_to(&expected.rotation) < 1e-12);
+    }
 
     /// The diagnostics print as `SHOAL_DEBUG_INIT` printed them before they were returned.
     #[test]
