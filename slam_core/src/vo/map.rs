@@ -424,6 +424,14 @@ pub fn best_descriptor(descs: &[[u8; 32]]) -> Option<[u8; 32]> {
     Some(descs[best.1])
 }
 
+/// A world → camera pose after the world moved by `x' = s R x` ([`ClientMap::transform_world`]).
+pub fn transform_pose_cw(t_cw: &Isometry3<f64>, s: f64, r: &UnitQuaternion<f64>) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(t_cw.translation.vector * s),
+        t_cw.rotation * r.inverse(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -528,12 +536,4 @@ mod tests {
         let d = [[0u8; 32], [1u8; 32], [3u8; 32], [7u8; 32], [255u8; 32]];
         assert_eq!(best_descriptor(&d), Some([1u8; 32]));
     }
-}
-
-/// A world → camera pose after the world moved by `x' = s R x` ([`ClientMap::transform_world`]).
-pub fn transform_pose_cw(t_cw: &Isometry3<f64>, s: f64, r: &UnitQuaternion<f64>) -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::from(t_cw.translation.vector * s),
-        t_cw.rotation * r.inverse(),
-    )
 }
