@@ -31,8 +31,9 @@ impl KeyframeMsg {
 /// One keyframe message, ready to (re-)send.
 struct Pending {
     msg: KeyframeMsg,
-    /// 0 while queued (not sent yet).
-    last_sent_ns: i64,
+    /// When it was last published (`None` while queued: a clock reading of 0, as the
+    /// in-process tests give, is a send like any other).
+    last_sent_ns: Option<i64>,
 }
 
 /// Keyframe messages in flight (sent, unacknowledged) at most: the mapper's buffer holds
@@ -120,7 +121,7 @@ impl Outbox {
     pub fn in_flight(&self) -> usize {
         self.pending
             .values()
-            .filter(|p| p.last_sent_ns != 0)
+            .filter(|p| p.last_sent_ns.is_some())
             .count()
     }
 
@@ -140,7 +141,7 @@ impl Outbox {
             key,
             Pending {
                 msg,
-                last_sent_ns: 0,
+                last_sent_ns: None,
             },
         );
         self.pump(now_ns, out);
@@ -153,7 +154,7 @@ impl Outbox {
             if in_flight >= MAX_IN_FLIGHT {
                 break;
             }
-            if p.last_sent_ns == 0 {
+            if p.last_sent_ns.is_none() {
                 out.push(stamp(p, now_ns, false));
                 self.sent += 1;
                 in_flight += 1;
@@ -188,7 +189,7 @@ impl Outbox {
     /// Re-sends keyframes unacknowledged for longer than `after_ns` (and sends queued ones).
     pub fn resend_stale(&mut self, now_ns: i64, after_ns: i64, out: &mut Vec<KeyframeMsg>) {
         for p in self.pending.values_mut() {
-            if p.last_sent_ns != 0 && now_ns - p.last_sent_ns > after_ns {
+            if p.last_sent_ns.is_some_and(|t| now_ns - t > after_ns) {
                 out.push(stamp(p, now_ns, true));
                 self.resent += 1;
             }
@@ -203,7 +204,7 @@ fn stamp(p: &mut Pending, now_ns: i64, resend: bool) -> KeyframeMsg {
     if resend {
         msg.header.meta.flags |= FLAG_RESEND;
     }
-    p.last_sent_ns = now_ns;
+    p.last_sent_ns = Some(now_ns);
     msg.header.meta.publish_mono_ns = now_ns;
     msg
 }

@@ -208,13 +208,12 @@ impl Run {
     }
 }
 
-/// The synthetic loop through the core with the gyro, a small VO window (keyframes leave it
-/// while tracking), a spool and lock-step waits: every frame posed, every keyframe sent once,
-/// acknowledged and dropped from the spool, the server poses those the feedback implies.
-#[test]
-fn synthetic_frames_through_the_core_lose_no_keyframe() {
+/// Drives the synthetic loop's `frames` through the core as the ports would (gyro before
+/// each frame, lock-step waits, the mapper answering every keyframe, window sent and end of
+/// stream at the end), the frames of `blank` rendered black.
+fn drive(frames: usize, blank: std::ops::Range<usize>) -> (Run, Status) {
     let mut p = SimParams::new(Scenario::Loop);
-    p.frames = Some(120);
+    p.frames = Some(frames);
     p.seed = 3;
     // A rolling shutter, so that every frame asks for the gyro over its readout.
     p.readout_ms = Some(20.0);
@@ -236,7 +235,11 @@ fn synthetic_frames_through_the_core_lose_no_keyframe() {
             core.on_imu(&imu_msg(next_imu as u64, &imu[next_imu]));
             next_imu += 1;
         }
-        world.render_frame_into(k, &mut img).expect("render");
+        if blank.contains(&k) {
+            img.fill(0);
+        } else {
+            world.render_frame_into(k, &mut img).expect("render");
+        }
         let FrameStep::Tracked(mut t) = core
             .track(FrameIn {
                 header: h,
@@ -246,7 +249,7 @@ fn synthetic_frames_through_the_core_lose_no_keyframe() {
             })
             .expect("track")
         else {
-            panic!("frame {k} not tracked");
+            panic!("frame {k} not taken");
         };
         run.take(&mut core, std::mem::take(&mut t.out));
         if let Some(key) = t.await_handled {
@@ -266,12 +269,64 @@ fn synthetic_frames_through_the_core_lose_no_keyframe() {
         meta: eos,
         ..ImuMsg::default()
     });
-    let mut eos_h = header(120);
+    let mut eos_h = header(frames as u64);
     eos_h.meta.flags = FLAG_END_OF_STREAM;
     let out = core.end_of_stream(&eos_h, 0);
     run.take(&mut core, out);
     assert!(core.drained(), "every keyframe acknowledged");
-    check_run(&run, core.finish());
+    (run, core.finish())
+}
+
+/// The synthetic loop through the core with the gyro, a small VO window (keyframes leave it
+/// while tracking), a spool and lock-step waits: every frame posed, every keyframe sent once,
+/// acknowledged and dropped from the spool, the server poses those the feedback implies.
+#[test]
+fn synthetic_frames_through_the_core_lose_no_keyframe() {
+    let (run, status) = drive(120, 0..0);
+    check_run(&run, status);
+}
+
+/// 30 black frames in the middle: the VO is lost, starts a new session after 10 failures
+/// and initialises again when the images come back. The old session's keyframes (its whole
+/// window, evicted at the session change) go out under the old session's id before any of
+/// the new session's, each once and acknowledged; nothing stays in the spool.
+#[test]
+fn a_session_change_sends_the_old_sessions_keyframes_first_and_loses_none() {
+    let (run, status) = drive(180, 60..90);
+    let sessions: Vec<u32> = run.sent.iter().map(|k| k.0).collect();
+    let first_new = sessions
+        .iter()
+        .position(|&s| s != sessions[0])
+        .expect("a second session");
+    assert!(
+        sessions[first_new..].iter().all(|&s| s != sessions[0]),
+        "old-session keyframes after the new session's: {sessions:?}"
+    );
+    assert!(first_new >= 4, "{first_new} keyframes of the first session");
+    assert!(sessions.len() - first_new >= 4, "{sessions:?}");
+    let distinct: BTreeSet<_> = run.sent.iter().collect();
+    assert_eq!(
+        distinct.len(),
+        run.sent.len(),
+        "each keyframe sent once: {:?}",
+        run.sent
+    );
+    assert!(run.spooled.is_empty(), "spool left with {:?}", run.spooled);
+    let c: TrackerCounters = status.counters_as();
+    assert_eq!(c.keyframes_sent, run.sent.len() as u64);
+    assert_eq!(c.keyframes_acked_seen, run.sent.len() as u64);
+    let tracking = run
+        .poses
+        .iter()
+        .filter(|p| p.state == TrackState::Tracking as u32)
+        .count();
+    eprintln!(
+        "sessions of the sent keyframes {sessions:?}; {tracking} of 180 frames tracking, \
+         {} backfilled",
+        run.backfilled
+    );
+    assert!(tracking + run.backfilled >= 140, "{tracking} tracking");
+    assert!(status.errors.is_empty(), "{:?}", status.errors);
 }
 
 fn check_run(run: &Run, s: Status) {
