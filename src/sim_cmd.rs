@@ -11,8 +11,9 @@ use slam_core::imu::ImuNoise;
 pub struct SimArgs {
     /// Scenario: `loop` (one camera, two laps), `two-agents` (two overlapping cameras,
     /// written to OUT/agent0 and OUT/agent1), `fast-rs` (fast rotation, rolling shutter),
-    /// `drone` (EuRoC-like aggressive 6-DoF flight, global shutter) or `blackout` (`loop`
-    /// with 2 s of black frames in the middle).
+    /// `drone` (EuRoC-like aggressive 6-DoF flight, global shutter), `blackout` (`loop`
+    /// with 2 s of black frames in the middle) or `phone` (hand-held walk, 30 Hz rolling
+    /// shutter t_r 25 ms, phone-grade IMU with biases and T_g/T_s/T_a, t_d 40 ms).
     #[arg(long, value_parser = parse_scenario)]
     pub scenario: Scenario,
     /// Output folder (created; holds `mav0/` and `groundtruth_cam0.txt`).
@@ -24,12 +25,13 @@ pub struct SimArgs {
     /// Number of frames per agent (default: the scenario's full length).
     #[arg(long)]
     pub frames: Option<usize>,
-    /// Rolling-shutter readout time in ms (default: 0 for loop/two-agents, 30 for fast-rs).
+    /// Rolling-shutter readout time in ms (default: 30 for fast-rs, 25 for phone, else 0).
     #[arg(long)]
     pub readout_ms: Option<f64>,
-    /// Camera-IMU time offset t_d in ms (true capture time = frame stamp + t_d).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub time_offset_ms: f64,
+    /// Camera-IMU time offset t_d in ms (true capture time = frame stamp + t_d; default: 40
+    /// for phone, else 0).
+    #[arg(long, allow_hyphen_values = true)]
+    pub time_offset_ms: Option<f64>,
     /// Standard deviation of the per-pixel image noise, grey levels (0 = none).
     #[arg(long, default_value_t = 1.5)]
     pub pixel_noise: f32,
@@ -49,7 +51,9 @@ impl SimArgs {
         p.seed = self.seed;
         p.frames = self.frames;
         p.readout_ms = self.readout_ms;
-        p.time_offset_ms = self.time_offset_ms;
+        if let Some(t_d) = self.time_offset_ms {
+            p.time_offset_ms = t_d;
+        }
         p.pixel_noise_sigma = self.pixel_noise;
         if self.no_imu_noise {
             p.noise = ImuNoise::zero();

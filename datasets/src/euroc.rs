@@ -9,6 +9,8 @@
 //!   `%YAML:1.0` directive line is stripped before parsing.
 //! - `cam0/data.csv`: `#timestamp [ns],filename`, images in `cam0/data/`.
 //! - `imu0/data.csv`: `t [ns], w xyz [rad/s], a xyz [m/s²]`.
+//! - `imu0/sensor.yaml` (not needed by [`read`]; [`read_imu_sensor_yaml`]): noise densities,
+//!   and from our generator the true `T_g`, `T_s`, `T_a`, initial biases, t_d and t_r.
 //! - ground truth, camera-to-world: `groundtruth_cam0.txt` (TUM, camera-to-world, written by
 //!   our generator beside `mav0/`) is preferred when present. Its stamps are the frames'
 //!   `data.csv` stamps (camera clock), so t_d is added to them as to the frames; the poses
@@ -30,7 +32,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::Deserialize;
 use slam_core::geometry::pose_from_pq;
-use slam_core::imu::ImuBiases;
+use slam_core::imu::{ImuBiases, ImuIntrinsics, ImuNoise};
 
 use crate::sim::GtState;
 use crate::text::{
@@ -95,20 +97,7 @@ pub fn no_camera_calib() -> CameraCalib {
 /// Parses a `cam0/sensor.yaml`. Missing/invalid resolution or intrinsics, an unsupported
 /// distortion model or a `T_BS` that is not a rigid transform are hard errors.
 pub fn read_sensor_yaml(path: &Path) -> Result<CameraCalib, DatasetError> {
-    let text = read_text(path, "camera sensor.yaml")?;
-    // OpenCV writes a `%YAML:1.0` directive that YAML parsers reject; blank it (keeping the
-    // line count so parser line numbers still match the file).
-    let text: String = text
-        .lines()
-        .map(|l| {
-            if l.trim_start().starts_with("%YAML") {
-                ""
-            } else {
-                l
-            }
-        })
-        .collect::<Vec<_>>()
-        .join("\n");
+    let text = strip_yaml_directive(&read_text(path, "camera sensor.yaml")?);
     let y: SensorYaml = serde_saphyr::from_str(&text)
         .map_err(|e| parse_err(path, format!("invalid camera YAML: {e}")))?;
     let [w, h] = y.resolution[..] else {
@@ -179,6 +168,138 @@ pub fn read_sensor_yaml(path: &Path) -> Result<CameraCalib, DatasetError> {
             .rate_hz
             .filter(|r| r.is_finite() && *r > 0.0)
             .unwrap_or(0.0),
+    })
+}
+
+/// OpenCV writes a `%YAML:1.0` directive that YAML parsers reject; blank it (keeping the
+/// line count so parser line numbers still match the file).
+fn strip_yaml_directive(text: &str) -> String {
+    text.lines()
+        .map(|l| {
+            if l.trim_start().starts_with("%YAML") {
+                ""
+            } else {
+                l
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[derive(Deserialize)]
+struct ImuSensorYaml {
+    rate_hz: Option<f64>,
+    gyroscope_noise_density: f64,
+    gyroscope_random_walk: f64,
+    accelerometer_noise_density: f64,
+    accelerometer_random_walk: f64,
+    #[serde(rename = "T_g")]
+    t_g: Option<MatYaml>,
+    #[serde(rename = "T_s")]
+    t_s: Option<MatYaml>,
+    #[serde(rename = "T_a")]
+    t_a: Option<MatYaml>,
+    initial_gyro_bias: Option<Vec<f64>>,
+    initial_accel_bias: Option<Vec<f64>>,
+    time_offset_ns: Option<f64>,
+    readout_time_ns: Option<f64>,
+}
+
+/// What an `imu0/sensor.yaml` holds: the EuRoC / Kalibr noise model, and the true IMU
+/// errors our generator adds (seed eq. 2.53-2.56; `None` when absent, as in real EuRoC).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImuSensorCalib {
+    /// Sample rate, Hz (0 when absent).
+    pub rate_hz: f64,
+    /// Noise densities and bias random walks.
+    pub noise: ImuNoise,
+    /// `T_g`, `T_s`, `T_a` (all three keys present; missing ones would be ideal).
+    pub intrinsics: Option<ImuIntrinsics>,
+    /// Biases at the first sample.
+    pub initial_biases: Option<ImuBiases>,
+    /// Camera-IMU offset t_d, ns (capture time = camera stamp + t_d).
+    pub time_offset_ns: Option<i64>,
+    /// Rolling-shutter readout t_r, ns.
+    pub readout_ns: Option<i64>,
+}
+
+/// Parses an `imu0/sensor.yaml` (EuRoC keys plus our generator's `T_g`, `T_s`, `T_a`,
+/// `initial_gyro_bias`, `initial_accel_bias`, `time_offset_ns`, `readout_time_ns`).
+/// Negative or non-finite densities, and matrices or vectors of the wrong size, are errors.
+pub fn read_imu_sensor_yaml(path: &Path) -> Result<ImuSensorCalib, DatasetError> {
+    let text = strip_yaml_directive(&read_text(path, "IMU sensor.yaml")?);
+    let y: ImuSensorYaml = serde_saphyr::from_str(&text)
+        .map_err(|e| parse_err(path, format!("invalid IMU YAML: {e}")))?;
+    let noise = ImuNoise {
+        gyro_noise_density: y.gyroscope_noise_density,
+        accel_noise_density: y.accelerometer_noise_density,
+        gyro_bias_rw: y.gyroscope_random_walk,
+        accel_bias_rw: y.accelerometer_random_walk,
+    };
+    let densities = [
+        noise.gyro_noise_density,
+        noise.accel_noise_density,
+        noise.gyro_bias_rw,
+        noise.accel_bias_rw,
+    ];
+    if densities.iter().any(|d| !(d.is_finite() && *d >= 0.0)) {
+        return Err(parse_err(path, "noise densities must be finite and >= 0"));
+    }
+    let mat3 = |m: &Option<MatYaml>, key: &str| -> Result<Option<Matrix3<f64>>, DatasetError> {
+        let Some(m) = m else { return Ok(None) };
+        if m.rows != 3 || m.cols != 3 || m.data.len() != 9 || !m.data.iter().all(|v| v.is_finite())
+        {
+            return Err(parse_err(path, format!("`{key}` must be a finite 3x3 matrix")));
+        }
+        Ok(Some(Matrix3::from_row_slice(&m.data)))
+    };
+    let vec3 = |v: &Option<Vec<f64>>, key: &str| -> Result<Option<Vector3<f64>>, DatasetError> {
+        match v.as_deref() {
+            None => Ok(None),
+            Some(&[x, y, z]) if [x, y, z].iter().all(|c| c.is_finite()) => {
+                Ok(Some(Vector3::new(x, y, z)))
+            }
+            Some(_) => Err(parse_err(path, format!("`{key}` must be 3 finite numbers"))),
+        }
+    };
+    let (t_g, t_s, t_a) = (
+        mat3(&y.t_g, "T_g")?,
+        mat3(&y.t_s, "T_s")?,
+        mat3(&y.t_a, "T_a")?,
+    );
+    let intrinsics = (t_g.is_some() || t_s.is_some() || t_a.is_some()).then(|| {
+        let ideal = ImuIntrinsics::default();
+        ImuIntrinsics {
+            t_g: t_g.unwrap_or(ideal.t_g),
+            t_s: t_s.unwrap_or(ideal.t_s),
+            t_a: t_a.unwrap_or(ideal.t_a),
+        }
+    });
+    let (bg, ba) = (
+        vec3(&y.initial_gyro_bias, "initial_gyro_bias")?,
+        vec3(&y.initial_accel_bias, "initial_accel_bias")?,
+    );
+    let initial_biases = (bg.is_some() || ba.is_some()).then(|| ImuBiases {
+        gyro: bg.unwrap_or_default(),
+        accel: ba.unwrap_or_default(),
+    });
+    let ns = |v: Option<f64>, key: &str| -> Result<Option<i64>, DatasetError> {
+        match v {
+            None => Ok(None),
+            Some(x) if x.is_finite() && x.abs() < 1e15 => Ok(Some(x.round() as i64)),
+            Some(x) => Err(parse_err(path, format!("invalid `{key}`: {x}"))),
+        }
+    };
+    Ok(ImuSensorCalib {
+        rate_hz: y
+            .rate_hz
+            .filter(|r| r.is_finite() && *r > 0.0)
+            .unwrap_or(0.0),
+        noise,
+        intrinsics,
+        initial_biases,
+        time_offset_ns: ns(y.time_offset_ns, "time_offset_ns")?,
+        readout_ns: ns(y.readout_time_ns, "readout_time_ns")?,
     })
 }
 

@@ -1,5 +1,6 @@
 //! [`SimParams`]: everything that defines a simulated dataset.
 
+use nalgebra::{Matrix3, Vector3};
 use slam_core::camera::PinholeRadtan;
 use slam_core::imu::{ImuBiases, ImuIntrinsics, ImuNoise};
 
@@ -43,8 +44,26 @@ pub struct SimParams {
 
 impl SimParams {
     /// The defaults for `scenario`: 752x480 EuRoC-like camera at 20 Hz, IMU at 200 Hz with
-    /// EuRoC noise and small initial biases, pixel noise 1.5, t_d = 0.
+    /// EuRoC noise and small initial biases, pixel noise 1.5, t_d = 0; for
+    /// [`Scenario::Phone`] the camera runs at 30 Hz and the IMU is [`phone_imu`]'s with
+    /// t_d = 40 ms.
     pub fn new(scenario: Scenario) -> Self {
+        let base = Self::euroc_like(scenario);
+        if scenario != Scenario::Phone {
+            return base;
+        }
+        let (noise, imu_intrinsics, initial_biases) = phone_imu();
+        Self {
+            rate_hz: 30.0,
+            time_offset_ms: 40.0,
+            noise,
+            imu_intrinsics,
+            initial_biases,
+            ..base
+        }
+    }
+
+    fn euroc_like(scenario: Scenario) -> Self {
         Self {
             scenario,
             seed: 0,
@@ -166,6 +185,50 @@ impl SimParams {
     pub fn time_offset_ns(&self) -> i64 {
         (self.time_offset_ms * 1e6).round() as i64
     }
+}
+
+/// The `phone` scenario's IMU (seed eq. 2.53-2.56): `(noise, intrinsics, initial biases)`
+/// of a consumer MEMS part at 200 Hz.
+///
+/// - White noise: the Bosch BMI160 data sheet (gyro output noise 0.007 °/s/√Hz =
+///   1.22e-4 rad/s/√Hz; accelerometer output noise density 180 µg/√Hz = 1.77e-3 m/s²/√Hz,
+///   normal mode); the TDK ICM-20600 is quieter (0.004 °/s/√Hz, 100 µg/√Hz).
+/// - Bias random walks: data sheets give none; 1e-4 rad/s²/√Hz (five times the EuRoC
+///   ADIS16448 figure) and 4e-3 m/s³/√Hz (a consumer part drifting more than the ADIS).
+/// - Initial biases ~0.01 rad/s (gyro, within the BMI160's ±3 °/s zero-rate offset) and
+///   ~0.1 m/s² (accelerometer, within its ±40 mg offset).
+/// - `T_g`, `T_a`: scale errors of 0.5-1.1 % on the diagonal (BMI160 sensitivity tolerance
+///   ±1 %) and misalignments of 0.2-0.5° (8.7e-3 rad = 0.5°; cross-axis sensitivity ±1 %);
+///   `T_s`: g-sensitivity ~2e-4 rad/s per m/s² (0.1 °/s/g).
+pub fn phone_imu() -> (ImuNoise, ImuIntrinsics, ImuBiases) {
+    let noise = ImuNoise {
+        gyro_noise_density: 0.007_f64.to_radians(),
+        accel_noise_density: 180e-6 * 9.81,
+        gyro_bias_rw: 1e-4,
+        accel_bias_rw: 4e-3,
+    };
+    let intrinsics = ImuIntrinsics {
+        t_g: Matrix3::new(
+            1.010, -8.7e-3, 4.0e-3, //
+            6.0e-3, 0.992, -5.0e-3, //
+            -3.5e-3, 7.0e-3, 1.006,
+        ),
+        t_s: Matrix3::new(
+            2.0e-4, -1.0e-4, 0.5e-4, //
+            0.8e-4, -1.5e-4, 1.2e-4, //
+            -0.6e-4, 0.4e-4, 2.5e-4,
+        ),
+        t_a: Matrix3::new(
+            0.993, 5.0e-3, -3.0e-3, //
+            -6.5e-3, 1.011, 4.0e-3, //
+            2.5e-3, -8.0e-3, 1.005,
+        ),
+    };
+    let biases = ImuBiases {
+        gyro: Vector3::new(0.012, -0.008, 0.010),
+        accel: Vector3::new(0.10, -0.08, 0.12),
+    };
+    (noise, intrinsics, biases)
 }
 
 impl Default for SimParams {
