@@ -60,7 +60,7 @@ fn sim_exact_motion_preintegrates_to_ground_truth() {
 /// Worst residual norms (R, v, p) of `scenario`'s noise-free IMU at `hz` over 10 s.
 fn sim_worst_residual(scenario: Scenario, hz: f64) -> Vector3<f64> {
     let mut p = SimParams::new(scenario);
-    p.frames = Some(200); // 10 s
+    p.frames = Some((10.0 * p.rate_hz).round() as usize); // 10 s
     p.imu_rate_hz = hz;
     p.noise = ImuNoise::zero();
     p.imu_intrinsics.t_a += Matrix3::new(4e-3, 1e-3, 0.0, -2e-3, -3e-3, 1e-3, 0.0, 2e-3, 5e-3);

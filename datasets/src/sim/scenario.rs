@@ -30,7 +30,7 @@ pub enum Scenario {
     /// (camera blackout; the IMU keeps running).
     Blackout,
     /// Hand-held phone while walking: one 24 s lap of the `loop` ellipse at walking pace
-    /// (1.05-1.57 m/s, mean 1.32 m/s) with a 1.9 Hz step bounce (±2 cm), a 0.95 Hz sway
+    /// (mean 1.33 m/s; 0.7-1.9 m/s within a stride) with a 1.9 Hz step bounce (±2 cm), a 0.95 Hz sway
     /// (±3 cm), and hand rotation jitter (peak body rate ~0.6 rad/s); 30 Hz rolling shutter
     /// (t_r 25 ms), a phone-grade 200 Hz IMU with biases and non-ideal `T_g`, `T_s`, `T_a`,
     /// and a camera-IMU offset t_d of 40 ms (the defaults of [`super::SimParams::new`]).
@@ -253,7 +253,8 @@ impl Scenario {
 /// The `phone` walk: the `loop` ellipse (6 m x 4 m) in [`PHONE_LAP_S`], the phone held at
 /// 1.35 m and looking outwards 0.35 rad ahead of the side direction, 0.1 rad down.
 ///
-/// Gait (steps at [`PHONE_STEP_HZ`]): vertical bounce ±2 cm at the step frequency (peak
+/// The ellipse alone gives 1.05-1.57 m/s (mean 1.32 m/s); with the gait the horizontal
+/// speed ranges 0.7-1.9 m/s. Gait (steps at [`PHONE_STEP_HZ`]): vertical bounce ±2 cm at the step frequency (peak
 /// 2.9 m/s²), lateral sway ±3 cm at half of it, a ±1.5 cm surge at the step frequency.
 /// Hand: pitch ±0.03 rad at the step frequency, roll ±0.04 rad at half of it, yaw ±0.08 rad
 /// at 0.6 Hz, and a ±0.004 rad tremor at 4.7 Hz on each angle (peak body rate ~0.6 rad/s,
@@ -407,7 +408,7 @@ mod tests {
             z = (z.0.min(s.p_wb.z), z.1.max(s.p_wb.z));
         }
         assert!(
-            (1.2..1.5).contains(&mean_speed) && speed.0 > 0.9 && speed.1 < 1.8,
+            (1.2..1.5).contains(&mean_speed) && speed.0 > 0.6 && speed.1 < 2.0,
             "speed {mean_speed} {speed:?}"
         );
         assert!((0.3..1.0).contains(&rate), "peak rate {rate}");
