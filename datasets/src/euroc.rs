@@ -249,7 +249,10 @@ pub fn read_imu_sensor_yaml(path: &Path) -> Result<ImuSensorCalib, DatasetError>
         let Some(m) = m else { return Ok(None) };
         if m.rows != 3 || m.cols != 3 || m.data.len() != 9 || !m.data.iter().all(|v| v.is_finite())
         {
-            return Err(parse_err(path, format!("`{key}` must be a finite 3x3 matrix")));
+            return Err(parse_err(
+                path,
+                format!("`{key}` must be a finite 3x3 matrix"),
+            ));
         }
         Ok(Some(Matrix3::from_row_slice(&m.data)))
     };

@@ -33,7 +33,12 @@ fn nav(s: &GtState, biases: ImuBiases) -> NavState {
 /// intrinsics; the perturbations below are added to them.)
 #[test]
 fn sim_exact_motion_preintegrates_to_ground_truth() {
-    for scenario in [Scenario::Loop, Scenario::FastRs, Scenario::Drone, Scenario::Phone] {
+    for scenario in [
+        Scenario::Loop,
+        Scenario::FastRs,
+        Scenario::Drone,
+        Scenario::Phone,
+    ] {
         let mut worst_at = Vec::new();
         for hz in [200.0, 1000.0] {
             let worst = sim_worst_residual(scenario, hz);

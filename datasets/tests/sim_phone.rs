@@ -5,8 +5,8 @@
 //! frames sit at stamp + t_d on the IMU clock; the monocular VO tracks the rendered frames.
 
 use datasets::euroc::{read_imu_csv, read_imu_sensor_yaml};
-use datasets::sim::{generate, GtState, Scenario, SimParams, SimWorld};
 use datasets::open;
+use datasets::sim::{generate, GtState, Scenario, SimParams, SimWorld};
 use nalgebra::Vector3;
 use slam_core::features::GrayImage;
 use slam_core::imu::{
@@ -137,7 +137,10 @@ fn phone_imu_follows_the_trajectory_with_its_intrinsics_and_offset() {
     let b = params.correction.effective_biases(&p.initial_biases);
     let t_bs = world.trajectory().t_bs;
     let rot_err = |k0: usize, k1: usize, shift_ns: i64| {
-        let (t0, t1) = (world.frame_time_ns(k0) + shift_ns, world.frame_time_ns(k1) + shift_ns);
+        let (t0, t1) = (
+            world.frame_time_ns(k0) + shift_ns,
+            world.frame_time_ns(k1) + shift_ns,
+        );
         let pre = Preintegrated::from_window(world.imu_samples(), t0, t1, b, params).expect("pre");
         let c0 = world.pose_cam_at(world.frame_capture_time_ns(k0));
         let c1 = world.pose_cam_at(world.frame_capture_time_ns(k1));
@@ -181,7 +184,10 @@ fn the_vo_tracks_the_phone_walk() {
                 angular_velocity: None,
             })
             .expect("vo step");
-        assert!(!o.new_session || est.is_empty(), "the VO lost its map at frame {k}");
+        assert!(
+            !o.new_session || est.is_empty(),
+            "the VO lost its map at frame {k}"
+        );
         if let Some(t_cw) = o.t_cw {
             first_tracked.get_or_insert(k);
             est.push(t_cw.inverse());
