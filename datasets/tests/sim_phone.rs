@@ -220,3 +220,31 @@ fn the_vo_tracks_the_phone_walk() {
     assert!(fraction > 0.95, "tracked {fraction}");
     assert!(ate < 0.02 * path, "ATE {ate} over {path} m");
 }
+
+/// `read_imu_sensor_yaml` on a real EuRoC-style file (no shoal extensions: the truths are
+/// `None`) and on broken ones (wrong matrix size, negative density: errors).
+#[test]
+fn imu_sensor_yaml_without_extensions_and_broken() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let path = tmp.path().join("sensor.yaml");
+    let euroc = "%YAML:1.0\nsensor_type: imu\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.0,\n         0.0, 1.0, 0.0, 0.0,\n         0.0, 0.0, 1.0, 0.0,\n         0.0, 0.0, 0.0, 1.0]\nrate_hz: 200\ngyroscope_noise_density: 1.6968e-04\ngyroscope_random_walk: 1.9393e-05\naccelerometer_noise_density: 2.0000e-3\naccelerometer_random_walk: 3.0000e-3\n";
+    std::fs::write(&path, euroc).expect("write");
+    let y = read_imu_sensor_yaml(&path).expect("euroc yaml");
+    assert_eq!(y.noise, ImuNoise::default());
+    assert_eq!(
+        (
+            y.intrinsics,
+            y.initial_biases,
+            y.time_offset_ns,
+            y.readout_ns
+        ),
+        (None, None, None, None)
+    );
+    let bad_matrix = format!("{euroc}T_g:\n  cols: 2\n  rows: 2\n  data: [1.0, 0.0, 0.0, 1.0]\n");
+    std::fs::write(&path, bad_matrix).expect("write");
+    assert!(read_imu_sensor_yaml(&path).is_err());
+    std::fs::write(&path, euroc.replace("2.0000e-3", "-2.0e-3")).expect("write");
+    assert!(read_imu_sensor_yaml(&path).is_err());
+    std::fs::write(&path, format!("{euroc}initial_gyro_bias: [0.1, 0.2]\n")).expect("write");
+    assert!(read_imu_sensor_yaml(&path).is_err());
+}
