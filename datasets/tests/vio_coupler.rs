@@ -38,22 +38,17 @@ impl Found {
 fn world(seconds: f64) -> SimWorld {
     let mut p = SimParams::new(Scenario::Drone);
     p.seed = 3;
-    p.frames = Some((seconds * 20.0) as usize);
+    p.frames = Some((seconds * p.rate_hz) as usize);
     SimWorld::new(p).expect("sim world")
 }
 
-/// The Sim(3) alignment of the keyframes `(t_cam_ns, T_wc)` to the truth: (scale, gravity
+/// The Sim(3) alignment of the keyframes `(t_ns, T_wc)` (IMU clock) to the truth: (scale, gravity
 /// in the VO's world).
 fn truth(world: &SimWorld, kfs: &[(i64, Isometry3<f64>)]) -> (f64, Vector3<f64>) {
     let src: Vec<Vector3<f64>> = kfs.iter().map(|k| k.1.translation.vector).collect();
     let dst: Vec<Vector3<f64>> = kfs
         .iter()
-        .map(|k| {
-            world
-                .pose_cam_at(k.0 + world.time_offset_ns())
-                .translation
-                .vector
-        })
+        .map(|k| world.pose_cam_at(k.0).translation.vector)
         .collect();
     let sim = umeyama(&src, &dst, true).expect("alignment");
     let g_w = sim.rotation.inverse() * Vector3::new(0.0, 0.0, -9.81);
@@ -66,22 +61,30 @@ fn run(world: &SimWorld) -> (Vec<Found>, Vec<String>) {
     let cam = world.calib().model;
     let mut vo = VoTracker::new(VoParams::default(), cam).expect("vo");
     let sensor = world.params();
-    let preint = PreintegrationParams::new(&sensor.noise, &Default::default()).expect("preint");
-    let params = CouplerParams {
-        t_d_ns: world.time_offset_ns(),
-        ..CouplerParams::default()
-    };
+    let preint = PreintegrationParams::new(&sensor.noise, &sensor.imu_intrinsics).expect("preint");
+    // As the tracker: frames on the IMU clock (the ingest applies t_d to the stamps), the
+    // gyro's mean rate over each frame's readout for the rolling shutter.
+    let params = CouplerParams::default();
+    let r_cb = world.calib().t_bs.rotation.inverse();
+    let gyro: Vec<(i64, Vector3<f64>)> = world
+        .imu_samples()
+        .iter()
+        .map(|s| (s.t_ns, Vector3::from(s.gyro)))
+        .collect();
     let mut coupler = InertialCoupler::new(params, preint, world.calib().t_bs);
     let imu = world.imu_samples();
     let mut next_imu = 0;
     let (mut found, mut refusals) = (Vec::new(), Vec::new());
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     for k in 0..world.n_frames() {
-        let t_ns = world.frame_time_ns(k);
+        let t_ns = world.frame_capture_time_ns(k);
+        let half = world.readout_ns() / 2;
+        let angular_velocity = (half > 0)
+            .then(|| slam_core::imu::mean_rate(&gyro, t_ns - half, t_ns + half))
+            .flatten()
+            .map(|w_b| r_cb * w_b);
         // The IMU up to a little after the frame (the tracker has it by then).
-        while next_imu < imu.len()
-            && imu[next_imu].t_ns <= t_ns + world.time_offset_ns() + 50_000_000
-        {
+        while next_imu < imu.len() && imu[next_imu].t_ns <= t_ns + 50_000_000 {
             let s = imu[next_imu];
             coupler.on_imu(ImuMeasurement {
                 t_ns: s.t_ns,
