@@ -101,7 +101,7 @@ fn run(world: &SimWorld) -> (Vec<Found>, Vec<String>) {
                 image,
                 t_ns,
                 readout_ns: world.readout_ns(),
-                angular_velocity: None,
+                angular_velocity,
             })
             .expect("vo step");
         assert!(
@@ -258,4 +258,46 @@ fn moving_the_vo_world_mid_run_keeps_the_same_trajectory() {
         worst < 1e-3 * path,
         "moved run differs by {worst} (path {path})"
     );
+}
+
+/// The hand-held `phone` (walking bounce and sway, 30 Hz with a 25 ms rolling shutter, t_d
+/// 40 ms applied to the frame times as the ingest does, the gyro's rate de-rotating the rows
+/// as the tracker does, a phone IMU with biases and T_g/T_s/T_a given to the preintegration
+/// as its `sensor.yaml` states them). Measured (seed 3): initialised at 2.50 s of keyframes
+/// with scale -7.8% (stated 1σ 2.8%), gravity 0.64°; refined at 5.1 s to -3.6% (1σ 1.0%),
+/// 0.23°. The same run with a global shutter gives -0.7% and +0.2%, and without the gyro's
+/// rate (the VO's motion model de-rotating) -53%: the rows' translation during the readout,
+/// which the VO does not model, is the likely rest. Bounds: within 3 s, 10% and 2° at
+/// first, 5% and 1° after the refinement.
+#[test]
+fn the_phone_initialises_from_rolling_shutter_vo_keyframes() {
+    let mut p = SimParams::new(Scenario::Phone);
+    p.seed = 3;
+    p.frames = Some(180);
+    let world = SimWorld::new(p).expect("sim world");
+    let (found, refusals) = run(&world);
+    for r in refusals.iter().take(8) {
+        eprintln!("phone refused at {r}");
+    }
+    for f in &found {
+        eprintln!(
+            "phone span {:.2} s: scale {:+.2}% (1σ {:.2}%), gravity error {:.3}° (1σ {:.3}°)",
+            f.span_s,
+            f.scale_error_percent(),
+            f.init.scale_sigma * 100.0,
+            f.gravity_error_deg(),
+            f.init.gravity_sigma.to_degrees(),
+        );
+    }
+    let first = found.first().expect("initialised");
+    assert!(
+        first.span_s <= 3.0,
+        "initialised only after {:.2} s",
+        first.span_s
+    );
+    assert!(first.scale_error_percent().abs() < 10.0);
+    assert!(first.gravity_error_deg() < 2.0);
+    assert_eq!(found.len(), 2, "initialised and refined at 5 s");
+    assert!(found[1].scale_error_percent().abs() < 5.0);
+    assert!(found[1].gravity_error_deg() < 1.0);
 }
