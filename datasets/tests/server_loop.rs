@@ -11,13 +11,13 @@ use std::time::Instant;
 
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-use slam_core::features::{GrayImage, KeyPoint, OrbFeatures};
+use slam_core::features::{KeyPoint, OrbFeatures};
 use slam_core::metrics::{evaluate, Alignment, EvalParams};
 use slam_core::server::{
     frame_pose_in_server_map, HandlerParams, KeyframeHandler, KeyframeStatus, ServerKeyframe,
     ServerMaps,
 };
-use slam_core::vo::{VoFrame, VoParams, VoTracker};
+use slam_core::vo::{VoParams, VoTracker};
 
 const CLIENT: u32 = 7;
 /// Lap period of the `loop` scenario (s) at 20 Hz.
@@ -65,18 +65,9 @@ fn run_vo(world: &SimWorld) -> Vec<ServerKeyframe> {
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let mut out = Vec::new();
     for k in 0..world.n_frames() {
-        world.render_frame_into(k, &mut img).expect("render");
-        let image =
-            GrayImage::from_packed(&img, cam.width as usize, cam.height as usize).expect("image");
+        let frame = world.vo_frame(k, &mut img).expect("render");
         let session = vo.session_id();
-        let o = vo
-            .process(&VoFrame {
-                image,
-                t_ns: world.frame_time_ns(k),
-                readout_ns: world.readout_ns(),
-                angular_velocity: None,
-            })
-            .expect("vo step");
+        let o = vo.process(&frame).expect("vo step");
         // Keyframes evicted by a session change belong to the old session.
         let s = if o.new_session {
             session

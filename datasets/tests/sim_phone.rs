@@ -8,12 +8,11 @@ use datasets::euroc::{read_imu_csv, read_imu_sensor_yaml};
 use datasets::open;
 use datasets::sim::{generate, GtState, Scenario, SimParams, SimWorld};
 use nalgebra::Vector3;
-use slam_core::features::GrayImage;
 use slam_core::imu::{
     gravity_w, ImuBiases, ImuIntrinsics, ImuNoise, NavState, Preintegrated, PreintegrationParams,
 };
 use slam_core::metrics::{evaluate_by_index, Alignment, EvalParams};
-use slam_core::vo::{VoFrame, VoParams, VoTracker};
+use slam_core::vo::{VoParams, VoTracker};
 
 /// The defaults carry the phone's numbers: 30 Hz, t_r 25 ms, t_d 40 ms, 24 s, and IMU
 /// errors of the sizes the issue asks for.
@@ -173,17 +172,8 @@ fn the_vo_tracks_the_phone_walk() {
     let (mut est, mut truth) = (Vec::new(), Vec::new());
     let mut first_tracked = None;
     for k in 0..world.n_frames() {
-        world.render_frame_into(k, &mut img).expect("render");
-        let image =
-            GrayImage::from_packed(&img, cam.width as usize, cam.height as usize).expect("image");
-        let o = vo
-            .process(&VoFrame {
-                image,
-                t_ns: world.frame_time_ns(k),
-                readout_ns: world.readout_ns(),
-                angular_velocity: None,
-            })
-            .expect("vo step");
+        let frame = world.vo_frame(k, &mut img).expect("render");
+        let o = vo.process(&frame).expect("vo step");
         assert!(
             !o.new_session || est.is_empty(),
             "the VO lost its map at frame {k}"

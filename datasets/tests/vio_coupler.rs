@@ -7,7 +7,6 @@
 //! and how soon after the first keyframe it initialised.
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use nalgebra::{Isometry3, Vector3};
-use slam_core::features::GrayImage;
 use slam_core::geometry::umeyama;
 use slam_core::imu::coupler::{CouplerEvent, CouplerParams, CouplerStatus, InertialCoupler};
 use slam_core::imu::init::InertialInit;
@@ -93,17 +92,12 @@ fn run(world: &SimWorld) -> (Vec<Found>, Vec<String>) {
             });
             next_imu += 1;
         }
-        world.render_frame_into(k, &mut img).expect("render");
-        let image =
-            GrayImage::from_packed(&img, cam.width as usize, cam.height as usize).expect("image");
-        let o = vo
-            .process(&VoFrame {
-                image,
-                t_ns,
-                readout_ns: world.readout_ns(),
-                angular_velocity,
-            })
-            .expect("vo step");
+        let frame = VoFrame {
+            t_ns,
+            angular_velocity,
+            ..world.vo_frame(k, &mut img).expect("render")
+        };
+        let o = vo.process(&frame).expect("vo step");
         assert!(
             !o.new_session || found.is_empty(),
             "the VO lost its map at frame {k}"
@@ -198,17 +192,8 @@ fn centres_with_world_move(
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let mut out = Vec::new();
     for k in 0..world.n_frames() {
-        world.render_frame_into(k, &mut img).expect("render");
-        let image =
-            GrayImage::from_packed(&img, cam.width as usize, cam.height as usize).expect("image");
-        let o = vo
-            .process(&VoFrame {
-                image,
-                t_ns: world.frame_time_ns(k),
-                readout_ns: world.readout_ns(),
-                angular_velocity: None,
-            })
-            .expect("vo step");
+        let frame = world.vo_frame(k, &mut img).expect("render");
+        let o = vo.process(&frame).expect("vo step");
         let moved = at.is_some_and(|a| k > a);
         out.push(o.t_cw.map(|t_cw| {
             let c = t_cw.inverse().translation.vector;

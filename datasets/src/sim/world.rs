@@ -220,6 +220,32 @@ impl SimWorld {
             .render_into(&self.scene, |row| self.row_pose(k, row), noise, dst)
     }
 
+    /// Renders frame `k` into `img` (as [`SimWorld::render_frame_into`]) and wraps it as the
+    /// VO's input with the frame's stamp and readout, no angular rate (callers that feed the
+    /// VO in-process override `t_ns` or `angular_velocity` with struct-update syntax).
+    pub fn vo_frame<'a>(
+        &self,
+        k: usize,
+        img: &'a mut [u8],
+    ) -> Result<slam_core::vo::VoFrame<'a>, DatasetError> {
+        self.render_frame_into(k, img)?;
+        let cam = self.renderer.camera();
+        let image = slam_core::features::GrayImage::from_packed(
+            img,
+            cam.width as usize,
+            cam.height as usize,
+        )
+        .map_err(|e| DatasetError::InvalidConfig {
+            detail: format!("frame {k}: {e}"),
+        })?;
+        Ok(slam_core::vo::VoFrame {
+            image,
+            t_ns: self.frame_time_ns(k),
+            readout_ns: self.readout_ns(),
+            angular_velocity: None,
+        })
+    }
+
     /// Renders, for frame `k`, the index + 1 of the scene rectangle seen by each pixel
     /// (0 = none), with the same per-row poses as [`SimWorld::render_frame_into`].
     pub fn render_labels_into(&self, k: usize, dst: &mut [u8]) -> Result<(), DatasetError> {
