@@ -11,18 +11,7 @@ use datasets::euroc::{read_gt_states_csv, read_imu_csv};
 use datasets::sim::{GtState, Scenario, SimParams, SimWorld};
 use nalgebra::{Matrix3, SMatrix, Vector3};
 use slam_core::imu::preint::{Matrix9, Vector9};
-use slam_core::imu::{
-    gravity_w, ImuBiases, ImuIntrinsics, ImuNoise, NavState, Preintegrated, PreintegrationParams,
-};
-
-fn nav(s: &GtState, biases: ImuBiases) -> NavState {
-    NavState {
-        r: s.q_wb.to_rotation_matrix(),
-        p: s.p_wb,
-        v: s.v_w,
-        biases,
-    }
-}
+use slam_core::imu::{gravity_w, ImuIntrinsics, ImuNoise, Preintegrated, PreintegrationParams};
 
 /// The sim's noise-free IMU (with intrinsics `T_a`, `T_g`, `T_s` and constant biases)
 /// preintegrated over 0.1-2 s windows between ground-truth samples reproduces the exact
@@ -83,7 +72,9 @@ fn sim_worst_residual(scenario: Scenario, hz: f64) -> Vector3<f64> {
         for i in (0..gt.len().saturating_sub(len)).step_by(per_s / 5 + 1) {
             let (si, sj) = (&gt[i], &gt[i + len]);
             let pre = Preintegrated::from_window(imu, si.t_ns, sj.t_ns, b, params).expect("window");
-            let r = pre.residual(&nav(si, b), &nav(sj, b), &gravity_w()).r;
+            let r = pre
+                .residual(&si.nav_state(b), &sj.nav_state(b), &gravity_w())
+                .r;
             for k in 0..3 {
                 worst[k] = f64::max(worst[k], r.fixed_rows::<3>(3 * k).norm());
             }
@@ -233,7 +224,7 @@ fn euroc_v102_preintegration_within_3_sigma() {
             let pre = Preintegrated::from_window(&imu, si.t_ns, sj.t_ns, si.biases, params)
                 .expect("bracketed window");
             assert!((pre.delta_t() - len_s).abs() < 1e-6);
-            let res = pre.residual(&nav(si, si.biases), &nav(sj, sj.biases), &g);
+            let res = pre.residual(&si.nav_state(si.biases), &sj.nav_state(sj.biases), &g);
             let r: Vector9 = res.r.fixed_rows::<9>(0).into_owned();
             let ji = res.jac_i.fixed_rows::<9>(0);
             let jj = res.jac_j.fixed_rows::<9>(0);

@@ -6,11 +6,9 @@
 
 use datasets::euroc::{read_imu_csv, read_imu_sensor_yaml};
 use datasets::open;
-use datasets::sim::{generate, GtState, Scenario, SimParams, SimWorld};
+use datasets::sim::{generate, Scenario, SimParams, SimWorld};
 use nalgebra::Vector3;
-use slam_core::imu::{
-    gravity_w, ImuBiases, ImuIntrinsics, ImuNoise, NavState, Preintegrated, PreintegrationParams,
-};
+use slam_core::imu::{gravity_w, ImuIntrinsics, ImuNoise, Preintegrated, PreintegrationParams};
 use slam_core::metrics::{evaluate_by_index, Alignment, EvalParams};
 use slam_core::vo::{VoParams, VoTracker};
 
@@ -80,15 +78,6 @@ fn phone_dataset_round_trips() {
     assert_eq!(ds.imu, world.imu_samples());
 }
 
-fn nav(s: &GtState, biases: ImuBiases) -> NavState {
-    NavState {
-        r: s.q_wb.to_rotation_matrix(),
-        p: s.p_wb,
-        v: s.v_w,
-        biases,
-    }
-}
-
 /// Worst residual norms (R, v, p) over 0.1-2 s windows of the noise-free phone IMU (true
 /// intrinsics and biases in the stream) preintegrated with the `assumed` intrinsics.
 fn worst_residual(world: &SimWorld, assumed: &ImuIntrinsics) -> Vector3<f64> {
@@ -100,7 +89,9 @@ fn worst_residual(world: &SimWorld, assumed: &ImuIntrinsics) -> Vector3<f64> {
         for i in (0..gt.len().saturating_sub(len)).step_by(41) {
             let (si, sj) = (&gt[i], &gt[i + len]);
             let pre = Preintegrated::from_window(imu, si.t_ns, sj.t_ns, b, params).expect("window");
-            let r = pre.residual(&nav(si, b), &nav(sj, b), &gravity_w()).r;
+            let r = pre
+                .residual(&si.nav_state(b), &sj.nav_state(b), &gravity_w())
+                .r;
             for k in 0..3 {
                 worst[k] = f64::max(worst[k], r.fixed_rows::<3>(3 * k).norm());
             }

@@ -23,6 +23,18 @@ pub struct GtState {
     pub biases: ImuBiases,
 }
 
+impl GtState {
+    /// The true navigation state with `biases` (the preintegration's residuals take it).
+    pub fn nav_state(&self, biases: ImuBiases) -> slam_core::imu::NavState {
+        slam_core::imu::NavState {
+            r: self.q_wb.to_rotation_matrix(),
+            p: self.p_wb,
+            v: self.v_w,
+            biases,
+        }
+    }
+}
+
 /// How to synthesise the IMU stream.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ImuSynthesis {
