@@ -112,18 +112,29 @@ impl InertialCoupler {
         }
     }
 
-    /// Takes an IMU sample; `false` (not taken) when it is not after the last one.
+    /// Takes an IMU sample; `false` (not taken) when it is not after the last one. Once
+    /// both refinements are done nothing is stored any more (the buffers stay bounded).
     pub fn on_imu(&mut self, m: ImuMeasurement) -> bool {
         if self.imu.last().is_some_and(|l| l.t_ns >= m.t_ns) {
             return false;
         }
-        self.imu.push(m);
+        if !self.finished() {
+            self.imu.push(m);
+        }
         true
     }
 
-    /// Sets (or moves) the pose `t_wc` of the keyframe at camera time `t_cam_ns`.
+    /// Sets (or moves) the pose `t_wc` of the keyframe at camera time `t_cam_ns` (ignored
+    /// once both refinements are done).
     pub fn set_keyframe(&mut self, t_cam_ns: i64, t_wc: Isometry3<f64>) {
-        self.keyframes.insert(t_cam_ns, t_wc);
+        if !self.finished() {
+            self.keyframes.insert(t_cam_ns, t_wc);
+        }
+    }
+
+    /// Initialised and refined twice: no attempt is due any more.
+    fn finished(&self) -> bool {
+        matches!(self.status, CouplerStatus::Initialised { refinements } if refinements >= 2)
     }
 
     /// Forgets the keyframe at `t_cam_ns` (culled by the VO).
@@ -269,6 +280,23 @@ mod tests {
             "{t:?}"
         );
         assert_eq!(thin(&all[..3], 5), vec![0, 1, 2]);
+    }
+
+    #[test]
+    fn nothing_is_stored_once_refined_twice() {
+        let params =
+            PreintegrationParams::new(&Default::default(), &Default::default()).expect("params");
+        let mut c = InertialCoupler::new(CouplerParams::default(), params, Isometry3::identity());
+        c.status = CouplerStatus::Initialised { refinements: 2 };
+        let m = ImuMeasurement {
+            t_ns: 1,
+            gyro: Default::default(),
+            accel: Default::default(),
+        };
+        assert!(c.on_imu(m));
+        c.set_keyframe(5, Isometry3::identity());
+        assert!(c.imu.is_empty() && c.keyframes.is_empty());
+        assert_eq!(c.step(), None);
     }
 
     #[test]
