@@ -63,6 +63,10 @@ struct RunArgs {
     /// more clients. Replaces the file's `datasets`.
     #[arg(long = "dataset")]
     datasets: Vec<PathBuf>,
+    /// What each client runs: `auto` (visual-inertial when its dataset has an IMU stream
+    /// and camera-IMU extrinsics, else monocular), `mono` or `vio`. Sets `tracker.mode`.
+    #[arg(long = "mode", value_enum)]
+    client_mode: Option<tracker::ClientMode>,
     /// Lock-step replay: nothing dropped, deterministic (the default).
     #[arg(long, conflicts_with = "rate")]
     lockstep: bool,
@@ -148,6 +152,9 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     let mut cfg = config::RunConfig::resolve(args.config.as_deref(), &args.sets)?;
     if !args.datasets.is_empty() {
         cfg.datasets = args.datasets;
+    }
+    if let Some(m) = args.client_mode {
+        cfg.tracker.mode = m;
     }
     if args.lockstep {
         cfg.mode = shoal_runtime::ReplayMode::Lockstep;

@@ -88,6 +88,7 @@ pub fn no_camera_calib() -> CameraCalib {
     CameraCalib {
         model: PinholeRadtan::pinhole(0, 0, 1.0, 1.0, 0.0, 0.0),
         t_bs: Isometry3::identity(),
+        t_bs_given: false,
         readout_ns: 0,
         time_offset_ns: 0,
         rate_hz: 0.0,
@@ -161,6 +162,7 @@ pub fn read_sensor_yaml(path: &Path) -> Result<CameraCalib, DatasetError> {
     }
     Ok(CameraCalib {
         model,
+        t_bs_given: y.t_bs.is_some(),
         t_bs,
         readout_ns,
         time_offset_ns: ns(y.time_offset_ns, "time_offset_ns")?,

@@ -132,6 +132,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
     let camera = CameraCalib {
         model: PinholeRadtan::pinhole(width, height, fx, fy, cx, cy),
         t_bs: Isometry3::identity(),
+        t_bs_given: false,
         readout_ns: 0,
         time_offset_ns: 0,
         rate_hz,

@@ -42,6 +42,9 @@ pub struct CameraCalib {
     pub model: PinholeRadtan,
     /// Camera pose in the body (IMU) frame, `T_BS` (x_B = T_BS x_S). Identity when unknown.
     pub t_bs: nalgebra::Isometry3<f64>,
+    /// `T_BS` was given by the dataset (a calibrated camera-IMU extrinsic), not assumed: the
+    /// visual-inertial mode needs it.
+    pub t_bs_given: bool,
     /// Default rolling-shutter readout time t_r of a whole frame in ns (0 = global shutter).
     pub readout_ns: i64,
     /// Camera-IMU time offset t_d in ns, already added to every [`FrameRecord::t_ns`].

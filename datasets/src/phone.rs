@@ -168,6 +168,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
     let camera = CameraCalib {
         model: PinholeRadtan::pinhole(w, h, fx, fy, f64::from(w) / 2.0, f64::from(h) / 2.0),
         t_bs: Isometry3::identity(),
+        t_bs_given: false,
         readout_ns: frames.first().map_or(0, |f| f.readout_ns),
         time_offset_ns: 0,
         rate_hz,

@@ -20,10 +20,16 @@ pub const FLAG_RESYNC: u32 = 1 << 3;
 /// applied). The tracker waits for it, so the server's answers reach it at the same point
 /// of the stream on every run.
 pub const FLAG_HANDLED: u32 = 1 << 4;
+/// A [`TrackedPose`] that moves the world of its VO session (no frame): every earlier pose
+/// of that session (`meta.session_id`), as published, is to be re-expressed by the
+/// similarity `x' = s R x` with `s = world_scale` and `R` the rotation in `pose.q`
+/// (`pose.t` is zero). A visual-inertial client sends it when its inertial initialisation
+/// (or a refinement) moves its monocular map into the metric, gravity-aligned world.
+pub const FLAG_WORLD_MOVE: u32 = 1 << 5;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
-#[type_name("shoal::v2::MsgMeta")]
+#[type_name("shoal::v3::MsgMeta")]
 #[repr(C)]
 pub struct MsgMeta {
     /// [`MAGIC`].
@@ -110,7 +116,7 @@ impl MsgMeta {
 /// A rigid pose `T_ab` (maps b-frame points into frame a): translation and a unit
 /// quaternion in Hamilton convention, stored `[x, y, z, w]` (TUM order).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::Pose")]
+#[type_name("shoal::v3::Pose")]
 #[repr(C)]
 pub struct Pose {
     /// Translation `t_ab`.
@@ -143,7 +149,7 @@ pub enum PixelFormat {
 
 /// Camera intrinsics and radial-tangential distortion (seed eq. 2.57-2.60).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::Intrinsics")]
+#[type_name("shoal::v3::Intrinsics")]
 #[repr(C)]
 pub struct Intrinsics {
     /// `[fx, fy, cx, cy]` in pixels.
@@ -155,7 +161,7 @@ pub struct Intrinsics {
 /// User header of a frame sample; the payload is the `[u8]` pixel slice
 /// (`stride * height` bytes). Published by `camera_ingest`, read in place by the tracker.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::FrameHeader")]
+#[type_name("shoal::v3::FrameHeader")]
 #[repr(C)]
 pub struct FrameHeader {
     /// Identity, version, sequence number (= frame index in the stream), publish stamp.
@@ -199,7 +205,7 @@ impl FrameHeader {
 
 /// One IMU sample (body frame), published by `imu_ingest`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::ImuMsg")]
+#[type_name("shoal::v3::ImuMsg")]
 #[repr(C)]
 pub struct ImuMsg {
     /// Identity, version, sequence number, publish stamp.
@@ -215,7 +221,7 @@ pub struct ImuMsg {
 /// Sent by a frame consumer (the tracker) when it has taken a frame. In lock-step replay
 /// the ingests wait for it before publishing the next frame (and the IMU samples up to it).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::FrameAck")]
+#[type_name("shoal::v3::FrameAck")]
 #[repr(C)]
 pub struct FrameAck {
     /// Identity; `meta.seq` is the ack's own sequence number.
@@ -249,6 +255,16 @@ impl TrackState {
             2 => Some(Self::Tracking),
             3 => Some(Self::Lost),
             _ => None,
+        }
+    }
+
+    /// Its name in reports and files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::NotInitialized => "not_initialized",
+            Self::Initializing => "initializing",
+            Self::Tracking => "tracking",
+            Self::Lost => "lost",
         }
     }
 }
@@ -288,7 +304,7 @@ pub mod stage {
 
 /// Per-frame output of the tracker: pose, state, latency stamps and stage timings.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::TrackedPose")]
+#[type_name("shoal::v3::TrackedPose")]
 #[repr(C)]
 pub struct TrackedPose {
     /// Identity; `meta.seq` is the frame's sequence number, `meta.publish_mono_ns` the pose
@@ -320,12 +336,62 @@ pub struct TrackedPose {
     pub frame_receive_mono_ns: i64,
     /// Per-stage times in ms, see [`stage`].
     pub stage_ms: [f32; stage::COUNT],
+    /// Where the pose came from: a [`PoseSource`] as `u32`.
+    pub source: u32,
+    /// 1 when `pose` is in a metric, gravity-aligned world (z up; a visual-inertial client
+    /// after its inertial initialisation).
+    pub metric: u32,
+    /// With [`FLAG_WORLD_MOVE`]: the scale `s` of the world move; else 0.
+    pub world_scale: f64,
+}
+
+/// Where a [`TrackedPose`]'s pose came from ([`TrackedPose::source`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u32)]
+pub enum PoseSource {
+    /// No pose (`state` says why).
+    None = 0,
+    /// Vision alone (a monocular client, or a visual-inertial one before its inertial
+    /// initialisation): up to scale.
+    Visual = 1,
+    /// Vision with the IMU (the IMU-predicted pose as prior): metric, gravity-aligned.
+    VisualInertial = 2,
+    /// The IMU alone, through a visual dropout (`state` is `Tracking`; drifts with time).
+    Inertial = 3,
+    /// Only the orientation (`pose.q`, gyro-propagated, `pose.t` zero; `state` is not
+    /// `Tracking`): written to `orientation_c{i}.txt`, not to the trajectory.
+    OrientationOnly = 4,
+}
+
+impl PoseSource {
+    /// From the wire value; unknown values map to `None`.
+    pub fn from_u32(v: u32) -> Option<Self> {
+        match v {
+            0 => Some(Self::None),
+            1 => Some(Self::Visual),
+            2 => Some(Self::VisualInertial),
+            3 => Some(Self::Inertial),
+            4 => Some(Self::OrientationOnly),
+            _ => None,
+        }
+    }
+
+    /// Its name in reports and files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::Visual => "visual",
+            Self::VisualInertial => "visual_inertial",
+            Self::Inertial => "inertial",
+            Self::OrientationOnly => "orientation_only",
+        }
+    }
 }
 
 /// Header of a keyframe message (tracker → mapper); the payload is a slice of
 /// [`KeypointRecord`]s (seed §3.3: pose in the client map + keypoints + descriptors).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::KeyframeHeader")]
+#[type_name("shoal::v3::KeyframeHeader")]
 #[repr(C)]
 pub struct KeyframeHeader {
     /// Identity (client, session); `meta.seq` counts keyframe messages of the client.
@@ -344,8 +410,16 @@ pub struct KeyframeHeader {
     pub height: u32,
     /// Number of keypoint records in the payload.
     pub n_keypoints: u32,
-    /// Reserved, zero.
-    pub reserved: u32,
+    /// 1 when the keyframe comes from a visual-inertial client after its inertial
+    /// initialisation: `pose_ck` is then metric and gravity-aligned, and the velocity and
+    /// biases below are valid (a monocular server may ignore them).
+    pub inertial: u32,
+    /// Velocity of the IMU body in the client map, m/s (valid with `inertial`).
+    pub velocity_w: [f64; 3],
+    /// Gyro bias, rad/s (effective, body frame; valid with `inertial`).
+    pub gyro_bias: [f64; 3],
+    /// Accelerometer bias, m/s² (effective, body frame; valid with `inertial`).
+    pub accel_bias: [f64; 3],
 }
 
 /// `map_point_id` of a keypoint with no map point.
@@ -353,7 +427,7 @@ pub const NO_MAP_POINT: u64 = u64::MAX;
 
 /// One keypoint of a keyframe message (64 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::KeypointRecord")]
+#[type_name("shoal::v3::KeypointRecord")]
 #[repr(C)]
 pub struct KeypointRecord {
     /// Pixel u (distorted image), level-0 coordinates.
@@ -391,7 +465,7 @@ impl Default for KeypointRecord {
 
 /// Mapper → tracker: acknowledgement and pose feedback (seed §3.4.1).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::Feedback")]
+#[type_name("shoal::v3::Feedback")]
 #[repr(C)]
 pub struct Feedback {
     /// Identity (client the feedback is for).
@@ -417,7 +491,7 @@ pub const MAX_LOOP_COVISIBLE: usize = 32;
 /// a server map, with what place recognition and loop geometry need (seed §3.4.1-3.4.2);
 /// the payload is a slice of [`LoopKeypointRecord`]s.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::LoopKeyframeHeader")]
+#[type_name("shoal::v3::LoopKeyframeHeader")]
 #[repr(C)]
 pub struct LoopKeyframeHeader {
     /// Identity (client, session of the keyframe; `meta.seq` counts loop keyframe messages
@@ -471,7 +545,7 @@ impl Default for LoopKeyframeHeader {
 
 /// One keypoint of a loop keyframe message (88 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::LoopKeypointRecord")]
+#[type_name("shoal::v3::LoopKeypointRecord")]
 #[repr(C)]
 pub struct LoopKeypointRecord {
     /// Pixel u (distorted image), level-0 coordinates.
@@ -514,7 +588,7 @@ impl Default for LoopKeypointRecord {
 /// mapper's snapshot (`next = 0` takes a new snapshot), at most `max` of them (DESIGN.md: a
 /// restarted loop closer rebuilds its keyframe database from the mapper).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::ResyncRequest")]
+#[type_name("shoal::v3::ResyncRequest")]
 #[repr(C)]
 pub struct ResyncRequest {
     /// Identity (`meta.seq` counts requests).
@@ -545,7 +619,7 @@ pub const RECORD_POINT_PAIR: u32 = 2;
 /// of [`CorrectionRecord`]s. The loop closer computes, the mapper (owner of the maps)
 /// applies.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::CorrectionHeader")]
+#[type_name("shoal::v3::CorrectionHeader")]
 #[repr(C)]
 pub struct CorrectionHeader {
     /// Identity (`client_id` of the query keyframe; `meta.seq` counts corrections).
@@ -597,7 +671,7 @@ impl Default for CorrectionHeader {
 
 /// One record of a correction (88 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v2::CorrectionRecord")]
+#[type_name("shoal::v3::CorrectionRecord")]
 #[repr(C)]
 pub struct CorrectionRecord {
     /// [`RECORD_KEYFRAME_DELTA`] or [`RECORD_POINT_PAIR`].
@@ -635,8 +709,8 @@ const _: () = {
     assert!(size_of::<FrameHeader>() == 40 + 24 + 32 + 72 + 56);
     assert!(size_of::<ImuMsg>() == 40 + 8 + 48);
     assert!(size_of::<FrameAck>() == 56);
-    assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 8 + 16 + 16 + 32);
-    assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16);
+    assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 8 + 16 + 16 + 32 + 16);
+    assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16 + 72);
     assert!(size_of::<KeypointRecord>() == 64 && align_of::<KeypointRecord>() == 8);
     assert!(size_of::<Feedback>() == 40 + 16 + 56 + 16);
     assert!(size_of::<LoopKeypointRecord>() == 88 && align_of::<LoopKeypointRecord>() == 8);

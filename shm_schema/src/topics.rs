@@ -72,12 +72,12 @@ fn err(service: &str, e: impl core::fmt::Debug) -> TopicError {
     }
 }
 
-/// The name of a per-client topic, e.g. `shoal/v2/c0/frames`.
+/// The name of a per-client topic, e.g. `shoal/v3/c0/frames`.
 pub fn client_topic(client: u32, topic: &str) -> String {
     format!("shoal/v{SCHEMA_VERSION}/c{client}/{topic}")
 }
 
-/// The name of a host-wide topic, e.g. `shoal/v2/loop_keyframes`.
+/// The name of a host-wide topic, e.g. `shoal/v3/loop_keyframes`.
 pub fn host_topic(topic: &str) -> String {
     format!("shoal/v{SCHEMA_VERSION}/{topic}")
 }

@@ -9,6 +9,7 @@
 //! memory.
 pub mod child;
 pub mod faults;
+pub mod modes;
 pub mod provenance;
 pub mod recorder;
 pub mod report;
@@ -96,7 +97,13 @@ pub fn service_config_path(out: &Path, desc: &topology::ServiceDesc) -> PathBuf 
 /// Writes the whole run's configuration (`OUT/config/run.toml`, which `shoal run --config`
 /// takes back) and every service's section (`OUT/config/<service>.toml`, see
 /// [`service_config_path`]), which each service is started with.
-fn write_configs(cfg: &RunConfig, topology: &[topology::ServiceDesc]) -> anyhow::Result<()> {
+/// A tracker's section is the run's `[tracker]` with its client's mode and IMU calibration
+/// (`setups`, [`modes::client_setup`]).
+fn write_configs(
+    cfg: &RunConfig,
+    topology: &[topology::ServiceDesc],
+    setups: &[modes::ClientSetup],
+) -> anyhow::Result<()> {
     let dir = cfg.out.join(CONFIG_DIR);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let write = |path: PathBuf, text: String| {
@@ -104,7 +111,17 @@ fn write_configs(cfg: &RunConfig, topology: &[topology::ServiceDesc]) -> anyhow:
     };
     write(dir.join("run.toml"), cfg.to_toml_with_header()?)?;
     for desc in topology {
-        write(service_config_path(&cfg.out, desc), cfg.service_toml(desc)?)?;
+        let setup = desc.client.and_then(|c| setups.get(c as usize));
+        let text = match (desc.kind, setup) {
+            (topology::Kind::Tracker, Some(s)) => {
+                let mut one = cfg.clone();
+                one.tracker.mode = s.mode;
+                one.tracker.imu = s.imu.clone();
+                one.service_toml(desc)?
+            }
+            _ => cfg.service_toml(desc)?,
+        };
+        write(service_config_path(&cfg.out, desc), text)?;
     }
     Ok(())
 }
@@ -203,7 +220,11 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     // All sensors on one stream origin a little in the future.
     let t0 = monotonic_ns() + 2_000_000_000;
     let topology = topology::topology(cfg.datasets.len() as u32);
-    write_configs(cfg, &topology)?;
+    let setups: Vec<modes::ClientSetup> = datasets
+        .iter()
+        .map(|ds| modes::client_setup(cfg.tracker.mode, ds))
+        .collect();
+    write_configs(cfg, &topology, &setups)?;
     let mut services = services_for(cfg, &topology, t0);
     start_services(&mut services, &topology, &exe)?;
     tracing::info!("all {} services ready", services.len());
@@ -211,7 +232,15 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let mut watch = Watch {
         services,
         injector: faults::FaultInjector::new(cfg.kills.clone(), cfg.chaos.clone()),
-        errors: Vec::new(),
+        errors: setups
+            .iter()
+            .filter_map(|s| s.calibration_error.clone())
+            .map(|detail| ErrorRecord {
+                service: "launcher".into(),
+                kind: ErrorKind::ImuCalibration,
+                detail,
+            })
+            .collect(),
         ready_at: Instant::now(),
     };
     let progress = report::Progress::new(cfg.progress, &datasets, cfg.max_frames);
@@ -244,6 +273,15 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         end == RunEnd::Interrupted,
         end == RunEnd::TimedOut,
     )?;
+    for (cl, s) in rep.clients.iter_mut().zip(&setups) {
+        cl.client_mode = s.mode.name().to_string();
+        cl.client_mode_reason = s.reason.clone();
+        if s.mode == tracker::ClientMode::Vio {
+            cl.imu_calibration = Some(s.imu.source.clone());
+        } else {
+            cl.vio = None;
+        }
+    }
     rep.faults_summary = faults::FaultsSummary::of(&watch.injector.events);
     rep.faults_summary.unfired = unfired.len();
     rep.faults = watch.injector.events;

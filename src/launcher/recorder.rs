@@ -2,7 +2,7 @@
 //! service, keeps the tracked trajectory and the latency histograms.
 use hdrhistogram::Histogram;
 use shm_schema::topics::{self, Ipc};
-use shm_schema::{TrackState, TrackedPose};
+use shm_schema::{PoseSource, TrackState, TrackedPose};
 
 /// Latency percentiles in milliseconds.
 #[derive(Debug, Clone, Default, serde::Serialize)]
@@ -102,6 +102,18 @@ pub struct ClientRecord {
     pub trajectory: Vec<(i64, shm_schema::Pose)>,
     /// The VO session of each pose of `trajectory` (its map frame).
     pub trajectory_sessions: Vec<u32>,
+    /// Gyro-propagated orientations of frames with no pose (visual-inertial client before
+    /// its inertial initialisation): (t_ns, camera-to-world rotation `q`, [`TrackState`]
+    /// as `u32`, VO session).
+    pub orientations: Vec<(i64, [f64; 4], u32, u32)>,
+    /// Valid poses by where they came from ([`shm_schema::PoseSource`] as index).
+    pub pose_sources: [u64; 5],
+    /// World moves taken (`FLAG_WORLD_MOVE`): each re-expressed the earlier poses and
+    /// orientations of its session.
+    pub world_moves: u64,
+    /// Of the poses in `trajectory`: in a metric, gravity-aligned world when last
+    /// (re-)expressed (count).
+    pub metric_poses: u64,
     /// Valid server-map poses: (t_ns, pose, server map id).
     pub server_trajectory: Vec<(i64, shm_schema::Pose, u64)>,
     /// True once the tracker sent its end of stream.
@@ -162,6 +174,43 @@ impl ClientRecord {
         }
     }
 
+    /// Re-expresses the poses and orientations of VO session `session` received so far in
+    /// the world the tracker moved it to: `x' = s R x` (positions), `R_wc' = R R_wc`
+    /// (`FLAG_WORLD_MOVE`; `move_q` holds `R`).
+    fn move_world(&mut self, session: u32, s: f64, move_pose: &shm_schema::Pose) {
+        let Some(r) = shoal_runtime::wire::rotation_from_wire(move_pose) else {
+            return;
+        };
+        if !(s.is_finite() && s > 0.0) {
+            return;
+        }
+        self.world_moves += 1;
+        let moved = |p: &shm_schema::Pose| {
+            let t = r * (nalgebra::Vector3::from(p.t) * s);
+            let q = shoal_runtime::wire::rotation_from_wire(p).map(|q| r * q);
+            q.map(|q| shm_schema::Pose {
+                t: t.into(),
+                q: [q.i, q.j, q.k, q.w],
+            })
+        };
+        for (pose, sess) in self.trajectory.iter_mut().zip(&self.trajectory_sessions) {
+            if *sess == session {
+                if let Some(m) = moved(&pose.1) {
+                    pose.1 = m;
+                }
+            }
+        }
+        for o in self.orientations.iter_mut().filter(|o| o.3 == session) {
+            let p = shm_schema::Pose {
+                t: [0.0; 3],
+                q: o.1,
+            };
+            if let Some(m) = moved(&p) {
+                o.1 = m.q;
+            }
+        }
+    }
+
     /// Frames with a valid pose, and of the frames handled without one: (before the
     /// initialisation, while lost).
     pub fn fate_counts(&self) -> (u64, u64, u64) {
@@ -204,6 +253,10 @@ impl Recorder {
                 backfilled: 0,
                 trajectory: Vec::new(),
                 trajectory_sessions: Vec::new(),
+                orientations: Vec::new(),
+                pose_sources: [0; 5],
+                world_moves: 0,
+                metric_poses: 0,
                 server_trajectory: Vec::new(),
                 ended: false,
                 bad_messages: 0,
@@ -238,6 +291,10 @@ impl Recorder {
                     rec.ended = true;
                     continue;
                 }
+                if p.meta.flags & shm_schema::FLAG_WORLD_MOVE != 0 {
+                    rec.move_world(p.meta.session_id, p.world_scale, &p.pose);
+                    continue;
+                }
                 if p.meta.flags & shm_schema::FLAG_BACKFILL != 0 {
                     // An earlier frame's pose found at initialisation: no latency stamps.
                     if TrackState::from_u32(p.state) == Some(TrackState::Tracking) {
@@ -258,8 +315,15 @@ impl Recorder {
                     .record_ns(p.frame_receive_mono_ns - p.frame_publish_mono_ns);
                 self.tracker_total
                     .record_ns((p.stage_ms[shm_schema::stage::TOTAL] as f64 * 1e6).round() as i64);
+                let source = PoseSource::from_u32(p.source).unwrap_or(PoseSource::None);
+                if source == PoseSource::OrientationOnly {
+                    let o = (p.t_ns, p.pose.q, p.state, p.meta.session_id);
+                    rec.orientations.push(o);
+                }
                 if TrackState::from_u32(p.state) == Some(TrackState::Tracking) {
                     rec.tracked += 1;
+                    rec.pose_sources[source as usize] += 1;
+                    rec.metric_poses += u64::from(p.metric != 0);
                     rec.trajectory.push((p.t_ns, p.pose));
                     rec.trajectory_sessions.push(p.meta.session_id);
                     if p.has_server_pose != 0 {

@@ -22,6 +22,25 @@ use super::RunConfig;
 pub struct ClientReport {
     /// Dataset folder.
     pub dataset: String,
+    /// What the client ran: `mono` or `vio` (`shoal run --mode`, `tracker.mode`).
+    pub client_mode: String,
+    /// Why: asked, or what the dataset has (an IMU stream and camera-IMU extrinsics).
+    pub client_mode_reason: String,
+    /// Where the visual-inertial client's IMU calibration came from (`vio` only).
+    pub imu_calibration: Option<String>,
+    /// The visual-inertial client's state: inertial initialisation (when, scale, biases) or
+    /// why it did not initialise (`vio` only).
+    pub vio: Option<tracker::VioReport>,
+    /// Posed frames (as tracked, backfilled ones not included) by where the pose came from:
+    /// `visual` (monocular, up to scale), `visual_inertial`, `inertial` (IMU alone through
+    /// a visual dropout).
+    pub frames_by_source: BTreeMap<String, u64>,
+    /// Frames with only a gyro-propagated orientation (no pose), written to
+    /// `orientation_c{i}.txt` with their state.
+    pub frames_orientation_only: u64,
+    /// World moves of the visual-inertial client (inertial initialisation and
+    /// refinements): every earlier pose of the moved session was re-expressed.
+    pub world_moves: u64,
     /// Frames in the dataset (after `--max-frames`).
     pub frames_total: u64,
     /// Frames the camera ingest published (re-sends not counted).
@@ -536,6 +555,10 @@ impl Statuses {
     }
 
     /// Errors of `kind` met by service `svc`.
+    fn details_of<D: DeserializeOwned>(&self, svc: &str) -> Option<D> {
+        self.facts(svc)?.status.details_as()
+    }
+
     fn errors_of(&self, svc: &str, kind: ErrorKind) -> u64 {
         self.facts(svc).map_or(0, |s| s.status.errors_of(kind))
     }
@@ -581,6 +604,10 @@ impl ClientOutputs {
             write_tum(&path, &one.trajectory)?;
             trajectory = Some(path.display().to_string());
         }
+        if !rec.orientations.is_empty() {
+            let path = out.join(format!("orientation_c{c}.txt"));
+            write_orientations(&path, &rec.orientations)?;
+        }
         let mapper: MapperCounters = st.counters(mapper::SERVICE_NAME);
         let final_map = mapper.client(c as u32).map_id;
         let (live, other_maps) = live_server_poses(rec, final_map);
@@ -605,6 +632,30 @@ impl ClientOutputs {
             sessions: one.report,
         })
     }
+}
+
+/// Writes `orientation_c{i}.txt`: `t qx qy qz qw state` per frame with only a
+/// gyro-propagated orientation (camera-to-world, in its VO session's world as last moved;
+/// t in seconds), by time.
+fn write_orientations(path: &Path, rows: &[(i64, [f64; 4], u32, u32)]) -> std::io::Result<()> {
+    use std::fmt::Write as _;
+    let mut sorted = rows.to_vec();
+    sorted.sort_by_key(|r| r.0);
+    let mut text =
+        String::from("# t qx qy qz qw state (camera-to-world orientation only, shoal)\n");
+    for (t_ns, q, state, _) in &sorted {
+        let state = shm_schema::TrackState::from_u32(*state).map_or("unknown", |s| s.name());
+        let _ = writeln!(
+            text,
+            "{:.9} {:.9} {:.9} {:.9} {:.9} {state}",
+            *t_ns as f64 * 1e-9,
+            q[0],
+            q[1],
+            q[2],
+            q[3]
+        );
+    }
+    std::fs::write(path, text)
 }
 
 /// The per-frame server poses reported live in the client's final map (poses reported in a
@@ -659,6 +710,14 @@ fn client_report(
     let dropped = offered.saturating_sub(received + corrupt);
     ClientReport {
         dataset: ds.root.display().to_string(),
+        vio: st.details_of::<tracker::VioReport>(&trk),
+        frames_by_source: frames_by_source(rec),
+        frames_orientation_only: rec.orientations.len() as u64,
+        world_moves: rec.world_moves,
+        // Set by the launcher, which decided the mode.
+        client_mode: String::new(),
+        client_mode_reason: String::new(),
+        imu_calibration: None,
         frames_total: total,
         frames_published: cam_n.frames_published,
         frames_received: received,
@@ -710,6 +769,16 @@ fn client_report(
         latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
         files: Vec::new(),
     }
+}
+
+/// Posed frames by source (the sources that posed any).
+fn frames_by_source(rec: &super::recorder::ClientRecord) -> BTreeMap<String, u64> {
+    use shm_schema::PoseSource as S;
+    [S::Visual, S::VisualInertial, S::Inertial]
+        .into_iter()
+        .filter(|s| rec.pose_sources[*s as usize] > 0)
+        .map(|s| (s.name().to_string(), rec.pose_sources[s as usize]))
+        .collect()
 }
 
 /// Keyframe bytes sent per second of data over the first `total` frames.

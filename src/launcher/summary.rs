@@ -93,6 +93,7 @@ fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
         cl.keyframes_sent,
         cl.keyframes_applied
     );
+    mode_line(s, cl);
     let acc = |name: &str, a: &Option<AteReport>| {
         a.as_ref().map(|a| {
             let rpe = a
@@ -128,6 +129,41 @@ fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
         cl.files.join(" ")
     };
     let _ = writeln!(s, "  data {} -> files {files}", cl.dataset);
+}
+
+/// What the client ran and why; for a visual-inertial client, its initialisation.
+fn mode_line(s: &mut String, cl: &ClientReport) {
+    if cl.client_mode.is_empty() {
+        return;
+    }
+    let mut line = format!("  mode {} ({})", cl.client_mode, cl.client_mode_reason);
+    if let Some(v) = &cl.vio {
+        let _ = write!(line, "; inertial initialisation {}", v.status);
+        if let (Some(after), Some(scale)) = (v.initialised_after_s, v.scale) {
+            let _ = write!(
+                line,
+                " after {after:.2} s of keyframes (scale {scale:.3}, {} refinement(s))",
+                v.refinements
+            );
+        }
+        if let Some(r) = &v.reason {
+            let _ = write!(line, ": {r}");
+        }
+    }
+    if !cl.frames_by_source.is_empty() || cl.frames_orientation_only > 0 {
+        let by: Vec<String> = cl
+            .frames_by_source
+            .iter()
+            .map(|(k, n)| format!("{n} {k}"))
+            .collect();
+        let _ = write!(
+            line,
+            "; poses: {}; {} orientation only",
+            by.join(", "),
+            cl.frames_orientation_only
+        );
+    }
+    let _ = writeln!(s, "{line}");
 }
 
 fn faults_line(s: &mut String, rep: &RunReport) {

@@ -58,7 +58,22 @@ pub fn tempdir() -> tempfile::TempDir {
     tempfile::tempdir().expect("temp dir")
 }
 
-/// Runs `shoal run` on `datasets` into `out`; returns the process output.
+/// `--mode mono` unless `extra` names the mode: the pipeline tests check the chapter-3
+/// (monocular) behaviour, which a synthetic dataset's IMU and extrinsics would otherwise
+/// turn visual-inertial.
+pub fn pin_mono(extra: &[&str]) -> &'static [&'static str] {
+    if extra
+        .iter()
+        .any(|a| *a == "--mode" || a.starts_with("--mode="))
+    {
+        &[]
+    } else {
+        &["--mode", "mono"]
+    }
+}
+
+/// Runs `shoal run` on `datasets` into `out` (`--mode mono` unless `extra` says otherwise,
+/// [`pin_mono`]); returns the process output.
 pub fn run_pipeline(datasets: &[&Path], out: &Path, test: &str, extra: &[&str]) -> Output {
     let mut cmd = shoal();
     cmd.arg("run");
@@ -71,6 +86,7 @@ pub fn run_pipeline(datasets: &[&Path], out: &Path, test: &str, extra: &[&str]) 
         .arg("--ipc-prefix")
         .arg(prefix(test));
     cmd.arg("--max-seconds").arg("240");
+    cmd.args(pin_mono(extra));
     cmd.args(extra);
     let out = cmd.output().expect("run shoal");
     if !out.status.success() {
@@ -96,6 +112,7 @@ pub fn spawn_pipeline(
         .arg(out)
         .arg("--ipc-prefix")
         .arg(prefix(test))
+        .args(pin_mono(extra))
         .args(extra)
         .stdout(std::process::Stdio::null())
         .spawn()

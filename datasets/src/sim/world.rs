@@ -128,6 +128,7 @@ impl SimWorld {
         CameraCalib {
             model: *self.camera(),
             t_bs: self.traj.t_bs,
+            t_bs_given: true,
             readout_ns: self.readout_ns,
             time_offset_ns: self.time_offset_ns,
             rate_hz: self.params.rate_hz,

@@ -57,6 +57,14 @@ error_kinds! {
     AckTimeout = "ack_timeout",
     /// The tracker's visual odometry failed on a frame.
     Vo = "vo",
+    /// IMU samples missing over a stretch longer than the visual-inertial client bridges
+    /// (tracker): it tracks monocularly over it.
+    ImuGap = "imu_gap",
+    /// An IMU sample with a non-finite or saturated value (tracker): not used.
+    ImuSaturated = "imu_saturated",
+    /// An IMU calibration (`imu0/sensor.yaml`, `[tracker.imu]`) that does not read or holds
+    /// impossible values: the defaults are used, or the client runs monocular.
+    ImuCalibration = "imu_calibration",
     /// The tracker's keyframe spool could not be written or read.
     Spool = "spool",
     /// A mapper handler refused a keyframe, or its thread panicked.

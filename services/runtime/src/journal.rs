@@ -28,7 +28,7 @@ use shm_schema::{
 
 /// Version of the journal format (header, framing and payload encodings). Bump on any change
 /// of them.
-pub const JOURNAL_VERSION: u32 = 1;
+pub const JOURNAL_VERSION: u32 = 2;
 /// First bytes of a journal file.
 const FILE_MAGIC: [u8; 8] = *b"SHOALJNL";
 /// Bytes of the file header (magic, journal version, schema version).
@@ -189,9 +189,12 @@ fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) 
     e.f64s(&h.pose_ck.q);
     e.f64s(&h.intrinsics.pinhole);
     e.f64s(&h.intrinsics.distortion);
-    for v in [h.width, h.height, h.n_keypoints, h.reserved] {
+    for v in [h.width, h.height, h.n_keypoints, h.inertial] {
         e.u32(v);
     }
+    e.f64s(&h.velocity_w);
+    e.f64s(&h.gyro_bias);
+    e.f64s(&h.accel_bias);
     e.u32(records.len() as u32);
     for r in records {
         for v in [r.u, r.v, r.angle, r.response] {
@@ -224,7 +227,10 @@ fn decode_keyframe(p: &[u8]) -> Option<Entry> {
         width: d.u32()?,
         height: d.u32()?,
         n_keypoints: d.u32()?,
-        reserved: d.u32()?,
+        inertial: d.u32()?,
+        velocity_w: d.f64s()?,
+        gyro_bias: d.f64s()?,
+        accel_bias: d.f64s()?,
     });
     let n = d.u32()? as usize;
     if n > d.0.len() / 64 {

@@ -69,6 +69,11 @@ pub struct Status {
     /// the service, written atomically with the counters so that the two always agree.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub resume: Option<serde_json::Value>,
+    /// The service's own report section beyond counters (the tracker's visual-inertial
+    /// state, ...): its typed struct ([`Status::set_details`]), read back with the same type
+    /// ([`Status::details_as`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub details: Option<serde_json::Value>,
 }
 
 /// A crash-recovery state as kept in the status file: the service's own struct with its
@@ -116,6 +121,17 @@ impl Status {
             .map(|(k, v)| (k.clone(), serde_json::Value::from(*v)))
             .collect();
         serde_json::from_value(serde_json::Value::Object(m)).unwrap_or_default()
+    }
+
+    /// Keeps `d` as the service's report section.
+    pub fn set_details<T: Serialize>(&mut self, d: &T) {
+        self.details = serde_json::to_value(d).ok();
+    }
+
+    /// The service's report section as its typed struct (`None` when absent or of another
+    /// shape).
+    pub fn details_as<T: DeserializeOwned>(&self) -> Option<T> {
+        serde_json::from_value(self.details.clone()?).ok()
     }
 
     /// Keeps `state`, format `version`, as the crash-recovery state.

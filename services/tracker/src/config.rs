@@ -16,11 +16,133 @@ pub enum LocalMapping {
     Inline,
 }
 
+/// What a client runs (`shoal run --mode`; `tracker.mode`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ClientMode {
+    /// `vio` when the client's dataset has an IMU stream and camera-IMU extrinsics, else
+    /// `mono` (the launcher decides per client and writes the decision into each tracker's
+    /// configuration; a tracker started by hand with `auto` runs `mono`).
+    #[default]
+    Auto,
+    /// Monocular visual odometry (seed ch. 3): up to scale; the gyro only de-rotates
+    /// rolling-shutter rows.
+    Mono,
+    /// Visual-inertial (seed ch. 5): inertial initialisation, IMU-predicted tracking,
+    /// metric and gravity-aligned poses.
+    Vio,
+}
+
+impl ClientMode {
+    /// Its name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Mono => "mono",
+            Self::Vio => "vio",
+        }
+    }
+}
+
+/// The IMU calibration a visual-inertial client uses (`[tracker.imu]`): the launcher
+/// writes it per client from the dataset's `imu0/sensor.yaml` (EuRoC keys; the IMU
+/// intrinsics of seed eq. 2.53-2.56 when given). Noise densities are continuous-time, as in
+/// Kalibr's `imu.yaml`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ImuCalibConfig {
+    /// Gyro white noise density, rad/s/√Hz.
+    pub gyroscope_noise_density: f64,
+    /// Accelerometer white noise density, m/s²/√Hz.
+    pub accelerometer_noise_density: f64,
+    /// Gyro bias random walk, rad/s²/√Hz.
+    pub gyroscope_random_walk: f64,
+    /// Accelerometer bias random walk, m/s³/√Hz.
+    pub accelerometer_random_walk: f64,
+    /// Gyro scale and misalignment `T_g`, row-major (identity when not given).
+    pub t_g: [f64; 9],
+    /// Gyro g-sensitivity `T_s`, rad/s per m/s², row-major (zero when not given).
+    pub t_s: [f64; 9],
+    /// Accelerometer scale and misalignment `T_a`, row-major (identity when not given).
+    pub t_a: [f64; 9],
+    /// The camera-IMU extrinsics (the frames' `T_BS`) were given by the dataset; without
+    /// them the visual-inertial client does not initialise, and says so.
+    pub extrinsics_given: bool,
+    /// Where these values come from (a file, or `default`: EuRoC's ADIS16448 figures).
+    pub source: String,
+}
+
+const IDENTITY3: [f64; 9] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+
+impl Default for ImuCalibConfig {
+    /// EuRoC's ADIS16448 noise, ideal intrinsics, extrinsics not given.
+    fn default() -> Self {
+        Self {
+            gyroscope_noise_density: 1.6968e-4,
+            accelerometer_noise_density: 2.0e-3,
+            gyroscope_random_walk: 1.9393e-5,
+            accelerometer_random_walk: 3.0e-3,
+            t_g: IDENTITY3,
+            t_s: [0.0; 9],
+            t_a: IDENTITY3,
+            extrinsics_given: false,
+            source: "default".into(),
+        }
+    }
+}
+
+impl ImuCalibConfig {
+    /// Checks the values (finite, densities ≥ 0, `T_g` and `T_a` invertible) and builds the
+    /// preintegration settings; the error names the key.
+    pub fn preintegration(&self) -> Result<slam_core::imu::PreintegrationParams, String> {
+        use nalgebra::Matrix3;
+        let densities = [
+            ("gyroscope_noise_density", self.gyroscope_noise_density),
+            (
+                "accelerometer_noise_density",
+                self.accelerometer_noise_density,
+            ),
+            ("gyroscope_random_walk", self.gyroscope_random_walk),
+            ("accelerometer_random_walk", self.accelerometer_random_walk),
+        ];
+        if let Some((k, v)) = densities
+            .iter()
+            .find(|(_, v)| !(v.is_finite() && *v >= 0.0))
+        {
+            return Err(format!("tracker.imu.{k} = {v}: must be finite and >= 0"));
+        }
+        let mat = |m: &[f64; 9], key: &str| {
+            if m.iter().all(|v| v.is_finite()) {
+                Ok(Matrix3::from_row_slice(m))
+            } else {
+                Err(format!("tracker.imu.{key} has a non-finite element"))
+            }
+        };
+        let noise = slam_core::imu::ImuNoise {
+            gyro_noise_density: self.gyroscope_noise_density,
+            accel_noise_density: self.accelerometer_noise_density,
+            gyro_bias_rw: self.gyroscope_random_walk,
+            accel_bias_rw: self.accelerometer_random_walk,
+        };
+        let intrinsics = slam_core::imu::ImuIntrinsics {
+            t_g: mat(&self.t_g, "t_g")?,
+            t_s: mat(&self.t_s, "t_s")?,
+            t_a: mat(&self.t_a, "t_a")?,
+        };
+        slam_core::imu::PreintegrationParams::new(&noise, &intrinsics)
+            .map_err(|e| format!("tracker.imu: {e}"))
+    }
+}
+
 /// Everything the tracker service can be configured with (the launcher's wiring, client
 /// index, status file, spool and replay mode, stays on its command line).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrackerConfig {
+    /// What the client runs: `"auto"`, `"mono"` or `"vio"` ([`ClientMode`]).
+    pub mode: ClientMode,
+    /// The IMU calibration of the visual-inertial mode.
+    pub imu: ImuCalibConfig,
     /// Most keyframes in the client map (seed: N = 100); older ones go to the server.
     pub window: usize,
     /// ORB features per frame.
@@ -48,6 +170,8 @@ pub struct TrackerConfig {
 impl Default for TrackerConfig {
     fn default() -> Self {
         Self {
+            mode: ClientMode::Auto,
+            imu: ImuCalibConfig::default(),
             window: 100,
             features: 1000,
             rolling_shutter: true,
@@ -65,6 +189,9 @@ impl Default for TrackerConfig {
 /// The tracker's options as command-line flags (each overrides its [`TrackerConfig`] key).
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct TrackerFlags {
+    /// What the client runs (`mode`).
+    #[arg(long = "client-mode", value_enum)]
+    pub client_mode: Option<ClientMode>,
     /// Most keyframes in the client map (`window`).
     #[arg(long)]
     pub window: Option<usize>,
@@ -100,6 +227,9 @@ pub struct TrackerFlags {
 impl TrackerFlags {
     /// Sets the keys of `cfg` that these flags give.
     pub fn apply(&self, cfg: &mut TrackerConfig) {
+        if let Some(m) = self.client_mode {
+            cfg.mode = m;
+        }
         if let Some(v) = self.window {
             cfg.window = v;
         }

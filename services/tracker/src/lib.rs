@@ -93,7 +93,8 @@ pub mod spool;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
 
-pub use config::{LocalMapping, TrackerConfig, TrackerFlags};
+pub use config::{ClientMode, ImuCalibConfig, LocalMapping, TrackerConfig, TrackerFlags};
+pub use core::VioReport;
 pub use ports::run;
 
 /// The service's name in reports.

@@ -90,7 +90,7 @@ pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg
         width,
         height,
         n_keypoints: n as u32,
-        reserved: 0,
+        ..KeyframeHeader::default()
     };
     KeyframeMsg {
         header,

@@ -64,6 +64,50 @@ pub struct TrackerCounters {
     pub local_mapping_thread: Option<u64>,
     /// Lock-step: waits for local mapping that timed out.
     pub local_mapping_sync_timeouts: u64,
+    /// Visual-inertial mode: frames tracked with the IMU (its predicted pose as the search
+    /// window and prior; metric and gravity-aligned).
+    pub frames_vio: u64,
+    /// Visual-inertial mode: frames posed by the IMU alone (a visual dropout).
+    pub frames_inertial: u64,
+    /// Visual-inertial mode: frames with only a gyro-propagated orientation (before the
+    /// inertial initialisation, when vision gave no pose).
+    pub frames_orientation_only: u64,
+    /// IMU samples not used: non-finite or saturated values.
+    pub imu_samples_refused: u64,
+    /// Gaps in the IMU stream longer than the visual-inertial client bridges.
+    pub imu_gaps: u64,
+    /// World moves published (the inertial initialisation and its refinements).
+    pub world_moves: u64,
+}
+
+/// The visual-inertial client's state, in the tracker's status (`details`) and the run
+/// report (`clients[i].vio`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct VioReport {
+    /// Where the inertial initialisation stands: `collecting`, `refused`, `initialised`,
+    /// or `disabled` (it cannot run: see `reason`).
+    pub status: String,
+    /// Why it is not initialised (the last refusal, or what is missing), if so.
+    pub reason: Option<String>,
+    /// Attempts of the inertial initialisation (all sessions).
+    pub attempts: u64,
+    /// Refinements done after the initialisation (0-2).
+    pub refinements: u64,
+    /// Frame time of the first initialisation, ns (IMU clock).
+    pub initialised_t_ns: Option<i64>,
+    /// Seconds of keyframes (from the session's first) it took.
+    pub initialised_after_s: Option<f64>,
+    /// Scale found by the first initialisation (metric / monocular).
+    pub scale: Option<f64>,
+    /// Its 1σ, % (of `log scale`).
+    pub scale_sigma_percent: Option<f64>,
+    /// 1σ of the gravity direction at the last (re)initialisation, degrees.
+    pub gravity_sigma_deg: Option<f64>,
+    /// Gyro bias at the last (re)initialisation, rad/s (effective, body frame).
+    pub gyro_bias: Option<[f64; 3]>,
+    /// Accelerometer bias at the last (re)initialisation, m/s².
+    pub accel_bias: Option<[f64; 3]>,
 }
 
 /// Format version of [`TrackerResume`].

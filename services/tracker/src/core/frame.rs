@@ -4,7 +4,7 @@
 //! server-map pose, seed eq. 3.1, 3.4).
 use nalgebra::{Isometry3, Vector3};
 use shm_schema::{
-    stage, FrameAck, FrameHeader, MsgMeta, Pose, TrackState, TrackedPose, FLAG_BACKFILL,
+    stage, FrameAck, FrameHeader, MsgMeta, Pose, PoseSource, TrackState, TrackedPose, FLAG_BACKFILL,
 };
 use shoal_runtime::ErrorKind;
 use slam_core::features::GrayImage;
@@ -55,6 +55,10 @@ pub struct Tracked {
     stage_ms: [f32; stage::COUNT],
     /// Poses of frames seen while initialising, `(t_ns, T_cw)`.
     backfill: Vec<(i64, Isometry3<f64>)>,
+    /// Where the pose came from.
+    source: PoseSource,
+    /// The pose is in a metric, gravity-aligned world.
+    metric: bool,
 }
 
 impl Tracked {
@@ -71,6 +75,8 @@ impl Tracked {
             vo_session: session,
             stage_ms: [0.0; stage::COUNT],
             backfill: vec![],
+            source: PoseSource::None,
+            metric: false,
         }
     }
 
@@ -79,6 +85,7 @@ impl Tracked {
         self.state = shoal_runtime::wire::track_state_from_vo(o.state);
         if self.state == TrackState::Tracking {
             self.t_cw = o.t_cw;
+            self.source = PoseSource::Visual;
         }
         self.tracked = o.tracked as u32;
         self.is_keyframe = o.keyframe.is_some();
@@ -319,6 +326,9 @@ impl TrackerCore {
             frame_publish_mono_ns: h.meta.publish_mono_ns,
             frame_receive_mono_ns: t.recv_ns,
             stage_ms,
+            source: t.source as u32,
+            metric: t.metric as u32,
+            world_scale: 0.0,
         }
     }
 

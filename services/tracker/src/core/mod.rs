@@ -25,7 +25,7 @@ mod server;
 #[cfg(test)]
 mod tests;
 
-pub use counters::{TrackerCounters, TrackerResume, RESUME_VERSION};
+pub use counters::{TrackerCounters, TrackerResume, VioReport, RESUME_VERSION};
 pub use frame::{FrameIn, FrameStep, Tracked};
 pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 
