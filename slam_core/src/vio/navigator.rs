@@ -243,6 +243,9 @@ impl Navigator {
         nav.p += Vector3::new(dx[0], dx[1], dx[2]);
         nav.v += Vector3::new(dx[3], dx[4], dx[5]);
         nav.r = t_wb.rotation.to_rotation_matrix();
+        // The pose stays vision's (the next prediction starts from the tracked frame, as
+        // ORB-SLAM3's); the filter gives the velocity.
+        nav.p = z;
         let mut ikh = Matrix6::<f64>::identity();
         for r in 0..6 {
             for c in 0..3 {
