@@ -19,6 +19,7 @@ pub mod rolling_shutter;
 pub mod server;
 pub mod sessions;
 pub mod twoview;
+pub mod vio;
 pub mod vo;
 
 pub use error::CoreError;

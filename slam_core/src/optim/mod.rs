@@ -17,7 +17,9 @@ pub mod block_sparse;
 pub mod pose_only;
 pub mod robust;
 
-pub use pose_only::{PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, Velocity};
+pub use pose_only::{
+    PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, PosePrior, Velocity,
+};
 pub use robust::RobustKernel;
 
 /// ORB-SLAM's information of a keypoint detected at pyramid level `octave` with scale factor

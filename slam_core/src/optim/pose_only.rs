@@ -27,6 +27,16 @@
 //! is an input (e.g. from the motion model or IMU), not estimated. `velocity = None` or
 //! `dt = 0` is the global-shutter case.
 //!
+//! **Pose prior** ([`PoseOptParams::prior`], `VI_NOTES.md` §4 Table 5.1 "tracking = new pose
+//! vs reprojections + IMU prior"): an optional Gaussian prior on the pose, e.g. the pose the
+//! IMU predicts. Its residual is `r = [Log(R_cw R_prior,cwᵀ); c - c_prior]` (rotation in the
+//! camera frame, then the camera centre `c = -R_cwᵀ t_cw` in the world frame), weighted by
+//! a 6x6 information in that order; to first order `∂r/∂δ = [I 0; 0 -R_cwᵀ]` for the left
+//! increment `δ = [ω; v]` (the centre does not move with `ω`, so a strong rotation prior does
+//! not leak into the translation through the world origin's lever arm). It is added, without
+//! a robust kernel, to every LM round's cost and normal equations. Without a prior nothing
+//! changes: the code path is the same as before, and the result is bit-identical.
+//!
 //! **Memory.** [`PoseOptimizer`] keeps its per-observation buffers between calls; once they
 //! have grown to the largest problem, nothing is allocated.
 
@@ -76,6 +86,62 @@ impl Velocity {
     }
 }
 
+/// A Gaussian prior on the pose (module docs): `T_cw` and the 6x6 information of the
+/// residual `[rotation (camera frame, rad); camera centre (world frame, m)]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PosePrior {
+    /// The prior pose, world to camera at mid-row time.
+    pub t_cw: Isometry3<f64>,
+    /// Information of `[Log(R_cw R_priorᵀ); c - c_prior]` (rad⁻², m⁻²).
+    pub information: Matrix6<f64>,
+}
+
+impl PosePrior {
+    /// A prior with isotropic 1σ `sigma_rad` on the rotation and `sigma_m` on the camera
+    /// centre.
+    pub fn isotropic(t_cw: Isometry3<f64>, sigma_rad: f64, sigma_m: f64) -> Self {
+        let (ir, it) = (1.0 / (sigma_rad * sigma_rad), 1.0 / (sigma_m * sigma_m));
+        Self {
+            t_cw,
+            information: Matrix6::from_diagonal(&Vector6::new(ir, ir, ir, it, it, it)),
+        }
+    }
+
+    /// Residual `[Log(R_cw R_priorᵀ); c - c_prior]` at `t_cw`.
+    fn residual(&self, t_cw: &Isometry3<f64>) -> Vector6<f64> {
+        let dr = (t_cw.rotation * self.t_cw.rotation.inverse()).scaled_axis();
+        let c = t_cw.inverse_transform_vector(&-t_cw.translation.vector);
+        let c0 = self
+            .t_cw
+            .inverse_transform_vector(&-self.t_cw.translation.vector);
+        let dc = c - c0;
+        Vector6::new(dr.x, dr.y, dr.z, dc.x, dc.y, dc.z)
+    }
+
+    /// `rᵀ Ω r` at `t_cw`.
+    fn cost(&self, t_cw: &Isometry3<f64>) -> f64 {
+        let r = self.residual(t_cw);
+        r.dot(&(self.information * r))
+    }
+
+    /// Adds `Jᵀ Ω J` and `Jᵀ Ω r` at `t_cw` to the normal equations (`J = [I 0; 0 -R_cwᵀ]`).
+    fn add_to(&self, t_cw: &Isometry3<f64>, h: &mut Matrix6<f64>, g: &mut Vector6<f64>) {
+        let r = self.residual(t_cw);
+        let mut j = Matrix6::identity();
+        let r_wc = t_cw.rotation.inverse().to_rotation_matrix().into_inner();
+        j.fixed_view_mut::<3, 3>(3, 3).copy_from(&(-r_wc));
+        let jt_omega = j.transpose() * self.information;
+        *h += jt_omega * j;
+        *g += jt_omega * r;
+    }
+
+    fn is_finite(&self) -> bool {
+        self.information.iter().all(|x| x.is_finite())
+            && self.t_cw.translation.vector.iter().all(|x| x.is_finite())
+            && self.t_cw.rotation.coords.iter().all(|x| x.is_finite())
+    }
+}
+
 /// Parameters of [`PoseOptimizer::optimize`]; defaults are ORB-SLAM's.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PoseOptParams {
@@ -93,6 +159,8 @@ pub struct PoseOptParams {
     pub initial_lambda: f64,
     /// A round stops when the step norm falls below this (1e-10).
     pub min_step: f64,
+    /// A prior on the pose (none by default: pure reprojection, as ORB-SLAM).
+    pub prior: Option<PosePrior>,
 }
 
 impl Default for PoseOptParams {
@@ -105,6 +173,7 @@ impl Default for PoseOptParams {
             huber_delta: 5.991f64.sqrt(),
             initial_lambda: 1e-4,
             min_step: 1e-10,
+            prior: None,
         }
     }
 }
@@ -208,8 +277,9 @@ impl PoseOptimizer {
         obs: &[PoseObservation],
         inl: &[bool],
         k: &RobustKernel,
+        prior: Option<&PosePrior>,
     ) -> Option<f64> {
-        let mut c = 0.0;
+        let mut c = prior.map_or(0.0, |p| p.cost(t_cw));
         for (i, o) in obs.iter().enumerate() {
             if inl[i] {
                 let r = self.residual(cam, t_cw, i, o)?;
@@ -251,6 +321,11 @@ impl PoseOptimizer {
         if !finite(t_cw.translation.vector.as_slice()) || !finite(t_cw.rotation.coords.as_slice()) {
             return Err(CoreError::InvalidArgument(
                 "pose-only: non-finite initial pose".into(),
+            ));
+        }
+        if params.prior.as_ref().is_some_and(|p| !p.is_finite()) {
+            return Err(CoreError::InvalidArgument(
+                "pose-only: non-finite pose prior".into(),
             ));
         }
         if obs.iter().any(|o| {
@@ -328,7 +403,8 @@ impl PoseOptimizer {
         kernel: &RobustKernel,
         params: &PoseOptParams,
     ) -> (Isometry3<f64>, f64, usize) {
-        let Some(mut cost) = self.cost(cam, &pose, obs, inl, kernel) else {
+        let prior = params.prior.as_ref();
+        let Some(mut cost) = self.cost(cam, &pose, obs, inl, kernel, prior) else {
             // Some inlier is behind the camera: cost only the visible ones.
             return (pose, f64::INFINITY, 0);
         };
@@ -351,6 +427,9 @@ impl PoseOptimizer {
                     h += l.j.transpose() * l.j * w;
                     g += l.j.transpose() * l.r * w;
                 }
+                if let Some(p) = prior {
+                    p.add_to(&pose, &mut h, &mut g);
+                }
                 need_build = false;
             }
             iters += 1;
@@ -364,7 +443,7 @@ impl PoseOptimizer {
             };
             let delta = -chol.solve(&g);
             let cand = se3_exp(&delta) * pose;
-            match self.cost(cam, &cand, obs, inl, kernel) {
+            match self.cost(cam, &cand, obs, inl, kernel, prior) {
                 Some(c) if c.is_finite() && c <= cost => {
                     pose = cand;
                     cost = c;

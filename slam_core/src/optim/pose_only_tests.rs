@@ -284,3 +284,71 @@ fn bad_input_is_refused() {
         .expect("runs");
     assert_eq!(r.n_inliers, 0);
 }
+
+/// Without a prior (or with a zero-information one) the result is bit-identical to the
+/// plain optimisation; a strong prior pulls a poorly observed pose to itself, a weak one
+/// changes it little, and the centre part of the prior does not move the rotation.
+#[test]
+fn pose_prior_is_neutral_when_absent_and_pulls_when_present() {
+    let cam = PinholeRadtan::euroc_cam0();
+    let truth = true_pose();
+    let mut rng = Rng::new(7);
+    let (obs, _) = scene(&mut rng, &cam, &truth, 12, 0.0, None);
+    let init = perturb(&truth, 2.0, 0.05);
+    let run = |params: &PoseOptParams| {
+        let mut inl = vec![true; obs.len()];
+        PoseOptimizer::new()
+            .optimize(&cam, &init, &obs, None, params, &mut inl)
+            .expect("optimised")
+    };
+    let plain = run(&PoseOptParams::default());
+    let zero = run(&PoseOptParams {
+        prior: Some(PosePrior {
+            t_cw: perturb(&truth, 3.0, 0.2),
+            information: nalgebra::Matrix6::zeros(),
+        }),
+        ..PoseOptParams::default()
+    });
+    assert_eq!(plain, zero, "a zero-information prior changed the result");
+    // A strong prior 1 cm and 0.5° from the truth: the 12 noisy points are outweighed.
+    let target = perturb(&truth, 0.5, 0.01);
+    let strong = run(&PoseOptParams {
+        prior: Some(PosePrior::isotropic(target, 1e-5, 1e-5)),
+        ..PoseOptParams::default()
+    });
+    let (r_t, t_t) = pose_error(&strong.t_cw, &target);
+    let (r_p, t_p) = pose_error(&plain.t_cw, &target);
+    eprintln!(
+        "to the prior: plain {r_p:.4}° {:.2} mm, strong prior {r_t:.5}° {:.3} mm",
+        t_p * 1e3,
+        t_t * 1e3
+    );
+    assert!(r_t < 0.01 && t_t < 2e-4, "strong prior not followed");
+    assert!(
+        r_p > 0.2 && t_p > 5e-3,
+        "the test needs a prior away from the data"
+    );
+    // Weak prior (10°, 1 m): within 0.1 mm and 0.01° of the plain result.
+    let weak = run(&PoseOptParams {
+        prior: Some(PosePrior::isotropic(target, 0.17, 1.0)),
+        ..PoseOptParams::default()
+    });
+    let (r_w, t_w) = pose_error(&weak.t_cw, &plain.t_cw);
+    assert!(r_w < 0.01 && t_w < 1e-4, "weak prior moved {r_w}° {t_w} m");
+    // Centre-only prior: the centre follows it, the rotation stays near the data's.
+    let centre_only = {
+        let mut info = nalgebra::Matrix6::zeros();
+        for k in 3..6 {
+            info[(k, k)] = 1e10;
+        }
+        run(&PoseOptParams {
+            prior: Some(PosePrior {
+                t_cw: target,
+                information: info,
+            }),
+            ..PoseOptParams::default()
+        })
+    };
+    let (_, t_c) = pose_error(&centre_only.t_cw, &target);
+    assert!(t_c < 2e-4, "centre not pulled: {t_c}");
+}

@@ -204,6 +204,7 @@ mod tests {
             readout_ns: 0,
             features,
             points: vec![None; n],
+            inertial: None,
         }
     }
 

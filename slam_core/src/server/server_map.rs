@@ -219,6 +219,7 @@ impl ServerMap {
             readout_ns: kf.readout_ns,
             features: kf.features.clone(),
             points: points.to_vec(),
+            inertial: None,
         });
         for p in points.iter().flatten() {
             self.map.update_point(*p);

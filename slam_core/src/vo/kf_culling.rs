@@ -136,6 +136,7 @@ mod tests {
                 ..OrbFeatures::default()
             },
             points: vec![None; n],
+            inertial: None,
         }
     }
 

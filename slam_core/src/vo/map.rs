@@ -31,6 +31,18 @@ pub struct Keyframe {
     pub features: OrbFeatures,
     /// Map point seen by each keypoint.
     pub points: Vec<Option<PointId>>,
+    /// Velocity and biases when a visual-inertial client made it ([`crate::vio`]), in the
+    /// metric, gravity-aligned world of the map; `None` for a monocular keyframe.
+    pub inertial: Option<KeyframeInertial>,
+}
+
+/// The inertial state of a keyframe ([`Keyframe::inertial`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct KeyframeInertial {
+    /// Velocity of the body (IMU) in the world, m/s.
+    pub v_wb: Vector3<f64>,
+    /// Effective IMU biases (`crate::imu::preint` module docs).
+    pub biases: crate::imu::ImuBiases,
 }
 
 impl Keyframe {
@@ -96,9 +108,13 @@ impl ClientMap {
     /// gravity-aligned world of an inertial initialisation, `imu::init`): points
     /// `p' = s R p`, viewing directions `R n`, keyframe poses `T_c'w' = (R_cw Rᵀ, s t_cw)`
     /// (the camera frame keeps its orientation, its coordinates scale by `s`).
+    /// Keyframe velocities become `s R v` (their units scale with the world's).
     pub fn transform_world(&mut self, s: f64, r: &UnitQuaternion<f64>) {
         for kf in self.keyframes.values_mut() {
             kf.t_cw = transform_pose_cw(&kf.t_cw, s, r);
+            if let Some(i) = kf.inertial.as_mut() {
+                i.v_wb = r * (i.v_wb * s);
+            }
         }
         for p in self.points.values_mut() {
             p.p_w = r * (p.p_w * s);
@@ -458,6 +474,7 @@ mod tests {
                 ..OrbFeatures::default()
             },
             points: vec![None; n],
+            inertial: None,
         }
     }
 

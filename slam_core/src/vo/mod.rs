@@ -19,8 +19,8 @@ pub mod tracker;
 
 pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
 pub use kf_culling::{cull_redundant_keyframes, KfCullingParams};
-pub use map::{ClientMap, Keyframe, KfId, MapPoint, PointId};
+pub use map::{ClientMap, Keyframe, KeyframeInertial, KfId, MapPoint, PointId};
 pub use tracker::{
-    LocalMapper, LocalMappingRunner, LocalMappingStep, SharedMap, StageTimes, VoDiagnostic,
-    VoFrame, VoOutput, VoParams, VoState, VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,
+    LocalMapper, LocalMappingRunner, LocalMappingStep, PoseHint, SharedMap, StageTimes,
+    VoDiagnostic, VoFrame, VoOutput, VoParams, VoState, VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,
 };

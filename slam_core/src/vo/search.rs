@@ -365,6 +365,7 @@ mod tests {
             readout_ns: 0,
             features: feats.clone(),
             points: vec![None; pts.len()],
+            inertial: None,
         });
         for (i, p) in pts.iter().enumerate() {
             map.add_point(*p, 0, &[(0, i as u32)]);

@@ -16,7 +16,7 @@ use super::{KeyframeRule, KeyframeRuleParams};
 use crate::camera::PinholeRadtan;
 use crate::features::{FeatureGrid, GrayImage, OrbExtractor, OrbFeatures, OrbParams};
 use crate::lie::{se3_exp, se3_log};
-use crate::optim::{PoseObservation, PoseOptimizer, Velocity};
+use crate::optim::{PoseObservation, PoseOptimizer, PosePrior, Velocity};
 use crate::CoreError;
 
 /// Parameters of the VO.
@@ -228,6 +228,28 @@ pub struct VoFrame<'a> {
     pub angular_velocity: Option<Vector3<f64>>,
 }
 
+/// An outside prediction of a frame's pose for tracking, e.g. the IMU's ([`crate::vio`]):
+/// it replaces the motion model's prediction in the projection search and in the
+/// rolling-shutter model, and may add a prior to the pose optimisation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseHint {
+    /// Predicted pose, world to camera at the frame's mid-row time.
+    pub t_cw: Isometry3<f64>,
+    /// Camera twist during the readout (camera frame, rad/s and m/s) for the rolling-shutter
+    /// model of the pose optimiser; `None`: global-shutter model.
+    pub velocity: Option<Velocity>,
+    /// Prior on the pose in the pose optimisations of this frame's tracking (its `t_cw` is
+    /// normally the prediction's).
+    pub prior: Option<PosePrior>,
+    /// The frame follows a visual dropout: the local map is first searched around the
+    /// prediction in a window of this radius (pixels at octave 0), and a pose found so
+    /// counts as a relocalisation (the motion model restarts).
+    pub rejoin_radius: Option<f32>,
+    /// A failed frame does not start a new session, however many failed before it (the
+    /// caller coasts on the IMU meanwhile).
+    pub hold_session: bool,
+}
+
 struct LastFrame {
     t_ns: i64,
     t_cw: Isometry3<f64>,
@@ -288,6 +310,8 @@ pub struct VoTracker {
     failures: u32,
     /// The current frame's keypoints were rotated to its mid-row time.
     derotated: bool,
+    /// The outside prediction of the frame being processed ([`VoTracker::process_with_hint`]).
+    hint: Option<PoseHint>,
     // Reusable buffers.
     feats: OrbFeatures,
     /// Matching by projection (last frame, local map).
@@ -344,6 +368,7 @@ impl VoTracker {
             frames_since_kf: 0,
             failures: 0,
             derotated: false,
+            hint: None,
             feats: OrbFeatures::with_capacity(params.orb.n_features),
             matcher: LocalMapMatcher::new(),
             frame_points: Vec::new(),
@@ -390,6 +415,28 @@ impl VoTracker {
 
     /// Processes one frame.
     pub fn process(&mut self, frame: &VoFrame<'_>) -> Result<VoOutput, CoreError> {
+        self.process_with_hint(frame, None)
+    }
+
+    /// Processes one frame with an outside prediction of its pose ([`PoseHint`]; used
+    /// once the map is initialised, ignored before). `None` is [`VoTracker::process`].
+    pub fn process_with_hint(
+        &mut self,
+        frame: &VoFrame<'_>,
+        hint: Option<&PoseHint>,
+    ) -> Result<VoOutput, CoreError> {
+        self.hint = hint.copied();
+        let res = self.process_frame(frame);
+        self.hint = None;
+        res
+    }
+
+    /// Consecutive frames that failed to track (0 while tracking).
+    pub fn frames_failed(&self) -> u32 {
+        self.failures
+    }
+
+    fn process_frame(&mut self, frame: &VoFrame<'_>) -> Result<VoOutput, CoreError> {
         let start = Instant::now();
         let mut times = StageTimes::default();
         let mut timings = crate::features::OrbTimings::default();
@@ -553,6 +600,16 @@ impl VoTracker {
     /// Only raises the counter.
     pub fn start_keyframe_ids_at(&mut self, first: KfId) {
         self.next_kf_id = self.next_kf_id.max(first);
+    }
+
+    /// Sets the inertial state of keyframe `id` (visual-inertial client, [`crate::vio`]);
+    /// `false` when the map has no such keyframe. Locks the map.
+    pub fn set_keyframe_inertial(&self, id: KfId, inertial: super::map::KeyframeInertial) -> bool {
+        lock(&self.shared)
+            .keyframes
+            .get_mut(&id)
+            .map(|kf| kf.inertial = Some(inertial))
+            .is_some()
     }
 
     /// Reads the client map (locks it; the local-mapping thread waits meanwhile).

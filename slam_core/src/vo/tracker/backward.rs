@@ -173,7 +173,7 @@ impl VoTracker {
         }
         let mut ok = false;
         if n >= 20 {
-            if let Some((pose, inliers)) = self.optimize(f.readout_ns, feats, &t_cw, None) {
+            if let Some((pose, inliers)) = self.optimize(f.readout_ns, feats, &t_cw, None, None) {
                 ok = inliers >= 10;
                 t_cw = if ok { pose } else { t_cw };
             }
@@ -182,7 +182,8 @@ impl VoTracker {
         if !ok {
             self.frame_points.iter_mut().for_each(|p| *p = None);
             if self.match_reference_keyframe(feats) >= 15 {
-                if let Some((pose, inliers)) = self.optimize(f.readout_ns, feats, &t_cw, None) {
+                if let Some((pose, inliers)) = self.optimize(f.readout_ns, feats, &t_cw, None, None)
+                {
                     ok = inliers >= 10;
                     t_cw = pose;
                 }
@@ -193,7 +194,7 @@ impl VoTracker {
         }
         self.gather_local_map_candidates();
         self.search(&t_cw, feats, &ProjSearchParams::local_map());
-        let (pose, inliers) = self.optimize(f.readout_ns, feats, &t_cw, None)?;
+        let (pose, inliers) = self.optimize(f.readout_ns, feats, &t_cw, None, None)?;
         (inliers >= self.params.min_inliers).then_some(pose)
     }
 }

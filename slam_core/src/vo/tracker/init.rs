@@ -226,6 +226,7 @@ impl VoTracker {
             readout_ns: 0,
             features: reference.features,
             points: vec![None; n1],
+            inertial: None,
         });
         self.map.insert_keyframe(Keyframe {
             id: id2,
@@ -235,6 +236,7 @@ impl VoTracker {
             readout_ns: frame.readout_ns,
             features: feats.clone(),
             points: vec![None; feats.len()],
+            inertial: None,
         });
         // Reference feature -> (point, position) for the backfill.
         let mut ref_points = vec![None; n1];

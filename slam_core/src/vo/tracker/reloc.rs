@@ -88,7 +88,8 @@ impl VoTracker {
                     self.frame_points[i] = Some(p);
                 }
             }
-            let Some((pose, inl)) = self.optimize(frame.readout_ns, feats, &res.t_cw, None) else {
+            let Some((pose, inl)) = self.optimize(frame.readout_ns, feats, &res.t_cw, None, None)
+            else {
                 continue;
             };
             if inl >= MIN_MATCHES {

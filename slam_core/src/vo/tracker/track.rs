@@ -6,7 +6,7 @@ use nalgebra::Isometry3;
 
 use super::{LastFrame, VoFrame, VoOutput, VoState, VoTracker};
 use crate::features::{match_brute_force, rotation_consistency, MatchParams, OrbFeatures};
-use crate::optim::{PoseOptParams, Velocity};
+use crate::optim::{PoseOptParams, PosePrior, Velocity};
 use crate::vo::local_mapping::create_points_with_neighbours;
 use crate::vo::map::{Keyframe, KfId};
 use crate::vo::search::{pose_observations, ProjSearchParams};
@@ -36,7 +36,7 @@ impl VoTracker {
         feats: &OrbFeatures,
         out: &mut VoOutput,
     ) -> Result<(), CoreError> {
-        let Some((pred, vel)) = self.predict(frame.t_ns) else {
+        let Some((pred, vel)) = self.prediction(frame.t_ns) else {
             self.state = VoState::NotInitialized;
             return Ok(());
         };
@@ -65,6 +65,20 @@ impl VoTracker {
         self.keyframe_decision(frame, feats, t_cw, tracked, out);
         self.remember_last_frame(frame.t_ns, t_cw, feats);
         Ok(())
+    }
+
+    /// The frame's predicted pose and camera velocity: the outside hint's when there is
+    /// one (and a last frame), else the motion model's.
+    fn prediction(&self, t_ns: i64) -> Option<(Isometry3<f64>, Option<Velocity>)> {
+        match &self.hint {
+            Some(h) if self.last.is_some() => Some((h.t_cw, h.velocity)),
+            _ => self.predict(t_ns),
+        }
+    }
+
+    /// The pose prior of the outside hint, if any.
+    fn prior(&self) -> Option<PosePrior> {
+        self.hint.and_then(|h| h.prior)
     }
 
     /// The motion model's velocity for the rolling-shutter compensation (none without a
@@ -99,6 +113,12 @@ impl VoTracker {
             t_cw,
             relocalized: false,
         };
+        if let Some(t_cw) = self.track_around_prediction(frame, feats, pred, vel, out) {
+            return Some(FirstPose {
+                t_cw,
+                relocalized: true,
+            });
+        }
         if let Some(t_cw) = self.track_motion_model(frame, feats, pred, vel, out) {
             return Some(tracked(t_cw));
         }
@@ -126,7 +146,8 @@ impl VoTracker {
         out: &mut VoOutput,
     ) -> Option<Isometry3<f64>> {
         let m0 = Instant::now();
-        if self.velocity.is_none() || self.state != VoState::Tracking {
+        let predicted = self.velocity.is_some() || self.hint.is_some();
+        if !predicted || self.state != VoState::Tracking {
             return None;
         }
         self.gather_last_frame_candidates();
@@ -146,6 +167,37 @@ impl VoTracker {
         self.optimize_timed(frame, feats, pred, vel, out)
     }
 
+    /// Step 0, after a dropout with an outside prediction ([`super::PoseHint::rejoin_radius`]):
+    /// the local map searched around the prediction in a wide window, then pose
+    /// optimisation from it.
+    fn track_around_prediction(
+        &mut self,
+        frame: &VoFrame<'_>,
+        feats: &OrbFeatures,
+        pred: &Isometry3<f64>,
+        vel: Option<&Velocity>,
+        out: &mut VoOutput,
+    ) -> Option<Isometry3<f64>> {
+        let radius = self.hint.and_then(|h| h.rejoin_radius)?;
+        if self.state == VoState::Tracking {
+            return None;
+        }
+        let m0 = Instant::now();
+        self.frame_points.iter_mut().for_each(|p| *p = None);
+        self.gather_local_map_candidates();
+        let wide = ProjSearchParams {
+            radius,
+            ..ProjSearchParams::motion_model()
+        };
+        let n = self.search(pred, feats, &wide);
+        out.times.matching += ms_since(m0);
+        if n < 20 {
+            self.frame_points.iter_mut().for_each(|p| *p = None);
+            return None;
+        }
+        self.optimize_timed(frame, feats, pred, vel, out)
+    }
+
     /// Pose optimisation from `guess` (timed as `pose_opt`); the pose when it keeps at
     /// least 10 inliers.
     fn optimize_timed(
@@ -157,7 +209,8 @@ impl VoTracker {
         out: &mut VoOutput,
     ) -> Option<Isometry3<f64>> {
         let p0 = Instant::now();
-        let res = self.optimize(frame.readout_ns, feats, guess, vel);
+        let prior = self.prior();
+        let res = self.optimize(frame.readout_ns, feats, guess, vel, prior.as_ref());
         out.times.pose_opt += ms_since(p0);
         res.filter(|&(_, inliers)| inliers >= 10)
             .map(|(t_cw, _)| t_cw)
@@ -201,7 +254,8 @@ impl VoTracker {
         self.search(&t_cw, feats, &ProjSearchParams::local_map());
         out.times.matching += ms_since(m2);
         let p2 = Instant::now();
-        let res = self.optimize(frame.readout_ns, feats, &t_cw, vel);
+        let prior = self.prior();
+        let res = self.optimize(frame.readout_ns, feats, &t_cw, vel, prior.as_ref());
         out.times.pose_opt += ms_since(p2);
         res.unwrap_or((t_cw, 0))
     }
@@ -210,7 +264,8 @@ impl VoTracker {
     fn count_failure(&mut self, out: &mut VoOutput) {
         self.failures += 1;
         self.state = VoState::Lost;
-        if self.failures >= self.params.max_failures {
+        let hold = self.hint.is_some_and(|h| h.hold_session);
+        if self.failures >= self.params.max_failures && !hold {
             self.start_new_session(out);
         }
     }
@@ -351,6 +406,7 @@ impl VoTracker {
         feats: &OrbFeatures,
         guess: &Isometry3<f64>,
         vel: Option<&Velocity>,
+        prior: Option<&PosePrior>,
     ) -> Option<(Isometry3<f64>, usize)> {
         pose_observations(
             &self.map,
@@ -365,7 +421,10 @@ impl VoTracker {
         }
         self.inliers.clear();
         self.inliers.resize(self.obs.len(), true);
-        let params = PoseOptParams::default();
+        let params = PoseOptParams {
+            prior: prior.copied(),
+            ..PoseOptParams::default()
+        };
         let res = self
             .optimizer
             .optimize(
@@ -425,6 +484,7 @@ impl VoTracker {
             readout_ns: frame.readout_ns,
             features: feats.clone(),
             points: self.frame_points.clone(),
+            inertial: None,
         };
         self.map.insert_keyframe(kf);
         for p in self.frame_points.iter().flatten() {

@@ -1,0 +1,375 @@
+//! The visual-inertial client core (`slam_core::vio`, issue 17) on rendered sim scenarios,
+//! against the monocular VO on the same frames: ATE with an SE(3) alignment (no scale), the
+//! scale error (Sim(3) alignment scale), the time to initialise, the frames posed, and a
+//! 2 s blackout bridged on the IMU. Frames are fed on the IMU clock (the ingest applies
+//! t_d), the IMU up to 50 ms after each frame (as the tracker service has it by then).
+use std::collections::HashMap;
+
+use datasets::sim::{Scenario, SimParams, SimWorld};
+use nalgebra::{Isometry3, Vector3};
+use slam_core::geometry::umeyama;
+use slam_core::imu::{ImuMeasurement, PreintegrationParams};
+use slam_core::vio::{NavParams, Navigator, PoseSource, VioParams, VioStatus, VioTracker};
+use slam_core::vo::map::transform_pose_cw;
+use slam_core::vo::{VoFrame, VoParams, VoTracker};
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Mode {
+    Mono,
+    Vio { prior: bool },
+}
+
+/// One run: each frame's final pose (earlier poses re-expressed at each world move).
+struct Run {
+    times: Vec<i64>,
+    poses: Vec<Option<Isometry3<f64>>>,
+    sources: Vec<PoseSource>,
+    orientations: usize,
+    new_sessions: usize,
+    /// Seconds from the first frame to the initialisation.
+    init_s: Option<f64>,
+    status: Option<VioStatus>,
+}
+
+fn world(scenario: Scenario, seconds: f64) -> SimWorld {
+    let mut p = SimParams::new(scenario);
+    p.seed = 3;
+    p.frames = Some((seconds * p.rate_hz) as usize);
+    SimWorld::new(p).expect("sim world")
+}
+
+fn imu_at(world: &SimWorld, k: usize) -> ImuMeasurement {
+    let s = world.imu_samples()[k];
+    ImuMeasurement {
+        t_ns: s.t_ns,
+        gyro: Vector3::from(s.gyro),
+        accel: Vector3::from(s.accel),
+    }
+}
+
+fn vio_params(world: &SimWorld, prior: bool) -> VioParams {
+    let sensor = world.params();
+    let preint = PreintegrationParams::new(&sensor.noise, &sensor.imu_intrinsics).expect("preint");
+    VioParams {
+        pose_prior: prior,
+        imu_tracking: std::env::var("SHOAL_VIO_IMU_TRACKING").is_ok(),
+        ..VioParams::new(preint, world.calib().t_bs)
+    }
+}
+
+fn run(world: &SimWorld, mode: Mode) -> Run {
+    let cam = world.calib().model;
+    let vo = VoTracker::new(VoParams::default(), cam).expect("vo");
+    let mut mono =
+        (mode == Mode::Mono).then(|| VoTracker::new(VoParams::default(), cam).expect("vo"));
+    let mut vio = match mode {
+        Mode::Vio { prior } => Some(VioTracker::new(vo, vio_params(world, prior))),
+        Mode::Mono => None,
+    };
+    let r_cb = world.calib().t_bs.rotation.inverse();
+    let gyro: Vec<(i64, Vector3<f64>)> = world
+        .imu_samples()
+        .iter()
+        .map(|s| (s.t_ns, Vector3::from(s.gyro)))
+        .collect();
+    let n = world.n_frames();
+    let mut r = Run {
+        times: (0..n).map(|k| world.frame_capture_time_ns(k)).collect(),
+        poses: vec![None; n],
+        sources: vec![PoseSource::None; n],
+        orientations: 0,
+        new_sessions: 0,
+        init_s: None,
+        status: None,
+    };
+    let index: HashMap<i64, usize> = r.times.iter().enumerate().map(|(k, &t)| (t, k)).collect();
+    let mut session_start = 0;
+    let mut next_imu = 0;
+    let mut img = vec![0u8; (cam.width * cam.height) as usize];
+    for k in 0..n {
+        let t_ns = r.times[k];
+        while next_imu < gyro.len() && gyro[next_imu].0 <= t_ns + 50_000_000 {
+            if let Some(v) = vio.as_mut() {
+                v.on_imu(imu_at(world, next_imu)).expect("valid IMU");
+            }
+            next_imu += 1;
+        }
+        let frame = VoFrame {
+            t_ns,
+            ..world.vo_frame(k, &mut img).expect("render")
+        };
+        let (vo_out, t_cw, source) = match (mono.as_mut(), vio.as_mut()) {
+            (Some(vo), _) => {
+                let half = world.readout_ns() / 2;
+                let angular_velocity = (half > 0)
+                    .then(|| slam_core::imu::mean_rate(&gyro, t_ns - half, t_ns + half))
+                    .flatten()
+                    .map(|w_b| r_cb * w_b);
+                let o = vo
+                    .process(&VoFrame {
+                        angular_velocity,
+                        ..frame
+                    })
+                    .expect("vo");
+                let t_cw = o.t_cw;
+                let src = if t_cw.is_some() {
+                    PoseSource::Visual
+                } else {
+                    PoseSource::None
+                };
+                (o, t_cw, src)
+            }
+            (None, Some(v)) => {
+                let o = v.process(&frame).expect("vio");
+
+                if let Some(m) = o.world_move {
+                    for p in r.poses[session_start..k].iter_mut().flatten() {
+                        *p = transform_pose_cw(p, m.scale, &m.rotation);
+                    }
+                    if m.initialisation {
+                        r.init_s = Some((t_ns - r.times[0]) as f64 * 1e-9);
+                    }
+                }
+                r.orientations += usize::from(o.source == PoseSource::OrientationOnly);
+                (o.vo, o.t_cw, o.source)
+            }
+            _ => unreachable!(),
+        };
+        if vo_out.new_session {
+            r.new_sessions += 1;
+            session_start = k;
+        }
+        for (t, p) in &vo_out.backfill {
+            if let Some(&j) = index.get(t) {
+                if j >= session_start {
+                    r.poses[j] = Some(*p);
+                }
+            }
+        }
+        r.poses[k] = t_cw;
+        r.sources[k] = source;
+    }
+    r.status = vio.map(|v| v.status());
+    r
+}
+
+/// Alignment of the run's camera centres (frames `range` only) to the truth; returns
+/// (RMSE over the aligned frames, alignment scale, residual per frame).
+fn align(world: &SimWorld, r: &Run, with_scale: bool) -> (f64, f64, Vec<Option<f64>>) {
+    let mut src = Vec::new();
+    let mut dst = Vec::new();
+    for (t, p) in r.times.iter().zip(&r.poses) {
+        if let Some(p) = p {
+            src.push(p.inverse().translation.vector);
+            dst.push(world.pose_cam_at(*t).translation.vector);
+        }
+    }
+    let sim = umeyama(&src, &dst, with_scale).expect("alignment");
+    let res: Vec<Option<f64>> = r
+        .times
+        .iter()
+        .zip(&r.poses)
+        .map(|(t, p)| {
+            p.map(|p| {
+                let c = sim.rotation * p.inverse().translation.vector * sim.scale + sim.translation;
+                (c - world.pose_cam_at(*t).translation.vector).norm()
+            })
+        })
+        .collect();
+    (rms(res.iter().flatten().copied()), sim.scale, res)
+}
+
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (mut s, mut n) = (0.0, 0usize);
+    for x in v {
+        s += x * x;
+        n += 1;
+    }
+    if n == 0 {
+        return f64::NAN;
+    }
+    (s / n as f64).sqrt()
+}
+
+/// Figures of one run, printed.
+struct Figures {
+    ate_se3_percent: f64,
+    scale_error_percent: f64,
+    posed_percent: f64,
+}
+
+fn figures(name: &str, world: &SimWorld, r: &Run, mode: Mode) -> Figures {
+    let path = world.path_length_m();
+    let posed = r.poses.iter().flatten().count();
+    let (ate, _, _) = align(world, r, false);
+    let (ate_sim3, scale, _) = align(world, r, true);
+    let vi = r
+        .sources
+        .iter()
+        .filter(|s| **s == PoseSource::VisualInertial)
+        .count();
+    let f = Figures {
+        ate_se3_percent: ate / path * 100.0,
+        scale_error_percent: (1.0 / scale - 1.0) * 100.0,
+        posed_percent: posed as f64 * 100.0 / r.poses.len() as f64,
+    };
+    eprintln!(
+        "{name} {mode:?}: path {path:.1} m, {} frames, posed {:.1}% ({vi} visual-inertial, {} orientation only), \
+         ATE SE(3) {:.4} m = {:.3}%, Sim(3) {:.4} m, scale error {:+.2}%, init at {:?} s, sessions +{}, status {:?}",
+        r.poses.len(),
+        f.posed_percent,
+        r.orientations,
+        ate,
+        f.ate_se3_percent,
+        ate_sim3,
+        f.scale_error_percent,
+        r.init_s,
+        r.new_sessions,
+        r.status
+    );
+    f
+}
+
+/// Drone (20 s, aggressive 6-DoF, global shutter): VIO with and without the prior, and the
+/// monocular VO.
+#[test]
+fn drone_vio_is_metric_and_accurate() {
+    let world = world(Scenario::Drone, 20.0);
+    let vio = run(&world, Mode::Vio { prior: true });
+    let f = figures("drone", &world, &vio, Mode::Vio { prior: true });
+    let no_prior = run(&world, Mode::Vio { prior: false });
+    figures("drone", &world, &no_prior, Mode::Vio { prior: false });
+    let mono = run(&world, Mode::Mono);
+    figures("drone", &world, &mono, Mode::Mono);
+    assert_eq!(vio.new_sessions, 0);
+    assert!(vio.init_s.is_some_and(|s| s < 4.0), "init {:?}", vio.init_s);
+    assert!(f.posed_percent >= 98.0);
+    assert!(f.scale_error_percent.abs() < 2.0);
+    assert!(f.ate_se3_percent < 1.0);
+}
+
+/// Phone (10 s hand-held walking, 30 Hz, 25 ms rolling shutter, phone IMU).
+#[test]
+fn phone_vio_is_metric() {
+    let world = world(Scenario::Phone, 10.0);
+    let vio = run(&world, Mode::Vio { prior: true });
+    let f = figures("phone", &world, &vio, Mode::Vio { prior: true });
+    let mono = run(&world, Mode::Mono);
+    figures("phone", &world, &mono, Mode::Mono);
+    assert_eq!(vio.new_sessions, 0);
+    assert!(vio.init_s.is_some());
+    assert!(f.posed_percent >= 98.0);
+    assert!(f.scale_error_percent.abs() < 5.0);
+}
+
+/// The first 0.8 s of the phone (as the real clip): never initialised, every frame gets a
+/// pose or an orientation, and the status says why.
+#[test]
+fn a_short_phone_clip_gets_orientations_and_no_scale() {
+    let world = world(Scenario::Phone, 0.8);
+    let vio = run(&world, Mode::Vio { prior: true });
+    figures("phone 0.8 s", &world, &vio, Mode::Vio { prior: true });
+    assert!(vio.init_s.is_none());
+    assert!(!matches!(vio.status, Some(VioStatus::Initialised { .. })));
+    assert!(vio.sources.iter().all(|s| *s != PoseSource::None));
+    assert!(vio
+        .sources
+        .iter()
+        .all(|s| !matches!(s, PoseSource::VisualInertial | PoseSource::Inertial)));
+}
+
+/// The navigator from the true state: its prediction over one frame (50 ms) and over a 2 s
+/// dropout against the sim's exact motion (drone IMU noise, true biases).
+#[test]
+fn navigator_predicts_the_true_motion() {
+    let world = world(Scenario::Drone, 6.0);
+    let gt = world.ground_truth_states();
+    let imu: Vec<ImuMeasurement> = (0..world.imu_samples().len())
+        .map(|k| imu_at(&world, k))
+        .collect();
+    let params = vio_params(&world, true);
+    let t_bc = world.calib().t_bs;
+    let mut worst = [(0.0f64, 0.0f64); 2];
+    for (i, steps) in [10usize, 400].into_iter().enumerate() {
+        for start in (100..gt.len() - steps - 10).step_by(97) {
+            let (a, b) = (&gt[start], &gt[start + steps]);
+            let nav = Navigator::new(
+                a.nav_state(a.biases),
+                a.t_ns,
+                t_bc,
+                params.preint,
+                NavParams::default(),
+            );
+            let pred = nav
+                .predict(&imu, b.t_ns, &Vector3::zeros())
+                .expect("covered");
+            let truth_cw = world.pose_cam_at(b.t_ns).inverse();
+            let dp = (pred.t_cw.inverse().translation.vector
+                - truth_cw.inverse().translation.vector)
+                .norm();
+            let dr = pred.t_cw.rotation.angle_to(&truth_cw.rotation).to_degrees();
+            worst[i].0 = worst[i].0.max(dp);
+            worst[i].1 = worst[i].1.max(dr);
+            let dv = (pred.nav.v - b.v_w).norm();
+            assert!(dv < 0.05 * (steps as f64 / 10.0), "velocity error {dv}");
+        }
+    }
+    eprintln!(
+        "navigator: worst over 50 ms {:.2e} m {:.2e}°, over 2 s {:.3} m {:.3}°",
+        worst[0].0, worst[0].1, worst[1].0, worst[1].1
+    );
+    assert!(worst[0].0 < 1e-3 && worst[0].1 < 0.01);
+    assert!(worst[1].0 < 0.05 && worst[1].1 < 0.1);
+}
+
+#[test]
+#[ignore]
+fn debug_drone() {
+    let secs: f64 = std::env::var("SECS").map_or(8.0, |s| s.parse().expect("SECS"));
+    let world = world(Scenario::Drone, secs);
+    let prior = std::env::var("PRIOR").is_ok();
+    let vio = run(&world, Mode::Vio { prior });
+    figures("debug", &world, &vio, Mode::Vio { prior });
+    let (_, _, res) = align(&world, &vio, false);
+    for k in (0..vio.times.len()).step_by(10) {
+        let c = vio.poses[k].map(|p| p.inverse().translation.vector);
+        let g = world.pose_cam_at(vio.times[k]).translation.vector;
+        eprintln!(
+            "{k} {:?} est {:?} truth {:.3?} res {:?}",
+            vio.sources[k],
+            c.map(|c| format!("{:.3?}", c.as_slice())),
+            g.as_slice(),
+            res[k]
+        );
+    }
+}
+
+/// `blackout` (the loop with 2 s of blank frames in the middle of 24 s): no new VO session,
+/// the frames of the gap posed by the IMU, and the error after the gap at most twice the
+/// error before it (one SE(3) alignment over all frames).
+#[test]
+fn blackout_is_bridged_on_the_imu() {
+    let world = world(Scenario::Blackout, 24.0);
+    let gap = Scenario::Blackout.blank_frames(world.n_frames(), world.params().rate_hz);
+    let vio = run(&world, Mode::Vio { prior: true });
+    figures("blackout", &world, &vio, Mode::Vio { prior: true });
+    let (_, _, res) = align(&world, &vio, false);
+    let before = rms(res[..gap.start].iter().flatten().copied());
+    let after = rms(res[gap.end..].iter().flatten().copied());
+    let inertial = vio.sources[gap.clone()]
+        .iter()
+        .filter(|s| **s == PoseSource::Inertial)
+        .count();
+    eprintln!(
+        "blackout frames {gap:?}: {inertial} posed by the IMU, ATE before {before:.4} m, after {after:.4} m, \
+         sessions +{}",
+        vio.new_sessions
+    );
+    assert_eq!(vio.new_sessions, 0, "a new VO session started");
+    assert!(
+        inertial == gap.len(),
+        "{inertial} of {} gap frames posed by the IMU",
+        gap.len()
+    );
+    assert!(after <= 2.0 * before, "after {after} > 2 × before {before}");
+}

@@ -1,0 +1,574 @@
+//! The visual-inertial client core (issue 17; seed ch. 5; `VI_NOTES.md` §1, §2, §4): the
+//! monocular VO ([`crate::vo::VoTracker`]), the inertial initialisation beside it
+//! ([`crate::imu::coupler`]), a frame navigator ([`navigator`]) and the IMU samples
+//! ([`imu_buffer`]), composed as plain data in, poses out: no threads, clocks or IO.
+//!
+//! **Clocks** (`VI_NOTES.md` §1). IMU samples are on the IMU clock. A frame's
+//! [`VoFrame::t_ns`] is its **mid-row** time; its IMU-clock time is
+//! `t_imu = t_ns + coupler.t_d_ns` ([`VioParams::coupler`]). The project's ingest applies
+//! the calibrated `t_d` once to the frame stamps, so the tracker service passes
+//! `t_d_ns = 0` (the residual offset); a caller with camera-clock stamps passes the
+//! calibrated offset instead. Every time in this module's outputs is the IMU clock's.
+//!
+//! **Per frame** ([`VioTracker::process`]):
+//! 1. Once initialised, the navigator predicts the frame's body state from the last one
+//!    with the IMU (preintegration at the current biases, §4). The predicted camera pose
+//!    replaces the motion model in the projection search, its camera twist (angular *and*
+//!    linear) poses the rolling-shutter rows at their own time (§1, middle-row convention),
+//!    and a pose prior (rotation strong, centre weak) joins the pose optimisation
+//!    ([`crate::optim::PosePrior`]; Table 5.1 "tracking = reprojections + IMU prior").
+//! 2. The VO tracks the frame ([`VoTracker::process_with_hint`]); the navigator takes the
+//!    visual pose (orientation from vision, position and velocity by a Kalman update).
+//! 3. Each keyframe gets the navigator's velocity and biases
+//!    ([`crate::vo::Keyframe::inertial`]), and the keyframe poses (moved by local BA as
+//!    they are) go to the coupler. When it initialises or refines, the VO's world and the
+//!    navigator move by `x' = s R x` ([`VioOutput::world_move`]: the caller re-expresses
+//!    the session's earlier poses the same way), and the navigator starts from the newest
+//!    keyframe's state (the initialisation's velocity and biases).
+//! 4. **Dropouts:** while vision fails and for at most [`VioParams::max_coast_s`] since the
+//!    last tracked frame, the VO keeps its session and the frame gets the IMU-propagated
+//!    pose ([`PoseSource::Inertial`]); when vision returns the local map is searched around
+//!    the IMU prediction in a wide window ([`VioParams::rejoin_radius_px`]), relocalisation
+//!    being the fallback. Beyond it the VO goes on as a monocular one (a new session after
+//!    its failure count), and the initialisation starts over with the new session.
+//! 5. **Before the initialisation** (or without a navigator) a frame the VO cannot pose
+//!    gets an orientation only ([`PoseSource::OrientationOnly`]): the gyro propagates the
+//!    last known orientation (the first frame's camera is the identity, the world a
+//!    monocular map starts in when that frame is its reference). No scale is ever invented.
+use nalgebra::{Isometry3, Rotation3, UnitQuaternion, Vector3};
+
+use crate::imu::coupler::{CouplerEvent, CouplerParams, CouplerStatus, InertialCoupler};
+use crate::imu::init::{InertialInit, InitError};
+use crate::imu::{ImuBiases, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
+use crate::lie::so3_log;
+use crate::vo::{KeyframeInertial, PoseHint, VoFrame, VoOutput, VoTracker};
+use crate::CoreError;
+
+pub mod imu_buffer;
+pub mod navigator;
+
+pub use imu_buffer::{ImuBuffer, ImuCheck, ImuSampleError};
+pub use navigator::{NavParams, Navigator, Prediction};
+
+/// Settings of [`VioTracker`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VioParams {
+    /// The inertial initialisation (holds the residual time offset `t_d_ns`, module docs).
+    pub coupler: CouplerParams,
+    /// IMU noise and intrinsics of the preintegration.
+    pub preint: PreintegrationParams,
+    /// Camera pose in the body (IMU) frame, metric (EuRoC `T_BS`).
+    pub t_bc: Isometry3<f64>,
+    /// Longest visual dropout bridged with the IMU alone, s.
+    pub max_coast_s: f64,
+    /// Search radius around the IMU prediction when vision returns, pixels at octave 0.
+    pub rejoin_radius_px: f32,
+    /// Checks of the IMU samples.
+    pub imu_check: ImuCheck,
+    /// The navigator's filter and prior.
+    pub nav: NavParams,
+    /// The IMU's pose prior in the pose optimisation (`false`: prediction and rolling
+    /// shutter only, for comparison).
+    pub pose_prior: bool,
+    /// Track every frame with the IMU's prediction and prior (module docs, step 1).
+    /// **Off by default**: on the rendered drone it tracks as well as the motion model for
+    /// 11 s, then its predictions drift from vision (5-30 cm) and the map with them; not
+    /// yet understood. Off, the motion model tracks and the IMU initialises, coasts through
+    /// dropouts and searches around its prediction when vision returns.
+    pub imu_tracking: bool,
+    /// Longest wait for the local-mapping runner before a world move
+    /// ([`VoTracker::transform_world`]); a move that times out is retried at the next frame.
+    pub world_move_timeout: std::time::Duration,
+}
+
+impl VioParams {
+    /// Defaults around the calibration: 2 s of coasting, a 40 px rejoin window.
+    pub fn new(preint: PreintegrationParams, t_bc: Isometry3<f64>) -> Self {
+        Self {
+            coupler: CouplerParams::default(),
+            preint,
+            t_bc,
+            max_coast_s: 2.0,
+            rejoin_radius_px: 40.0,
+            imu_check: ImuCheck::default(),
+            nav: NavParams::default(),
+            pose_prior: true,
+            imu_tracking: false,
+            world_move_timeout: std::time::Duration::from_secs(5),
+        }
+    }
+}
+
+/// Where the pose of a frame came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PoseSource {
+    /// Vision alone (before the inertial initialisation, or the IMU did not cover the
+    /// frame): the monocular map's world, up to scale before the initialisation.
+    Visual,
+    /// Vision with the IMU's prediction and prior, metric and gravity-aligned.
+    VisualInertial,
+    /// The IMU alone, coasting through a visual dropout (metric).
+    Inertial,
+    /// Only an orientation, propagated with the gyro ([`VioOutput::r_wc`]).
+    OrientationOnly,
+    /// Nothing (no orientation known yet and no IMU to propagate).
+    None,
+}
+
+/// A similarity applied to the VO's world with a frame: `x' = s R x` for positions,
+/// `R_wc' = R R_wc` for orientations.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WorldMove {
+    /// Scale `s`.
+    pub scale: f64,
+    /// Rotation `R` (old world to new).
+    pub rotation: UnitQuaternion<f64>,
+    /// The initialisation (`false`: a refinement, close to identity).
+    pub initialisation: bool,
+}
+
+/// Where the client stands.
+#[derive(Debug, Clone, PartialEq)]
+pub enum VioStatus {
+    /// Not enough keyframes for an attempt yet (or a new VO session started over).
+    Collecting,
+    /// The last attempt was refused, and why (e.g. too little acceleration).
+    Refused(InitError),
+    /// Metric and gravity-aligned.
+    Initialised {
+        /// IMU time of the initialisation, ns.
+        t_ns: i64,
+        /// Scale of the monocular map at the initialisation (refinements included).
+        scale: f64,
+        /// 1σ of `log scale` of the latest estimate.
+        scale_sigma: f64,
+        /// Refinements done (0-2).
+        refinements: usize,
+        /// Coasting on the IMU through a visual dropout now.
+        coasting: bool,
+    },
+}
+
+/// What one frame produced.
+#[derive(Debug, Clone)]
+pub struct VioOutput {
+    /// The VO's output (keyframes evicted, backfill, times, ...; its `t_cw` is vision's).
+    pub vo: VoOutput,
+    /// The world moved with this frame (module docs, step 3).
+    pub world_move: Option<WorldMove>,
+    /// The frame's pose, world to camera: visual(-inertial), or the IMU's while coasting.
+    pub t_cw: Option<Isometry3<f64>>,
+    /// Where `t_cw` (or `r_wc`) came from.
+    pub source: PoseSource,
+    /// Camera orientation `R_wc` when only that is known ([`PoseSource::OrientationOnly`]).
+    pub r_wc: Option<UnitQuaternion<f64>>,
+    /// Metric body state at the frame once initialised.
+    pub nav: Option<NavState>,
+}
+
+/// The VO failed its last frame (the next one may start a dropout).
+fn out_of_vision(vo: &VoTracker) -> bool {
+    vo.frames_failed() > 0
+}
+
+/// Summary of the accepted initialisation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct InitSummary {
+    t_ns: i64,
+    scale: f64,
+    scale_sigma: f64,
+    refinements: usize,
+}
+
+/// The visual-inertial client (module docs).
+pub struct VioTracker {
+    vo: VoTracker,
+    params: VioParams,
+    coupler: InertialCoupler,
+    imu: ImuBuffer,
+    nav: Option<Navigator>,
+    init: Option<InitSummary>,
+    /// IMU time of the last frame vision posed, ns.
+    last_visual_ns: Option<i64>,
+    /// A world move that timed out, retried at the next frame.
+    pending: Option<(InertialInit, bool)>,
+    /// Last known body orientation `R_wb` and its IMU time (for orientation-only frames).
+    orientation: Option<(i64, Rotation3<f64>)>,
+    /// Best known biases (the initialisation's, zero before).
+    biases: ImuBiases,
+    coasting: bool,
+}
+
+impl VioTracker {
+    /// A client around `vo` (a fresh VO: its world becomes metric once initialised).
+    pub fn new(vo: VoTracker, params: VioParams) -> Self {
+        Self {
+            vo,
+            coupler: InertialCoupler::new(params.coupler, params.preint, params.t_bc),
+            imu: ImuBuffer::new(params.imu_check),
+            nav: None,
+            init: None,
+            last_visual_ns: None,
+            pending: None,
+            orientation: None,
+            biases: ImuBiases::default(),
+            coasting: false,
+            params,
+        }
+    }
+
+    /// The VO.
+    pub fn vo(&self) -> &VoTracker {
+        &self.vo
+    }
+
+    /// The VO (e.g. to attach a local-mapping thread).
+    pub fn vo_mut(&mut self) -> &mut VoTracker {
+        &mut self.vo
+    }
+
+    /// The settings.
+    pub fn params(&self) -> &VioParams {
+        &self.params
+    }
+
+    /// The coupler (attempts, span).
+    pub fn coupler(&self) -> &InertialCoupler {
+        &self.coupler
+    }
+
+    /// One IMU sample (body frame, IMU clock). Refused (named, never a panic) when not
+    /// after the last one, not finite or saturated; a gap is reported but the sample kept
+    /// ([`ImuSampleError::refused`]); the caller counts them.
+    pub fn on_imu(&mut self, m: ImuMeasurement) -> Result<(), ImuSampleError> {
+        let res = self.imu.push(m);
+        if res.is_ok() || res.is_err_and(|e| !e.refused()) {
+            self.coupler.on_imu(m);
+        }
+        res
+    }
+
+    /// Where the client stands.
+    pub fn status(&self) -> VioStatus {
+        if let Some(i) = self.init {
+            return VioStatus::Initialised {
+                t_ns: i.t_ns,
+                scale: i.scale,
+                scale_sigma: i.scale_sigma,
+                refinements: i.refinements,
+                coasting: self.coasting,
+            };
+        }
+        match self.coupler.status() {
+            CouplerStatus::Refused(e) => VioStatus::Refused(e.clone()),
+            _ => VioStatus::Collecting,
+        }
+    }
+
+    /// The frame's IMU-clock time (module docs).
+    fn t_imu(&self, frame: &VoFrame<'_>) -> i64 {
+        frame.t_ns + self.params.coupler.t_d_ns
+    }
+
+    /// One frame (module docs).
+    pub fn process(&mut self, frame: &VoFrame<'_>) -> Result<VioOutput, CoreError> {
+        let t_ns = self.t_imu(frame);
+        let retried = self.apply_pending();
+        let rate_b = self.mean_rate_b(t_ns, frame.readout_ns);
+        let frame = VoFrame {
+            angular_velocity: frame.angular_velocity.or_else(|| {
+                (frame.readout_ns > 0)
+                    .then_some(rate_b)
+                    .flatten()
+                    .map(|w| self.params.t_bc.rotation.inverse() * w)
+            }),
+            ..*frame
+        };
+        let pred = self.predict(t_ns, &rate_b.unwrap_or_default());
+        let coast_ok = self
+            .last_visual_ns
+            .is_some_and(|t| (t_ns - t) as f64 * 1e-9 <= self.params.max_coast_s);
+        let use_imu = self.params.imu_tracking || self.coasting || out_of_vision(&self.vo);
+        let hint = pred.as_ref().filter(|_| use_imu).map(|p| PoseHint {
+            t_cw: p.t_cw,
+            velocity: Some(p.velocity),
+            prior: self.params.pose_prior.then_some(p.prior),
+            rejoin_radius: self.coasting.then_some(self.params.rejoin_radius_px),
+            hold_session: coast_ok,
+        });
+        let vo = self.vo.process_with_hint(&frame, hint.as_ref())?;
+        let mut out = VioOutput {
+            world_move: retried,
+            t_cw: None,
+            source: PoseSource::None,
+            r_wc: None,
+            nav: None,
+            vo,
+        };
+        if out.vo.new_session {
+            self.start_over();
+        }
+        self.update_pose(t_ns, pred.as_ref(), coast_ok, &mut out);
+        self.keyframe(t_ns, &mut out);
+        self.imu
+            .keep_from(self.oldest_needed_ns(t_ns) - frame.readout_ns / 2 - 10_000_000);
+        Ok(out)
+    }
+
+    /// The bias-corrected mean body rate over the frame's readout (±5 ms for a global
+    /// shutter), from the preintegrated rotation.
+    fn mean_rate_b(&self, t_ns: i64, readout_ns: i64) -> Option<Vector3<f64>> {
+        let half = (readout_ns / 2).max(5_000_000);
+        let (t0, t1) = (t_ns - half, t_ns + half);
+        if !self.imu.covers(t0, t1) {
+            return None;
+        }
+        let pre = Preintegrated::from_window(
+            self.imu.samples(),
+            t0,
+            t1,
+            self.biases,
+            self.params.preint,
+        )?;
+        Some(so3_log(&pre.delta_r()) / pre.delta_t())
+    }
+
+    /// The navigator's prediction at `t_ns`, when initialised and the IMU covers it.
+    fn predict(&self, t_ns: i64, rate_b: &Vector3<f64>) -> Option<Prediction> {
+        let nav = self.nav.as_ref()?;
+        if !self.imu.covers(nav.t_ns(), t_ns) {
+            return None;
+        }
+        nav.predict(self.imu.samples(), t_ns, rate_b)
+    }
+
+    /// A new VO session: a new world, the initialisation starts over.
+    fn start_over(&mut self) {
+        self.coupler.reset();
+        // The samples already received (up to ahead of this frame) serve the new session.
+        for m in self.imu.samples() {
+            self.coupler.on_imu(*m);
+        }
+        self.nav = None;
+        self.init = None;
+        self.pending = None;
+        self.last_visual_ns = None;
+        self.coasting = false;
+    }
+
+    /// The frame's pose: vision's (the navigator corrected), the IMU's while coasting,
+    /// else an orientation from the gyro.
+    fn update_pose(
+        &mut self,
+        t_ns: i64,
+        pred: Option<&Prediction>,
+        coast_ok: bool,
+        out: &mut VioOutput,
+    ) {
+        let r_cb = self.params.t_bc.rotation.inverse();
+        if let Some(t_cw) = out.vo.t_cw {
+            out.t_cw = Some(t_cw);
+            out.source = PoseSource::Visual;
+            if let Some(nav) = self.nav.as_mut() {
+                match pred {
+                    Some(p) => {
+                        nav.correct(p, &t_cw);
+                        if self.params.imu_tracking {
+                            out.source = PoseSource::VisualInertial;
+                        }
+                    }
+                    None => nav.reset_to(&t_cw, t_ns),
+                }
+                out.nav = Some(*nav.state());
+            }
+            let r_wb = t_cw.rotation.inverse() * r_cb;
+            self.orientation = Some((t_ns, r_wb.to_rotation_matrix()));
+            self.last_visual_ns = Some(t_ns);
+            self.coasting = false;
+            return;
+        }
+        if let (Some(nav), Some(p), true) = (self.nav.as_mut(), pred, coast_ok) {
+            nav.coast(p);
+            out.t_cw = Some(p.t_cw);
+            out.nav = Some(p.nav);
+            out.source = PoseSource::Inertial;
+            self.orientation = Some((t_ns, p.nav.r));
+            self.coasting = true;
+            return;
+        }
+        self.coasting = false;
+        if let Some(r_wb) = self.propagate_orientation(t_ns) {
+            self.orientation = Some((t_ns, r_wb));
+            let r_wc = UnitQuaternion::from_rotation_matrix(&r_wb) * self.params.t_bc.rotation;
+            out.r_wc = Some(r_wc);
+            out.source = PoseSource::OrientationOnly;
+        }
+    }
+
+    /// The last orientation propagated to `t_ns` with the gyro (identity camera
+    /// orientation at the first frame); `None` without IMU over the interval.
+    fn propagate_orientation(&self, t_ns: i64) -> Option<Rotation3<f64>> {
+        let Some((t0, r_wb)) = self.orientation else {
+            return Some(self.params.t_bc.rotation.inverse().to_rotation_matrix());
+        };
+        if !self.imu.covers(t0, t_ns) {
+            return None;
+        }
+        let pre = Preintegrated::from_window(
+            self.imu.samples(),
+            t0,
+            t_ns,
+            self.biases,
+            self.params.preint,
+        )?;
+        Some(r_wb * pre.delta_r())
+    }
+
+    /// A new keyframe: its inertial state, then the coupler (and the world move it asks).
+    fn keyframe(&mut self, t_ns: i64, out: &mut VioOutput) {
+        let Some(id) = out.vo.keyframe else {
+            return;
+        };
+        if let Some(nav) = &self.nav {
+            let s = nav.state();
+            self.vo.set_keyframe_inertial(
+                id,
+                KeyframeInertial {
+                    v_wb: s.v,
+                    biases: s.biases,
+                },
+            );
+        }
+        let window: Vec<(i64, Isometry3<f64>)> = self.vo.with_map(|m| {
+            m.keyframes
+                .values()
+                .map(|kf| (kf.t_ns, kf.t_cw.inverse()))
+                .collect()
+        });
+        for (t, t_wc) in &window {
+            self.coupler.set_keyframe(*t, *t_wc);
+        }
+        let (init, first) = match self.coupler.step() {
+            Some(CouplerEvent::Initialised(i)) => (i, true),
+            Some(CouplerEvent::Refined(i)) => (i, false),
+            None => return,
+        };
+        let newest = window.last().map(|&(t, t_wc)| (t, t_wc.inverse(), id));
+        out.world_move = self.move_world(&init, first, t_ns, newest);
+        if out.world_move.is_some() {
+            self.moved_output(out);
+        }
+    }
+
+    /// After a world move with this frame: its outputs in the new world.
+    fn moved_output(&self, out: &mut VioOutput) {
+        if let Some(nav) = &self.nav {
+            out.nav = Some(*nav.state());
+            out.t_cw = Some(nav.camera_pose(nav.state()));
+            if out.source == PoseSource::Visual {
+                out.source = PoseSource::VisualInertial;
+            }
+        }
+    }
+
+    /// Applies an initialisation or refinement (module docs, step 3); `None` when the VO's
+    /// local mapping did not become idle in time (retried at the next frame).
+    fn move_world(
+        &mut self,
+        init: &InertialInit,
+        first: bool,
+        t_ns: i64,
+        newest: Option<(i64, Isometry3<f64>, crate::vo::KfId)>,
+    ) -> Option<WorldMove> {
+        let r = UnitQuaternion::from_rotation_matrix(&init.r_gw);
+        if !self
+            .vo
+            .transform_world(init.scale, &r, self.params.world_move_timeout)
+        {
+            self.pending = Some((init.clone(), first));
+            return None;
+        }
+        self.coupler.transform_world(init);
+        if let Some((t, r_wb)) = self.orientation {
+            self.orientation = Some((t, r.to_rotation_matrix() * r_wb));
+        }
+        self.biases = init.biases;
+        let v_wb = init
+            .velocities_w
+            .last()
+            .map(|v| init.r_gw * v)
+            .unwrap_or_default();
+        match (self.nav.as_mut(), newest) {
+            (Some(nav), _) => {
+                nav.transform_world(init.scale, &r);
+                nav.set_velocity_biases(v_wb, init.biases);
+            }
+            (None, Some((t_kf, t_cw_old, _))) => {
+                let t_cw = crate::vo::map::transform_pose_cw(&t_cw_old, init.scale, &r);
+                let state = navigator::nav_from_camera(&t_cw, &self.params.t_bc, v_wb, init.biases);
+                let t_kf_imu = t_kf + self.params.coupler.t_d_ns;
+                self.nav = Some(Navigator::new(
+                    state,
+                    t_kf_imu,
+                    self.params.t_bc,
+                    self.params.preint,
+                    self.params.nav,
+                ));
+            }
+            (None, None) => {}
+        }
+        if let (Some(nav), Some((_, _, id))) = (&self.nav, newest) {
+            self.vo.set_keyframe_inertial(
+                id,
+                KeyframeInertial {
+                    v_wb: nav.state().v,
+                    biases: init.biases,
+                },
+            );
+        }
+        self.record_init(init, first, t_ns);
+        Some(WorldMove {
+            scale: init.scale,
+            rotation: r,
+            initialisation: first,
+        })
+    }
+
+    fn record_init(&mut self, init: &InertialInit, first: bool, t_ns: i64) {
+        self.init = Some(match (self.init, first) {
+            (Some(i), false) => InitSummary {
+                scale: i.scale * init.scale,
+                scale_sigma: init.scale_sigma,
+                refinements: i.refinements + 1,
+                ..i
+            },
+            _ => InitSummary {
+                t_ns,
+                scale: init.scale,
+                scale_sigma: init.scale_sigma,
+                refinements: 0,
+            },
+        });
+    }
+
+    /// Retries a world move that timed out (the newest keyframe is not known here: the
+    /// navigator starts at the next keyframe's refinement, or from the map's newest).
+    fn apply_pending(&mut self) -> Option<WorldMove> {
+        let (init, first) = self.pending.take()?;
+        let newest = self.vo.with_map(|m| {
+            m.keyframes
+                .values()
+                .next_back()
+                .map(|kf| (kf.t_ns, kf.t_cw, kf.id))
+        });
+        let t_ns = newest.map_or(0, |n| n.0);
+        self.move_world(&init, first, t_ns, newest)
+    }
+
+    /// The oldest IMU time still needed (the navigator's and the orientation's).
+    fn oldest_needed_ns(&self, t_ns: i64) -> i64 {
+        let nav = self.nav.as_ref().map_or(t_ns, |n| n.t_ns());
+        let ori = self.orientation.map_or(t_ns, |o| o.0);
+        nav.min(ori).min(t_ns)
+    }
+}

@@ -1,0 +1,316 @@
+//! The frame navigator of the visual-inertial client: the body state at the last frame,
+//! propagated with the IMU to the next frame (`VI_NOTES.md` §4, preintegration), and
+//! corrected by the visual pose once the frame is tracked.
+//!
+//! **Prediction.** `x_j = predict(x_i)` with the samples between the two frames'
+//! (IMU-clock) times, preintegrated at the current biases ([`Preintegrated::predict`]):
+//! `R_j = R_i ΔR`, `v_j = v_i + g Δt + R_i Δv`, `p_j = p_i + v_i Δt + ½ g Δt² + R_i Δp`.
+//!
+//! **Velocity: a linear Kalman filter on `[p_wb; v_wb]`** (world frame), driven by the
+//! preintegrated accelerations and updated by the visual position of each tracked frame.
+//! Why not ORB-SLAM3's per-frame pose-velocity-bias optimisation: the orientation from
+//! vision is already better than the gyro's over a frame, the biases come from the
+//! initialisation and its refinements (the sliding window of local mapping is the place to
+//! track them, `imu::window`), so the only state left to estimate per frame is the velocity,
+//! which is linear in the positions given the rotations: a 6-state filter does it exactly,
+//! in constant time and with no allocation, and its covariance is the translation part of
+//! the pose prior. Differencing two visual positions instead (`v = (p_j - p_i)/Δt - ...`)
+//! would carry their noise divided by a 50 ms `Δt`; the filter smooths it.
+//! - Process: `F = [I IΔt; 0 I]`, `Q` = the preintegration's `(δp, δv)` covariance rotated
+//!   to the world, plus a white acceleration error [`NavParams::accel_error_sigma`] held over
+//!   the interval (the accelerometer bias and the orientation error, `9.81 δθ`, which the
+//!   preintegration covariance does not hold).
+//! - Update: `z = p_wb` from vision, `H = [I 0]`, `R = σ_vis² I`
+//!   ([`NavParams::visual_position_sigma_m`]).
+use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+use crate::imu::{gravity_w, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
+use crate::optim::{PosePrior, Velocity};
+
+/// Settings of [`Navigator`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NavParams {
+    /// 1σ of a visual camera position (the filter's measurement noise), m.
+    pub visual_position_sigma_m: f64,
+    /// 1σ of a visual orientation (floor of the pose prior's rotation), rad.
+    pub visual_rotation_sigma_rad: f64,
+    /// White acceleration error not in the preintegration covariance, m/s².
+    pub accel_error_sigma: f64,
+    /// 1σ of the gyro bias after the initialisation (grows the rotation prior with `Δt`),
+    /// rad/s.
+    pub gyro_bias_sigma: f64,
+    /// The prior's centre 1σ is the filter's times this (a weak translation prior: the
+    /// map's own drift is not in the filter).
+    pub position_prior_inflation: f64,
+    /// 1σ of the initial velocity, m/s.
+    pub initial_velocity_sigma: f64,
+}
+
+impl Default for NavParams {
+    fn default() -> Self {
+        Self {
+            visual_position_sigma_m: 0.005,
+            visual_rotation_sigma_rad: 1e-3,
+            accel_error_sigma: 0.1,
+            gyro_bias_sigma: 2e-3,
+            position_prior_inflation: 3.0,
+            initial_velocity_sigma: 0.05,
+        }
+    }
+}
+
+/// A predicted frame state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Prediction {
+    /// The body state at the frame's time.
+    pub nav: NavState,
+    /// The camera pose, world to camera.
+    pub t_cw: Isometry3<f64>,
+    /// The camera twist (camera frame) for the rolling-shutter model.
+    pub velocity: Velocity,
+    /// The pose prior for the pose optimisation.
+    pub prior: PosePrior,
+    /// `[p; v]` covariance after the prediction.
+    cov: Matrix6<f64>,
+    /// The frame's IMU time, ns.
+    t_ns: i64,
+}
+
+/// The body state at the last frame and its `[p; v]` covariance (module docs).
+#[derive(Debug, Clone)]
+pub struct Navigator {
+    params: NavParams,
+    preint: PreintegrationParams,
+    t_bc: Isometry3<f64>,
+    nav: NavState,
+    t_ns: i64,
+    cov: Matrix6<f64>,
+}
+
+impl Navigator {
+    /// A navigator at state `nav` at IMU time `t_ns`, for a camera at `t_bc` in the body.
+    pub fn new(
+        nav: NavState,
+        t_ns: i64,
+        t_bc: Isometry3<f64>,
+        preint: PreintegrationParams,
+        params: NavParams,
+    ) -> Self {
+        let (sp, sv) = (
+            params.visual_position_sigma_m,
+            params.initial_velocity_sigma,
+        );
+        let mut cov = Matrix6::zeros();
+        cov.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(Matrix3::identity() * (sp * sp)));
+        cov.fixed_view_mut::<3, 3>(3, 3)
+            .copy_from(&(Matrix3::identity() * (sv * sv)));
+        Self {
+            params,
+            preint,
+            t_bc,
+            nav,
+            t_ns,
+            cov,
+        }
+    }
+
+    /// The state at the last frame.
+    pub fn state(&self) -> &NavState {
+        &self.nav
+    }
+
+    /// The last frame's IMU time, ns.
+    pub fn t_ns(&self) -> i64 {
+        self.t_ns
+    }
+
+    /// The camera pose `T_cw` of body state `nav`.
+    pub fn camera_pose(&self, nav: &NavState) -> Isometry3<f64> {
+        (body_pose(nav) * self.t_bc).inverse()
+    }
+
+    /// The state predicted at IMU time `t_ns` from `samples` (`None` when they do not
+    /// bracket the interval). `gyro_at_frame_b` is the raw gyro over the frame's readout
+    /// (e.g. [`crate::imu::mean_rate`]), for the camera twist.
+    pub fn predict(
+        &self,
+        samples: &[ImuMeasurement],
+        t_ns: i64,
+        gyro_at_frame_b: &Vector3<f64>,
+    ) -> Option<Prediction> {
+        let pre =
+            Preintegrated::from_window(samples, self.t_ns, t_ns, self.nav.biases, self.preint)?;
+        let nav = pre.predict(&self.nav, &gravity_w());
+        let dt = pre.delta_t();
+        let cov = self.propagate_cov(&pre);
+        let t_cw = self.camera_pose(&nav);
+        let velocity = self.camera_twist(&nav, gyro_at_frame_b);
+        let prior = self.prior(&pre, &cov, t_cw, dt);
+        Some(Prediction {
+            nav,
+            t_cw,
+            velocity,
+            prior,
+            cov,
+            t_ns,
+        })
+    }
+
+    /// `F P Fᵀ + Q` (module docs).
+    fn propagate_cov(&self, pre: &Preintegrated) -> Matrix6<f64> {
+        let dt = pre.delta_t();
+        let mut f = Matrix6::identity();
+        f.fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&(Matrix3::identity() * dt));
+        let r = self.nav.r.matrix();
+        let c = pre.covariance();
+        // Preintegration order [φ, v, p] → ours [p, v].
+        let mut q = Matrix6::zeros();
+        let blk = |i: usize, j: usize| r * c.fixed_view::<3, 3>(i, j).into_owned() * r.transpose();
+        q.fixed_view_mut::<3, 3>(0, 0).copy_from(&blk(6, 6));
+        q.fixed_view_mut::<3, 3>(0, 3).copy_from(&blk(6, 3));
+        q.fixed_view_mut::<3, 3>(3, 0).copy_from(&blk(3, 6));
+        q.fixed_view_mut::<3, 3>(3, 3).copy_from(&blk(3, 3));
+        // A white acceleration error held over the interval: [½Δt²; Δt] σ² [½Δt²; Δt]ᵀ.
+        let sa2 = self.params.accel_error_sigma.powi(2);
+        let (gp, gv) = (0.5 * dt * dt, dt);
+        for k in 0..3 {
+            q[(k, k)] += gp * gp * sa2;
+            q[(k, k + 3)] += gp * gv * sa2;
+            q[(k + 3, k)] += gp * gv * sa2;
+            q[(k + 3, k + 3)] += gv * gv * sa2;
+        }
+        f * self.cov * f.transpose() + q
+    }
+
+    /// The camera twist in the camera frame: `ω_c = R_cb ω_b`,
+    /// `v_c = R_cw (v_wb + R_wb (ω_b × p_bc))` (the camera centre's velocity).
+    fn camera_twist(&self, nav: &NavState, gyro_b: &Vector3<f64>) -> Velocity {
+        let (w_corr, _) = self.preint.correction.apply(gyro_b, &Vector3::zeros());
+        let w_b = w_corr - nav.biases.gyro;
+        let r_bc = self.t_bc.rotation.to_rotation_matrix();
+        let r_wc = nav.r * r_bc;
+        let v_wc = nav.v + nav.r * w_b.cross(&self.t_bc.translation.vector);
+        Velocity {
+            angular: r_bc.inverse() * w_b,
+            linear: r_wc.inverse() * v_wc,
+        }
+    }
+
+    /// The pose prior: rotation 1σ from the visual floor, the preintegrated rotation's
+    /// covariance and the gyro bias over `dt`; centre 1σ from the filter's position
+    /// covariance times [`NavParams::position_prior_inflation`].
+    fn prior(
+        &self,
+        pre: &Preintegrated,
+        cov: &Matrix6<f64>,
+        t_cw: Isometry3<f64>,
+        dt: f64,
+    ) -> PosePrior {
+        let p = &self.params;
+        let rot_var = p.visual_rotation_sigma_rad.powi(2)
+            + pre.covariance().fixed_view::<3, 3>(0, 0).trace() / 3.0
+            + (p.gyro_bias_sigma * dt).powi(2);
+        let pos_var =
+            cov.fixed_view::<3, 3>(0, 0).trace() / 3.0 * p.position_prior_inflation.powi(2);
+        PosePrior::isotropic(t_cw, rot_var.sqrt(), pos_var.sqrt())
+    }
+
+    /// Takes the prediction as the new state without a visual correction (coasting).
+    pub fn coast(&mut self, pred: &Prediction) {
+        self.nav = pred.nav;
+        self.cov = pred.cov;
+        self.t_ns = pred.t_ns;
+    }
+
+    /// Corrects the prediction with the tracked camera pose `t_cw`: orientation from
+    /// vision, position and velocity from the filter's update (module docs).
+    pub fn correct(&mut self, pred: &Prediction, t_cw: &Isometry3<f64>) {
+        let t_wb = t_cw.inverse() * self.t_bc.inverse();
+        let z = t_wb.translation.vector;
+        let r2 = self.params.visual_position_sigma_m.powi(2);
+        let p = pred.cov;
+        let s = p.fixed_view::<3, 3>(0, 0) + Matrix3::identity() * r2;
+        let Some(s_inv) = s.try_inverse() else {
+            self.reset_to(t_cw, pred.t_ns);
+            return;
+        };
+        let k = p.fixed_view::<6, 3>(0, 0) * s_inv;
+        let innov = z - pred.nav.p;
+        let dx = k * innov;
+        let mut nav = pred.nav;
+        nav.p += Vector3::new(dx[0], dx[1], dx[2]);
+        nav.v += Vector3::new(dx[3], dx[4], dx[5]);
+        nav.r = t_wb.rotation.to_rotation_matrix();
+        // The pose stays vision's (the next prediction starts from the tracked frame, as
+        // ORB-SLAM3's); the filter gives the velocity.
+        nav.p = z;
+        let mut ikh = Matrix6::<f64>::identity();
+        for r in 0..6 {
+            for c in 0..3 {
+                ikh[(r, c)] -= k[(r, c)];
+            }
+        }
+        self.cov = ikh * p;
+        self.cov = (self.cov + self.cov.transpose()) * 0.5;
+        self.nav = nav;
+        self.t_ns = pred.t_ns;
+    }
+
+    /// Re-anchors the pose at a visual `t_cw` at IMU time `t_ns` with no prediction (the
+    /// IMU did not cover the interval): velocity and biases kept, position uncertainty
+    /// reset, velocity uncertainty grown to its initial value at least.
+    pub fn reset_to(&mut self, t_cw: &Isometry3<f64>, t_ns: i64) {
+        let t_wb = t_cw.inverse() * self.t_bc.inverse();
+        self.nav.r = t_wb.rotation.to_rotation_matrix();
+        self.nav.p = t_wb.translation.vector;
+        self.t_ns = t_ns;
+        let v = self.nav.v;
+        *self = Self::new(self.nav, t_ns, self.t_bc, self.preint, self.params);
+        self.nav.v = v;
+    }
+
+    /// Sets the velocity and biases (an initialisation's refinement).
+    pub fn set_velocity_biases(&mut self, v_wb: Vector3<f64>, biases: crate::imu::ImuBiases) {
+        self.nav.v = v_wb;
+        self.nav.biases = biases;
+    }
+
+    /// Moves the state as the world moved, `x' = s R x`: `p' = s R p`, `v' = s R v`,
+    /// `R_wb' = R R_wb`; covariance scaled and rotated alike.
+    pub fn transform_world(&mut self, s: f64, r: &UnitQuaternion<f64>) {
+        let rm = r.to_rotation_matrix();
+        self.nav.p = rm * (self.nav.p * s);
+        self.nav.v = rm * (self.nav.v * s);
+        self.nav.r = rm * self.nav.r;
+        let mut m = Matrix6::zeros();
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&(rm.matrix() * s));
+        m.fixed_view_mut::<3, 3>(3, 3).copy_from(&(rm.matrix() * s));
+        self.cov = m * self.cov * m.transpose();
+    }
+}
+
+/// `T_wb` of a navigation state.
+pub fn body_pose(nav: &NavState) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::from(nav.p),
+        UnitQuaternion::from_rotation_matrix(&nav.r),
+    )
+}
+
+/// The body state of camera pose `t_cw` (camera at `t_bc` in the body), velocity `v_wb`.
+pub fn nav_from_camera(
+    t_cw: &Isometry3<f64>,
+    t_bc: &Isometry3<f64>,
+    v_wb: Vector3<f64>,
+    biases: crate::imu::ImuBiases,
+) -> NavState {
+    let t_wb = t_cw.inverse() * t_bc.inverse();
+    NavState {
+        r: Rotation3::from(t_wb.rotation),
+        p: t_wb.translation.vector,
+        v: v_wb,
+        biases,
+    }
+}
