@@ -36,6 +36,8 @@ fn keyframes_of_the_tracker(mut answer: impl FnMut(&KeyframeMsg) -> Vec<Feedback
         inline_mapping: true,
         lockstep_sync: false,
         spool: false,
+        mode: tracker::ClientMode::Mono,
+        imu: Default::default(),
     };
     let mut core = TrackerCore::new(cfg, Status::new("tracker:0"));
     let mut sent = 0;

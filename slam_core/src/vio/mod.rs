@@ -460,8 +460,14 @@ impl VioTracker {
         }
     }
 
-    /// After a world move with this frame: its outputs in the new world.
+    /// After a world move with this frame: its outputs in the new world (the VO's
+    /// backfilled poses too: every pose of a [`VioOutput`] is in the world after its move).
     fn moved_output(&self, out: &mut VioOutput) {
+        if let Some(m) = out.world_move {
+            for (_, t_cw) in out.vo.backfill.iter_mut() {
+                *t_cw = crate::vo::map::transform_pose_cw(t_cw, m.scale, &m.rotation);
+            }
+        }
         if let Some(nav) = &self.nav {
             out.nav = Some(*nav.state());
             out.t_cw = Some(nav.camera_pose(nav.state()));

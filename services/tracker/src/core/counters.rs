@@ -96,17 +96,15 @@ pub struct VioReport {
     pub refinements: u64,
     /// Frame time of the first initialisation, ns (IMU clock).
     pub initialised_t_ns: Option<i64>,
-    /// Seconds of keyframes (from the session's first) it took.
+    /// Seconds from the client's first frame to the first initialisation.
     pub initialised_after_s: Option<f64>,
     /// Scale found by the first initialisation (metric / monocular).
     pub scale: Option<f64>,
     /// Its 1σ, % (of `log scale`).
     pub scale_sigma_percent: Option<f64>,
-    /// 1σ of the gravity direction at the last (re)initialisation, degrees.
-    pub gravity_sigma_deg: Option<f64>,
-    /// Gyro bias at the last (re)initialisation, rad/s (effective, body frame).
+    /// Gyro bias of the last frame's state, rad/s (effective, body frame).
     pub gyro_bias: Option<[f64; 3]>,
-    /// Accelerometer bias at the last (re)initialisation, m/s².
+    /// Accelerometer bias of the last frame's state, m/s².
     pub accel_bias: Option<[f64; 3]>,
 }
 

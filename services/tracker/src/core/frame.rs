@@ -4,13 +4,14 @@
 //! server-map pose, seed eq. 3.1, 3.4).
 use nalgebra::{Isometry3, Vector3};
 use shm_schema::{
-    stage, FrameAck, FrameHeader, MsgMeta, Pose, PoseSource, TrackState, TrackedPose, FLAG_BACKFILL,
+    stage, FrameAck, FrameHeader, MsgMeta, Pose, PoseSource, TrackState, TrackedPose,
+    FLAG_BACKFILL, FLAG_WORLD_MOVE,
 };
 use shoal_runtime::ErrorKind;
 use slam_core::features::GrayImage;
-use slam_core::vo::{VoFrame, VoOutput};
+use slam_core::vo::VoFrame;
 
-use super::{KeyframeKey, Out, TrackerCore};
+use super::{ClientOutput, KeyframeKey, Out, TrackerCore};
 use crate::outbox::{keyframe_message, wire_pose};
 
 /// One frame as the ports took it from shared memory.
@@ -59,6 +60,10 @@ pub struct Tracked {
     source: PoseSource,
     /// The pose is in a metric, gravity-aligned world.
     metric: bool,
+    /// Camera orientation `R_wc` of a frame with no pose (gyro-propagated).
+    r_wc: Option<nalgebra::UnitQuaternion<f64>>,
+    /// The VO session's world moved with this frame: `(s, R)`, published before its poses.
+    world_move: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
 }
 
 impl Tracked {
@@ -77,16 +82,26 @@ impl Tracked {
             backfill: vec![],
             source: PoseSource::None,
             metric: false,
+            r_wc: None,
+            world_move: None,
         }
     }
 
-    /// The VO's result for the frame (not its keyframes).
-    fn take_vo_output(&mut self, o: &mut VoOutput) {
+    /// The client's result for the frame (not its keyframes): a pose from vision, or the
+    /// IMU's through a dropout (then `Tracking` too), or an orientation only.
+    fn take_output(&mut self, c: &mut ClientOutput) {
+        let o = &mut c.vo;
         self.state = shoal_runtime::wire::track_state_from_vo(o.state);
-        if self.state == TrackState::Tracking {
-            self.t_cw = o.t_cw;
-            self.source = PoseSource::Visual;
+        self.t_cw = c.t_cw;
+        self.source = c.source;
+        if c.t_cw.is_some() {
+            self.state = TrackState::Tracking;
+        } else if self.state == TrackState::Tracking {
+            self.state = TrackState::Lost;
         }
+        self.r_wc = c.r_wc.filter(|_| c.source == PoseSource::OrientationOnly);
+        self.metric = c.metric;
+        self.world_move = c.world_move.map(|m| (m.scale, m.rotation));
         self.tracked = o.tracked as u32;
         self.is_keyframe = o.keyframe.is_some();
         let (t, s) = (&o.times, &mut self.stage_ms);
@@ -118,7 +133,10 @@ impl TrackerCore {
             && !h.meta.is_end_of_stream()
             && self.resume.last_frame_seq.is_none_or(|l| h.meta.seq > l);
         let rs = !self.cfg.no_rs && h.readout_ns != 0;
-        (admitted && rs && self.trackable(h, payload_len)).then(|| h.t_mid_ns + h.readout_ns / 2)
+        // The visual-inertial client predicts every frame with the IMU.
+        let vio = self.cfg.mode == crate::ClientMode::Vio;
+        (admitted && (rs || vio) && self.trackable(h, payload_len))
+            .then(|| h.t_mid_ns + h.readout_ns / 2)
     }
 
     /// Whether gyro samples up to `need_ns` are still to come (in lock-step also before the
@@ -222,11 +240,15 @@ impl TrackerCore {
     /// Runs the VO on the frame and sends the keyframes that left its window.
     fn run_vo(&mut self, f: &FrameIn, t: &mut Tracked) -> anyhow::Result<()> {
         let h = &f.header;
-        if self.vo.is_none() {
-            self.vo = Some(self.new_vo(h)?);
+        if self.client.is_none() {
+            self.client = Some(self.new_client(h)?);
+            for m in std::mem::take(&mut self.pending_imu) {
+                self.sample_to_client(m);
+            }
         }
         let angular_velocity = self.gyro_rate(h);
-        let Some(v) = self.vo.as_mut() else {
+        self.first_frame_ns.get_or_insert(h.t_mid_ns);
+        let Some(v) = self.client.as_mut() else {
             return Ok(());
         };
         let (w, ht, stride) = (h.width as usize, h.height as usize, h.stride as usize);
@@ -250,12 +272,22 @@ impl TrackerCore {
             }
         };
         // Evicted keyframes belong to the session they were made in.
+        let vo_session = v.vo().session_id();
         let sess = self
             .ids
-            .session(v.session_id().saturating_sub(o.new_session as u32));
-        t.vo_session = self.ids.session(v.session_id());
-        self.diagnostics = std::mem::take(&mut o.diagnostics);
-        t.take_vo_output(&mut o);
+            .session(vo_session.saturating_sub(o.vo.new_session as u32));
+        t.vo_session = self.ids.session(vo_session);
+        self.diagnostics = std::mem::take(&mut o.vo.diagnostics);
+        t.take_output(&mut o);
+        if let Some(nav) = o.nav {
+            self.last_biases = Some(nav.biases);
+        }
+        if t.world_move.is_some() {
+            // The spooled keyframes of this session are in the old world: spool them again.
+            self.spooled = None;
+            self.counters.world_moves += 1;
+        }
+        let o = o.vo;
         if o.new_session {
             self.counters.vo_sessions_started += 1;
         }
@@ -277,6 +309,9 @@ impl TrackerCore {
     /// tracked pose (with its server-map pose from the last feedback, eq. 3.1, 3.4).
     pub fn publish_frame(&mut self, t: Tracked, now_ns: i64) -> Vec<Out> {
         let mut out = vec![];
+        if let Some((scale, r)) = t.world_move {
+            out.push(Out::Pose(self.world_move_pose(&t, scale, &r, now_ns)));
+        }
         // Keyframes enter the VO map only with a frame that reports one (two at
         // initialisation): no map lock on the other frames.
         if self.cfg.spool && t.is_keyframe {
@@ -291,6 +326,8 @@ impl TrackerCore {
                 t_ns: *t_ns,
                 pose: wire_pose(t_cw),
                 state: TrackState::Tracking as u32,
+                source: PoseSource::Visual as u32,
+                metric: t.metric as u32,
                 ..TrackedPose::default()
             }));
             self.counters.frames_backfilled += 1;
@@ -299,6 +336,40 @@ impl TrackerCore {
         out.push(Out::Pose(self.tracked_pose(&t, now_ns)));
         self.count_frame(&t);
         out
+    }
+
+    /// The message that moves the world of the frame's VO session by `x' = s R x`
+    /// (`FLAG_WORLD_MOVE`: the recorder re-expresses the session's earlier poses).
+    fn world_move_pose(
+        &self,
+        t: &Tracked,
+        scale: f64,
+        r: &nalgebra::UnitQuaternion<f64>,
+        now_ns: i64,
+    ) -> TrackedPose {
+        let mut meta = MsgMeta::new(self.cfg.client, t.vo_session, t.header.meta.seq, now_ns);
+        meta.flags = FLAG_WORLD_MOVE;
+        let iso = Isometry3::from_parts(nalgebra::Translation3::identity(), *r);
+        TrackedPose {
+            meta,
+            t_ns: t.header.t_mid_ns,
+            pose: shoal_runtime::wire::wire_from_iso(&iso),
+            world_scale: scale,
+            metric: 1,
+            ..TrackedPose::default()
+        }
+    }
+
+    /// The frame's wire pose: camera-to-world, or the orientation alone.
+    fn wire_pose_of(t: &Tracked) -> Pose {
+        match (t.t_cw, t.r_wc) {
+            (Some(t_cw), _) => wire_pose(&t_cw),
+            (None, Some(r_wc)) => {
+                let iso = Isometry3::from_parts(nalgebra::Translation3::identity(), r_wc);
+                shoal_runtime::wire::wire_from_iso(&iso)
+            }
+            (None, None) => Pose::IDENTITY,
+        }
     }
 
     /// The frame's [`TrackedPose`].
@@ -316,7 +387,7 @@ impl TrackerCore {
             meta: MsgMeta::new(self.cfg.client, t.vo_session, h.meta.seq, now_ns),
             t_ns: h.t_mid_ns,
             dataset_index: h.dataset_index,
-            pose: t.t_cw.map_or(Pose::IDENTITY, |t_cw| wire_pose(&t_cw)),
+            pose: Self::wire_pose_of(t),
             server_pose: server_pose.map_or(Pose::IDENTITY, |p| p.0),
             server_map_id: server_pose.map_or(0, |p| p.1.raw()),
             state: t.state as u32,
@@ -338,8 +409,14 @@ impl TrackerCore {
         c.frames_received += 1;
         c.frames_tracked += (t.state == TrackState::Tracking) as u64;
         c.poses_published += 1;
+        match t.source {
+            PoseSource::VisualInertial => c.frames_vio += 1,
+            PoseSource::Inertial => c.frames_inertial += 1,
+            PoseSource::OrientationOnly => c.frames_orientation_only += 1,
+            _ => {}
+        }
         self.resume.last_frame_seq = Some(t.header.meta.seq);
-        if let Some(v) = self.vo.as_ref() {
+        if let Some(v) = self.client.as_ref().map(|c| c.vo()) {
             let s = &mut self.status;
             s.set_value("vo_relocalizations", v.relocalizations() as f64);
             s.set_value("keyframes_culled", v.keyframes_culled() as f64);
@@ -351,7 +428,7 @@ impl TrackerCore {
     /// The keyframes of the VO map newer than the last spooled one (of session `session`),
     /// as spool writes.
     fn spool_new_keyframes(&mut self, session: u32, out: &mut Vec<Out>) {
-        let Some(v) = self.vo.as_ref() else {
+        let Some(v) = self.client.as_ref().map(|c| c.vo()) else {
             return;
         };
         let after = self.spooled.filter(|l| l.0 == session).map(|l| l.1);

@@ -15,10 +15,13 @@ use shoal_runtime::Status;
 use slam_core::ids::{ClientKeyframeId, SessionId};
 use slam_core::vo::{VoDiagnostic, VoParams, VoTracker};
 
+pub use client::{Client, ClientOutput};
+
 use crate::imu::ImuInput;
 use crate::mapping_thread::LocalMappingThread;
 use crate::outbox::{keyframe_message, KeyframeMsg, Outbox};
 
+mod client;
 mod counters;
 mod frame;
 mod server;
@@ -58,6 +61,9 @@ impl StartIds {
     }
 }
 
+/// IMU samples kept from before the first frame for the visual-inertial client, ns.
+const PENDING_IMU_NS: i64 = 2_000_000_000;
+
 /// A keyframe unacknowledged for this long is sent again (e.g. to a restarted mapper), ns.
 pub const RESEND_AFTER_NS: i64 = 2_000_000_000;
 
@@ -95,6 +101,10 @@ pub struct CoreConfig {
     pub lockstep_sync: bool,
     /// A keyframe spool is kept (the core asks for spool writes).
     pub spool: bool,
+    /// What the client runs (`Auto` runs `Mono`: the launcher decides per client).
+    pub mode: crate::ClientMode,
+    /// The IMU calibration of the visual-inertial mode.
+    pub imu: crate::ImuCalibConfig,
 }
 
 impl CoreConfig {
@@ -109,6 +119,8 @@ impl CoreConfig {
             inline_mapping: cfg.local_mapping == crate::LocalMapping::Inline,
             lockstep_sync: p.lockstep_sync(cfg),
             spool: p.spool.is_some(),
+            mode: cfg.mode,
+            imu: cfg.imu.clone(),
         }
     }
 }
@@ -123,7 +135,16 @@ pub struct TrackerCore {
     resume: TrackerResume,
     /// The ids this start gives out.
     ids: StartIds,
-    vo: Option<VoTracker>,
+    client: Option<Client>,
+    /// The visual-inertial mode cannot run, and why (no extrinsics, bad calibration).
+    vio_disabled: Option<String>,
+    /// IMU time of the first frame tracked (the report's time to initialise).
+    first_frame_ns: Option<i64>,
+    /// Biases of the last frame's metric state.
+    last_biases: Option<slam_core::imu::ImuBiases>,
+    /// IMU samples taken before the client exists (its first frame): the last
+    /// [`PENDING_IMU_NS`] of them are given to it then.
+    pending_imu: std::collections::VecDeque<slam_core::imu::ImuMeasurement>,
     outbox: Outbox,
     kf_counts: KeyframeCounts,
     server: ServerState,
@@ -152,7 +173,11 @@ impl TrackerCore {
         counters.lockstep_sync = cfg.lockstep_sync as u64;
         Self {
             ids: StartIds::new(status.starts),
-            vo: None,
+            client: None,
+            vio_disabled: None,
+            first_frame_ns: None,
+            last_biases: None,
+            pending_imu: Default::default(),
             outbox: Outbox::new(cfg.client),
             kf_counts,
             server: ServerState::new(cfg.client, cfg.lockstep_sync),
@@ -177,7 +202,29 @@ impl TrackerCore {
     pub fn status(&mut self) -> &Status {
         self.status.put_counters(&self.counters);
         self.status.set_resume(RESUME_VERSION, &self.resume);
+        if let Some(r) = self.vio_report() {
+            self.status.set_details(&r);
+        }
         &self.status
+    }
+
+    /// The visual-inertial client's report (`None` in the monocular mode).
+    pub fn vio_report(&self) -> Option<VioReport> {
+        if self.cfg.mode != crate::ClientMode::Vio {
+            return None;
+        }
+        if let Some(why) = &self.vio_disabled {
+            return Some(client::vio_disabled(why));
+        }
+        let Some(v) = self.client.as_ref().and_then(|c| c.vio()) else {
+            return Some(client::vio_disabled("no frame tracked yet"));
+        };
+        let mut r = client::vio_report(v, self.first_frame_ns);
+        if let Some(b) = self.last_biases {
+            r.gyro_bias = Some(b.gyro.into());
+            r.accel_bias = Some(b.accel.into());
+        }
+        Some(r)
     }
 
     /// For the ports' own errors (spool, publish).
@@ -236,7 +283,60 @@ impl TrackerCore {
     /// Takes one IMU message; returns whether it was accepted (for the frame log).
     pub fn on_imu(&mut self, m: &ImuMsg) -> bool {
         let (s, c) = (&mut self.status, &mut self.counters);
-        self.imu.on_sample(m, s, c, self.cfg.client)
+        let taken = self.imu.on_sample(m, s, c, self.cfg.client);
+        if taken {
+            self.imu_to_client(m);
+        }
+        taken
+    }
+
+    /// An IMU sample the stream checks let through, to the visual-inertial client: a
+    /// saturated or non-finite one is refused there, a gap reported (both counted).
+    fn imu_to_client(&mut self, m: &ImuMsg) {
+        let sample = slam_core::imu::ImuMeasurement {
+            t_ns: m.t_ns,
+            gyro: m.gyro.into(),
+            accel: m.accel.into(),
+        };
+        if self.client.is_none() {
+            if self.cfg.mode == crate::ClientMode::Vio {
+                self.pending_imu.push_back(sample);
+                while self
+                    .pending_imu
+                    .front()
+                    .is_some_and(|f| f.t_ns < m.t_ns - PENDING_IMU_NS)
+                {
+                    self.pending_imu.pop_front();
+                }
+            }
+            return;
+        }
+        self.sample_to_client(sample);
+    }
+
+    /// Gives `sample` to the client, counting its complaint.
+    fn sample_to_client(&mut self, sample: slam_core::imu::ImuMeasurement) {
+        let Some(client) = self.client.as_mut() else {
+            return;
+        };
+        let Err(e) = client.on_imu(sample) else {
+            return;
+        };
+        let kind = match e {
+            slam_core::vio::ImuSampleError::Gap { .. } => {
+                self.counters.imu_gaps += 1;
+                shoal_runtime::ErrorKind::ImuGap
+            }
+            slam_core::vio::ImuSampleError::NotAfterLast { .. } => {
+                shoal_runtime::ErrorKind::NonMonotonic
+            }
+            _ => {
+                self.counters.imu_samples_refused += 1;
+                shoal_runtime::ErrorKind::ImuSaturated
+            }
+        };
+        let c = self.cfg.client;
+        self.status.error(kind, format!("imu of client {c}: {e}"));
     }
 
     /// Takes one feedback message of the mapper.
@@ -282,9 +382,9 @@ impl TrackerCore {
     /// by one with [`TrackerCore::send_window_keyframe`] (in lock-step waiting for the
     /// server to finish each, so it handles them on the same schedule on every run).
     pub fn take_window(&mut self) -> Vec<slam_core::vo::Keyframe> {
-        self.vo
+        self.client
             .as_mut()
-            .map_or_else(Vec::new, |v| v.drain_keyframes())
+            .map_or_else(Vec::new, |v| v.vo_mut().drain_keyframes())
     }
 
     /// Sends keyframe `kf` of the VO window (of the VO's current session); returns its key
@@ -294,7 +394,7 @@ impl TrackerCore {
         kf: &slam_core::vo::Keyframe,
         now_ns: i64,
     ) -> (KeyframeKey, Vec<Out>) {
-        let vo_session = self.vo.as_ref().map_or(1, |v| v.session_id());
+        let vo_session = self.client.as_ref().map_or(1, |v| v.vo().session_id());
         let msg = keyframe_message(self.cfg.client, kf, self.ids.session(vo_session));
         let key = msg.key();
         (key, self.send_keyframe(msg, now_ns))
@@ -334,6 +434,39 @@ impl TrackerCore {
     /// A new VO for frames like `h`, its keyframe ids in this start's own range (the server
     /// names keyframes by them, so they stay unique per client across restarts), its local
     /// mapping on this service's thread ([`crate::mapping_thread`]) unless inline.
+    fn new_client(&mut self, h: &FrameHeader) -> anyhow::Result<Client> {
+        let vo = self.new_vo(h)?;
+        if self.cfg.mode != crate::ClientMode::Vio {
+            return Ok(Client::Mono(vo));
+        }
+        match self.vio_params(h) {
+            Ok(p) => Ok(Client::Vio(Box::new(slam_core::vio::VioTracker::new(
+                vo, p,
+            )))),
+            Err(why) => {
+                self.vio_disabled = Some(why);
+                Ok(Client::Mono(vo))
+            }
+        }
+    }
+
+    /// The visual-inertial client's settings for frames like `h` (its `T_BS` is the
+    /// camera-IMU extrinsic); why it cannot run otherwise.
+    fn vio_params(&mut self, h: &FrameHeader) -> Result<slam_core::vio::VioParams, String> {
+        if !self.cfg.imu.extrinsics_given {
+            return Err("no camera-IMU extrinsics (T_BS) given: running monocular".into());
+        }
+        let preint = self.cfg.imu.preintegration().map_err(|e| {
+            self.status
+                .error(shoal_runtime::ErrorKind::ImuCalibration, e.clone());
+            format!("{e}: running monocular")
+        })?;
+        let t_bc = shoal_runtime::wire::iso_from_wire(&h.t_bs)
+            .ok_or_else(|| "the frames' T_BS is not a rigid transform: running monocular")?;
+        // The ingest applied t_d to the frame stamps: they are on the IMU clock already.
+        Ok(slam_core::vio::VioParams::new(preint, t_bc))
+    }
+
     fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
         let camera = shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
         let mut vp = VoParams {

@@ -24,6 +24,8 @@ fn config(no_vo: bool) -> CoreConfig {
         inline_mapping: true,
         lockstep_sync: true,
         spool: false,
+        mode: crate::ClientMode::Mono,
+        imu: Default::default(),
     }
 }
 
