@@ -27,7 +27,10 @@ pub enum Scenario {
     /// roll, pitch and yaw swings (aggressive 6-DoF motion).
     Drone,
     /// The `loop` scene and path with 2 s of blank (black) frames in the middle of the stream
-    /// (camera blackout; the IMU keeps running).
+    /// (camera blackout; the IMU keeps running), carried by hand: a 1.6 Hz ±3 cm bounce and
+    /// ±2 cm sways ([`add_hand_held_bounce`]; the `loop` path alone accelerates about as
+    /// little as an accelerometer's bias, so no inertial initialisation could find its scale
+    /// before the gap).
     Blackout,
     /// Hand-held phone while walking: one 24 s lap of the `loop` ellipse at walking pace
     /// (mean 1.33 m/s; 0.7-1.9 m/s within a stride) with a 1.9 Hz step bounce (±2 cm), a 0.95 Hz sway
@@ -141,7 +144,12 @@ impl Scenario {
             ]
         };
         let traj = match (self, agent) {
-            (Scenario::Loop, 0) | (Scenario::TwoAgents, 0) | (Scenario::Blackout, 0) => {
+            (Scenario::Blackout, 0) => {
+                let mut t = Scenario::Loop.trajectory(0)?;
+                add_hand_held_bounce(&mut t);
+                t
+            }
+            (Scenario::Loop, 0) | (Scenario::TwoAgents, 0) => {
                 let [x, y] = ellipse(6.0, 4.0, 0.0);
                 AnalyticTrajectory {
                     pos: [
@@ -248,6 +256,31 @@ impl Scenario {
         };
         Some(traj)
     }
+}
+
+/// Adds the `blackout` scenario's hand-held motion to `t`: a vertical bounce of ±3 cm at
+/// 1.6 Hz (peak 3.0 m/s²) and horizontal sways of ±2 cm at 0.9 Hz and 0.7 Hz (0.6 and
+/// 0.4 m/s²), all sinusoids so the IMU stays exact.
+fn add_hand_held_bounce(t: &mut AnalyticTrajectory) {
+    let hz = |f: f64| Sine {
+        amp: 0.0,
+        omega: TAU * f,
+        phase: 0.0,
+    };
+    t.pos[2].sines.push(Sine {
+        amp: 0.03,
+        ..hz(1.6)
+    });
+    t.pos[0].sines.push(Sine {
+        amp: 0.02,
+        phase: 0.5,
+        ..hz(0.9)
+    });
+    t.pos[1].sines.push(Sine {
+        amp: 0.02,
+        phase: 1.3,
+        ..hz(0.7)
+    });
 }
 
 /// The `phone` walk: the `loop` ellipse (6 m x 4 m) in [`PHONE_LAP_S`], the phone held at
