@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use serde::Serialize;
 use slam_core::features::GrayImage;
-use slam_core::vo::{VoFrame, VoParams, VoState, VoTracker};
+use slam_core::vo::{VoFrame, VoParams, VoTracker};
 
 use crate::launcher::recorder::{LatencyHist, Percentiles};
 
@@ -35,6 +35,10 @@ pub struct TrackingArgs {
     /// bars.
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// `mono` (the chapter-3 VO, the default) or `vio` (the visual-inertial client, fed the
+    /// dataset's IMU up to each frame's last row; needs an IMU and camera-IMU extrinsics).
+    #[arg(long, value_enum, default_value = "mono")]
+    pub mode: tracker::ClientMode,
 }
 
 #[derive(Serialize)]
@@ -44,6 +48,17 @@ struct TrackingReport {
     height: u32,
     frames: usize,
     frames_tracked: usize,
+    /// `mono` or `vio`.
+    mode: String,
+    /// Frames tracked with the IMU's prediction (`vio`).
+    frames_vio: usize,
+    /// Frames posed by the IMU alone through a visual dropout (`vio`).
+    frames_inertial: usize,
+    /// Frames posed in a metric, gravity-aligned world (`vio`, after the initialisation).
+    frames_metric: usize,
+    /// The whole client step per frame (the VO, and in `vio` the IMU prediction, the
+    /// initialisation attempts and world moves), ms.
+    client_total_ms: Percentiles,
     pyramid_ms: Percentiles,
     detect_ms: Percentiles,
     describe_ms: Percentiles,
@@ -61,26 +76,39 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let ds = datasets::open(&args.dataset)?;
     let cam = ds.camera.model;
     let n = args.max_frames.unwrap_or(usize::MAX).min(ds.frames.len());
-    let mut params = VoParams::default();
-    params.orb.n_features = args.features;
-    let mut vo = VoTracker::new(params, cam)?;
-    // Local mapping on its own thread, as in the tracker service.
-    tracker::mapping_thread::LocalMappingThread::attach(&mut vo)?;
+    let mut client = new_client(&ds, args)?;
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let mut h: [LatencyHist; 9] = Default::default();
-    let mut tracked = 0;
+    let mut client_total = LatencyHist::new();
+    let (mut tracked, mut sources) = (0, [0usize; 5]);
+    let mut metric = 0;
+    let mut imu_next = 0;
     let mut per_frame_ms = Vec::with_capacity(n);
     for rec in ds.frames.iter().take(n) {
         datasets::decode_gray_into(&rec.path, &mut img, cam.width, cam.height)?;
         let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize)?;
-        let out = vo.process(&VoFrame {
+        // The IMU up to the frame's last row, as the tracker service waits for it.
+        let last_row_ns = rec.t_ns + rec.readout_ns / 2;
+        while let Some(m) = ds.imu.get(imu_next).filter(|m| m.t_ns <= last_row_ns) {
+            let _ = client.on_imu(slam_core::imu::ImuMeasurement {
+                t_ns: m.t_ns,
+                gyro: m.gyro.into(),
+                accel: m.accel.into(),
+            });
+            imu_next += 1;
+        }
+        let t0 = std::time::Instant::now();
+        let out = client.process(&VoFrame {
             image,
             t_ns: rec.t_ns,
             readout_ns: rec.readout_ns,
             angular_velocity: None,
         })?;
-        tracked += (out.state == VoState::Tracking) as usize;
-        let t = out.times;
+        client_total.record_ns(t0.elapsed().as_nanos() as i64);
+        tracked += out.t_cw.is_some() as usize;
+        sources[out.source as usize] += 1;
+        metric += (out.metric && out.t_cw.is_some()) as usize;
+        let t = out.vo.times;
         per_frame_ms.push(t.total as f64);
         let orb = t.pyramid + t.detect + t.describe;
         for (hist, ms) in h.iter_mut().zip([
@@ -104,6 +132,7 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         cfg.max_frames = args.max_frames;
         cfg.progress = false;
         cfg.ipc_prefix = format!("shoal_benchtrk_{}_", std::process::id());
+        cfg.tracker.mode = args.mode;
         let rep = crate::launcher::run(&cfg)?;
         Some(rep.latency_ms.publish_to_pose)
     };
@@ -114,6 +143,11 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         height: cam.height,
         frames: n,
         frames_tracked: tracked,
+        mode: args.mode.name().to_string(),
+        frames_vio: sources[shm_schema::PoseSource::VisualInertial as usize],
+        frames_inertial: sources[shm_schema::PoseSource::Inertial as usize],
+        frames_metric: metric,
+        client_total_ms: client_total.percentiles(),
         pyramid_ms: p(0),
         detect_ms: p(1),
         describe_ms: p(2),
@@ -132,8 +166,16 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string(&rep)?);
     } else {
         println!(
-            "{} ({}x{}), {} frames, {} tracked",
-            rep.dataset, rep.width, rep.height, n, tracked
+            "{} ({}x{}), {} frames, {} tracked; mode {}: {} with the IMU, {} by the IMU alone, {} metric",
+            rep.dataset,
+            rep.width,
+            rep.height,
+            n,
+            tracked,
+            rep.mode,
+            rep.frames_vio,
+            rep.frames_inertial,
+            rep.frames_metric
         );
         let row = |name: &str, q: &Percentiles| {
             println!(
@@ -150,11 +192,38 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
         row("local_map", &rep.local_map_ms);
         row("keyframe", &rep.keyframe_ms);
         row("total", &rep.total_ms);
+        row("client_total", &rep.client_total_ms);
         if let Some(q) = &rep.publish_to_pose_ms {
             row("publish_to_pose", q);
         }
     }
     Ok(())
+}
+
+/// The client of `args.mode` for `ds`, its local mapping on its own thread as in the
+/// tracker service.
+fn new_client(
+    ds: &datasets::Dataset,
+    args: &TrackingArgs,
+) -> anyhow::Result<tracker::core::Client> {
+    let mut params = VoParams::default();
+    params.orb.n_features = args.features;
+    let mut vo = VoTracker::new(params, ds.camera.model)?;
+    tracker::mapping_thread::LocalMappingThread::attach(&mut vo)?;
+    if args.mode != tracker::ClientMode::Vio {
+        return Ok(tracker::core::Client::Mono(vo));
+    }
+    let setup = crate::launcher::modes::client_setup(tracker::ClientMode::Vio, ds);
+    anyhow::ensure!(
+        setup.imu.extrinsics_given && !ds.imu.is_empty(),
+        "--mode vio: {}",
+        setup.reason
+    );
+    let preint = setup.imu.preintegration().map_err(anyhow::Error::msg)?;
+    let p = slam_core::vio::VioParams::new(preint, ds.camera.t_bs);
+    Ok(tracker::core::Client::Vio(Box::new(
+        slam_core::vio::VioTracker::new(vo, p),
+    )))
 }
 
 /// The latency plot of `rep` and the per-frame times to `path`.
