@@ -1,7 +1,10 @@
 //! `shoal eval`: trajectory accuracy of an estimate against ground truth, with the
 //! definitions of the `evo` tool (see `slam_core::metrics`): timestamp association
 //! (max diff 0.01 s), Umeyama alignment (none / se3 / sim3), APE and RPE (translation part,
-//! delta 1 frame), and the ground truth's path length.
+//! delta 1 frame), and the ground truth's path length. For gravity-aligned (z up)
+//! visual-inertial estimates, `--align 4dof` aligns yaw + translation only and adds the
+//! tilt (roll/pitch) error; evo has neither, so `benches/evo_check.py` does not cover them
+//! (`slam_core::metrics`' unit tests do).
 //!
 //! Both files may be TUM (`t tx ty tz qx qy qz qw`) or KITTI (12 numbers per line), detected
 //! by column count. A KITTI file has no stamps: a `times.txt` beside it is used when the
@@ -26,6 +29,11 @@ pub enum Align {
     Se3,
     /// Rotation + translation + scale (evo `-as`), for monocular estimates.
     Sim3,
+    /// Yaw about z + translation, for gravity-aligned visual-inertial estimates (no evo
+    /// counterpart); adds the tilt (roll/pitch) error.
+    #[value(name = "4dof")]
+    #[serde(rename = "4dof")]
+    FourDof,
 }
 
 impl From<Align> for Alignment {
@@ -34,6 +42,7 @@ impl From<Align> for Alignment {
             Align::None => Alignment::None,
             Align::Se3 => Alignment::Se3,
             Align::Sim3 => Alignment::Sim3,
+            Align::FourDof => Alignment::FourDof,
         }
     }
 }
@@ -47,7 +56,8 @@ pub struct EvalArgs {
     /// Ground-truth trajectory (TUM or KITTI format).
     #[arg(long)]
     pub gt: PathBuf,
-    /// Alignment of the estimate: none, se3 (evo -a) or sim3 (evo -as).
+    /// Alignment of the estimate: none, se3 (evo -a), sim3 (evo -as) or 4dof (yaw +
+    /// translation, for gravity-aligned visual-inertial estimates; adds the tilt error).
     #[arg(long, value_enum, default_value_t = Align::Sim3)]
     pub align: Align,
     /// Largest time difference (s) for associating poses (evo --t_max_diff).
@@ -58,7 +68,8 @@ pub struct EvalArgs {
     pub json: bool,
 }
 
-/// Statistics of one error kind, m.
+/// Statistics of one error kind, in the unit of the field holding them (m, or degrees for
+/// the tilt).
 #[derive(Debug, Clone, Serialize)]
 pub struct StatsReport {
     /// Root mean square.
@@ -117,6 +128,10 @@ pub struct EvalReport {
     pub ate: StatsReport,
     /// Relative pose error (translation part, delta 1 frame), m; `None` with < 2 pairs.
     pub rpe: Option<StatsReport>,
+    /// Tilt (roll/pitch) error, degrees: the angle between the true and the estimated
+    /// gravity direction in the camera frame (poses camera-to-world, world z up). With
+    /// `--align 4dof` or `none` only (a Se3/Sim3 alignment may tilt the estimate).
+    pub tilt_deg: Option<StatsReport>,
     /// Alignment scale (1 unless sim3).
     pub scale: f64,
     /// Alignment rotation, row-major 3x3.
@@ -233,6 +248,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<EvalReport> {
         n_associated: res.pairs.len(),
         ate: res.ape.into(),
         rpe: res.rpe.map(Into::into),
+        tilt_deg: res.tilt_deg.map(Into::into),
         scale: res.alignment.scale,
         rotation: [0, 1, 2].map(|r| [m[(r, 0)], m[(r, 1)], m[(r, 2)]]),
         translation: [tr.x, tr.y, tr.z],
@@ -250,10 +266,10 @@ pub fn render(report: &EvalReport, json: bool) -> String {
         return serde_json::to_string(report).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"));
     }
     let mut s = format!(
-        "est: {}\ngt:  {}\nalignment: {:?} (scale {:.6}), association by {}: {} of {} est / {} gt poses\n",
+        "est: {}\ngt:  {}\nalignment: {} (scale {:.6}), association by {}: {} of {} est / {} gt poses\n",
         report.est.display(),
         report.gt.display(),
-        report.align,
+        Alignment::from(report.align).name(),
         report.scale,
         report.association,
         report.n_associated,
@@ -273,6 +289,9 @@ pub fn render(report: &EvalReport, json: bool) -> String {
     row("ATE", &report.ate);
     if let Some(r) = &report.rpe {
         row("RPE(1f)", r);
+    }
+    if let Some(t) = &report.tilt_deg {
+        row("tilt[deg]", t);
     }
     s += &format!(
         "path length {:.3} m (associated gt; whole gt {:.3} m), ATE rmse = {}\n",
@@ -356,5 +375,57 @@ mod tests {
         assert!(render(&r, false).contains("ATE"));
         args.max_diff_s = f64::NAN;
         assert!(run(&args).is_err());
+    }
+
+    /// `--align 4dof` removes a yaw + translation, keeps a roll, and reports it as tilt.
+    #[test]
+    fn four_dof_reports_tilt() {
+        use clap::ValueEnum;
+        use nalgebra::Rotation3;
+        use slam_core::geometry::Similarity;
+        let dir = tempfile::tempdir().expect("tmp");
+        let gt_path = dir.path().join("gt.txt");
+        let est_path = dir.path().join("est.txt");
+        let gt = traj(40, 1.0, 0);
+        let moved = |roll_deg: f64| Similarity {
+            rotation: Rotation3::from_axis_angle(&Vector3::x_axis(), roll_deg.to_radians())
+                * Rotation3::from_axis_angle(&Vector3::z_axis(), 0.9),
+            translation: Vector3::new(2.0, -1.0, 0.3),
+            scale: 1.0,
+        };
+        let est_of = |sim: Similarity| -> Vec<StampedPose> {
+            gt.iter()
+                .map(|p| StampedPose {
+                    t_ns: p.t_ns,
+                    pose: sim.transform_pose(&p.pose),
+                })
+                .collect()
+        };
+        write_tum(&gt_path, &gt).expect("gt");
+        write_tum(&est_path, &est_of(moved(0.0))).expect("est");
+        let args = EvalArgs {
+            est: est_path.clone(),
+            gt: gt_path,
+            align: Align::from_str("4dof", false).expect("4dof parses"),
+            max_diff_s: 0.01,
+            json: false,
+        };
+        let r = run(&args).expect("run");
+        assert!(r.ate.rmse < 1e-9 && r.scale == 1.0, "{r:?}");
+        assert!(r.tilt_deg.as_ref().expect("tilt").max < 1e-6);
+        let text = render(&r, false);
+        assert!(
+            text.contains("alignment: 4dof") && text.contains("tilt[deg]"),
+            "{text}"
+        );
+        assert!(render(&r, true).contains(r#""align":"4dof""#));
+        write_tum(&est_path, &est_of(moved(3.0))).expect("est");
+        let tilt = run(&args).expect("run").tilt_deg.expect("tilt");
+        assert!((tilt.rmse - 3.0).abs() < 1e-6 && (tilt.max - 3.0).abs() < 1e-6);
+        let sim3 = EvalArgs {
+            align: Align::Sim3,
+            ..args
+        };
+        assert!(run(&sim3).expect("run").tilt_deg.is_none());
     }
 }

@@ -97,6 +97,35 @@ fn summary_prints_accuracy_latency_and_files() {
             && stdout.contains(&format!("RPE {} m", m4(&ate["rpe_rmse_m"]))),
         "ATE and RPE of the report: {ate:#}\n{stdout}"
     );
+    // The same trajectory without scale correction (SE(3), 4-DoF + tilt): large for a
+    // monocular run, but there, unplotted, and each at least the Sim(3) error (fewer
+    // degrees of freedom to fit the same least-squares cost).
+    let (se3, four) = (&c["ate_se3"], &c["ate_4dof"]);
+    let names = [ate, se3, four].map(|a| a["alignment"].as_str());
+    assert_eq!(names, [Some("sim3"), Some("se3"), Some("4dof")], "{c:#}");
+    let rmse = [ate, se3, four].map(|a| a["rmse_m"].as_f64().expect("rmse_m"));
+    assert!(
+        0.0 <= rmse[0] && rmse[0] <= rmse[1] + 1e-9 && rmse[1] <= rmse[2] + 1e-9,
+        "sim3 <= se3 <= 4dof: {rmse:?}"
+    );
+    assert_eq!(
+        (se3["n"].clone(), four["n"].clone()),
+        (ate["n"].clone(), ate["n"].clone())
+    );
+    let tilt = four["tilt_rmse_deg"].as_f64().expect("4dof tilt");
+    let tilt_max = four["tilt_max_deg"].as_f64().expect("4dof tilt max");
+    assert!((0.0..=180.0).contains(&tilt) && tilt <= tilt_max && tilt_max <= 180.0);
+    for a in [ate, se3] {
+        assert!(
+            a["tilt_rmse_deg"].is_null() && a["tilt_max_deg"].is_null(),
+            "{a:#}"
+        );
+    }
+    assert!(se3["plot"].is_null() && four["plot"].is_null());
+    assert!(
+        stdout.contains(&format!("se3 ATE {} m", m4(&se3["rmse_m"]))),
+        "SE(3) ATE in the summary\n{stdout}"
+    );
     let l = &c["latency_ms_publish_to_pose"];
     assert_eq!(l["n"], 100);
     assert!(

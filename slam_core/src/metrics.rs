@@ -8,7 +8,9 @@
 //!   estimate's stamps.
 //! - **Alignment** ([`align`]): Umeyama over the associated positions (estimate → reference),
 //!   rigid (`se3`, evo `-a`) or with scale (`sim3`, evo `-as`), applied to the estimate as
-//!   `R R_i`, `s R p_i + t`.
+//!   `R R_i`, `s R p_i + t`. The 4-DoF alignment (`4dof`, [`align_yaw_translation`]: yaw
+//!   about z + translation, for gravity-aligned visual-inertial trajectories) has no evo
+//!   counterpart; it is checked by this module's unit tests only.
 //! - **APE, translation part** ([`ape_translation`]): `e_i = |p_est,i - p_ref,i|`.
 //! - **RPE, translation part, delta 1 frame** ([`rpe_translation`]): consecutive pairs
 //!   `(i, i+δ)`, `i = 0, δ, 2δ, ...` (evo `--delta 1 --delta_unit f`, all_pairs off),
@@ -17,8 +19,13 @@
 //! - **Statistics** ([`ErrorStats`]): rmse, mean, median (mean of the two middle values for an
 //!   even count), population std (ddof 0), min, max, sse.
 //! - **Path length** ([`path_length`]): sum of the distances between consecutive positions.
+//! - **Tilt (roll/pitch) error** ([`tilt_errors_deg`], not in evo): for camera-to-world poses
+//!   in a z-up world, the angle between the true and the estimated gravity direction seen in
+//!   the camera frame, `∠(R_wc,refᵀ e_z, R_wc,estᵀ e_z)`, in degrees. It ignores yaw and
+//!   position, so it is what a gravity-aware system must keep small; [`evaluate`] gives it
+//!   for the alignments that keep the estimate's z axis (none, 4-DoF).
 
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::{Isometry3, Rotation3, Vector2, Vector3};
 
 use crate::geometry::{umeyama, Similarity};
 use crate::CoreError;
@@ -33,6 +40,28 @@ pub enum Alignment {
     Se3,
     /// Similarity alignment, rotation + translation + scale (evo `-as`), for monocular runs.
     Sim3,
+    /// Yaw about the world z axis + translation, no scale ([`align_yaw_translation`]): the
+    /// unobservable directions of a visual-inertial system whose world is gravity-aligned
+    /// (z up). No evo counterpart.
+    FourDof,
+}
+
+impl Alignment {
+    /// The name used on the command line and in reports: `none`, `se3`, `sim3` or `4dof`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Alignment::None => "none",
+            Alignment::Se3 => "se3",
+            Alignment::Sim3 => "sim3",
+            Alignment::FourDof => "4dof",
+        }
+    }
+
+    /// Whether the alignment keeps the estimate's world z axis (identity or a yaw), so the
+    /// tilt error ([`tilt_errors_deg`]) of the aligned estimate is meaningful.
+    pub fn keeps_vertical(self) -> bool {
+        matches!(self, Alignment::None | Alignment::FourDof)
+    }
 }
 
 /// Timestamp association parameters (evo `--t_max_diff`, `--t_offset`).
@@ -176,8 +205,9 @@ pub fn associate(ref_t: &[i64], est_t: &[i64], params: &AssociationParams) -> Ve
     pairs
 }
 
-/// Umeyama alignment of the estimate's positions onto the reference's (index-aligned
-/// slices). Returns the identity for [`Alignment::None`].
+/// Aligns the estimate's positions onto the reference's (index-aligned slices): Umeyama for
+/// [`Alignment::Se3`] / [`Alignment::Sim3`], [`align_yaw_translation`] for
+/// [`Alignment::FourDof`]. Returns the identity for [`Alignment::None`].
 pub fn align(
     reference: &[Isometry3<f64>],
     estimate: &[Isometry3<f64>],
@@ -190,14 +220,74 @@ pub fn align(
             estimate.len()
         )));
     }
-    let with_scale = match alignment {
-        Alignment::None => return Ok(Similarity::identity()),
-        Alignment::Se3 => false,
-        Alignment::Sim3 => true,
-    };
     let src: Vec<Vector3<f64>> = estimate.iter().map(|p| p.translation.vector).collect();
     let dst: Vec<Vector3<f64>> = reference.iter().map(|p| p.translation.vector).collect();
-    umeyama(&src, &dst, with_scale)
+    match alignment {
+        Alignment::None => Ok(Similarity::identity()),
+        Alignment::Se3 => umeyama(&src, &dst, false),
+        Alignment::Sim3 => umeyama(&src, &dst, true),
+        Alignment::FourDof => align_yaw_translation(&src, &dst),
+    }
+}
+
+/// Least-squares yaw (rotation about z) + translation taking `src` onto `dst`: minimises
+/// `Σ |dst_i - (R_z(ψ) src_i + t)|²` in closed form. With both point sets centred
+/// (`x_i = src_i - μ_src`, `y_i = dst_i - μ_dst`), only the xy parts depend on ψ and
+/// `ψ = atan2(Σ (x_i × y_i)_z, Σ x_i,xy · y_i,xy)`; `t = μ_dst - R_z(ψ) μ_src`. Scale 1.
+///
+/// Errors: different lengths, fewer than 2 pairs, non-finite input, or no yaw information
+/// (the xy cross-covariance vanishes: all points identical, or all on one vertical line).
+pub fn align_yaw_translation(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+) -> Result<Similarity, CoreError> {
+    if src.len() != dst.len() {
+        return Err(CoreError::InvalidArgument(format!(
+            "4-DoF alignment: {} source points but {} destination points",
+            src.len(),
+            dst.len()
+        )));
+    }
+    if src.len() < 2 {
+        return Err(CoreError::NotEnoughData(format!(
+            "4-DoF alignment: {} point pairs",
+            src.len()
+        )));
+    }
+    if !src
+        .iter()
+        .chain(dst)
+        .all(|p| p.iter().all(|v| v.is_finite()))
+    {
+        return Err(CoreError::InvalidArgument(
+            "4-DoF alignment: non-finite points".into(),
+        ));
+    }
+    let n = src.len() as f64;
+    let mean_src = src.iter().sum::<Vector3<f64>>() / n;
+    let mean_dst = dst.iter().sum::<Vector3<f64>>() / n;
+    let (mut dot, mut cross, mut spread) = (0.0, 0.0, 0.0);
+    for (x, y) in src.iter().zip(dst) {
+        let x = (x - mean_src).xy();
+        let y = (y - mean_dst).xy();
+        dot += x.dot(&y);
+        cross += x.perp(&y);
+        spread += x.norm() * y.norm();
+    }
+    // |(dot, cross)| <= spread; (near) zero relative to it, there is no yaw to find.
+    if Vector2::new(dot, cross).norm() <= 1e-12 * spread {
+        return Err(CoreError::Degenerate(
+            "4-DoF alignment: no horizontal spread to fix the yaw (points identical or \
+             on one vertical line)"
+                .into(),
+        ));
+    }
+    let rotation = Rotation3::from_axis_angle(&Vector3::z_axis(), cross.atan2(dot));
+    Ok(Similarity {
+        rotation,
+        translation: mean_dst - rotation * mean_src,
+        scale: 1.0,
+    })
 }
 
 /// Translation part of the absolute pose error per pose: `|p_est,i - p_ref,i|`.
@@ -232,6 +322,26 @@ pub fn rpe_translation(
         .collect()
 }
 
+/// Tilt (roll/pitch) error per pose, degrees: for camera-to-world poses `T_wc` in a z-up
+/// world, the angle between the gravity direction seen in the reference camera,
+/// `R_wc,refᵀ e_z`, and in the estimated one, `R_wc,estᵀ e_z`. Blind to yaw and position;
+/// pass the estimate after an alignment that keeps its z axis ([`Alignment::keeps_vertical`]).
+pub fn tilt_errors_deg(reference: &[Isometry3<f64>], estimate: &[Isometry3<f64>]) -> Vec<f64> {
+    reference
+        .iter()
+        .zip(estimate)
+        .map(|(q, p)| {
+            let up_c_ref = q.rotation.inverse_transform_vector(&Vector3::z());
+            let up_c_est = p.rotation.inverse_transform_vector(&Vector3::z());
+            up_c_ref
+                .cross(&up_c_est)
+                .norm()
+                .atan2(up_c_ref.dot(&up_c_est))
+                .to_degrees()
+        })
+        .collect()
+}
+
 /// Length of the path through the positions of `poses`, m.
 pub fn path_length(poses: &[Isometry3<f64>]) -> f64 {
     poses
@@ -253,6 +363,9 @@ pub struct EvalResult {
     pub ape_errors: Vec<f64>,
     /// RPE (translation part) statistics, m (`None` with fewer than two pairs).
     pub rpe: Option<ErrorStats>,
+    /// Tilt (roll/pitch) error statistics of the aligned estimate, degrees
+    /// ([`tilt_errors_deg`]); `None` unless the alignment keeps the z axis (none, 4-DoF).
+    pub tilt_deg: Option<ErrorStats>,
     /// Path length of the associated reference poses, m.
     pub ref_path_length_m: f64,
 }
@@ -333,12 +446,18 @@ fn evaluate_pairs(
     let ape = ErrorStats::from_errors(&ape_errors)
         .ok_or_else(|| CoreError::InvalidArgument("non-finite poses".into()))?;
     let rpe = ErrorStats::from_errors(&rpe_translation(&q, &p, params.rpe_delta));
+    let tilt_deg = if params.alignment.keeps_vertical() {
+        ErrorStats::from_errors(&tilt_errors_deg(&q, &p))
+    } else {
+        None
+    };
     Ok(EvalResult {
         pairs,
         alignment: sim,
         ape,
         ape_errors,
         rpe,
+        tilt_deg,
         ref_path_length_m: path_length(&q),
     })
 }
@@ -346,7 +465,8 @@ fn evaluate_pairs(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Rotation3, Translation3, UnitQuaternion};
+    use nalgebra::{Translation3, UnitQuaternion};
+    use std::f64::consts::PI;
 
     fn helix(n: usize) -> Vec<Isometry3<f64>> {
         (0..n)
@@ -487,5 +607,157 @@ mod tests {
             &EvalParams::default()
         )
         .is_err());
+    }
+
+    /// `Σ |dst_i - (R_z(ψ) src_i + t(ψ))|²` with the best translation for that yaw.
+    fn yaw_cost(src: &[Vector3<f64>], dst: &[Vector3<f64>], yaw: f64) -> f64 {
+        let n = src.len() as f64;
+        let r = Rotation3::from_axis_angle(&Vector3::z_axis(), yaw);
+        let t = dst.iter().sum::<Vector3<f64>>() / n - r * (src.iter().sum::<Vector3<f64>>() / n);
+        src.iter()
+            .zip(dst)
+            .map(|(x, y)| (r * x + t - y).norm_squared())
+            .sum()
+    }
+
+    fn positions(poses: &[Isometry3<f64>]) -> Vec<Vector3<f64>> {
+        poses.iter().map(|p| p.translation.vector).collect()
+    }
+
+    /// A yaw + translation is recovered exactly, and a yaw-only difference has no tilt.
+    #[test]
+    fn four_dof_recovers_yaw_and_translation() {
+        let gt = helix(40);
+        let yaw_shift = Similarity {
+            rotation: Rotation3::from_axis_angle(&Vector3::z_axis(), 2.5),
+            translation: Vector3::new(4.0, -2.0, 0.7),
+            scale: 1.0,
+        };
+        let est: Vec<_> = gt.iter().map(|p| yaw_shift.transform_pose(p)).collect();
+        let params = EvalParams {
+            alignment: Alignment::FourDof,
+            ..Default::default()
+        };
+        let r = evaluate_by_index(&gt, &est, &params).expect("eval");
+        let back = r.alignment.compose(&yaw_shift);
+        assert!(back.rotation.angle() < 1e-12 && back.translation.norm() < 1e-12);
+        assert_eq!(r.alignment.scale, 1.0);
+        assert!(r.ape.max < 1e-12, "ape {}", r.ape.max);
+        let tilt = r.tilt_deg.expect("tilt with 4dof");
+        assert!(tilt.max < 1e-6 && tilt.count == 40, "tilt {tilt:?}");
+        // Without alignment the positions are off, the tilt is still zero.
+        let r = evaluate_by_index(&gt, &est, &EvalParams::default()).expect("eval");
+        assert!(r.ape.min > 1.0 && r.tilt_deg.expect("tilt").max < 1e-6);
+        assert_eq!(Alignment::FourDof.name(), "4dof");
+    }
+
+    /// With a roll between the trajectories, the closed-form yaw is the least-squares one
+    /// (brute force over the yaw, each with its best translation).
+    #[test]
+    fn four_dof_yaw_is_least_squares_under_roll() {
+        let gt = helix(60);
+        let tilted = Similarity {
+            rotation: Rotation3::from_axis_angle(&Vector3::x_axis(), 0.08)
+                * Rotation3::from_axis_angle(&Vector3::z_axis(), -1.1),
+            translation: Vector3::new(0.3, 0.2, -0.1),
+            scale: 1.0,
+        };
+        let src = positions(
+            &gt.iter()
+                .map(|p| tilted.transform_pose(p))
+                .collect::<Vec<_>>(),
+        );
+        let dst = positions(&gt);
+        let sim = align_yaw_translation(&src, &dst).expect("4dof");
+        let m = sim.rotation.matrix();
+        assert!((m[(2, 2)] - 1.0).abs() < 1e-15, "a rotation about z only");
+        let yaw = m[(1, 0)].atan2(m[(0, 0)]);
+        let steps = 20_000;
+        let (best_yaw, best_cost) = (0..steps)
+            .map(|k| {
+                let y = -PI + 2.0 * PI * k as f64 / steps as f64;
+                (y, yaw_cost(&src, &dst, y))
+            })
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .expect("grid");
+        let cost = yaw_cost(&src, &dst, yaw);
+        assert!(
+            cost <= best_cost + 1e-12,
+            "closed form {cost} > grid {best_cost}"
+        );
+        assert!(
+            (yaw - best_yaw).abs() < 2.0 * PI / steps as f64,
+            "{yaw} vs {best_yaw}"
+        );
+        assert!((yaw - 1.1).abs() < 0.05, "near the true yaw: {yaw}");
+        // The translation is the best one for that yaw.
+        let aligned: Vec<_> = src.iter().map(|x| sim.transform_point(x)).collect();
+        let residual_mean = aligned
+            .iter()
+            .zip(&dst)
+            .map(|(a, b)| a - b)
+            .sum::<Vector3<f64>>();
+        assert!(residual_mean.norm() < 1e-9);
+    }
+
+    /// Too few poses, identical points or points on one vertical line give an error.
+    #[test]
+    fn four_dof_degenerate_inputs_are_errors() {
+        let p = Vector3::new(1.0, 2.0, 3.0);
+        assert!(matches!(
+            align_yaw_translation(&[p], &[p]),
+            Err(CoreError::NotEnoughData(_))
+        ));
+        assert!(align_yaw_translation(&[], &[]).is_err());
+        assert!(matches!(
+            align_yaw_translation(&[p; 5], &[p, p, p, p, 2.0 * p]),
+            Err(CoreError::Degenerate(_))
+        ));
+        let vertical: Vec<_> = (0..5).map(|i| Vector3::new(1.0, 1.0, i as f64)).collect();
+        assert!(matches!(
+            align_yaw_translation(&vertical, &vertical),
+            Err(CoreError::Degenerate(_))
+        ));
+        assert!(align_yaw_translation(&[p, 2.0 * p], &[p]).is_err());
+        let nan = Vector3::new(f64::NAN, 0.0, 0.0);
+        assert!(align_yaw_translation(&[p, nan], &[p, 2.0 * p]).is_err());
+        let still = vec![Isometry3::translation(1.0, 2.0, 3.0); 4];
+        let params = EvalParams {
+            alignment: Alignment::FourDof,
+            ..Default::default()
+        };
+        assert!(evaluate_by_index(&still, &still, &params).is_err());
+        assert!(evaluate_by_index(&still[..1], &still[..1], &params).is_err());
+    }
+
+    /// A trajectory rolled by 2° about the world x axis has a 2° tilt error at every pose,
+    /// whatever yaw the 4-DoF alignment picks; Se3/Sim3 give no tilt figure.
+    #[test]
+    fn tilt_of_a_known_roll() {
+        let gt = helix(30);
+        let roll = Similarity {
+            rotation: Rotation3::from_axis_angle(&Vector3::x_axis(), 2f64.to_radians()),
+            translation: Vector3::new(0.0, 0.5, 0.0),
+            scale: 1.0,
+        };
+        let est: Vec<_> = gt.iter().map(|p| roll.transform_pose(p)).collect();
+        let errors = tilt_errors_deg(&gt, &est);
+        assert!(errors.iter().all(|e| (e - 2.0).abs() < 1e-9), "{errors:?}");
+        let mut params = EvalParams {
+            alignment: Alignment::FourDof,
+            ..Default::default()
+        };
+        let t = evaluate_by_index(&gt, &est, &params)
+            .expect("eval")
+            .tilt_deg
+            .expect("tilt");
+        assert!((t.rmse - 2.0).abs() < 1e-9 && (t.max - 2.0).abs() < 1e-9 && t.count == 30);
+        for a in [Alignment::Se3, Alignment::Sim3] {
+            params.alignment = a;
+            assert!(evaluate_by_index(&gt, &est, &params)
+                .expect("eval")
+                .tilt_deg
+                .is_none());
+        }
     }
 }

@@ -11,7 +11,13 @@ use mapper::MapperCounters;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 use shoal_runtime::{ErrorKind, ErrorRecord, Status};
+use slam_core::metrics::Alignment;
 use tracker::core::TrackerCounters;
+
+mod accuracy;
+
+pub use accuracy::AteReport;
+use accuracy::{evaluate_client, evaluate_file, evaluate_poses, split_wire, PlotSpec};
 
 use super::child::Supervised;
 use super::recorder::{write_tum, Percentiles, Recorder};
@@ -146,144 +152,22 @@ pub struct ClientReport {
     pub lockstep_sync_timeouts: u64,
     /// Trajectory file written, if any.
     pub trajectory: Option<String>,
-    /// Accuracy of the trajectory against the dataset's ground truth, if both exist.
+    /// Accuracy of the trajectory against the dataset's ground truth, if both exist, after a
+    /// Sim(3) alignment (plotted: `trajectory_c{i}.png`).
     pub ate: Option<AteReport>,
+    /// The same trajectory after an SE(3) alignment, no scale correction: the figure a
+    /// metric (visual-inertial) run is judged by. A monocular run's scale is arbitrary, so
+    /// there it is large and means nothing. Not plotted.
+    pub ate_se3: Option<AteReport>,
+    /// The same trajectory after a 4-DoF alignment (yaw about z + translation, no scale),
+    /// with the tilt (roll/pitch) error: for gravity-aligned visual-inertial runs (world z
+    /// up). A monocular run's scale and vertical are arbitrary, so there its figures are
+    /// large and mean nothing. Not plotted.
+    pub ate_4dof: Option<AteReport>,
     /// Frame publish → pose publish of this client's frames, ms.
     pub latency_ms_publish_to_pose: Percentiles,
     /// The client's output files in the output folder (`*_c{i}.*`), names only.
     pub files: Vec<String>,
-}
-
-/// Absolute trajectory error after Sim(3) alignment (as `shoal eval --align sim3`).
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct AteReport {
-    /// Associated poses.
-    pub n: usize,
-    /// RMSE of the position error, m.
-    pub rmse_m: f64,
-    /// Largest position error, m.
-    pub max_m: f64,
-    /// Ground-truth path length over the associated poses, m.
-    pub path_length_m: f64,
-    /// RMSE in % of the path length.
-    pub rmse_percent: f64,
-    /// Scale of the alignment (monocular scale).
-    pub scale: f64,
-    /// RPE (translation part, between consecutive associated poses, after the alignment),
-    /// RMSE, m: the figure of `shoal eval --align sim3`.
-    pub rpe_rmse_m: Option<f64>,
-    /// Top-view plot written.
-    pub plot: Option<String>,
-}
-
-/// A plot written beside an evaluation: its file, the first title line, and the run's loop
-/// closures and merges (marked where they touch `client`'s keyframes).
-struct PlotSpec<'a> {
-    path: std::path::PathBuf,
-    title: String,
-    client: u32,
-    events: &'a [crate::plot::events::CorrectionEvent],
-}
-
-impl<'a> PlotSpec<'a> {
-    /// `OUT/{name}_c{client}.png`, titled with the dataset, client and `name`.
-    fn new(
-        out: &Path,
-        ds: &datasets::Dataset,
-        name: &str,
-        client: usize,
-        events: &'a [crate::plot::events::CorrectionEvent],
-    ) -> Self {
-        let dataset = ds.root.file_name().map_or_else(
-            || ds.root.display().to_string(),
-            |n| n.to_string_lossy().into_owned(),
-        );
-        Self {
-            path: out.join(format!("{name}_c{client}.png")),
-            title: format!("{dataset} / client {client} / {name}"),
-            client: client as u32,
-            events,
-        }
-    }
-}
-
-/// Evaluates `traj` against the ground truth of `ds` (Sim(3) alignment) and plots it.
-fn evaluate_client(
-    ds: &datasets::Dataset,
-    traj: &[(i64, shm_schema::Pose)],
-    plot: &PlotSpec,
-) -> Option<AteReport> {
-    let est_t: Vec<i64> = traj.iter().map(|(t, _)| *t).collect();
-    let est_p: Vec<_> = traj
-        .iter()
-        .map(|(_, p)| shoal_runtime::wire::iso_from_wire_unchecked(p))
-        .collect();
-    evaluate_poses(ds, &est_t, &est_p, plot)
-}
-
-/// Evaluates the TUM trajectory file `path` like [`evaluate_client`].
-fn evaluate_file(ds: &datasets::Dataset, path: &Path, plot: &PlotSpec) -> Option<AteReport> {
-    let traj = datasets::trajectory::read_tum(path).ok()?;
-    let est_t: Vec<i64> = traj.poses.iter().map(|p| p.t_ns).collect();
-    let est_p: Vec<_> = traj.poses.iter().map(|p| p.pose).collect();
-    evaluate_poses(ds, &est_t, &est_p, plot)
-}
-
-/// Evaluates poses (camera → map) against the ground truth of `ds` (Sim(3)) and plots them.
-fn evaluate_poses(
-    ds: &datasets::Dataset,
-    est_t: &[i64],
-    est_p: &[nalgebra::Isometry3<f64>],
-    plot: &PlotSpec,
-) -> Option<AteReport> {
-    let gt = ds.ground_truth.as_ref()?;
-    if est_t.len() < 3 {
-        return None;
-    }
-    let gt_t: Vec<i64> = gt.iter().map(|g| g.t_ns).collect();
-    let gt_p: Vec<_> = gt.iter().map(|g| g.pose).collect();
-    let params = slam_core::metrics::EvalParams {
-        alignment: slam_core::metrics::Alignment::Sim3,
-        ..Default::default()
-    };
-    let r = slam_core::metrics::evaluate(&gt_t, &gt_p, est_t, est_p, &params).ok()?;
-    let aligned: Vec<_> = r
-        .pairs
-        .iter()
-        .map(|(_, j)| r.alignment.transform_point(&est_p[*j].translation.vector))
-        .collect();
-    let gt_pts: Vec<_> = gt_p.iter().map(|g| g.translation.vector).collect();
-    let mut ate = AteReport {
-        n: r.pairs.len(),
-        rmse_m: r.ape.rmse,
-        max_m: r.ape.max,
-        path_length_m: r.ref_path_length_m,
-        rmse_percent: 100.0 * r.ape.rmse / r.ref_path_length_m.max(1e-12),
-        scale: r.alignment.scale,
-        rpe_rmse_m: r.rpe.map(|e| e.rmse),
-        plot: None,
-    };
-    let mut timed: Vec<(i64, nalgebra::Vector3<f64>)> = r
-        .pairs
-        .iter()
-        .zip(&aligned)
-        .map(|((_, j), p)| (est_t[*j], *p))
-        .collect();
-    timed.sort_by_key(|p| p.0);
-    let spec = crate::plot::TrajectoryPlot {
-        title: plot.title.clone(),
-        subtitle: format!(
-            "ATE {:.3} m ({:.2}% of {:.1} m), {} poses, Sim(3) aligned, scale {:.2}",
-            ate.rmse_m, ate.rmse_percent, ate.path_length_m, ate.n, ate.scale
-        ),
-        est: &aligned,
-        gt: &gt_pts,
-        marks: crate::plot::events::marks_for_client(plot.events, plot.client, &timed),
-    };
-    ate.plot = crate::plot::write_trajectory(&spec, &plot.path)
-        .ok()
-        .map(|_| plot.path.display().to_string());
-    Some(ate)
 }
 
 /// Why frames of a client got no pose.
@@ -574,6 +458,8 @@ struct ClientOutputs {
     /// `trajectory_c{i}.txt`, when the tracker posed frames.
     trajectory: Option<String>,
     ate: Option<AteReport>,
+    ate_se3: Option<AteReport>,
+    ate_4dof: Option<AteReport>,
     ate_client_keyframes: Option<AteReport>,
     ate_server_keyframes: Option<AteReport>,
     ate_server_frames: Option<AteReport>,
@@ -597,9 +483,17 @@ impl ClientOutputs {
         // Backfilled poses arrive after later frames: ordered by time, every VO session in
         // one frame (the server's merges tie them), and in the server map.
         let one = super::sessions::one_frame(out, c, &rec.trajectory, &rec.trajectory_sessions);
-        let (mut trajectory, mut ate) = (None, None);
+        let (mut trajectory, mut ate) = (None, [None, None, None]);
         if !one.trajectory.is_empty() {
-            ate = evaluate_client(ds, &one.trajectory, &plot_spec("trajectory"));
+            let (est_t, est_p) = split_wire(&one.trajectory);
+            let plot = plot_spec("trajectory");
+            // Only the Sim(3) figure is plotted (one PNG per trajectory).
+            ate = [
+                (Alignment::Sim3, Some(&plot)),
+                (Alignment::Se3, None),
+                (Alignment::FourDof, None),
+            ]
+            .map(|(a, plot)| evaluate_poses(ds, &est_t, &est_p, a, plot));
             let path = out.join(format!("trajectory_c{c}.txt"));
             write_tum(&path, &one.trajectory)?;
             trajectory = Some(path.display().to_string());
@@ -622,9 +516,12 @@ impl ClientOutputs {
         }
         let ate_file =
             |name: &str| evaluate_file(ds, &out.join(format!("{name}_c{c}.txt")), &plot_spec(name));
+        let [ate, ate_se3, ate_4dof] = ate;
         Ok(Self {
             trajectory,
             ate,
+            ate_se3,
+            ate_4dof,
             ate_client_keyframes: ate_file("keyframes_client"),
             ate_server_keyframes: ate_file("keyframes_server"),
             ate_server_frames: evaluate_client(ds, &server_traj, &plot_spec("trajectory_server")),
@@ -766,6 +663,8 @@ fn client_report(
             + t.lockstep_imu_timeouts,
         trajectory: o.trajectory,
         ate: o.ate,
+        ate_se3: o.ate_se3,
+        ate_4dof: o.ate_4dof,
         latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
         files: Vec::new(),
     }

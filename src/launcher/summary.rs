@@ -94,20 +94,24 @@ fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
         cl.keyframes_applied
     );
     mode_line(s, cl);
-    let acc = |name: &str, a: &Option<AteReport>| {
+    // The Sim(3) figures, with the SE(3) ATE (no scale correction) when there is one.
+    let acc = |name: &str, a: &Option<AteReport>, se3: &Option<AteReport>| {
         a.as_ref().map(|a| {
             let rpe = a
                 .rpe_rmse_m
                 .map_or(String::new(), |r| format!(", RPE {r:.4} m"));
+            let se3 = se3
+                .as_ref()
+                .map_or(String::new(), |e| format!("; se3 ATE {:.4} m", e.rmse_m));
             format!(
-                "{name} ATE {:.4} m ({:.2}% of {:.1} m, {} poses, scale {:.3}){rpe}",
+                "{name} ATE {:.4} m ({:.2}% of {:.1} m, {} poses, scale {:.3}{se3}){rpe}",
                 a.rmse_m, a.rmse_percent, a.path_length_m, a.n, a.scale
             )
         })
     };
     let accuracy: Vec<String> = [
-        acc("frames", &cl.ate),
-        acc("server keyframes", &cl.ate_server_keyframes),
+        acc("frames", &cl.ate, &cl.ate_se3),
+        acc("server keyframes", &cl.ate_server_keyframes, &None),
     ]
     .into_iter()
     .flatten()
@@ -148,6 +152,14 @@ fn mode_line(s: &mut String, cl: &ClientReport) {
         }
         if let Some(r) = &v.reason {
             let _ = write!(line, ": {r}");
+        }
+        if let Some(a) = &cl.ate_4dof {
+            let tilt = a.tilt_rmse_deg.unwrap_or(f64::NAN);
+            let _ = write!(
+                line,
+                "; 4-DoF ATE {:.4} m ({:.2}%), roll/pitch error {tilt:.2}°",
+                a.rmse_m, a.rmse_percent
+            );
         }
     }
     if !cl.frames_by_source.is_empty() || cl.frames_orientation_only > 0 {
