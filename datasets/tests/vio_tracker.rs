@@ -19,11 +19,15 @@ enum Mode {
     Vio { prior: bool },
 }
 
+type MaybePose = Option<Isometry3<f64>>;
+
 /// One run: each frame's final pose (earlier poses re-expressed at each world move).
 struct Run {
     times: Vec<i64>,
     poses: Vec<Option<Isometry3<f64>>>,
     sources: Vec<PoseSource>,
+    /// Vision's pose and the IMU's prediction of each frame (in the world of that frame).
+    vision: Vec<(MaybePose, MaybePose)>,
     orientations: usize,
     new_sessions: usize,
     /// Seconds from the first frame to the initialisation.
@@ -77,6 +81,7 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
         times: (0..n).map(|k| world.frame_capture_time_ns(k)).collect(),
         poses: vec![None; n],
         sources: vec![PoseSource::None; n],
+        vision: vec![(None, None); n],
         orientations: 0,
         new_sessions: 0,
         init_s: None,
@@ -131,6 +136,7 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
                     }
                 }
                 r.orientations += usize::from(o.source == PoseSource::OrientationOnly);
+                r.vision[k] = (o.vo.t_cw, o.prediction.map(|p| p.t_cw));
                 (o.vo, o.t_cw, o.source)
             }
             _ => unreachable!(),
@@ -332,15 +338,47 @@ fn debug_drone() {
     let vio = run(&world, Mode::Vio { prior });
     figures("debug", &world, &vio, Mode::Vio { prior });
     let (_, _, res) = align(&world, &vio, false);
+    for k in 1..vio.times.len() {
+        let (Some(a), (Some(b), pred)) = (vio.vision[k - 1].0, vio.vision[k]) else {
+            continue;
+        };
+        let ta = world.pose_cam_at(vio.times[k - 1]).inverse();
+        let tb = world.pose_cam_at(vio.times[k]).inverse();
+        let d_true = tb * ta.inverse();
+        let err = |d: Isometry3<f64>| {
+            let e = d * d_true.inverse();
+            (
+                e.translation.vector.norm() * 100.0,
+                e.rotation.angle().to_degrees(),
+            )
+        };
+        let vis = err(b * a.inverse());
+        let pr = pred.map(|p| err(p * a.inverse()));
+        eprintln!(
+            "REL {k} t {:.3} vision {:.2} cm {:.3} deg pred {:?}",
+            vio.times[k] as f64 * 1e-9,
+            vis.0,
+            vis.1,
+            pr.map(|(c, d)| format!("{c:.2} cm {d:.3} deg"))
+        );
+    }
     for k in (0..vio.times.len()).step_by(10) {
         let c = vio.poses[k].map(|p| p.inverse().translation.vector);
         let g = world.pose_cam_at(vio.times[k]).translation.vector;
+        let gt = world.ground_truth_states();
+        let i = gt
+            .partition_point(|s| s.t_ns < vio.times[k])
+            .min(gt.len() - 1);
         eprintln!(
-            "{k} {:?} est {:?} truth {:.3?} res {:?}",
+            "{k} t {:.3} {:?} est {:?} truth {:.3?} res {:?} v_true {:.3?} bg_true {:.4?} ba_true {:.3?}",
+            vio.times[k] as f64 * 1e-9,
             vio.sources[k],
             c.map(|c| format!("{:.3?}", c.as_slice())),
             g.as_slice(),
-            res[k]
+            res[k],
+            gt[i].v_w.as_slice(),
+            gt[i].biases.gyro.as_slice(),
+            gt[i].biases.accel.as_slice(),
         );
     }
 }
