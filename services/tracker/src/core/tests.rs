@@ -374,3 +374,111 @@ fn check_run(run: &Run, s: Status) {
 fn to_iso(p: &Pose) -> nalgebra::Isometry3<f64> {
     shoal_runtime::wire::iso_from_wire(p).expect("finite pose")
 }
+
+/// A visual-inertial core on the first 30 frames of the `drone` scenario, fed its IMU with
+/// a saturated sample, a non-finite one and a 0.2 s gap injected (`extrinsics`: whether the
+/// configuration says `T_BS` was given); the poses published and the final status.
+fn drive_vio(extrinsics: bool) -> (Vec<shm_schema::TrackedPose>, Status) {
+    let mut p = SimParams::new(Scenario::Drone);
+    p.frames = Some(30);
+    p.seed = 3;
+    let world = SimWorld::new(p).expect("world");
+    let cfg = CoreConfig {
+        mode: crate::ClientMode::Vio,
+        imu: crate::ImuCalibConfig {
+            extrinsics_given: extrinsics,
+            ..Default::default()
+        },
+        ..config(false)
+    };
+    let mut core = TrackerCore::new(cfg, Status::new("tracker:0"));
+    let mut imu: Vec<ImuMsg> = world
+        .imu_samples()
+        .iter()
+        .enumerate()
+        .map(|(k, s)| imu_msg(k as u64, s))
+        .collect();
+    imu[40].accel[0] = 1e4;
+    imu[41].gyro[2] = f64::NAN;
+    // 0.2 s without samples after the 100th (their sequence numbers skipped: also counted
+    // as dropped).
+    let t_gap = imu[100].t_ns;
+    imu.retain(|m| m.t_ns <= t_gap || m.t_ns > t_gap + 200_000_000);
+    let (mut next, mut poses) = (0, vec![]);
+    let c = world.calib().model;
+    let mut img = vec![0u8; (c.width * c.height) as usize];
+    for k in 0..world.n_frames() {
+        let h = frame_header(&world, k);
+        let need = core
+            .imu_needed_ns(&h, img.len())
+            .expect("vio waits for the IMU");
+        while core.imu_missing(need) && next < imu.len() {
+            core.on_imu(&imu[next]);
+            next += 1;
+        }
+        world.render_frame_into(k, &mut img).expect("render");
+        let frame = FrameIn {
+            header: h,
+            pixels: &img,
+            recv_ns: 0,
+            now_ns: 0,
+        };
+        let FrameStep::Tracked(t) = core.track(frame).expect("track") else {
+            panic!("frame {k} not taken");
+        };
+        for o in core.publish_frame(t, 0) {
+            if let Out::Pose(p) = o {
+                poses.push(p);
+            }
+        }
+    }
+    (poses, core.finish())
+}
+
+/// Bad IMU input in the visual-inertial mode: the saturated and the non-finite sample are
+/// refused and the gap reported, each a counted, named error; no frame is lost, and frames
+/// with no pose yet carry a gyro-propagated orientation (never an invented position).
+#[test]
+fn vio_core_counts_bad_imu_samples_and_poses_every_frame() {
+    let (poses, status) = drive_vio(true);
+    let c: TrackerCounters = status.counters_as();
+    assert_eq!(c.imu_samples_refused, 2, "{c:?}");
+    assert_eq!(c.imu_gaps, 1, "{c:?}");
+    assert_eq!(status.errors_of(ErrorKind::ImuSaturated), 2);
+    assert_eq!(status.errors_of(ErrorKind::ImuGap), 1);
+    let frames: Vec<_> = poses.iter().filter(|p| p.meta.flags == 0).collect();
+    assert_eq!(frames.len(), 30);
+    for p in &frames {
+        let source = shm_schema::PoseSource::from_u32(p.source).expect("source");
+        let tracking = TrackState::from_u32(p.state) == Some(TrackState::Tracking);
+        match source {
+            shm_schema::PoseSource::OrientationOnly => {
+                assert!(!tracking && p.pose.t == [0.0; 3], "{p:?}")
+            }
+            shm_schema::PoseSource::None => assert!(!tracking),
+            _ => assert!(tracking, "{p:?}"),
+        }
+    }
+    let oriented = frames
+        .iter()
+        .filter(|p| p.source != shm_schema::PoseSource::None as u32)
+        .count();
+    assert!(
+        oriented >= 28,
+        "{oriented} of 30 frames with a pose or orientation"
+    );
+    let report: VioReport = status.details_as().expect("vio report");
+    assert_ne!(report.status, "disabled", "{report:?}");
+}
+
+/// `vio` without camera-IMU extrinsics runs monocular and says why.
+#[test]
+fn vio_without_extrinsics_runs_monocular_and_says_why() {
+    let (poses, status) = drive_vio(false);
+    let report: VioReport = status.details_as().expect("vio report");
+    assert_eq!(report.status, "disabled");
+    assert!(report.reason.unwrap_or_default().contains("extrinsics"));
+    assert!(poses
+        .iter()
+        .all(|p| p.source != shm_schema::PoseSource::OrientationOnly as u32));
+}
