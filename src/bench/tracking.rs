@@ -211,7 +211,7 @@ fn new_client(
     let mut vo = VoTracker::new(params, ds.camera.model)?;
     tracker::mapping_thread::LocalMappingThread::attach(&mut vo)?;
     if args.mode != tracker::ClientMode::Vio {
-        return Ok(tracker::core::Client::Mono(vo));
+        return Ok(tracker::core::Client::Mono(Box::new(vo)));
     }
     let setup = crate::launcher::modes::client_setup(tracker::ClientMode::Vio, ds);
     anyhow::ensure!(

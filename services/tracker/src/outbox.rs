@@ -94,7 +94,6 @@ pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg
         velocity_w: kf.inertial.map_or([0.0; 3], |i| i.v_wb.into()),
         gyro_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.gyro.into()),
         accel_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.accel.into()),
-        ..KeyframeHeader::default()
     };
     KeyframeMsg {
         header,

@@ -14,7 +14,7 @@ use super::VioReport;
 /// The monocular VO, or the visual-inertial client around it.
 pub enum Client {
     /// Monocular (seed ch. 3).
-    Mono(VoTracker),
+    Mono(Box<VoTracker>),
     /// Visual-inertial (seed ch. 5).
     Vio(Box<VioTracker>),
 }

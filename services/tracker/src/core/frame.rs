@@ -27,6 +27,8 @@ pub struct FrameIn<'a> {
 }
 
 /// What [`TrackerCore::track`] made of a frame.
+// One per frame, moved once to the ports: boxing `Tracked` would allocate on every frame.
+#[allow(clippy::large_enum_variant)]
 pub enum FrameStep {
     /// Nothing more to do: a rejected frame, or a duplicate (its acknowledgement in here).
     Done(Vec<Out>),

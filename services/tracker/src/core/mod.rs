@@ -437,7 +437,7 @@ impl TrackerCore {
     fn new_client(&mut self, h: &FrameHeader) -> anyhow::Result<Client> {
         let vo = self.new_vo(h)?;
         if self.cfg.mode != crate::ClientMode::Vio {
-            return Ok(Client::Mono(vo));
+            return Ok(Client::Mono(Box::new(vo)));
         }
         match self.vio_params(h) {
             Ok(p) => Ok(Client::Vio(Box::new(slam_core::vio::VioTracker::new(
@@ -445,7 +445,7 @@ impl TrackerCore {
             )))),
             Err(why) => {
                 self.vio_disabled = Some(why);
-                Ok(Client::Mono(vo))
+                Ok(Client::Mono(Box::new(vo)))
             }
         }
     }
@@ -462,7 +462,7 @@ impl TrackerCore {
             format!("{e}: running monocular")
         })?;
         let t_bc = shoal_runtime::wire::iso_from_wire(&h.t_bs)
-            .ok_or_else(|| "the frames' T_BS is not a rigid transform: running monocular")?;
+            .ok_or("the frames' T_BS is not a rigid transform: running monocular")?;
         // The ingest applied t_d to the frame stamps: they are on the IMU clock already.
         Ok(slam_core::vio::VioParams::new(preint, t_bc))
     }
