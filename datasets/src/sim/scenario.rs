@@ -400,7 +400,7 @@ mod tests {
     }
 
     #[test]
-    fn drone_moves_in_six_dof_and_blackout_is_the_loop_with_a_gap() {
+    fn drone_moves_in_six_dof_and_blackout_is_the_hand_held_loop_with_a_gap() {
         let tr = Scenario::Drone.trajectory(0).expect("drone");
         let (mut roll, mut pitch, mut z, mut acc) = (0.0f64, 0.0f64, (f64::MAX, f64::MIN), 0.0f64);
         for i in 0..8000 {
@@ -415,10 +415,22 @@ mod tests {
             roll > 0.25 && pitch > 0.2 && z.1 - z.0 > 0.7 && acc > 2.0,
             "{roll} {pitch} {z:?} {acc}"
         );
-        assert_eq!(
-            Scenario::Blackout.trajectory(0),
-            Scenario::Loop.trajectory(0)
+        // `blackout`: the loop path within a few cm, but with accelerations an inertial
+        // initialisation can use (the loop's stay near the accelerometer bias's size).
+        let (lp, bo) = (
+            Scenario::Loop.trajectory(0).expect("loop"),
+            Scenario::Blackout.trajectory(0).expect("blackout"),
         );
+        let (mut dist, mut acc_loop, mut acc_bo) = (0.0f64, 0.0f64, 0.0f64);
+        for i in 0..6400 {
+            let t = f64::from(i) * 0.01;
+            let (a, b) = (lp.body_state(t), bo.body_state(t));
+            dist = dist.max((a.p_wb - b.p_wb).norm());
+            acc_loop = acc_loop.max(a.a_w.norm());
+            acc_bo = acc_bo.max(b.a_w.norm());
+        }
+        assert!(dist < 0.05, "blackout {dist} m off the loop path");
+        assert!(acc_loop < 0.5 && acc_bo > 2.5, "{acc_loop} {acc_bo}");
         assert_eq!(Scenario::Blackout.blank_frames(1280, 20.0), 620..660);
         assert_eq!(Scenario::Loop.blank_frames(1280, 20.0), 0..0);
         assert_eq!(Scenario::Blackout.blank_frames(10, 20.0), 0..10);
