@@ -146,7 +146,7 @@ fn mode_line(s: &mut String, cl: &ClientReport) {
         if let (Some(after), Some(scale)) = (v.initialised_after_s, v.scale) {
             let _ = write!(
                 line,
-                " after {after:.2} s of keyframes (scale {scale:.3}, {} refinement(s))",
+                " {after:.2} s after the first frame (scale {scale:.3}, {} refinement(s))",
                 v.refinements
             );
         }
