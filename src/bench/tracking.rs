@@ -78,12 +78,8 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let n = args.max_frames.unwrap_or(usize::MAX).min(ds.frames.len());
     let mut client = new_client(&ds, args)?;
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
-    let mut h: [LatencyHist; 9] = Default::default();
-    let mut client_total = LatencyHist::new();
-    let (mut tracked, mut sources) = (0, [0usize; 5]);
-    let mut metric = 0;
+    let mut acc = InProcess::default();
     let mut imu_next = 0;
-    let mut per_frame_ms = Vec::with_capacity(n);
     for rec in ds.frames.iter().take(n) {
         datasets::decode_gray_into(&rec.path, &mut img, cam.width, cam.height)?;
         let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize)?;
@@ -104,14 +100,50 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             readout_ns: rec.readout_ns,
             angular_velocity: None,
         })?;
-        client_total.record_ns(t0.elapsed().as_nanos() as i64);
-        tracked += out.t_cw.is_some() as usize;
-        sources[out.source as usize] += 1;
-        metric += (out.metric && out.t_cw.is_some()) as usize;
+        acc.record(&out, t0.elapsed());
+    }
+    let publish_to_pose_ms = if args.no_pipeline {
+        None
+    } else {
+        Some(pipeline_latency(args)?)
+    };
+    let rep = acc.report(&ds, n, args.mode, publish_to_pose_ms);
+    if let Some(path) = &args.plot {
+        write_plot(&rep, acc.per_frame_ms, path)?;
+    }
+    if args.json {
+        println!("{}", serde_json::to_string(&rep)?);
+    } else {
+        print_text(&rep);
+    }
+    Ok(())
+}
+
+/// What the in-process loop gathers per frame.
+#[derive(Default)]
+struct InProcess {
+    /// Stage histograms: pyramid, detect, describe, ORB, match, pose_opt, local_map,
+    /// keyframe, total.
+    stages: [LatencyHist; 9],
+    client_total: LatencyHist,
+    tracked: usize,
+    /// Frames by [`shm_schema::PoseSource`].
+    sources: [usize; 5],
+    metric: usize,
+    per_frame_ms: Vec<f64>,
+}
+
+impl InProcess {
+    /// One frame's output and the time of the whole client step.
+    fn record(&mut self, out: &tracker::core::ClientOutput, step: std::time::Duration) {
+        self.client_total.record_ns(step.as_nanos() as i64);
+        self.tracked += out.t_cw.is_some() as usize;
+        self.sources[out.source as usize] += 1;
+        self.metric += (out.metric && out.t_cw.is_some()) as usize;
         let t = out.vo.times;
-        per_frame_ms.push(t.total as f64);
+        self.per_frame_ms.push(t.total as f64);
         let orb = t.pyramid + t.detect + t.describe;
-        for (hist, ms) in h.iter_mut().zip([
+        for (hist, ms) in self.stages.iter_mut().zip([
             t.pyramid,
             t.detect,
             t.describe,
@@ -125,79 +157,84 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
             hist.record_ns((ms as f64 * 1e6) as i64);
         }
     }
-    let publish_to_pose_ms = if args.no_pipeline {
-        None
-    } else {
-        let mut cfg = crate::launcher::RunConfig::new(vec![args.dataset.clone()], args.out.clone());
-        cfg.max_frames = args.max_frames;
-        cfg.progress = false;
-        cfg.ipc_prefix = format!("shoal_benchtrk_{}_", std::process::id());
-        cfg.tracker.mode = args.mode;
-        let rep = crate::launcher::run(&cfg)?;
-        Some(rep.latency_ms.publish_to_pose)
-    };
-    let p = |i: usize| h[i].percentiles();
-    let rep = TrackingReport {
-        dataset: ds.root.display().to_string(),
-        width: cam.width,
-        height: cam.height,
-        frames: n,
-        frames_tracked: tracked,
-        mode: args.mode.name().to_string(),
-        frames_vio: sources[shm_schema::PoseSource::VisualInertial as usize],
-        frames_inertial: sources[shm_schema::PoseSource::Inertial as usize],
-        frames_metric: metric,
-        client_total_ms: client_total.percentiles(),
-        pyramid_ms: p(0),
-        detect_ms: p(1),
-        describe_ms: p(2),
-        orb_extract_ms: p(3),
-        match_ms: p(4),
-        pose_opt_ms: p(5),
-        local_map_ms: p(6),
-        keyframe_ms: p(7),
-        total_ms: p(8),
-        publish_to_pose_ms,
-    };
-    if let Some(path) = &args.plot {
-        write_plot(&rep, per_frame_ms, path)?;
-    }
-    if args.json {
-        println!("{}", serde_json::to_string(&rep)?);
-    } else {
-        println!(
-            "{} ({}x{}), {} frames, {} tracked; mode {}: {} with the IMU, {} by the IMU alone, {} metric",
-            rep.dataset,
-            rep.width,
-            rep.height,
-            n,
-            tracked,
-            rep.mode,
-            rep.frames_vio,
-            rep.frames_inertial,
-            rep.frames_metric
-        );
-        let row = |name: &str, q: &Percentiles| {
-            println!(
-                "{name:<16} p50 {:>7.2}  p90 {:>7.2}  p99 {:>7.2}  max {:>7.2} ms",
-                q.p50, q.p90, q.p99, q.max
-            )
-        };
-        row("pyramid", &rep.pyramid_ms);
-        row("detect", &rep.detect_ms);
-        row("describe", &rep.describe_ms);
-        row("orb_extract", &rep.orb_extract_ms);
-        row("match", &rep.match_ms);
-        row("pose_opt", &rep.pose_opt_ms);
-        row("local_map", &rep.local_map_ms);
-        row("keyframe", &rep.keyframe_ms);
-        row("total", &rep.total_ms);
-        row("client_total", &rep.client_total_ms);
-        if let Some(q) = &rep.publish_to_pose_ms {
-            row("publish_to_pose", q);
+
+    /// The report of `frames` frames of `ds` in `mode`.
+    fn report(
+        &self,
+        ds: &datasets::Dataset,
+        frames: usize,
+        mode: tracker::ClientMode,
+        publish_to_pose_ms: Option<Percentiles>,
+    ) -> TrackingReport {
+        let p = |i: usize| self.stages[i].percentiles();
+        TrackingReport {
+            dataset: ds.root.display().to_string(),
+            width: ds.camera.model.width,
+            height: ds.camera.model.height,
+            frames,
+            frames_tracked: self.tracked,
+            mode: mode.name().to_string(),
+            frames_vio: self.sources[shm_schema::PoseSource::VisualInertial as usize],
+            frames_inertial: self.sources[shm_schema::PoseSource::Inertial as usize],
+            frames_metric: self.metric,
+            client_total_ms: self.client_total.percentiles(),
+            pyramid_ms: p(0),
+            detect_ms: p(1),
+            describe_ms: p(2),
+            orb_extract_ms: p(3),
+            match_ms: p(4),
+            pose_opt_ms: p(5),
+            local_map_ms: p(6),
+            keyframe_ms: p(7),
+            total_ms: p(8),
+            publish_to_pose_ms,
         }
     }
-    Ok(())
+}
+
+/// Frame publish → pose publish through a lock-step `shoal run` of the same frames.
+fn pipeline_latency(args: &TrackingArgs) -> anyhow::Result<Percentiles> {
+    let mut cfg = crate::launcher::RunConfig::new(vec![args.dataset.clone()], args.out.clone());
+    cfg.max_frames = args.max_frames;
+    cfg.progress = false;
+    cfg.ipc_prefix = format!("shoal_benchtrk_{}_", std::process::id());
+    cfg.tracker.mode = args.mode;
+    Ok(crate::launcher::run(&cfg)?.latency_ms.publish_to_pose)
+}
+
+/// The report as text, a row per stage.
+fn print_text(rep: &TrackingReport) {
+    println!(
+        "{} ({}x{}), {} frames, {} tracked; mode {}: {} with the IMU, {} by the IMU alone, {} metric",
+        rep.dataset,
+        rep.width,
+        rep.height,
+        rep.frames,
+        rep.frames_tracked,
+        rep.mode,
+        rep.frames_vio,
+        rep.frames_inertial,
+        rep.frames_metric
+    );
+    let row = |name: &str, q: &Percentiles| {
+        println!(
+            "{name:<16} p50 {:>7.2}  p90 {:>7.2}  p99 {:>7.2}  max {:>7.2} ms",
+            q.p50, q.p90, q.p99, q.max
+        )
+    };
+    row("pyramid", &rep.pyramid_ms);
+    row("detect", &rep.detect_ms);
+    row("describe", &rep.describe_ms);
+    row("orb_extract", &rep.orb_extract_ms);
+    row("match", &rep.match_ms);
+    row("pose_opt", &rep.pose_opt_ms);
+    row("local_map", &rep.local_map_ms);
+    row("keyframe", &rep.keyframe_ms);
+    row("total", &rep.total_ms);
+    row("client_total", &rep.client_total_ms);
+    if let Some(q) = &rep.publish_to_pose_ms {
+        row("publish_to_pose", q);
+    }
 }
 
 /// The client of `args.mode` for `ds`, its local mapping on its own thread as in the

@@ -63,12 +63,6 @@ impl Client {
         }
     }
 
-    /// Whether its poses are metric and gravity-aligned now.
-    pub fn metric(&self) -> bool {
-        self.vio()
-            .is_some_and(|v| matches!(v.status(), VioStatus::Initialised { .. }))
-    }
-
     /// One IMU sample (the visual-inertial client keeps it); its complaint, if any.
     pub fn on_imu(&mut self, m: ImuMeasurement) -> Result<(), ImuSampleError> {
         match self {
