@@ -84,10 +84,25 @@ pub fn triangulate_dlt(
     p2: &Matrix3x4<f64>,
     b2: &Vector3<f64>,
 ) -> Option<Vector3<f64>> {
-    // Normalised (Hartley & Zisserman, section 4.4.4): solved in view 1's camera frame with
-    // a unit baseline, so that the result moves with a similarity of the world (rotation,
-    // translation and scale) and does not depend on where the world origin is or on its
-    // unit; then mapped back.
+    let mut ata = Matrix4::zeros();
+    accumulate_view(&mut ata, p1, b1);
+    accumulate_view(&mut ata, p2, b2);
+    solve_normal(ata)
+}
+
+/// Normalised linear (DLT) triangulation of one point seen in two views (Hartley &
+/// Zisserman, section 4.4.4): as [`triangulate_dlt`], but solved in view 1's camera frame
+/// in the point's own unit, so that the result moves with a similarity of the world
+/// (rotation, translation and scale) and depends neither on where the world origin is nor
+/// on its unit. The server builds its maps in the client maps' frames and units (seed
+/// §3.4.1: a monocular map's arbitrary unit, a visual-inertial client's metric one), and
+/// must give the same map up to that similarity. Same `None` cases.
+pub fn triangulate_dlt_normalised(
+    p1: &Matrix3x4<f64>,
+    b1: &Vector3<f64>,
+    p2: &Matrix3x4<f64>,
+    b2: &Vector3<f64>,
+) -> Option<Vector3<f64>> {
     let (r1, t1) = (p1.fixed_view::<3, 3>(0, 0), p1.column(3));
     let (r2, t2) = (p2.fixed_view::<3, 3>(0, 0), p2.column(3));
     let r21 = r2 * r1.transpose();
@@ -261,11 +276,11 @@ mod tests {
         )
     }
 
-    /// The DLT moves with a similarity of the world `x' = s R x + t` (the unit and origin
-    /// of a monocular map are arbitrary; a visual-inertial client moves its map into a
-    /// metric one): noisy bearings give `s R X + t` for every `s`, whatever the origin.
+    /// The normalised DLT moves with a similarity of the world `x' = s R x + t` (the unit and
+    /// origin of a monocular map are arbitrary; a visual-inertial client moves its map into
+    /// a metric one): noisy bearings give `s R X + t` for every `s`, whatever the origin.
     #[test]
-    fn dlt_is_invariant_to_a_similarity_of_the_world() {
+    fn normalised_dlt_is_invariant_to_a_similarity_of_the_world() {
         let t_wc1 = pose(0.1, -0.2, 0.05, [30.0, -12.0, 4.0]);
         let t_wc2 = pose(0.12, -0.15, 0.07, [30.4, -11.9, 4.1]);
         let x_w = Vector3::new(31.0, -10.5, 9.0);
@@ -278,7 +293,7 @@ mod tests {
                 projection_matrix(&a.inverse()),
                 projection_matrix(&b.inverse()),
             );
-            triangulate_dlt(&p1, &b1, &p2, &b2).unwrap()
+            triangulate_dlt_normalised(&p1, &b1, &p2, &b2).unwrap()
         };
         let x = solve(&t_wc1, &t_wc2);
         let r = UnitQuaternion::from_euler_angles(0.3, -0.7, 1.1);
