@@ -231,3 +231,74 @@ fn forget_unseen_keeps_recently_referenced_points() {
     assert_eq!(map.association_count().0, 2);
     assert_eq!(map.forget_unseen(100), 0);
 }
+
+/// Keyframe `id` as [`keyframe`] but with its keypoints perturbed by a deterministic noise of
+/// up to ±0.5 px (real detections are not exact: without noise any triangulation is exact).
+fn noisy_keyframe(id: u64, t_wk: &Isometry3<f64>, t_ck: &Isometry3<f64>) -> ServerKeyframe {
+    let mut kf = keyframe(id, 1, t_wk, t_ck);
+    let mut h = 0x2545_f491_4f6c_dd1du64 ^ id.wrapping_mul(0x9e37_79b9);
+    let mut unit = || {
+        h ^= h << 13;
+        h ^= h >> 7;
+        h ^= h << 17;
+        (h >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    };
+    for kp in &mut kf.features.keypoints {
+        kp.x += unit() as f32;
+        kp.y += unit() as f32;
+    }
+    kf
+}
+
+/// The server keyframe poses `T_sk` of a handler fed the noisy keyframes of a curved path
+/// whose client map is the true world moved by the similarity `x_c = s (x_w − o)` (a far
+/// origin `o`: a VO map's origin is its first keyframe, its unit arbitrary), with their
+/// statuses.
+fn server_run_with_client_scale(s: f64) -> Vec<(KeyframeStatus, Isometry3<f64>)> {
+    let origin = Vector3::new(-40.0, 25.0, -10.0);
+    let to_client = |t_wk: &Isometry3<f64>| {
+        let t = s * (t_wk.translation.vector - origin);
+        Isometry3::from_parts(t.into(), t_wk.rotation)
+    };
+    let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
+    let mut out = Vec::new();
+    for k in 0..12 {
+        let a = 0.03 * k as f64;
+        let t_wk = Isometry3::new(
+            Vector3::new(0.22 * k as f64, 0.4 * a.sin(), 0.1 * a),
+            Vector3::new(0.0, -0.5 * a, 0.02 * k as f64),
+        );
+        let r = h
+            .handle(&mut maps, noisy_keyframe(k, &t_wk, &to_client(&t_wk)))
+            .unwrap();
+        out.push((r.status, r.t_sk.unwrap_or_else(Isometry3::identity)));
+        h.idle_step(&mut maps);
+    }
+    out
+}
+
+/// Seed §3.4.1: the server map is built in the client map's frame and unit (λ = 1 at its
+/// creation), so a client map that is a similarity of another (a monocular map's arbitrary
+/// unit, or a visual-inertial client's metric, gravity-aligned one) must give the same
+/// server map up to that similarity: same decisions, poses `s`-scaled. A constant in
+/// absolute units (or an estimator that is not similarity-invariant, as the unnormalised
+/// DLT was) breaks this, and the handler's decisions then diverge after a few keyframes.
+#[test]
+fn server_map_follows_a_similarity_of_the_client_map() {
+    let reference = server_run_with_client_scale(1.0);
+    for s in [0.2, 5.0, 20.0] {
+        let run = server_run_with_client_scale(s);
+        for (k, ((st1, t1), (st, t))) in reference.iter().zip(&run).enumerate() {
+            assert_eq!(st1, st, "s = {s}, keyframe {k}: status");
+            let expected = s * t1.translation.vector;
+            // Scene depth ≈ 5 true units = 5 s client units.
+            let err = (t.translation.vector - expected).norm() / (5.0 * s);
+            assert!(err < 1e-8, "s = {s}, keyframe {k}: relative error {err:e}");
+            assert!(
+                t.rotation.angle_to(&t1.rotation) < 1e-6,
+                "s = {s}, keyframe {k}"
+            );
+        }
+    }
+}
