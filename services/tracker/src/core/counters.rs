@@ -106,6 +106,16 @@ pub struct VioReport {
     pub gyro_bias: Option<[f64; 3]>,
     /// Accelerometer bias of the last frame's state, m/s².
     pub accel_bias: Option<[f64; 3]>,
+    /// Visual-inertial windows of local mapping solved and applied (this tracker's life).
+    pub vi_windows: u64,
+    /// Keyframes with an inertial state for which no window could be built.
+    pub vi_windows_skipped: u64,
+    /// Windows whose solve failed (skipped, counted).
+    pub vi_windows_failed: u64,
+    /// Mean time of a window (build, solve, write back), ms.
+    pub vi_window_ms_mean: Option<f64>,
+    /// Longest window, ms.
+    pub vi_window_ms_max: Option<f64>,
 }
 
 /// Format version of [`TrackerResume`].
