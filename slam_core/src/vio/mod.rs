@@ -235,6 +235,9 @@ pub struct VioTracker {
     /// The last keyframe made and its IMU time, until local mapping's result for it (or a
     /// later one) is taken ([`VioTracker::adopt_window_state`]).
     last_kf: Option<(crate::vo::KfId, i64)>,
+    /// Local mapping's window has refined a keyframe of this session (it tracks the
+    /// velocities and biases).
+    window_tracks: bool,
 }
 
 impl VioTracker {
@@ -257,6 +260,7 @@ impl VioTracker {
             biases: ImuBiases::default(),
             coasting: false,
             last_kf: None,
+            window_tracks: false,
             params,
         }
     }
@@ -411,6 +415,7 @@ impl VioTracker {
         self.last_visual_ns = None;
         self.coasting = false;
         self.last_kf = None;
+        self.window_tracks = false;
     }
 
     /// The frame's pose: vision's (the navigator corrected), the IMU's while coasting,
@@ -584,14 +589,20 @@ impl VioTracker {
             return None;
         }
         self.move_beside_vo(init.scale, &r);
-        self.biases = init.biases;
+        // Once local mapping's window tracks them, a refinement moves the world but leaves
+        // the velocities and biases to the window.
+        let keep = !first && self.window_tracks;
+        if !keep {
+            self.biases = init.biases;
+        }
         let v_wb = init
             .velocities_w
             .last()
             .map(|v| init.r_gw * v)
             .unwrap_or_default();
         match (self.nav.as_mut(), newest) {
-            (Some(nav), _) => nav.set_velocity_biases(v_wb, init.biases),
+            (Some(nav), _) if !keep => nav.set_velocity_biases(v_wb, init.biases),
+            (Some(_), _) => {}
             (None, Some((t_kf, t_cw_old, _))) => {
                 let t_cw = crate::vo::map::transform_pose_cw(&t_cw_old, init.scale, &r);
                 let state = navigator::nav_from_camera(&t_cw, &self.params.t_bc, v_wb, init.biases);
@@ -606,7 +617,7 @@ impl VioTracker {
             }
             (None, None) => {}
         }
-        if let (Some(nav), Some((_, _, id))) = (&self.nav, newest) {
+        if let (Some(nav), Some((_, _, id)), false) = (&self.nav, newest, keep) {
             self.vo.set_keyframe_inertial(
                 id,
                 KeyframeInertial {
@@ -684,5 +695,6 @@ impl VioTracker {
         nav.adopt_keyframe(self.imu.samples(), &kf, t_kf);
         out.nav = Some(*nav.state());
         self.biases = i.biases;
+        self.window_tracks = true;
     }
 }

@@ -136,6 +136,8 @@ pub struct ViWindowJob {
     c_before: Vec<Vector3<f64>>,
     point_index: HashMap<PointId, u32>,
     inliers: Vec<bool>,
+    /// The window was gauged (module docs, "First windows").
+    gauged: bool,
     /// The IMU chain, oldest first.
     chain: Vec<KfId>,
     /// Covisible keyframes outside the chain and their observations of window points.
@@ -199,6 +201,7 @@ pub fn prepare_vi_window(
         .extend(job.covisible.iter().take(n_visual).map(|c| c.0));
     job.kf_ids.extend(job.chain.iter());
     w.n_visual = n_visual;
+    job.gauged = gauged;
     window_states(map, job, w, &t_bc, gauged);
     window_preints(map, job, w).ok_or(ViSkip::ShortChain)?;
     window_observations(map, job, w);
@@ -208,9 +211,10 @@ pub fn prepare_vi_window(
     w.t_bc = t_bc;
     w.camera = camera;
     w.gravity_w = gravity_w();
+    let a = w.n_visual;
     w.prior = gauged.then(|| {
-        let s = w.keyframes[0].state;
-        gauge_prior(0, &s, params.gauge_sigma_m, params.gauge_sigma_rad)
+        let s = w.keyframes[a].state;
+        gauge_prior(a, &s, params.gauge_sigma_m, params.gauge_sigma_rad)
     });
     Ok(())
 }
@@ -354,7 +358,7 @@ fn window_observations(map: &ClientMap, job: &mut ViWindowJob, w: &mut ViWindow)
 /// inertial states, the points, and the removal of outlier observations. Keyframes and
 /// points that left the map meanwhile are skipped. Returns the observations removed.
 pub fn apply_vi_window(map: &mut ClientMap, job: &mut ViWindowJob, w: &mut ViWindow) -> usize {
-    if w.prior.is_some() {
+    if job.gauged {
         let c = split_world_correction(job, w);
         map.world_correction = Some(map.world_correction.map_or(c, |old| old.then(&c)));
     }
