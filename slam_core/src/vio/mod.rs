@@ -70,18 +70,10 @@ pub struct VioParams {
     /// The IMU's pose prior in the pose optimisation (`false`: prediction and rolling
     /// shutter only, for comparison).
     pub pose_prior: bool,
-    /// Track every frame with the IMU's prediction and prior (module docs, step 1).
-    /// **Off by default**: on the rendered drone (seed 3) it tracks as well as the motion
-    /// model for 11.4 s, then vision drifts from the IMU (1.5-5 cm per frame from 11.5 s)
-    /// and tracking is lost at ~13 s. Measured (`debug_drone`, frame-to-frame motion vs the
-    /// truth): the IMU's prediction stays right (0.2-0.3 cm and 0.005° per 50 ms, with or
-    /// without this flag; biases within 5e-4 rad/s and 0.03 m/s² of the truth), the prior
-    /// is not the cause (the drift is the same with `pose_prior = false`), no world move
-    /// happens then; it is vision's own pose (the motion-model step's optimisation lands
-    /// 2-8 cm from the prediction) that drifts once the projection search is centred on
-    /// the IMU's prediction instead of the motion model's. Not yet understood. Off, the
-    /// motion model tracks and the IMU initialises, coasts through dropouts and searches
-    /// around its prediction when vision returns.
+    /// Track every frame with the IMU's prediction and prior (module docs, step 1; on by
+    /// default). `false`: the VO's motion model tracks and the IMU only initialises, coasts
+    /// through dropouts and searches around its prediction when vision returns (for
+    /// comparison).
     pub imu_tracking: bool,
     /// Longest wait for the local-mapping runner before a world move
     /// ([`VoTracker::transform_world`]); a move that times out is retried at the next frame.
@@ -100,7 +92,7 @@ impl VioParams {
             imu_check: ImuCheck::default(),
             nav: NavParams::default(),
             pose_prior: true,
-            imu_tracking: false,
+            imu_tracking: true,
             world_move_timeout: std::time::Duration::from_secs(5),
         }
     }
@@ -318,7 +310,8 @@ impl VioTracker {
         if out.vo.new_session {
             self.start_over();
         }
-        self.update_pose(t_ns, pred.as_ref(), coast_ok, &mut out);
+        let with_prior = hint.is_some_and(|h| h.prior.is_some());
+        self.update_pose(t_ns, pred.as_ref(), coast_ok, with_prior, &mut out);
         self.keyframe(t_ns, &mut out);
         self.imu
             .keep_from(self.oldest_needed_ns(t_ns) - frame.readout_ns / 2 - 10_000_000);
@@ -373,6 +366,7 @@ impl VioTracker {
         t_ns: i64,
         pred: Option<&Prediction>,
         coast_ok: bool,
+        with_prior: bool,
         out: &mut VioOutput,
     ) {
         let r_cb = self.params.t_bc.rotation.inverse();
@@ -382,7 +376,7 @@ impl VioTracker {
             if let Some(nav) = self.nav.as_mut() {
                 match pred {
                     Some(p) => {
-                        nav.correct(p, &t_cw);
+                        nav.correct(p, &t_cw, out.vo.pose_information.as_ref(), with_prior);
                         if self.params.imu_tracking {
                             out.source = PoseSource::VisualInertial;
                         }

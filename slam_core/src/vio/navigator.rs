@@ -25,7 +25,7 @@
 use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 use crate::imu::{gravity_w, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
-use crate::optim::{PosePrior, Velocity};
+use crate::optim::{centre_covariance, PosePrior, Velocity};
 
 /// Settings of [`Navigator`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -39,8 +39,8 @@ pub struct NavParams {
     /// 1σ of the gyro bias after the initialisation (grows the rotation prior with `Δt`),
     /// rad/s.
     pub gyro_bias_sigma: f64,
-    /// The prior's centre 1σ is the filter's times this (a weak translation prior: the
-    /// map's own drift is not in the filter).
+    /// The prior's centre 1σ is the filter's times this (1: the filter's own; larger, a
+    /// weaker translation prior).
     pub position_prior_inflation: f64,
     /// 1σ of the initial velocity, m/s.
     pub initial_velocity_sigma: f64,
@@ -53,7 +53,7 @@ impl Default for NavParams {
             visual_rotation_sigma_rad: 1e-3,
             accel_error_sigma: 0.1,
             gyro_bias_sigma: 2e-3,
-            position_prior_inflation: 3.0,
+            position_prior_inflation: 1.0,
             initial_velocity_sigma: 0.05,
         }
     }
@@ -199,8 +199,9 @@ impl Navigator {
     }
 
     /// The pose prior: rotation 1σ from the visual floor, the preintegrated rotation's
-    /// covariance and the gyro bias over `dt`; centre 1σ from the filter's position
-    /// covariance times [`NavParams::position_prior_inflation`].
+    /// covariance and the gyro bias over `dt` (isotropic); the centre's information is the
+    /// inverse of the filter's position covariance (full 3x3; the lever arm's share of the
+    /// rotation uncertainty is neglected) over [`NavParams::position_prior_inflation`]².
     fn prior(
         &self,
         pre: &Preintegrated,
@@ -212,9 +213,16 @@ impl Navigator {
         let rot_var = p.visual_rotation_sigma_rad.powi(2)
             + pre.covariance().fixed_view::<3, 3>(0, 0).trace() / 3.0
             + (p.gyro_bias_sigma * dt).powi(2);
-        let pos_var =
-            cov.fixed_view::<3, 3>(0, 0).trace() / 3.0 * p.position_prior_inflation.powi(2);
-        PosePrior::isotropic(t_cw, rot_var.sqrt(), pos_var.sqrt())
+        let pos_cov = cov.fixed_view::<3, 3>(0, 0) * p.position_prior_inflation.powi(2);
+        let pos_info = pos_cov.try_inverse().unwrap_or_else(|| {
+            Matrix3::identity() / (pos_cov.trace() / 3.0).max(1e-12)
+        });
+        let mut information = Matrix6::zeros();
+        information
+            .fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(Matrix3::identity() / rot_var));
+        information.fixed_view_mut::<3, 3>(3, 3).copy_from(&pos_info);
+        PosePrior { t_cw, information }
     }
 
     /// Takes the prediction as the new state without a visual correction (coasting).
@@ -224,36 +232,41 @@ impl Navigator {
         self.t_ns = pred.t_ns;
     }
 
-    /// Corrects the prediction with the tracked camera pose `t_cw`: orientation from
-    /// vision, position and velocity from the filter's update (module docs).
-    pub fn correct(&mut self, pred: &Prediction, t_cw: &Isometry3<f64>) {
+    /// Corrects the prediction with the tracked camera pose `t_cw` and the information of
+    /// its pose optimisation (module docs, "Update"): orientation from vision; position and
+    /// velocity by the filter. With `prior_included` the optimisation held the prediction's
+    /// prior ([`Prediction::prior`]), so `t_cw` is already the posterior and its centre
+    /// covariance the posterior's: the velocity follows by conditioning. Otherwise `t_cw`
+    /// is a measurement with the centre covariance of `information` (plus the floor
+    /// [`NavParams::visual_position_sigma_m`]). Without `information`, the floor alone.
+    pub fn correct(
+        &mut self,
+        pred: &Prediction,
+        t_cw: &Isometry3<f64>,
+        information: Option<&Matrix6<f64>>,
+        prior_included: bool,
+    ) {
         let t_wb = t_cw.inverse() * self.t_bc.inverse();
         let z = t_wb.translation.vector;
-        let r2 = self.params.visual_position_sigma_m.powi(2);
-        let p = pred.cov;
-        let s = p.fixed_view::<3, 3>(0, 0) + Matrix3::identity() * r2;
-        let Some(s_inv) = s.try_inverse() else {
+        let sigma_c = information.and_then(|h| centre_covariance(t_cw, h));
+        let updated = match sigma_c {
+            Some(post) if prior_included => condition_on_position(&pred.cov, &post),
+            _ => {
+                let floor = Matrix3::identity() * self.params.visual_position_sigma_m.powi(2);
+                kalman_position_update(&pred.cov, &(sigma_c.unwrap_or_default() + floor))
+            }
+        };
+        let Some((gain_v, cov)) = updated else {
             self.reset_to(t_cw, pred.t_ns);
             return;
         };
-        let k = p.fixed_view::<6, 3>(0, 0) * s_inv;
-        let innov = z - pred.nav.p;
-        let dx = k * innov;
         let mut nav = pred.nav;
-        nav.p += Vector3::new(dx[0], dx[1], dx[2]);
-        nav.v += Vector3::new(dx[3], dx[4], dx[5]);
+        nav.v += gain_v * (z - pred.nav.p);
         nav.r = t_wb.rotation.to_rotation_matrix();
         // The pose stays vision's (the next prediction starts from the tracked frame, as
         // ORB-SLAM3's); the filter gives the velocity.
         nav.p = z;
-        let mut ikh = Matrix6::<f64>::identity();
-        for r in 0..6 {
-            for c in 0..3 {
-                ikh[(r, c)] -= k[(r, c)];
-            }
-        }
-        self.cov = ikh * p;
-        self.cov = (self.cov + self.cov.transpose()) * 0.5;
+        self.cov = cov;
         self.nav = nav;
         self.t_ns = pred.t_ns;
     }
@@ -291,6 +304,42 @@ impl Navigator {
     }
 }
 
+/// The Kalman update of `[p; v]` (covariance `p`) by a position measurement of covariance
+/// `r`: the velocity gain `K_v` (applied to the innovation `z - p⁻`) and the updated
+/// covariance. `None` when `P_pp + R` is singular.
+fn kalman_position_update(p: &Matrix6<f64>, r: &Matrix3<f64>) -> Option<(Matrix3<f64>, Matrix6<f64>)> {
+    let s_inv = (p.fixed_view::<3, 3>(0, 0) + r).try_inverse()?;
+    let k = p.fixed_view::<6, 3>(0, 0) * s_inv;
+    let mut ikh = Matrix6::<f64>::identity();
+    for r in 0..6 {
+        for c in 0..3 {
+            ikh[(r, c)] -= k[(r, c)];
+        }
+    }
+    let cov = ikh * p;
+    Some((k.fixed_view::<3, 3>(3, 0).into_owned(), (cov + cov.transpose()) * 0.5))
+}
+
+/// `[p; v]` (prior covariance `p`) given the posterior of `p` alone, `N(z, post)`, when the
+/// measurement informed `p` only: `v | p` keeps its prior conditional, so
+/// `v⁺ = v⁻ + A (z - p⁻)` with `A = P_vp P_pp⁻¹`, `P⁺_pp = post`, `P⁺_vp = A post`,
+/// `P⁺_vv = P_vv - A P_pv + A post Aᵀ`. Equal to the Kalman update whose posterior `post` is
+/// (test `conditioning_on_the_posterior_is_the_kalman_update`). `None` when `P_pp` is
+/// singular.
+fn condition_on_position(p: &Matrix6<f64>, post: &Matrix3<f64>) -> Option<(Matrix3<f64>, Matrix6<f64>)> {
+    let p_pp_inv = p.fixed_view::<3, 3>(0, 0).try_inverse()?;
+    let p_vp = p.fixed_view::<3, 3>(3, 0).into_owned();
+    let a = p_vp * p_pp_inv;
+    let mut cov = Matrix6::zeros();
+    cov.fixed_view_mut::<3, 3>(0, 0).copy_from(post);
+    let av = a * post;
+    cov.fixed_view_mut::<3, 3>(3, 0).copy_from(&av);
+    cov.fixed_view_mut::<3, 3>(0, 3).copy_from(&av.transpose());
+    let vv = p.fixed_view::<3, 3>(3, 3) - a * p_vp.transpose() + av * a.transpose();
+    cov.fixed_view_mut::<3, 3>(3, 3).copy_from(&vv);
+    Some((a, (cov + cov.transpose()) * 0.5))
+}
+
 /// `T_wb` of a navigation state.
 pub fn body_pose(nav: &NavState) -> Isometry3<f64> {
     Isometry3::from_parts(
@@ -312,5 +361,61 @@ pub fn nav_from_camera(
         p: t_wb.translation.vector,
         v: v_wb,
         biases,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A symmetric positive-definite matrix from a fixed square root.
+    fn spd6() -> Matrix6<f64> {
+        let a = Matrix6::from_fn(|r, c| ((r * 7 + c * 3) % 5) as f64 * 0.01 + 0.002 * r as f64);
+        a * a.transpose() + Matrix6::identity() * 1e-4
+    }
+
+    /// The posterior of `p` from a Kalman update, conditioned back onto `[p; v]`, gives the
+    /// Kalman update's velocity and covariance: what the pose optimisation with the IMU
+    /// prior returns (the posterior pose) is used exactly as the filter would use vision.
+    #[test]
+    fn conditioning_on_the_posterior_is_the_kalman_update() {
+        let p = spd6();
+        let r = Matrix3::new(4e-5, 1e-5, 0.0, 1e-5, 9e-6, 2e-6, 0.0, 2e-6, 2.5e-5);
+        let (k_v, cov_kf) = kalman_position_update(&p, &r).expect("kf");
+        let post = cov_kf.fixed_view::<3, 3>(0, 0).into_owned();
+        let (a, cov_c) = condition_on_position(&p, &post).expect("conditioning");
+        assert!((cov_c - cov_kf).norm() < 1e-12 * cov_kf.norm().max(1.0) + 1e-15);
+        // The innovation moves p by K_p ν (posterior) and v by K_v ν: A K_p = K_v.
+        let s_inv = (p.fixed_view::<3, 3>(0, 0) + r).try_inverse().expect("s");
+        let k_p = p.fixed_view::<3, 3>(0, 0) * s_inv;
+        assert!((a * k_p - k_v).norm() < 1e-9 * k_v.norm());
+    }
+
+    /// With an informative measurement the velocity follows the position's innovation over
+    /// the prediction interval; a measurement of huge covariance leaves it alone.
+    #[test]
+    fn the_velocity_gain_follows_the_measurement_noise() {
+        let nav = NavState {
+            r: Rotation3::identity(),
+            p: Vector3::zeros(),
+            v: Vector3::zeros(),
+            biases: Default::default(),
+        };
+        let preint = PreintegrationParams::new(
+            &crate::imu::ImuNoise::default(),
+            &crate::imu::ImuIntrinsics::default(),
+        )
+        .expect("preint");
+        let n = Navigator::new(nav, 0, Isometry3::identity(), preint, NavParams::default());
+        let mut p = n.cov;
+        // One 50 ms constant-velocity step of process noise.
+        let mut f = Matrix6::identity();
+        f.fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&(Matrix3::identity() * 0.05));
+        p = f * p * f.transpose() + Matrix6::identity() * 1e-6;
+        let (k_tight, _) = kalman_position_update(&p, &(Matrix3::identity() * 1e-8)).expect("kf");
+        let (k_loose, _) = kalman_position_update(&p, &(Matrix3::identity() * 1e2)).expect("kf");
+        assert!(k_tight[(0, 0)] > 1.0, "gain {}", k_tight[(0, 0)]);
+        assert!(k_loose.norm() < 1e-3);
     }
 }
