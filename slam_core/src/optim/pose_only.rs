@@ -205,7 +205,9 @@ pub fn centre_covariance(
     let cov = information.try_inverse()?;
     let r_wc = t_cw.rotation.inverse().to_rotation_matrix().into_inner();
     let c = r_wc * cov.fixed_view::<3, 3>(3, 3) * r_wc.transpose();
-    c.iter().all(|x| x.is_finite()).then_some((c + c.transpose()) * 0.5)
+    c.iter()
+        .all(|x| x.is_finite())
+        .then_some((c + c.transpose()) * 0.5)
 }
 
 /// Reusable motion-only optimiser (keeps its buffers; see the module docs).

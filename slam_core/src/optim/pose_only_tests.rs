@@ -381,7 +381,14 @@ fn centre_covariance_matches_the_spread_of_the_estimates() {
             .collect();
         let mut inl = vec![true; obs.len()];
         let res = opt
-            .optimize(&cam, &truth, &obs, None, &PoseOptParams::default(), &mut inl)
+            .optimize(
+                &cam,
+                &truth,
+                &obs,
+                None,
+                &PoseOptParams::default(),
+                &mut inl,
+            )
             .expect("optimised");
         let d = res.t_cw.inverse().translation.vector - c_true;
         sum += d * d.transpose();

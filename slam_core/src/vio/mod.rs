@@ -15,10 +15,15 @@
 //!    with the IMU (preintegration at the current biases, §4). The predicted camera pose
 //!    replaces the motion model in the projection search, its camera twist (angular *and*
 //!    linear) poses the rolling-shutter rows at their own time (§1, middle-row convention),
-//!    and a pose prior (rotation strong, centre weak) joins the pose optimisation
-//!    ([`crate::optim::PosePrior`]; Table 5.1 "tracking = reprojections + IMU prior").
+//!    and a pose prior (the gyro's rotation, the filter's position covariance) joins the
+//!    pose optimisation ([`crate::optim::PosePrior`]; Table 5.1 "tracking = reprojections +
+//!    IMU prior"). The optimisation itself starts from the VO's constant-velocity pose
+//!    (see `VoTracker::optimisation_start` for why).
 //! 2. The VO tracks the frame ([`VoTracker::process_with_hint`]); the navigator takes the
-//!    visual pose (orientation from vision, position and velocity by a Kalman update).
+//!    visual pose: orientation from vision, position and velocity by a Kalman update whose
+//!    measurement covariance is the pose optimisation's
+//!    ([`crate::optim::PoseOptResult::information`]); with the prior in it, the optimised
+//!    pose is already the posterior and the velocity follows by conditioning.
 //! 3. Each keyframe gets the navigator's velocity and biases
 //!    ([`crate::vo::Keyframe::inertial`]), and the keyframe poses (moved by local BA as
 //!    they are) go to the coupler. When it initialises or refines, the VO's world and the
@@ -39,6 +44,7 @@ use nalgebra::{Isometry3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::imu::coupler::{CouplerEvent, CouplerParams, CouplerStatus, InertialCoupler};
 use crate::imu::init::{InertialInit, InitError};
+use crate::imu::static_init::{detect_static, StaticInit, StaticParams};
 use crate::imu::{ImuBiases, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
 use crate::lie::so3_log;
 use crate::vo::{KeyframeInertial, PoseHint, VoFrame, VoOutput, VoTracker};
@@ -75,6 +81,9 @@ pub struct VioParams {
     /// through dropouts and searches around its prediction when vision returns (for
     /// comparison).
     pub imu_tracking: bool,
+    /// The static initialisation before the visual-inertial one (gyro bias and gravity of a
+    /// device at rest, [`crate::imu::static_init`]).
+    pub static_init: StaticParams,
     /// Longest wait for the local-mapping runner before a world move
     /// ([`VoTracker::transform_world`]); a move that times out is retried at the next frame.
     pub world_move_timeout: std::time::Duration,
@@ -93,6 +102,7 @@ impl VioParams {
             nav: NavParams::default(),
             pose_prior: true,
             imu_tracking: true,
+            static_init: StaticParams::default(),
             world_move_timeout: std::time::Duration::from_secs(5),
         }
     }
@@ -195,9 +205,12 @@ pub struct VioTracker {
     pending: Option<(InertialInit, bool)>,
     /// Last known body orientation `R_wb` and its IMU time (for orientation-only frames).
     orientation: Option<(i64, Rotation3<f64>)>,
-    /// Best known biases (the initialisation's, zero before).
+    /// Best known biases (the initialisation's; before it, the static gyro bias or zero).
     biases: ImuBiases,
     coasting: bool,
+    /// The device was found at rest before the initialisation, and "up" then in the world
+    /// of the orientations (when the frame had one).
+    static_init: Option<(StaticInit, Option<Vector3<f64>>)>,
 }
 
 impl VioTracker {
@@ -214,6 +227,7 @@ impl VioTracker {
             orientation: None,
             biases: ImuBiases::default(),
             coasting: false,
+            static_init: None,
             params,
         }
     }
@@ -231,6 +245,12 @@ impl VioTracker {
     /// The settings.
     pub fn params(&self) -> &VioParams {
         &self.params
+    }
+
+    /// The static initialisation, if the device rested before the visual-inertial one, and
+    /// the "up" direction in the world of the orientations then.
+    pub fn static_init(&self) -> Option<&(StaticInit, Option<Vector3<f64>>)> {
+        self.static_init.as_ref()
     }
 
     /// The coupler (attempts, span).
@@ -313,6 +333,7 @@ impl VioTracker {
         let with_prior = hint.is_some_and(|h| h.prior.is_some());
         self.update_pose(t_ns, pred.as_ref(), coast_ok, with_prior, &mut out);
         self.keyframe(t_ns, &mut out);
+        self.detect_rest(t_ns);
         self.imu
             .keep_from(self.oldest_needed_ns(t_ns) - frame.readout_ns / 2 - 10_000_000);
         Ok(out)
@@ -575,10 +596,34 @@ impl VioTracker {
         self.move_world(&init, first, t_ns, newest)
     }
 
-    /// The oldest IMU time still needed (the navigator's and the orientation's).
+    /// The static initialisation (module docs of [`crate::imu::static_init`]) while neither
+    /// it nor the visual-inertial one happened: the window ending at this frame; its gyro
+    /// bias then propagates the orientations.
+    fn detect_rest(&mut self, t_ns: i64) {
+        if self.init.is_some() || self.static_init.is_some() {
+            return;
+        }
+        let c = &self.params.preint.correction;
+        let Some(s) = detect_static(self.imu.samples(), t_ns, c, &self.params.static_init) else {
+            return;
+        };
+        self.biases.gyro = s.gyro_bias;
+        let up_w = self
+            .orientation
+            .filter(|o| o.0 == t_ns)
+            .map(|(_, r_wb)| r_wb * s.up_b);
+        self.static_init = Some((s, up_w));
+    }
+
+    /// The oldest IMU time still needed (the navigator's and the orientation's, and the
+    /// static window while it may still be found).
     fn oldest_needed_ns(&self, t_ns: i64) -> i64 {
         let nav = self.nav.as_ref().map_or(t_ns, |n| n.t_ns());
         let ori = self.orientation.map_or(t_ns, |o| o.0);
-        nav.min(ori).min(t_ns)
+        let rest = match (self.init, self.static_init) {
+            (None, None) => t_ns - (self.params.static_init.window_s * 1e9) as i64,
+            _ => t_ns,
+        };
+        nav.min(ori).min(t_ns).min(rest)
     }
 }

@@ -214,14 +214,16 @@ impl Navigator {
             + pre.covariance().fixed_view::<3, 3>(0, 0).trace() / 3.0
             + (p.gyro_bias_sigma * dt).powi(2);
         let pos_cov = cov.fixed_view::<3, 3>(0, 0) * p.position_prior_inflation.powi(2);
-        let pos_info = pos_cov.try_inverse().unwrap_or_else(|| {
-            Matrix3::identity() / (pos_cov.trace() / 3.0).max(1e-12)
-        });
+        let pos_info = pos_cov
+            .try_inverse()
+            .unwrap_or_else(|| Matrix3::identity() / (pos_cov.trace() / 3.0).max(1e-12));
         let mut information = Matrix6::zeros();
         information
             .fixed_view_mut::<3, 3>(0, 0)
             .copy_from(&(Matrix3::identity() / rot_var));
-        information.fixed_view_mut::<3, 3>(3, 3).copy_from(&pos_info);
+        information
+            .fixed_view_mut::<3, 3>(3, 3)
+            .copy_from(&pos_info);
         PosePrior { t_cw, information }
     }
 
@@ -307,7 +309,10 @@ impl Navigator {
 /// The Kalman update of `[p; v]` (covariance `p`) by a position measurement of covariance
 /// `r`: the velocity gain `K_v` (applied to the innovation `z - p⁻`) and the updated
 /// covariance. `None` when `P_pp + R` is singular.
-fn kalman_position_update(p: &Matrix6<f64>, r: &Matrix3<f64>) -> Option<(Matrix3<f64>, Matrix6<f64>)> {
+fn kalman_position_update(
+    p: &Matrix6<f64>,
+    r: &Matrix3<f64>,
+) -> Option<(Matrix3<f64>, Matrix6<f64>)> {
     let s_inv = (p.fixed_view::<3, 3>(0, 0) + r).try_inverse()?;
     let k = p.fixed_view::<6, 3>(0, 0) * s_inv;
     let mut ikh = Matrix6::<f64>::identity();
@@ -317,7 +322,10 @@ fn kalman_position_update(p: &Matrix6<f64>, r: &Matrix3<f64>) -> Option<(Matrix3
         }
     }
     let cov = ikh * p;
-    Some((k.fixed_view::<3, 3>(3, 0).into_owned(), (cov + cov.transpose()) * 0.5))
+    Some((
+        k.fixed_view::<3, 3>(3, 0).into_owned(),
+        (cov + cov.transpose()) * 0.5,
+    ))
 }
 
 /// `[p; v]` (prior covariance `p`) given the posterior of `p` alone, `N(z, post)`, when the
@@ -326,7 +334,10 @@ fn kalman_position_update(p: &Matrix6<f64>, r: &Matrix3<f64>) -> Option<(Matrix3
 /// `P⁺_vv = P_vv - A P_pv + A post Aᵀ`. Equal to the Kalman update whose posterior `post` is
 /// (test `conditioning_on_the_posterior_is_the_kalman_update`). `None` when `P_pp` is
 /// singular.
-fn condition_on_position(p: &Matrix6<f64>, post: &Matrix3<f64>) -> Option<(Matrix3<f64>, Matrix6<f64>)> {
+fn condition_on_position(
+    p: &Matrix6<f64>,
+    post: &Matrix3<f64>,
+) -> Option<(Matrix3<f64>, Matrix6<f64>)> {
     let p_pp_inv = p.fixed_view::<3, 3>(0, 0).try_inverse()?;
     let p_vp = p.fixed_view::<3, 3>(3, 0).into_owned();
     let a = p_vp * p_pp_inv;

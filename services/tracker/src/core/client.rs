@@ -9,7 +9,7 @@ use slam_core::imu::ImuMeasurement;
 use slam_core::vio::{ImuSampleError, VioStatus, VioTracker, WorldMove};
 use slam_core::vo::{VoFrame, VoOutput, VoState, VoTracker};
 
-use super::VioReport;
+use super::{StaticReport, VioReport};
 
 /// The monocular VO, or the visual-inertial client around it.
 pub enum Client {
@@ -125,13 +125,28 @@ fn wire_source(s: slam_core::vio::PoseSource) -> PoseSource {
 pub fn vio_report(v: &VioTracker, first_frame_ns: Option<i64>) -> VioReport {
     let mut r = VioReport {
         attempts: v.coupler().attempts() as u64,
+        static_init: v.static_init().map(|(s, up_w)| StaticReport {
+            t_ns: s.t1_ns,
+            window_s: (s.t1_ns - s.t0_ns) as f64 * 1e-9,
+            gyro_bias: s.gyro_bias.into(),
+            up_b: s.up_b.into(),
+            up_w: up_w.map(Into::into),
+            accel_norm: s.accel_norm,
+            gyro_std: s.gyro_std,
+            accel_std: s.accel_std,
+        }),
         ..VioReport::default()
     };
     match v.status() {
         VioStatus::Collecting => {
             r.status = "collecting".into();
+            let rest = if r.static_init.is_some() {
+                "found at rest (static_init: gyro bias and gravity; scale and velocity need motion); "
+            } else {
+                ""
+            };
             r.reason = Some(format!(
-                "{:.2} s of keyframes so far; an attempt needs {} keyframes over {:.1} s",
+                "{rest}{:.2} s of keyframes so far; an attempt needs {} keyframes over {:.1} s",
                 v.coupler().span_s(),
                 v.params().coupler.min_keyframes,
                 v.params().coupler.min_span_s

@@ -106,6 +106,30 @@ pub struct VioReport {
     pub gyro_bias: Option<[f64; 3]>,
     /// Accelerometer bias of the last frame's state, m/s².
     pub accel_bias: Option<[f64; 3]>,
+    /// The device rested before the visual-inertial initialisation: gyro bias and gravity.
+    pub static_init: Option<StaticReport>,
+}
+
+/// The static initialisation ([`slam_core::imu::static_init`]).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct StaticReport {
+    /// End of the static window, ns (IMU clock).
+    pub t_ns: i64,
+    /// Window length, s.
+    pub window_s: f64,
+    /// Gyro bias (mean corrected rate), rad/s, body frame.
+    pub gyro_bias: [f64; 3],
+    /// "Up" (unit mean specific force) in the body frame.
+    pub up_b: [f64; 3],
+    /// "Up" in the world of the session's orientations then (when the frame had one).
+    pub up_w: Option<[f64; 3]>,
+    /// Norm of the mean specific force, m/s².
+    pub accel_norm: f64,
+    /// Largest per-axis spread over the window: gyro rad/s, accelerometer m/s².
+    pub gyro_std: f64,
+    /// See `gyro_std`.
+    pub accel_std: f64,
 }
 
 /// Format version of [`TrackerResume`].

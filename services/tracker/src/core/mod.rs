@@ -28,7 +28,7 @@ mod server;
 #[cfg(test)]
 mod tests;
 
-pub use counters::{TrackerCounters, TrackerResume, VioReport, RESUME_VERSION};
+pub use counters::{StaticReport, TrackerCounters, TrackerResume, VioReport, RESUME_VERSION};
 pub use frame::{FrameIn, FrameStep, Tracked};
 pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 
