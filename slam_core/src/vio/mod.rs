@@ -81,6 +81,11 @@ pub struct VioParams {
     /// through dropouts and searches around its prediction when vision returns (for
     /// comparison).
     pub imu_tracking: bool,
+    /// Run the inertial initialisation (`false`: the camera-IMU extrinsics are not known,
+    /// `t_bc` is only a device-axis guess: the IMU gives the orientations of frames vision
+    /// does not pose and the static gyro bias, never a scale, a velocity or the
+    /// rolling-shutter rates of the VO).
+    pub inertial_init: bool,
     /// The static initialisation before the visual-inertial one (gyro bias and gravity of a
     /// device at rest, [`crate::imu::static_init`]).
     pub static_init: StaticParams,
@@ -103,6 +108,7 @@ impl VioParams {
             pose_prior: true,
             imu_tracking: true,
             static_init: StaticParams::default(),
+            inertial_init: true,
             world_move_timeout: std::time::Duration::from_secs(5),
         }
     }
@@ -176,6 +182,10 @@ pub struct VioOutput {
     /// The navigator's prediction of this frame (before vision), when it had one.
     pub prediction: Option<Prediction>,
 }
+
+/// Longest start of the IMU stream after an orientation over which the orientation is held
+/// (no rotation assumed), ns.
+pub const ORIENTATION_HOLD_NS: i64 = 100_000_000;
 
 /// The VO failed its last frame (the next one may start a dropout).
 fn out_of_vision(vo: &VoTracker) -> bool {
@@ -298,7 +308,7 @@ impl VioTracker {
         let rate_b = self.mean_rate_b(t_ns, frame.readout_ns);
         let frame = VoFrame {
             angular_velocity: frame.angular_velocity.or_else(|| {
-                (frame.readout_ns > 0)
+                (frame.readout_ns > 0 && self.params.inertial_init)
                     .then_some(rate_b)
                     .flatten()
                     .map(|w| self.params.t_bc.rotation.inverse() * w)
@@ -431,10 +441,19 @@ impl VioTracker {
     }
 
     /// The last orientation propagated to `t_ns` with the gyro (identity camera
-    /// orientation at the first frame); `None` without IMU over the interval.
+    /// orientation at the first frame); `None` without IMU over the interval. When the IMU
+    /// stream starts up to [`ORIENTATION_HOLD_NS`] after the last orientation (a camera
+    /// that starts first, as on the phone clip), the orientation is held until its first
+    /// sample.
     fn propagate_orientation(&self, t_ns: i64) -> Option<Rotation3<f64>> {
-        let Some((t0, r_wb)) = self.orientation else {
+        let Some((t_last, r_wb)) = self.orientation else {
             return Some(self.params.t_bc.rotation.inverse().to_rotation_matrix());
+        };
+        let first = self.imu.samples().first().map_or(t_last, |m| m.t_ns);
+        let t0 = if first > t_last && first - t_last <= ORIENTATION_HOLD_NS {
+            first
+        } else {
+            t_last
         };
         if !self.imu.covers(t0, t_ns) {
             return None;
@@ -470,6 +489,9 @@ impl VioTracker {
                 .map(|kf| (kf.t_ns, kf.t_cw.inverse()))
                 .collect()
         });
+        if !self.params.inertial_init {
+            return;
+        }
         for (t, t_wc) in &window {
             self.coupler.set_keyframe(*t, *t_wc);
         }

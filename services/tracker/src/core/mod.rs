@@ -64,6 +64,13 @@ impl StartIds {
 /// IMU samples kept from before the first frame for the visual-inertial client, ns.
 const PENDING_IMU_NS: i64 = 2_000_000_000;
 
+/// Why a visual-inertial client without camera-IMU extrinsics does not initialise, and what
+/// it does instead.
+pub const NO_EXTRINSICS: &str = "no camera-IMU extrinsics (T_BS) given: no inertial \
+     initialisation (no metric scale); the VO tracks monocular, frames it cannot pose get a \
+     gyro orientation through the dataset's assumed camera-IMU rotation (its device-axis \
+     convention, identity when it has none), and a device at rest its gyro bias";
+
 /// A keyframe unacknowledged for this long is sent again (e.g. to a restarted mapper), ns.
 pub const RESEND_AFTER_NS: i64 = 2_000_000_000;
 
@@ -213,10 +220,16 @@ impl TrackerCore {
         if self.cfg.mode != crate::ClientMode::Vio {
             return None;
         }
+        let vio = self.client.as_ref().and_then(|c| c.vio());
         if let Some(why) = &self.vio_disabled {
-            return Some(client::vio_disabled(why));
+            // Orientation-only (no extrinsics): the static initialisation still reports.
+            let static_init = vio.and_then(|v| client::vio_report(v, None).static_init);
+            return Some(VioReport {
+                static_init,
+                ..client::vio_disabled(why)
+            });
         }
-        let Some(v) = self.client.as_ref().and_then(|c| c.vio()) else {
+        let Some(v) = vio else {
             return Some(client::vio_disabled("no frame tracked yet"));
         };
         let mut r = client::vio_report(v, self.first_frame_ns);
@@ -450,12 +463,10 @@ impl TrackerCore {
         }
     }
 
-    /// The visual-inertial client's settings for frames like `h` (its `T_BS` is the
+    /// The visual-inertial client's settings for frames like `h` (without given extrinsics:
+    /// orientation-only, [`NO_EXTRINSICS`]) (its `T_BS` is the
     /// camera-IMU extrinsic); why it cannot run otherwise.
     fn vio_params(&mut self, h: &FrameHeader) -> Result<slam_core::vio::VioParams, String> {
-        if !self.cfg.imu.extrinsics_given {
-            return Err("no camera-IMU extrinsics (T_BS) given: running monocular".into());
-        }
         let preint = self.cfg.imu.preintegration().map_err(|e| {
             self.status
                 .error(shoal_runtime::ErrorKind::ImuCalibration, e.clone());
@@ -464,7 +475,14 @@ impl TrackerCore {
         let t_bc = shoal_runtime::wire::iso_from_wire(&h.t_bs)
             .ok_or("the frames' T_BS is not a rigid transform: running monocular")?;
         // The ingest applied t_d to the frame stamps: they are on the IMU clock already.
-        Ok(slam_core::vio::VioParams::new(preint, t_bc))
+        let given = self.cfg.imu.extrinsics_given;
+        if !given {
+            self.vio_disabled = Some(NO_EXTRINSICS.into());
+        }
+        Ok(slam_core::vio::VioParams {
+            inertial_init: given,
+            ..slam_core::vio::VioParams::new(preint, t_bc)
+        })
     }
 
     fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
