@@ -150,6 +150,17 @@ impl InertialCoupler {
         self.status = CouplerStatus::Collecting;
     }
 
+    /// A session resumed from stored keyframes (`crate::vio`, issue 17): its world was made
+    /// metric and gravity-aligned by a predecessor's initialisation (and refined as far as
+    /// the predecessor went). No attempt runs any more and nothing is stored: a refinement
+    /// spans the session from its first keyframe, and the successor has neither the
+    /// session's first keyframes nor the IMU samples its predecessor received.
+    pub fn mark_resumed(&mut self) {
+        self.imu.clear();
+        self.keyframes.clear();
+        self.status = CouplerStatus::Initialised { refinements: 2 };
+    }
+
     /// Where the coupler stands.
     pub fn status(&self) -> &CouplerStatus {
         &self.status

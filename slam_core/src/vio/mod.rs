@@ -46,9 +46,11 @@ use crate::CoreError;
 
 pub mod imu_buffer;
 pub mod navigator;
+mod resume;
 
 pub use imu_buffer::{ImuBuffer, ImuCheck, ImuSampleError};
 pub use navigator::{NavParams, Navigator, Prediction};
+pub use resume::Resumed;
 
 /// Settings of [`VioTracker`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -154,6 +156,21 @@ pub enum VioStatus {
         /// Coasting on the IMU through a visual dropout now.
         coasting: bool,
     },
+    /// Metric and gravity-aligned: a session initialised by a predecessor and resumed from
+    /// its stored keyframes ([`VioTracker::resume`]); no initialisation runs.
+    Resumed {
+        /// Where it started.
+        from: Resumed,
+        /// Coasting on the IMU (from the stored keyframe, or through a dropout) now.
+        coasting: bool,
+    },
+}
+
+impl VioStatus {
+    /// The client's poses are metric and gravity-aligned.
+    pub fn is_metric(&self) -> bool {
+        matches!(self, Self::Initialised { .. } | Self::Resumed { .. })
+    }
 }
 
 /// What one frame produced.
@@ -206,6 +223,8 @@ pub struct VioTracker {
     /// Best known biases (the initialisation's, zero before).
     biases: ImuBiases,
     coasting: bool,
+    /// The session was resumed from stored keyframes ([`VioTracker::resume`]).
+    resumed: Option<Resumed>,
 }
 
 impl VioTracker {
@@ -222,6 +241,7 @@ impl VioTracker {
             orientation: None,
             biases: ImuBiases::default(),
             coasting: false,
+            resumed: None,
             params,
         }
     }
@@ -259,6 +279,9 @@ impl VioTracker {
 
     /// Where the client stands.
     pub fn status(&self) -> VioStatus {
+        if let Some(r) = self.resumed_status() {
+            return r;
+        }
         if let Some(i) = self.init {
             return VioStatus::Initialised {
                 t_ns: i.t_ns,
@@ -361,6 +384,7 @@ impl VioTracker {
         }
         self.nav = None;
         self.init = None;
+        self.resumed = None;
         self.pending = None;
         self.last_visual_ns = None;
         self.coasting = false;
@@ -395,6 +419,7 @@ impl VioTracker {
             self.orientation = Some((t_ns, r_wb.to_rotation_matrix()));
             self.last_visual_ns = Some(t_ns);
             self.coasting = false;
+            self.note_visual_pose(t_ns);
             return;
         }
         if let (Some(nav), Some(p), true) = (self.nav.as_mut(), pred, coast_ok) {

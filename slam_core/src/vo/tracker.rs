@@ -766,6 +766,7 @@ mod backward;
 mod init;
 mod local_mapper;
 mod reloc;
+mod resume;
 mod track;
 
 use local_mapper::lock;
