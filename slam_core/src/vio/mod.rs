@@ -576,6 +576,9 @@ impl VioTracker {
     }
 
     fn record_init(&mut self, init: &InertialInit, first: bool, t_ns: i64) {
+        if self.note_resumed_refinement() {
+            return;
+        }
         self.init = Some(match (self.init, first) {
             (Some(i), false) => InitSummary {
                 scale: i.scale * init.scale,

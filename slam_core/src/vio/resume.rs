@@ -4,7 +4,10 @@
 //! The VO is given the session's map, rebuilt from the store ([`crate::vo::restore_map`],
 //! [`VoTracker::resume_session`]): metric and gravity-aligned, as the predecessor's
 //! initialisation left it. [`VioTracker::resume`] then starts the client as initialised:
-//! - the coupler runs no initialisation or refinement ([`InertialCoupler::mark_resumed`]);
+//! - the coupler runs no initialisation; the refinements the predecessor had not done yet
+//!   run over the successor's own keyframes ([`InertialCoupler::mark_resumed`]: the first
+//!   once they span 5 s; a refinement moves the whole session's world, the predecessor's
+//!   poses included, as any refinement does);
 //! - the navigator starts at the newest keyframe's stored state (its pose, velocity and
 //!   biases, at its time), as if the client had coasted since then: when the IMU covers
 //!   the gap the first frame is predicted and searched around its prediction (the rejoin
@@ -33,13 +36,20 @@ pub struct Resumed {
     pub keyframe_t_ns: i64,
     /// IMU time of the first frame vision posed after the resume, once there is one.
     pub anchored_t_ns: Option<i64>,
+    /// Refinements of the initialisation: the predecessor's and this client's since.
+    pub refinements: usize,
 }
 
 impl VioTracker {
     /// A client continuing the session `vo` holds (a map rebuilt from a store and taken
-    /// with [`VoTracker::resume_session`]; module docs). Refused when the map's newest
-    /// keyframe has no inertial state (the session was not initialised inertially).
-    pub fn resume(vo: VoTracker, params: VioParams) -> Result<Self, CoreError> {
+    /// with [`VoTracker::resume_session`]; module docs), whose initialisation was refined
+    /// `refinements_done` times (2 or more: no refinement runs). Refused when the map's
+    /// newest keyframe has no inertial state (the session was not initialised inertially).
+    pub fn resume(
+        vo: VoTracker,
+        params: VioParams,
+        refinements_done: usize,
+    ) -> Result<Self, CoreError> {
         let newest = vo.with_map(|m| {
             m.keyframes
                 .values()
@@ -56,6 +66,10 @@ impl VioTracker {
         };
         let mut v = Self::new(vo, params);
         v.start_resumed(id, t_cam_ns + params.coupler.t_d_ns, &t_cw, inertial);
+        v.coupler.mark_resumed(refinements_done);
+        if let Some(r) = v.resumed.as_mut() {
+            r.refinements = refinements_done.min(2);
+        }
         Ok(v)
     }
 
@@ -68,7 +82,6 @@ impl VioTracker {
         inertial: KeyframeInertial,
     ) {
         let p = self.params;
-        self.coupler.mark_resumed();
         self.biases = inertial.biases;
         let state = navigator::nav_from_camera(t_cw, &p.t_bc, inertial.v_wb, inertial.biases);
         self.nav = Some(Navigator::new(state, t_ns, p.t_bc, p.preint, p.nav));
@@ -80,6 +93,7 @@ impl VioTracker {
             keyframe_id: id,
             keyframe_t_ns: t_ns,
             anchored_t_ns: None,
+            refinements: 0,
         });
     }
 
@@ -95,6 +109,12 @@ impl VioTracker {
         if let Some(r) = self.resumed.as_mut() {
             r.anchored_t_ns.get_or_insert(t_ns);
         }
+    }
+
+    /// A refinement of a resumed session's initialisation was applied: `true` (counted),
+    /// `false` when the session was not resumed.
+    pub(super) fn note_resumed_refinement(&mut self) -> bool {
+        self.resumed.as_mut().map(|r| r.refinements += 1).is_some()
     }
 
     /// The status of a resumed session, if this is one.

@@ -7,7 +7,8 @@
 //! other spooled keyframe is sent at once, as before. At the first frame (which brings the
 //! camera and `T_BS`) the held keyframes are rebuilt into the VO's client map
 //! ([`slam_core::vo::restore_map`]) and the visual-inertial client continues the session
-//! ([`VioTracker::resume`]): same wire session id, so the mapper appends to the same server
+//! ([`VioTracker::resume`], with the refinements the predecessor reported, none left
+//! when it did not say): same wire session id, so the mapper appends to the same server
 //! map and the recorder keeps one world; keyframe ids continue the session's; new map points
 //! are numbered from this start's range ([`ClientPointId`]). The held keyframes are the
 //! VO's window again: they are sent when they leave it, their files stay in the spool
@@ -143,7 +144,11 @@ impl TrackerCore {
         let facts = facts_of(&restored);
         let mut vo = self.new_vo(h).map_err(|e| e.to_string())?;
         vo.resume_session(restored.map).map_err(|e| e.to_string())?;
-        let client = VioTracker::resume(vo, params).map_err(|e| e.to_string())?;
+        let done = self
+            .predecessor_vio
+            .as_ref()
+            .map_or(2, |p| p.refinements as usize);
+        let client = VioTracker::resume(vo, params, done).map_err(|e| e.to_string())?;
         self.ids.resume_session(session);
         self.counters.vio_resumes += 1;
         self.counters.keyframes_resumed += facts.keyframes;
@@ -181,16 +186,17 @@ impl TrackerCore {
 impl TrackerCore {
     /// The resume's part of the visual-inertial report: how many sessions were resumed,
     /// why this start's was not; for a resumed session, its predecessor's initialisation
-    /// and where and how soon it resumed.
+    /// (time, scale: as the predecessor reported them), the refinements so far, and where
+    /// and how soon it resumed.
     pub(super) fn put_resume_report(&self, v: &VioTracker, r: &mut VioReport) {
         r.resumed = self.counters.vio_resumes;
         r.resume_refused = self.spool_resume.refused.clone();
         let (Some(from), Some(f)) = (v.resumed(), self.spool_resume.facts) else {
             return;
         };
+        r.refinements = from.refinements as u64;
         if let Some(p) = &self.predecessor_vio {
             r.attempts += p.attempts;
-            r.refinements = p.refinements;
             r.initialised_t_ns = p.initialised_t_ns;
             r.initialised_after_s = p.initialised_after_s;
             r.scale = p.scale;
@@ -284,3 +290,6 @@ fn stored_keyframe(k: &Recovered, readout_ns: i64) -> Result<Keyframe, String> {
         inertial,
     })
 }
+
+#[cfg(test)]
+mod tests;

@@ -101,11 +101,11 @@ fn resuming_a_session_not_initialised_inertially_is_refused() {
     let cam = PinholeRadtan::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0);
     let empty = VoTracker::new(VoParams::default(), cam).expect("vo");
     assert!(matches!(
-        VioTracker::resume(empty, params()),
+        VioTracker::resume(empty, params(), 2),
         Err(CoreError::Resume(_))
     ));
     let mono = stored_vo(Vector3::zeros(), false);
-    match VioTracker::resume(mono, params()) {
+    match VioTracker::resume(mono, params(), 2) {
         Err(CoreError::Resume(why)) => assert!(why.contains("not initialised inertially"), "{why}"),
         Err(e) => panic!("{e}"),
         Ok(_) => panic!("resumed a monocular session"),
@@ -117,10 +117,10 @@ fn resuming_a_session_not_initialised_inertially_is_refused() {
 #[test]
 fn a_resumed_client_is_initialised_and_runs_no_initialisation() {
     let v_wb = Vector3::new(0.8, -0.3, 0.1);
-    let mut vio = VioTracker::resume(stored_vo(v_wb, true), params()).expect("resumed");
+    let mut vio = VioTracker::resume(stored_vo(v_wb, true), params(), 2).expect("resumed");
     let st = vio.status();
     assert!(st.is_metric(), "{st:?}");
-    let VioStatus::Resumed { from, coasting } = st else {
+    let VioStatus::Resumed { from, coasting } = st.clone() else {
         panic!("{st:?}");
     };
     assert_eq!(
@@ -147,6 +147,36 @@ fn a_resumed_client_is_initialised_and_runs_no_initialisation() {
     let back = nav.camera_pose(nav.state());
     let stored = camera_at(Vector3::new(1.0, 2.0, 3.0));
     assert!((back.translation.vector - stored.translation.vector).norm() < 1e-12);
+    assert_eq!(from.refinements, 2);
+}
+
+/// A predecessor that had not refined its initialisation leaves the refinements to the
+/// successor: its coupler keeps the successor's samples and its keyframes after them, not
+/// the stored keyframes before them.
+#[test]
+fn refinements_not_done_continue_over_the_successors_own_keyframes() {
+    let mut vio =
+        VioTracker::resume(stored_vo(Vector3::zeros(), true), params(), 0).expect("resumed");
+    assert_eq!(
+        vio.coupler().status(),
+        &CouplerStatus::Initialised { refinements: 0 }
+    );
+    for k in 0..100 {
+        vio.on_imu(still_imu(T_KF + 100_000_000 + k * 5_000_000))
+            .expect("sample");
+    }
+    vio.coupler.set_keyframe(T_KF, Isometry3::identity());
+    assert_eq!(vio.coupler().span_s(), 0.0, "a stored keyframe is not kept");
+    vio.coupler
+        .set_keyframe(T_KF + 200_000_000, Isometry3::identity());
+    vio.coupler
+        .set_keyframe(T_KF + 400_000_000, Isometry3::identity());
+    assert!((vio.coupler().span_s() - 0.2).abs() < 1e-9);
+    assert_eq!(
+        vio.coupler.step(),
+        None,
+        "no refinement before 5 s of keyframes"
+    );
 }
 
 /// With the IMU over the gap, the stored state is propagated: constant velocity with the
@@ -154,7 +184,7 @@ fn a_resumed_client_is_initialised_and_runs_no_initialisation() {
 #[test]
 fn the_stored_state_is_propagated_through_the_gap() {
     let v_wb = Vector3::new(0.8, -0.3, 0.1);
-    let mut vio = VioTracker::resume(stored_vo(v_wb, true), params()).expect("resumed");
+    let mut vio = VioTracker::resume(stored_vo(v_wb, true), params(), 2).expect("resumed");
     for k in -4..=60 {
         vio.on_imu(still_imu(T_KF + k * 5_000_000)).expect("sample");
     }
@@ -176,7 +206,7 @@ fn the_stored_state_is_propagated_through_the_gap() {
 #[test]
 fn without_the_imu_the_navigator_reanchors_with_a_grown_velocity_sigma() {
     let v_wb = Vector3::new(0.8, -0.3, 0.1);
-    let vio = VioTracker::resume(stored_vo(v_wb, true), params()).expect("resumed");
+    let vio = VioTracker::resume(stored_vo(v_wb, true), params(), 2).expect("resumed");
     let mut nav = vio.nav.clone().expect("navigator");
     let p = NavParams::default();
     assert!((nav.velocity_sigma() - p.initial_velocity_sigma).abs() < 1e-12);
