@@ -35,6 +35,9 @@
 //!    gets an orientation only ([`PoseSource::OrientationOnly`]): the gyro propagates the
 //!    last known orientation (the first frame's camera is the identity, the world a
 //!    monocular map starts in when that frame is its reference). No scale is ever invented.
+//! 6. **Resumed sessions** ([`VioTracker::resume`], `resume.rs`): a client can start on a
+//!    VO holding a session rebuilt from stored keyframes (a killed tracker's spool) as
+//!    initialised, from the newest keyframe's velocity and biases ([`VioStatus::Resumed`]).
 use nalgebra::{Isometry3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::imu::coupler::{CouplerEvent, CouplerParams, CouplerStatus, InertialCoupler};

@@ -71,7 +71,9 @@ pub fn restore_map(
     }
     let mut map = ClientMap::new(session_id, first_new_point_id);
     for (&id, &kf) in &first_kf {
-        map.insert_point(id, positions[&id], kf);
+        if let Some(p_w) = positions.get(&id) {
+            map.insert_point(id, *p_w, kf);
+        }
     }
     for kf in keyframes {
         map.insert_keyframe(kf);
