@@ -40,6 +40,9 @@
 //!    gets an orientation only ([`PoseSource::OrientationOnly`]): the gyro propagates the
 //!    last known orientation (the first frame's camera is the identity, the world a
 //!    monocular map starts in when that frame is its reference). No scale is ever invented.
+//! 6. **Resumed sessions** ([`VioTracker::resume`], `resume.rs`): a client can start on a
+//!    VO holding a session rebuilt from stored keyframes (a killed tracker's spool) as
+//!    initialised, from the newest keyframe's velocity and biases ([`VioStatus::Resumed`]).
 use nalgebra::{Isometry3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::imu::coupler::{CouplerEvent, CouplerParams, CouplerStatus, InertialCoupler};
@@ -52,9 +55,11 @@ use crate::CoreError;
 
 pub mod imu_buffer;
 pub mod navigator;
+mod resume;
 
 pub use imu_buffer::{ImuBuffer, ImuCheck, ImuSampleError};
 pub use navigator::{NavParams, Navigator, Prediction};
+pub use resume::Resumed;
 
 /// Settings of [`VioTracker`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -162,6 +167,21 @@ pub enum VioStatus {
         /// Coasting on the IMU through a visual dropout now.
         coasting: bool,
     },
+    /// Metric and gravity-aligned: a session initialised by a predecessor and resumed from
+    /// its stored keyframes ([`VioTracker::resume`]); no initialisation runs.
+    Resumed {
+        /// Where it started.
+        from: Resumed,
+        /// Coasting on the IMU (from the stored keyframe, or through a dropout) now.
+        coasting: bool,
+    },
+}
+
+impl VioStatus {
+    /// The client's poses are metric and gravity-aligned.
+    pub fn is_metric(&self) -> bool {
+        matches!(self, Self::Initialised { .. } | Self::Resumed { .. })
+    }
 }
 
 /// What one frame produced.
@@ -221,6 +241,8 @@ pub struct VioTracker {
     /// The device was found at rest before the initialisation, and "up" then in the world
     /// of the orientations (when the frame had one).
     static_init: Option<(StaticInit, Option<Vector3<f64>>)>,
+    /// The session was resumed from stored keyframes ([`VioTracker::resume`]).
+    resumed: Option<Resumed>,
 }
 
 impl VioTracker {
@@ -238,6 +260,7 @@ impl VioTracker {
             biases: ImuBiases::default(),
             coasting: false,
             static_init: None,
+            resumed: None,
             params,
         }
     }
@@ -281,6 +304,9 @@ impl VioTracker {
 
     /// Where the client stands.
     pub fn status(&self) -> VioStatus {
+        if let Some(r) = self.resumed_status() {
+            return r;
+        }
         if let Some(i) = self.init {
             return VioStatus::Initialised {
                 t_ns: i.t_ns,
@@ -385,6 +411,7 @@ impl VioTracker {
         }
         self.nav = None;
         self.init = None;
+        self.resumed = None;
         self.pending = None;
         self.last_visual_ns = None;
         self.coasting = false;
@@ -420,6 +447,7 @@ impl VioTracker {
             self.orientation = Some((t_ns, r_wb.to_rotation_matrix()));
             self.last_visual_ns = Some(t_ns);
             self.coasting = false;
+            self.note_visual_pose(t_ns);
             return;
         }
         if let (Some(nav), Some(p), true) = (self.nav.as_mut(), pred, coast_ok) {
@@ -588,6 +616,9 @@ impl VioTracker {
     }
 
     fn record_init(&mut self, init: &InertialInit, first: bool, t_ns: i64) {
+        if self.note_resumed_refinement() {
+            return;
+        }
         self.init = Some(match (self.init, first) {
             (Some(i), false) => InitSummary {
                 scale: i.scale * init.scale,

@@ -44,6 +44,10 @@ pub struct NavParams {
     pub position_prior_inflation: f64,
     /// 1σ of the initial velocity, m/s.
     pub initial_velocity_sigma: f64,
+    /// Acceleration the velocity may have had over an interval the IMU does not cover
+    /// (an IMU gap, a restarted tracker's first frames): its 1σ grows by this times the
+    /// interval ([`Navigator::reset_to`]), m/s².
+    pub unmodelled_accel: f64,
 }
 
 impl Default for NavParams {
@@ -55,6 +59,7 @@ impl Default for NavParams {
             gyro_bias_sigma: 2e-3,
             position_prior_inflation: 1.0,
             initial_velocity_sigma: 0.05,
+            unmodelled_accel: 3.0,
         }
     }
 }
@@ -275,15 +280,28 @@ impl Navigator {
 
     /// Re-anchors the pose at a visual `t_cw` at IMU time `t_ns` with no prediction (the
     /// IMU did not cover the interval): velocity and biases kept, position uncertainty
-    /// reset, velocity uncertainty grown to its initial value at least.
+    /// reset, velocity uncertainty at least its initial value and grown by
+    /// [`NavParams::unmodelled_accel`] over the interval, so that the next visual positions
+    /// correct a velocity that went stale (e.g. a resumed session's, taken from a keyframe
+    /// before the gap).
     pub fn reset_to(&mut self, t_cw: &Isometry3<f64>, t_ns: i64) {
+        let dt = (t_ns - self.t_ns).max(0) as f64 * 1e-9;
+        let var_v = self.cov.fixed_view::<3, 3>(3, 3).trace() / 3.0;
+        let var_v = var_v.max(self.params.initial_velocity_sigma.powi(2))
+            + (self.params.unmodelled_accel * dt).powi(2);
+        let mut nav = self.nav;
         let t_wb = t_cw.inverse() * self.t_bc.inverse();
-        self.nav.r = t_wb.rotation.to_rotation_matrix();
-        self.nav.p = t_wb.translation.vector;
-        self.t_ns = t_ns;
-        let v = self.nav.v;
-        *self = Self::new(self.nav, t_ns, self.t_bc, self.preint, self.params);
-        self.nav.v = v;
+        nav.r = t_wb.rotation.to_rotation_matrix();
+        nav.p = t_wb.translation.vector;
+        *self = Self::new(nav, t_ns, self.t_bc, self.preint, self.params);
+        self.cov
+            .fixed_view_mut::<3, 3>(3, 3)
+            .copy_from(&(Matrix3::identity() * var_v));
+    }
+
+    /// The 1σ of the velocity (mean over the axes), m/s.
+    pub fn velocity_sigma(&self) -> f64 {
+        (self.cov.fixed_view::<3, 3>(3, 3).trace() / 3.0).sqrt()
     }
 
     /// Sets the velocity and biases (an initialisation's refinement).

@@ -14,12 +14,14 @@ pub mod keyframe_rule;
 pub mod kf_culling;
 pub mod local_mapping;
 pub mod map;
+pub mod resume;
 pub mod search;
 pub mod tracker;
 
 pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
 pub use kf_culling::{cull_redundant_keyframes, KfCullingParams};
 pub use map::{ClientMap, Keyframe, KeyframeInertial, KfId, MapPoint, PointId};
+pub use resume::{restore_map, RestoredMap, StoredPoint};
 pub use tracker::{
     LocalMapper, LocalMappingRunner, LocalMappingStep, PoseHint, SharedMap, StageTimes,
     VoDiagnostic, VoFrame, VoOutput, VoParams, VoState, VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,

@@ -773,6 +773,7 @@ mod backward;
 mod init;
 mod local_mapper;
 mod reloc;
+mod resume;
 mod track;
 
 use local_mapper::lock;

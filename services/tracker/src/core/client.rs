@@ -93,7 +93,7 @@ impl Client {
             }
             Self::Vio(v) => {
                 let o = v.process(frame)?;
-                let metric = matches!(v.status(), VioStatus::Initialised { .. });
+                let metric = v.status().is_metric();
                 Ok(ClientOutput {
                     t_cw: o.t_cw,
                     source: wire_source(o.source),
@@ -170,6 +170,8 @@ pub fn vio_report(v: &VioTracker, first_frame_ns: Option<i64>) -> VioReport {
             r.scale_sigma_percent = Some(scale_sigma * 100.0);
             r.refinements = refinements as u64;
         }
+        // Initialised by a predecessor: the tracker core adds what it knows of that.
+        VioStatus::Resumed { .. } => r.status = "initialised".into(),
     }
     r
 }

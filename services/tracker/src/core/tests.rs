@@ -202,7 +202,7 @@ impl Run {
                 }
                 Out::Pose(p) if p.meta.flags & FLAG_BACKFILL != 0 => self.backfilled += 1,
                 Out::Pose(p) => self.poses.push(p),
-                Out::SpoolWrite(m) => assert!(self.spooled.insert(m.key())),
+                Out::SpoolWrite(e) => assert!(self.spooled.insert(e.msg.key())),
                 Out::SpoolSent(k) => assert!(self.spooled.remove(&k), "{k:?} was spooled"),
                 Out::Ack(_) => {}
             }
