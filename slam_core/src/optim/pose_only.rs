@@ -135,6 +135,14 @@ impl PosePrior {
         *g += jt_omega * r;
     }
 
+    /// This prior's share `JᵀΩJ` of the pose optimisation's information at `t_cw`
+    /// ([`PoseOptResult::information`] minus it is the reprojections' alone).
+    pub fn information_at(&self, t_cw: &Isometry3<f64>) -> Matrix6<f64> {
+        let mut h = Matrix6::zeros();
+        self.add_to(t_cw, &mut h, &mut Vector6::zeros());
+        h
+    }
+
     fn is_finite(&self) -> bool {
         self.information.iter().all(|x| x.is_finite())
             && self.t_cw.translation.vector.iter().all(|x| x.is_finite())
