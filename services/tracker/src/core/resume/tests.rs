@@ -189,10 +189,21 @@ fn a_restarted_vio_core_resumes_its_predecessors_session() {
         .poses
         .iter()
         .all(|p| p.meta.session_id == session && p.metric == 1));
-    let visual = PoseSource::Visual as u32;
+    // Vision poses every frame; with the IMU tracking on, its prior too (the resumed
+    // navigator's state), never the IMU alone.
+    let (visual, vi) = (PoseSource::Visual as u32, PoseSource::VisualInertial as u32);
     assert!(
-        ports.poses.iter().all(|p| p.source == visual),
+        ports
+            .poses
+            .iter()
+            .all(|p| p.source == visual || p.source == vi),
         "every frame posed by vision"
+    );
+    let with_imu = ports.poses.iter().filter(|p| p.source == vi).count();
+    assert!(
+        with_imu * 10 >= ports.poses.len() * 9,
+        "{with_imu} of {} frames tracked with the resumed IMU state",
+        ports.poses.len()
     );
     let new_kfs: Vec<_> = ports.spool.keys().filter(|k| k.1 > newest_old).collect();
     assert!(new_kfs.len() >= 3, "{new_kfs:?}");
