@@ -94,7 +94,7 @@ fn main() -> anyhow::Result<()> {
                     while h.idle_step(&mut maps).is_some() {}
                 }
             }
-            Entry::Correction { .. } => {}
+            Entry::Correction { .. } | Entry::MapPoints { .. } => {}
         }
     }
     Ok(())

@@ -47,6 +47,16 @@ fn drone_vio_is_metric_and_gravity_aligned() {
     assert!(se3 < 0.5, "SE(3) ATE {se3}% of the path");
     let tilt = c["ate_4dof"]["tilt_rmse_deg"].as_f64().expect("tilt");
     assert!(tilt < 1.0, "roll/pitch error {tilt}°");
+    // Tracked with the IMU's prediction and prior: ≥ 90% of the frames after the
+    // initialisation (20 Hz).
+    let vi = c["frames_by_source"]["visual_inertial"]
+        .as_u64()
+        .unwrap_or(0) as f64;
+    let after_init = 240.0 - after * 20.0;
+    assert!(
+        vi >= 0.9 * after_init,
+        "{vi} visual-inertial of {after_init}"
+    );
     let errors = rep["error_counts"].as_object().expect("error_counts");
     assert!(errors.keys().all(|k| !k.contains("imu")), "{errors:?}");
 }

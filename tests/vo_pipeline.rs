@@ -89,7 +89,7 @@ fn kitti07_initialises_tracks_and_is_accurate() {
     ignore = "needs ../shared/data/phone_honorv10 (set SHOAL_DATA)"
 )]
 #[test]
-fn phone_clip_gives_no_pose_and_says_why() {
+fn phone_clip_gives_no_pose_but_orientations_and_says_why() {
     // The clip is 0.8 s of hand-held motion, nearly pure rotation: with SHOAL_DEBUG_INIT=1
     // the two-view initialiser rejects every frame against the first one (parallax 0.1-0.2
     // deg < 1 deg, or homography and essential matrix ambiguous), so the monocular VO cannot
@@ -98,7 +98,7 @@ fn phone_clip_gives_no_pose_and_says_why() {
     let ds = shared_dataset("phone_honorv10");
     let tmp = tempdir();
     let out = tmp.path().join("out");
-    let o = run_pipeline(&[&ds], &out, "phone_vo", &[]);
+    let o = run_pipeline(&[&ds], &out, "phone_vo", &["--mode", "auto"]);
     assert!(o.status.success());
     let rep = report(&out);
     let c = client(&rep);
@@ -115,6 +115,79 @@ fn phone_clip_gives_no_pose_and_says_why() {
         stdout.contains("0/25 frames posed") && stdout.contains("25 before initialisation"),
         "{stdout}"
     );
+    // Issue 17: an IMU without extrinsics runs the visual-inertial client without inertial
+    // initialisation: no scale is invented, every frame gets a gyro orientation, and the
+    // report says why.
+    assert_eq!(c["client_mode"], "vio", "{}", c["client_mode_reason"]);
+    assert_eq!(c["vio"]["status"], "disabled", "{}", c["vio"]);
+    assert!(c["vio"]["reason"]
+        .as_str()
+        .unwrap_or("")
+        .contains("extrinsics"));
+    assert!(c["vio"]["scale"].is_null() && c["world_moves"].as_u64().unwrap_or(0) == 0);
+    assert_eq!(c["frames_orientation_only"], 25, "{c:#}");
+    let last = phone_last_orientation(&out.join("orientation_c0.txt"));
+    let gyro = phone_gyro_turn(&ds.join("gyro_accel.csv"), last.0);
+    let r_bc = nalgebra::UnitQuaternion::from_axis_angle(
+        &nalgebra::Vector3::x_axis(),
+        std::f64::consts::PI,
+    );
+    let expected = r_bc.inverse() * gyro * r_bc;
+    let err = (last.1.inverse() * expected).angle().to_degrees();
+    eprintln!(
+        "phone: last orientation {:.3}° from the first, {err:.4}° from the gyro's",
+        last.1.angle().to_degrees()
+    );
+    assert!(err < 0.02, "orientation {err}° from the integrated gyro");
+}
+
+/// The last row of an `orientation_c{i}.txt`: time (ns) and `R_wc`.
+fn phone_last_orientation(path: &std::path::Path) -> (i64, nalgebra::UnitQuaternion<f64>) {
+    let text = std::fs::read_to_string(path).expect("orientation file");
+    let rows: Vec<Vec<f64>> = text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| {
+            l.split_whitespace()
+                .take(5)
+                .map(|v| v.parse().expect("number"))
+                .collect()
+        })
+        .collect();
+    assert_eq!(rows.len(), 25, "one orientation per frame");
+    let r = rows.last().expect("rows");
+    let q = nalgebra::Quaternion::new(r[4], r[1], r[2], r[3]);
+    (
+        (r[0] * 1e9).round() as i64,
+        nalgebra::UnitQuaternion::from_quaternion(q),
+    )
+}
+
+/// The body's turn integrated from the phone's gyro (its first sample to `t_ns`, the mean
+/// rate of each sample pair), independently of the pipeline.
+fn phone_gyro_turn(csv: &std::path::Path, t_ns: i64) -> nalgebra::UnitQuaternion<f64> {
+    let text = std::fs::read_to_string(csv).expect("gyro csv");
+    let s: Vec<(i64, nalgebra::Vector3<f64>)> = text
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let v: Vec<&str> = l.split(',').collect();
+            let w = |i: usize| v[i].parse::<f64>().expect("rate");
+            (
+                v[0].parse().expect("t"),
+                nalgebra::Vector3::new(w(1), w(2), w(3)),
+            )
+        })
+        .collect();
+    let mut r = nalgebra::UnitQuaternion::identity();
+    for k in 0..s.len() - 1 {
+        let (a, b) = (s[k].0, s[k + 1].0.min(t_ns));
+        if b > a {
+            let w = (s[k].1 + s[k + 1].1) * 0.5;
+            r *= nalgebra::UnitQuaternion::from_scaled_axis(w * ((b - a) as f64 * 1e-9));
+        }
+    }
+    r
 }
 
 /// A stretch of KITTI 07 the other tests do not start at (frames 40-99): the initialiser

@@ -167,7 +167,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
     };
     let camera = CameraCalib {
         model: PinholeRadtan::pinhole(w, h, fx, fy, f64::from(w) / 2.0, f64::from(h) / 2.0),
-        t_bs: Isometry3::identity(),
+        t_bs: android_rear_camera_t_bs(),
         t_bs_given: false,
         readout_ns: frames.first().map_or(0, |f| f.readout_ns),
         time_offset_ns: 0,
@@ -194,4 +194,22 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
         ground_truth: None,
         issues,
     })
+}
+
+/// The camera-IMU transform a phone's axis conventions imply, not a calibration (hence
+/// `t_bs_given = false`): Android's sensor axes (x right, y up, z out of the screen, in the
+/// natural portrait orientation) and the rear camera's (x right, y down in a portrait image,
+/// z looking out of the back): `R_bc = diag(1, -1, -1)`, a half turn about x; the lever arm
+/// (a few cm) unknown, zero. Only orientations of frames vision does not pose use it (no
+/// inertial initialisation without given extrinsics). Unverified on the `phone_honorv10`
+/// clip: it turns 0.15° per 0.1 s, too little for `benches/scripts/phone_axes.py` to tell
+/// the axis candidates apart.
+pub fn android_rear_camera_t_bs() -> Isometry3<f64> {
+    Isometry3::from_parts(
+        nalgebra::Translation3::identity(),
+        nalgebra::UnitQuaternion::from_axis_angle(
+            &nalgebra::Vector3::x_axis(),
+            std::f64::consts::PI,
+        ),
+    )
 }

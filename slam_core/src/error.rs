@@ -20,6 +20,10 @@ pub enum CoreError {
         /// What is wrong with it.
         msg: String,
     },
+    /// A session cannot be resumed from what was stored of it (e.g. a killed tracker's
+    /// keyframe spool, [`crate::vo::resume`]): why.
+    #[error("cannot resume the session: {0}")]
+    Resume(String),
     /// A binary input (e.g. a vocabulary file) is malformed.
     #[error("malformed data: {0}")]
     Format(String),

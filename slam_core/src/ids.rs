@@ -5,13 +5,17 @@
 //! |---|---|---|
 //! | [`SessionId`] (`u32`) | start 16 · VO session 16 | the tracker, per VO session of each start |
 //! | [`ClientKeyframeId`] (`u64`) | 0 · start 12 · counter 28 (< 2^40) | the tracker's VO |
+//! | [`ClientPointId`] (`u64`) | counter from 0; in a resumed session start 24 · counter 40 | the tracker's VO |
 //! | [`KeyframeId`] (`u64`, server) | client 24 · client keyframe id 40 | the server |
 //! | [`MapPointId`] (`u64`, server) | client 24 · counter 40 | the server, per client's handler |
 //! | [`MapId`] (`u64`) | client 32 · index 32 | the server, per client |
 //!
 //! "Start" is the count of lives of the tracker process (1 for the first): a restarted
 //! tracker opens new sessions and numbers its keyframes from a new range, so ids stay
-//! unique per client across restarts.
+//! unique per client across restarts. A visual-inertial tracker that resumes its killed
+//! predecessor's session (issue 17) keeps that session's id, continues its keyframe
+//! numbering (everything the predecessor sent is older than what it spooled) and numbers its
+//! new map points from its own start's range ([`ClientPointId::first_of_start`]).
 //!
 //! On the wire and in the algorithm's maps the ids stay plain integers (`#[repr(C)]` shared
 //! memory types, [`crate::vo::KfId`] / [`crate::vo::PointId`] keys); these types are
@@ -168,6 +172,29 @@ impl fmt::Display for ClientKeyframeId {
 }
 
 raw_conversions!(ClientKeyframeId, u64);
+
+/// A client's map-point id (the VO's, on the wire as `KeypointRecord::map_point_id`). The
+/// server keys client points by session, so a new session numbers them from 0; a session
+/// resumed by a restarted tracker numbers its new points from [`ClientPointId::first_of_start`]
+/// of its own start: its predecessor may have sent points it never spooled, and every id a
+/// start gives is below the next start's range (2^40 points per start).
+#[repr(transparent)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct ClientPointId(u64);
+
+impl ClientPointId {
+    /// The first point id tracker start `start` gives in a resumed session.
+    pub const fn first_of_start(start: u32) -> Self {
+        Self((start as u64) << CLIENT_KF_BITS)
+    }
+
+    /// As on the wire.
+    pub const fn raw(self) -> u64 {
+        self.0
+    }
+}
+
+raw_conversions!(ClientPointId, u64);
 
 /// A server keyframe id: the client in the bits above 40, the client's own keyframe id
 /// below; unique across clients, so that maps of several clients can be merged.

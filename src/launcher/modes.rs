@@ -81,6 +81,13 @@ pub fn client_setup(requested: ClientMode, ds: &datasets::Dataset) -> ClientSetu
             ClientMode::Vio,
             "the dataset has an IMU stream and camera-IMU extrinsics".to_string(),
         ),
+        (ClientMode::Auto, Some(why)) if has_imu => (
+            ClientMode::Vio,
+            format!(
+                "{why}: visual-inertial client without inertial initialisation (monocular \
+                 poses, gyro orientations for the frames vision does not pose)"
+            ),
+        ),
         (ClientMode::Auto, Some(why)) => (ClientMode::Mono, why.to_string()),
     };
     ClientSetup {
@@ -104,7 +111,8 @@ mod tests {
     }
 
     /// `auto` picks `vio` on a synthetic dataset (IMU and T_BS), with its sensor.yaml's
-    /// noise and intrinsics; `mono` when asked; `mono` and the reason without extrinsics.
+    /// noise and intrinsics; `mono` when asked; without extrinsics `vio` with no inertial
+    /// initialisation, and the reason; `mono` without an IMU.
     #[test]
     fn auto_mode_follows_the_dataset() {
         let dir = tempfile::tempdir().expect("tmp");
@@ -118,13 +126,18 @@ mod tests {
         assert_eq!(client_setup(ClientMode::Mono, &ds).mode, ClientMode::Mono);
         ds.camera.t_bs_given = false;
         let s = client_setup(ClientMode::Auto, &ds);
-        assert_eq!(s.mode, ClientMode::Mono);
-        assert!(s.reason.contains("extrinsics"), "{}", s.reason);
+        assert_eq!(s.mode, ClientMode::Vio);
+        assert!(
+            s.reason.contains("without inertial initialisation"),
+            "{}",
+            s.reason
+        );
         let s = client_setup(ClientMode::Vio, &ds);
         assert_eq!(s.mode, ClientMode::Vio);
         assert!(s.reason.contains("will not initialise"), "{}", s.reason);
         ds.imu.clear();
         let s = client_setup(ClientMode::Auto, &ds);
+        assert_eq!(s.mode, ClientMode::Mono);
         assert!(s.reason.contains("no IMU"), "{}", s.reason);
     }
 

@@ -153,6 +153,7 @@ fn mode_line(s: &mut String, cl: &ClientReport) {
         if let Some(r) = &v.reason {
             let _ = write!(line, ": {r}");
         }
+        resume_part(&mut line, v);
         if let Some(a) = &cl.ate_4dof {
             let tilt = a.tilt_rmse_deg.unwrap_or(f64::NAN);
             let _ = write!(
@@ -176,6 +177,21 @@ fn mode_line(s: &mut String, cl: &ClientReport) {
         );
     }
     let _ = writeln!(s, "{line}");
+}
+
+/// A killed tracker's session resumed from the spool (issue 17), or why not.
+fn resume_part(line: &mut String, v: &tracker::VioReport) {
+    if let Some(kf) = v.resumed_from_keyframe {
+        let _ = write!(
+            line,
+            "; resumed after a kill from keyframe {} ({} keyframes), tracking again at its frame {}",
+            slam_core::ids::ClientKeyframeId::from_raw(kf),
+            v.resumed_keyframes.unwrap_or(0),
+            v.resumed_after_frames.map_or("-".into(), |n| n.to_string())
+        );
+    } else if let Some(why) = &v.resume_refused {
+        let _ = write!(line, "; not resumed after a kill: {why}");
+    }
 }
 
 fn faults_line(s: &mut String, rep: &RunReport) {

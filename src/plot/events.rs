@@ -63,7 +63,7 @@ pub fn corrections_from_journal(path: &Path) -> Vec<CorrectionEvent> {
                     });
                 }
             }
-            Entry::Idle { .. } => {}
+            Entry::Idle { .. } | Entry::MapPoints { .. } => {}
         }
     }
     out

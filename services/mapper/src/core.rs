@@ -476,6 +476,11 @@ impl Mapper {
                     continue;
                 }
                 Entry::Idle { .. } => continue,
+                Entry::MapPoints { .. } => {
+                    let detail = "map points of a spooled keyframe (a spool file's entry)";
+                    self.status.error(ErrorKind::Journal, detail);
+                    continue;
+                }
             };
             if client as usize >= self.clients.len() {
                 self.status.error(

@@ -67,6 +67,10 @@ error_kinds! {
     ImuCalibration = "imu_calibration",
     /// The tracker's keyframe spool could not be written or read.
     Spool = "spool",
+    /// A visual-inertial tracker's successor could not resume its killed predecessor's
+    /// session from the keyframe spool (the reason named): it sent the spooled keyframes
+    /// and started a new session.
+    VioResume = "vio_resume",
     /// A mapper handler refused a keyframe, or its thread panicked.
     Handler = "handler",
     /// The mapper journal is damaged or holds what cannot be replayed.

@@ -17,7 +17,10 @@
 //! ([`JOURNAL_VERSION`], [`shm_schema::SCHEMA_VERSION`]: the payloads are the messages'
 //! fields). A journal without it, or of another version, is refused with a
 //! [`VersionError`] naming the file ([`Journal::open`], [`read_journal`]) instead of being
-//! misread. Spool files hold one entry each and no header ([`encode_entry`], [`parse`]).
+//! misread. Spool files hold no header and one keyframe entry, followed (since the
+//! visual-inertial resume, issue 17) by a [`Entry::MapPoints`] entry with the positions of
+//! the points it observes ([`encode_entry`], [`parse`]); that kind appears in spool files
+//! only, so the journal version is unchanged.
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
@@ -42,10 +45,24 @@ const KIND_KEYFRAME: u8 = 1;
 const KIND_IDLE: u8 = 2;
 /// Entry kind: a loop correction as received from the loop closer.
 const KIND_CORRECTION: u8 = 3;
+/// Entry kind: the map points of a spooled keyframe (spool files only).
+const KIND_MAP_POINTS: u8 = 4;
 /// Bytes before the payload.
 const HEAD: usize = 12;
 /// Largest payload accepted when reading (a corrupt length must not allocate gigabytes).
 const MAX_PAYLOAD: usize = 64 << 20;
+
+/// A client map point as the tracker spools it beside a keyframe.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SpooledPoint {
+    /// Client map-point id (a keypoint record's `map_point_id`).
+    pub id: u64,
+    /// Position in the client map's world when the keyframe was spooled, m.
+    pub p_w: [f64; 3],
+}
+
+/// Bytes of one [`SpooledPoint`] in an entry.
+const SPOOLED_POINT_BYTES: usize = 32;
 
 /// One journal entry.
 #[derive(Debug, Clone, PartialEq)]
@@ -76,6 +93,12 @@ pub enum Entry {
         header: Box<CorrectionHeader>,
         /// Records.
         records: Vec<CorrectionRecord>,
+    },
+    /// The map points a spooled keyframe observes, after its keyframe entry (spool files
+    /// only: a successor rebuilds its predecessor's client map from them).
+    MapPoints {
+        /// Id and position of each point.
+        points: Vec<SpooledPoint>,
     },
 }
 
@@ -328,6 +351,32 @@ fn decode_correction(p: &[u8]) -> Option<Entry> {
     Some(Entry::Correction { header, records })
 }
 
+fn encode_map_points(points: &[SpooledPoint]) -> Vec<u8> {
+    let mut e = Enc(Vec::with_capacity(4 + SPOOLED_POINT_BYTES * points.len()));
+    e.u32(points.len() as u32);
+    for p in points {
+        e.u64(p.id);
+        e.f64s(&p.p_w);
+    }
+    e.0
+}
+
+fn decode_map_points(p: &[u8]) -> Option<Entry> {
+    let mut d = Dec(p);
+    let n = d.u32()? as usize;
+    if n > d.0.len() / SPOOLED_POINT_BYTES {
+        return None;
+    }
+    let mut points = Vec::with_capacity(n);
+    for _ in 0..n {
+        points.push(SpooledPoint {
+            id: d.u64()?,
+            p_w: d.f64s()?,
+        });
+    }
+    Some(Entry::MapPoints { points })
+}
+
 fn encode(entry: &Entry) -> (u8, Vec<u8>) {
     match entry {
         Entry::Keyframe {
@@ -349,6 +398,7 @@ fn encode(entry: &Entry) -> (u8, Vec<u8>) {
         Entry::Correction { header, records } => {
             (KIND_CORRECTION, encode_correction(header, records))
         }
+        Entry::MapPoints { points } => (KIND_MAP_POINTS, encode_map_points(points)),
     }
 }
 
@@ -356,6 +406,7 @@ fn decode(kind: u8, p: &[u8]) -> Option<Entry> {
     match kind {
         KIND_KEYFRAME => decode_keyframe(p),
         KIND_CORRECTION => decode_correction(p),
+        KIND_MAP_POINTS => decode_map_points(p),
         KIND_IDLE => {
             let mut d = Dec(p);
             Some(Entry::Idle {
@@ -670,6 +721,34 @@ mod tests {
             header: Box::new(header),
             records: vec![r, KeypointRecord::default()],
         }
+    }
+
+    /// A spool file: a keyframe entry and its map points, read back whole; cut short, the
+    /// keyframe survives and the cut is reported.
+    #[test]
+    fn spool_file_with_map_points_round_trips() {
+        let points = Entry::MapPoints {
+            points: vec![
+                SpooledPoint {
+                    id: 77,
+                    p_w: [0.5, -1.25, 4.0],
+                },
+                SpooledPoint {
+                    id: 1 << 41,
+                    p_w: [1e-3, 2.0, -3.0],
+                },
+            ],
+        };
+        let mut bytes = encode_entry(&keyframe(4));
+        let keyframe_len = bytes.len();
+        bytes.extend(encode_entry(&points));
+        let c = parse(&bytes);
+        assert_eq!(c.entries, vec![keyframe(4), points]);
+        assert!(c.problem.is_none());
+        let c = parse(&bytes[..bytes.len() - 3]);
+        assert_eq!(c.entries, vec![keyframe(4)]);
+        assert_eq!(c.good_len, keyframe_len as u64);
+        assert!(c.problem.is_some());
     }
 
     #[test]

@@ -90,7 +90,7 @@ impl Ports {
                     self.poses.send_copy(p)?;
                 }
                 Out::Keyframe(m) => publish_keyframe(&self.keyframes, &m)?,
-                Out::SpoolWrite(m) => self.spool_write(&m, status),
+                Out::SpoolWrite(e) => self.spool_write(&e, status),
                 Out::SpoolSent((session, id)) => {
                     if let Some(sp) = self.spool.as_mut() {
                         sp.sent(session, id);
@@ -101,11 +101,12 @@ impl Ports {
         Ok(())
     }
 
-    fn spool_write(&mut self, m: &KeyframeMsg, status: &mut Status) {
-        let (Some(sp), c) = (self.spool.as_mut(), m.header.meta.client_id) else {
+    fn spool_write(&mut self, e: &spool::SpoolEntry, status: &mut Status) {
+        let (Some(sp), m) = (self.spool.as_mut(), &e.msg) else {
             return;
         };
-        if let Err(e) = sp.write(c, &m.header, &m.records) {
+        let c = m.header.meta.client_id;
+        if let Err(e) = sp.write(c, &m.header, &m.records, &e.points) {
             let detail = format!("keyframe {}: {e}", m.header.keyframe_id);
             status.error(ErrorKind::Spool, detail);
         }
@@ -202,6 +203,8 @@ impl Ports {
     /// The frames' end of stream: the VO window goes to the mapper (in lock-step one
     /// keyframe at a time), then the end of stream is acknowledged and passed on.
     fn end_of_stream(&mut self, core: &mut TrackerCore, h: &FrameHeader) -> anyhow::Result<()> {
+        let held = core.release_held(monotonic_ns());
+        self.exec(held, core.status_mut())?;
         for kf in core.take_window() {
             let (key, out) = core.send_window_keyframe(&kf, monotonic_ns());
             self.exec(out, core.status_mut())?;
@@ -295,9 +298,10 @@ fn publish_keyframe(publisher: &KeyframePub, m: &KeyframeMsg) -> anyhow::Result<
     Ok(())
 }
 
-/// Opens the keyframe spool and sends what a killed predecessor left in it (its VO window),
-/// before this process starts its own session. A spool that cannot be opened is an error
-/// in the status, and the tracker runs without it.
+/// Opens the keyframe spool and gives the core what a killed predecessor left in it (its
+/// VO window): sent before this process starts its own session, or held to resume the
+/// predecessor's visual-inertial session (`core/resume.rs`). A spool that cannot be opened
+/// is an error in the status, and the tracker runs without it.
 fn open_spool(params: &Params, ports: &mut Ports, core: &mut TrackerCore) -> anyhow::Result<()> {
     let Some(dir) = &params.spool else {
         return Ok(());
@@ -315,15 +319,8 @@ fn open_spool(params: &Params, ports: &mut Ports, core: &mut TrackerCore) -> any
         core.status_mut().error(ErrorKind::Spool, e);
     }
     ports.spool = Some(sp);
-    for k in rec.keyframes {
-        let msg = KeyframeMsg {
-            header: k.header,
-            records: k.records.into(),
-        };
-        let out = core.recover_keyframe(msg, monotonic_ns());
-        ports.exec(out, core.status_mut())?;
-    }
-    Ok(())
+    let out = core.recover_spool(rec.keyframes, monotonic_ns());
+    ports.exec(out, core.status_mut())
 }
 
 /// Consumes frames until the end of the stream or SIGINT/SIGTERM.

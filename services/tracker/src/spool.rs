@@ -11,12 +11,16 @@
 //! that session's map, and only then starts its own session.
 //!
 //! Spooled keyframes carry the pose and map points they had when they were created (local
-//! BA refines the window afterwards; that refinement dies with the process).
+//! BA refines the window afterwards; that refinement dies with the process), and, in a
+//! second entry of the file ([`Entry::MapPoints`]), the world positions of those points:
+//! with them a visual-inertial successor rebuilds the dead process's client map and resumes
+//! its session (`core/resume.rs`, issue 17). A file written before that has no second
+//! entry: it is recovered as before (sent), and its session is not resumed.
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use shm_schema::{KeyframeHeader, KeypointRecord};
-use shoal_runtime::journal::{encode_entry, parse, Entry};
+use shoal_runtime::journal::{encode_entry, parse, Entry, SpooledPoint};
 
 /// A keyframe recovered from the spool.
 pub struct Recovered {
@@ -24,6 +28,19 @@ pub struct Recovered {
     pub header: KeyframeHeader,
     /// Keypoint records.
     pub records: Vec<KeypointRecord>,
+    /// Positions of the points it observed when spooled (`None`: a file of an older
+    /// tracker, written without them).
+    pub points: Option<Vec<SpooledPoint>>,
+}
+
+/// A keyframe to spool: its message as it would be sent now and the positions of the map
+/// points it observes.
+#[derive(Debug, Clone)]
+pub struct SpoolEntry {
+    /// The keyframe message.
+    pub msg: crate::outbox::KeyframeMsg,
+    /// Id and world position of each map point the keyframe observes.
+    pub points: Vec<SpooledPoint>,
 }
 
 /// What [`Spool::recover`] found.
@@ -93,18 +110,29 @@ impl Spool {
                 }
             };
             let contents = parse(&bytes);
-            let entry = contents.entries.into_iter().next();
-            match entry {
-                Some(Entry::Keyframe {
-                    client: c,
-                    header,
-                    records,
-                }) if c == client && contents.problem.is_none() => {
+            let mut entries = contents.entries.into_iter();
+            match (entries.next(), entries.next(), entries.next()) {
+                (
+                    Some(Entry::Keyframe {
+                        client: c,
+                        header,
+                        records,
+                    }),
+                    points,
+                    None,
+                ) if c == client
+                    && contents.problem.is_none()
+                    && matches!(points, None | Some(Entry::MapPoints { .. })) =>
+                {
                     self.files
                         .insert((header.meta.session_id, header.keyframe_id));
                     out.keyframes.push(Recovered {
                         header: *header,
                         records,
+                        points: match points {
+                            Some(Entry::MapPoints { points }) => Some(points),
+                            _ => None,
+                        },
                     });
                 }
                 _ => {
@@ -125,19 +153,24 @@ impl Spool {
         out
     }
 
-    /// Writes a keyframe just created (its message as it would be sent now).
+    /// Writes a keyframe just created (its message as it would be sent now) and the
+    /// positions of its map points, in one file.
     pub fn write(
         &mut self,
         client: u32,
         header: &KeyframeHeader,
         records: &[KeypointRecord],
+        points: &[SpooledPoint],
     ) -> std::io::Result<()> {
         let key = (header.meta.session_id, header.keyframe_id);
-        let bytes = encode_entry(&Entry::Keyframe {
+        let mut bytes = encode_entry(&Entry::Keyframe {
             client,
             header: Box::new(*header),
             records: records.to_vec(),
         });
+        bytes.extend(encode_entry(&Entry::MapPoints {
+            points: points.to_vec(),
+        }));
         let path = self.path(key.0, key.1);
         let tmp = path.with_extension("tmp");
         std::fs::write(&tmp, &bytes)?;
@@ -204,9 +237,13 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("shoal_spool_test_{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let mut s = Spool::open(&dir).expect("spool");
+        let points = [SpooledPoint {
+            id: 7,
+            p_w: [1.0, 2.0, 3.0],
+        }];
         for id in 1..=6 {
             let (h, r) = message(65537, id);
-            s.write(3, &h, &r).expect("write");
+            s.write(3, &h, &r, &points).expect("write");
         }
         // Keyframe 3 leaves the window (1 and 2 were culled), then the process dies.
         assert_eq!(s.sent(65537, 3), 3);
@@ -219,6 +256,7 @@ mod tests {
         assert_eq!(ids, vec![4, 5, 6]);
         assert_eq!(rec.keyframes[0].records[0].u, 4.0);
         assert_eq!(rec.keyframes[0].records[1].map_point_id, 7);
+        assert_eq!(rec.keyframes[0].points.as_deref(), Some(&points[..]));
         assert_eq!(rec.errors.len(), 1, "{:?}", rec.errors);
         assert!(
             rec.errors[0].contains("0000000000000008.kf"),
@@ -230,6 +268,31 @@ mod tests {
         assert!(next.is_empty());
         let left = std::fs::read_dir(&dir).expect("dir").count();
         assert_eq!(left, 0, "the temporary and the corrupt file are gone too");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A file of an older tracker (the keyframe entry alone) is recovered without point
+    /// positions; one with a foreign entry after the keyframe is refused as corrupt.
+    #[test]
+    fn an_older_spool_file_is_recovered_without_points() {
+        let dir = std::env::temp_dir().join(format!("shoal_spool_old_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut s = Spool::open(&dir).expect("spool");
+        let (h, r) = message(65537, 2);
+        let entry = Entry::Keyframe {
+            client: 3,
+            header: Box::new(h),
+            records: r,
+        };
+        std::fs::write(s.path(65537, 2), encode_entry(&entry)).expect("old file");
+        let mut foreign = encode_entry(&entry);
+        foreign.extend(encode_entry(&entry));
+        std::fs::write(s.path(65537, 3), foreign).expect("foreign file");
+        let rec = s.recover(3);
+        assert_eq!(rec.keyframes.len(), 1);
+        assert_eq!(rec.keyframes[0].header.keyframe_id, 2);
+        assert!(rec.keyframes[0].points.is_none());
+        assert_eq!(rec.errors.len(), 1, "{:?}", rec.errors);
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -125,9 +125,14 @@ impl InertialCoupler {
     }
 
     /// Sets (or moves) the pose `t_wc` of the keyframe at camera time `t_cam_ns` (ignored
-    /// once both refinements are done).
+    /// once both refinements are done, and before the first IMU sample: no preintegration
+    /// reaches it).
     pub fn set_keyframe(&mut self, t_cam_ns: i64, t_wc: Isometry3<f64>) {
-        if !self.finished() {
+        let covered = self
+            .imu
+            .first()
+            .is_some_and(|m| m.t_ns <= t_cam_ns + self.params.t_d_ns);
+        if !self.finished() && covered {
             self.keyframes.insert(t_cam_ns, t_wc);
         }
     }
@@ -148,6 +153,20 @@ impl InertialCoupler {
         self.keyframes.clear();
         self.attempted_at = 0;
         self.status = CouplerStatus::Collecting;
+    }
+
+    /// A session resumed from stored keyframes (`crate::vio`, issue 17): its world was made
+    /// metric and gravity-aligned by a predecessor's initialisation, refined
+    /// `refinements_done` times. No initialisation runs; the refinements left continue over
+    /// the successor's own keyframes and IMU samples (its span counted from its first
+    /// keyframe after its first sample: the predecessor's samples are gone).
+    pub fn mark_resumed(&mut self, refinements_done: usize) {
+        self.imu.clear();
+        self.keyframes.clear();
+        self.attempted_at = 0;
+        self.status = CouplerStatus::Initialised {
+            refinements: refinements_done.min(2),
+        };
     }
 
     /// Where the coupler stands.
@@ -318,5 +337,10 @@ mod tests {
         assert_eq!(c.step(), None);
         assert_eq!(c.status(), &CouplerStatus::Collecting);
         assert_eq!(c.attempts(), 0);
+        assert!(
+            (c.span_s() - 1.5).abs() < 1e-9,
+            "the keyframe before the first sample is not kept: span {}",
+            c.span_s()
+        );
     }
 }

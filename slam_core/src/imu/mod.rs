@@ -23,6 +23,7 @@ pub mod coupler;
 pub mod extrinsic_rotation;
 pub mod init;
 pub mod preint;
+pub mod static_init;
 pub mod window;
 
 pub use preint::{

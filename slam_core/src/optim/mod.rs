@@ -18,7 +18,8 @@ pub mod pose_only;
 pub mod robust;
 
 pub use pose_only::{
-    PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, PosePrior, Velocity,
+    centre_covariance, PoseObservation, PoseOptParams, PoseOptResult, PoseOptimizer, PosePrior,
+    Velocity,
 };
 pub use robust::RobustKernel;
 

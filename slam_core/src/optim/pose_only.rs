@@ -135,6 +135,14 @@ impl PosePrior {
         *g += jt_omega * r;
     }
 
+    /// This prior's share `JᵀΩJ` of the pose optimisation's information at `t_cw`
+    /// ([`PoseOptResult::information`] minus it is the reprojections' alone).
+    pub fn information_at(&self, t_cw: &Isometry3<f64>) -> Matrix6<f64> {
+        let mut h = Matrix6::zeros();
+        self.add_to(t_cw, &mut h, &mut Vector6::zeros());
+        h
+    }
+
     fn is_finite(&self) -> bool {
         self.information.iter().all(|x| x.is_finite())
             && self.t_cw.translation.vector.iter().all(|x| x.is_finite())
@@ -189,6 +197,25 @@ pub struct PoseOptResult {
     pub final_cost: f64,
     /// LM iterations run in total (accepted and rejected steps).
     pub iterations: usize,
+    /// Information (Gauss-Newton `JᵀΩJ`, no kernel, prior included) of the left increment
+    /// `δ = [ω; v]` at `t_cw` over the final inliers: its inverse is the pose's covariance
+    /// ([`centre_covariance`] gives the camera centre's), e.g. the measurement a filter takes.
+    pub information: Matrix6<f64>,
+}
+
+/// The camera centre's covariance (world frame) of a pose `t_cw` with `information` over
+/// the left increment `δ = [ω; v]`: `c = -R_cwᵀ t_cw` moves by `δc = -R_cwᵀ v` (the rotation
+/// cancels to first order), so `Σ_c = R_cwᵀ Σ_vv R_cw`. `None` when singular.
+pub fn centre_covariance(
+    t_cw: &Isometry3<f64>,
+    information: &Matrix6<f64>,
+) -> Option<nalgebra::Matrix3<f64>> {
+    let cov = information.try_inverse()?;
+    let r_wc = t_cw.rotation.inverse().to_rotation_matrix().into_inner();
+    let c = r_wc * cov.fixed_view::<3, 3>(3, 3) * r_wc.transpose();
+    c.iter()
+        .all(|x| x.is_finite())
+        .then_some((c + c.transpose()) * 0.5)
 }
 
 /// Reusable motion-only optimiser (keeps its buffers; see the module docs).
@@ -384,12 +411,35 @@ impl PoseOptimizer {
             }
         }
         let n_inliers = inliers.iter().filter(|&&b| b).count();
+        let information = self.information(camera, &pose, obs, inliers, params.prior.as_ref());
         Ok(PoseOptResult {
             t_cw: pose,
             n_inliers,
             final_cost,
             iterations,
+            information,
         })
+    }
+
+    /// `Σ JᵀΩJ` over the inliers at `pose` (no kernel), plus the prior's.
+    fn information(
+        &self,
+        cam: &PinholeRadtan,
+        pose: &Isometry3<f64>,
+        obs: &[PoseObservation],
+        inl: &[bool],
+        prior: Option<&PosePrior>,
+    ) -> Matrix6<f64> {
+        let mut h = Matrix6::zeros();
+        for (i, o) in obs.iter().enumerate() {
+            if let Some(l) = inl[i].then(|| self.linearise(cam, pose, i, o)).flatten() {
+                h += l.j.transpose() * l.j * o.inv_sigma2;
+            }
+        }
+        if let Some(p) = prior {
+            p.add_to(pose, &mut h, &mut Vector6::zeros());
+        }
+        h
     }
 
     /// One round of LM over the current inliers. Returns the pose, its cost and the number of

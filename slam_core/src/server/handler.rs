@@ -28,8 +28,8 @@ use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
 use crate::optim::PoseOptParams;
 use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
 use crate::vo::local_mapping::{
-    create_points_with_neighbours_scale_free as create_points_with_neighbours, cull_recent_points,
-    global_bundle_adjustment, local_bundle_adjustment,
+    create_points_with_neighbours, cull_recent_points, global_bundle_adjustment,
+    local_bundle_adjustment,
 };
 use crate::vo::{KfId, PointId};
 use crate::CoreError;

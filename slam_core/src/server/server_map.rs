@@ -9,7 +9,7 @@ use nalgebra::{Isometry3, Vector2};
 use super::types::{KeptKeyframe, KeptPoint, MapId, ServerKeyframe};
 use crate::ids::{ClientId, KeyframeId};
 use crate::twoview::triangulate::{
-    check_point, projection_matrix, triangulate_dlt_normalised, CheckView, TriangulationCheck,
+    check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
 };
 use crate::vo::{ClientMap, Keyframe, KfId, PointId};
 
@@ -307,7 +307,7 @@ impl ServerMap {
         let px0 = Vector2::new(kp0.x as f64, kp0.y as f64);
         let b = kf.camera.unproject(&px);
         let b0 = kf0.camera.unproject(&px0);
-        let p_w = triangulate_dlt_normalised(
+        let p_w = triangulate_dlt(
             &projection_matrix(&kf.t_cw),
             &b,
             &projection_matrix(&kf0.t_cw),

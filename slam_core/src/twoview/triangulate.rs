@@ -90,55 +90,6 @@ pub fn triangulate_dlt(
     solve_normal(ata)
 }
 
-/// Normalised linear (DLT) triangulation of one point seen in two views (Hartley &
-/// Zisserman, section 4.4.4): as [`triangulate_dlt`], but solved in view 1's camera frame
-/// in the point's own unit, so that the result moves with a similarity of the world
-/// (rotation, translation and scale) and depends neither on where the world origin is nor
-/// on its unit. The server builds its maps in the client maps' frames and units (seed
-/// §3.4.1: a monocular map's arbitrary unit, a visual-inertial client's metric one), and
-/// must give the same map up to that similarity. Same `None` cases.
-pub fn triangulate_dlt_normalised(
-    p1: &Matrix3x4<f64>,
-    b1: &Vector3<f64>,
-    p2: &Matrix3x4<f64>,
-    b2: &Vector3<f64>,
-) -> Option<Vector3<f64>> {
-    let (r1, t1) = (p1.fixed_view::<3, 3>(0, 0), p1.column(3));
-    let (r2, t2) = (p2.fixed_view::<3, 3>(0, 0), p2.column(3));
-    let r21 = r2 * r1.transpose();
-    let t21 = t2 - r21 * t1;
-    let baseline = t21.norm();
-    if !(baseline > 0.0 && baseline.is_finite()) {
-        let mut ata = Matrix4::zeros();
-        accumulate_view(&mut ata, p1, b1);
-        accumulate_view(&mut ata, p2, b2);
-        return solve_normal(ata);
-    }
-    let solve_in_view_1 = |unit: f64| {
-        let mut q1 = Matrix3x4::zeros();
-        q1.fixed_view_mut::<3, 3>(0, 0)
-            .copy_from(&nalgebra::Matrix3::identity());
-        let mut q2 = Matrix3x4::zeros();
-        q2.fixed_view_mut::<3, 3>(0, 0).copy_from(&r21);
-        q2.set_column(3, &(t21 / unit));
-        let mut ata = Matrix4::zeros();
-        accumulate_view(&mut ata, &q1, b1);
-        accumulate_view(&mut ata, &q2, b2);
-        solve_normal(ata).map(|x| x * unit)
-    };
-    // Unit baseline first; then, as Hartley's normalisation asks, the unit of the point's
-    // own distance (unit-sized coordinates), which both views' rows weigh alike.
-    let x_c1 = solve_in_view_1(baseline)?;
-    let distance = x_c1.norm();
-    let x_c1 = if distance > 0.0 && distance.is_finite() {
-        solve_in_view_1(distance).unwrap_or(x_c1)
-    } else {
-        x_c1
-    };
-    let p_w = r1.transpose() * (x_c1 - t1);
-    p_w.iter().all(|v| v.is_finite()).then_some(p_w)
-}
-
 /// Linear (DLT) triangulation from any number of views: `views` yields
 /// `(projection matrix, bearing)` pairs. `None` with fewer than two views, for a point at
 /// infinity or on non-finite input.
@@ -274,41 +225,6 @@ mod tests {
             Translation3::new(t[0], t[1], t[2]),
             UnitQuaternion::from_euler_angles(rx, ry, rz),
         )
-    }
-
-    /// The normalised DLT moves with a similarity of the world `x' = s R x + t` (the unit and
-    /// origin of a monocular map are arbitrary; a visual-inertial client moves its map into
-    /// a metric one): noisy bearings give `s R X + t` for every `s`, whatever the origin.
-    #[test]
-    fn normalised_dlt_is_invariant_to_a_similarity_of_the_world() {
-        let t_wc1 = pose(0.1, -0.2, 0.05, [30.0, -12.0, 4.0]);
-        let t_wc2 = pose(0.12, -0.15, 0.07, [30.4, -11.9, 4.1]);
-        let x_w = Vector3::new(31.0, -10.5, 9.0);
-        // Bearings off the true rays by about a pixel at f = 500.
-        let noise = Vector3::new(0.002, -0.0015, 0.0);
-        let b1 = (t_wc1.inverse() * Point3::from(x_w)).coords + noise;
-        let b2 = (t_wc2.inverse() * Point3::from(x_w)).coords - noise;
-        let solve = |a: &Isometry3<f64>, b: &Isometry3<f64>| {
-            let (p1, p2) = (
-                projection_matrix(&a.inverse()),
-                projection_matrix(&b.inverse()),
-            );
-            triangulate_dlt_normalised(&p1, &b1, &p2, &b2).unwrap()
-        };
-        let x = solve(&t_wc1, &t_wc2);
-        let r = UnitQuaternion::from_euler_angles(0.3, -0.7, 1.1);
-        let t = Vector3::new(-3.0, 50.0, 7.0);
-        for s in [0.2, 1.0, 5.0, 20.0] {
-            let moved = |p: &Isometry3<f64>| {
-                Isometry3::from_parts((s * (r * p.translation.vector) + t).into(), r * p.rotation)
-            };
-            let x_s = solve(&moved(&t_wc1), &moved(&t_wc2));
-            let expected = s * (r * x) + t;
-            assert!(
-                (x_s - expected).norm() < 1e-9 * s * 10.0,
-                "s = {s}: {x_s} vs {expected}"
-            );
-        }
     }
 
     #[test]

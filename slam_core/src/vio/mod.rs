@@ -15,10 +15,15 @@
 //!    with the IMU (preintegration at the current biases, §4). The predicted camera pose
 //!    replaces the motion model in the projection search, its camera twist (angular *and*
 //!    linear) poses the rolling-shutter rows at their own time (§1, middle-row convention),
-//!    and a pose prior (rotation strong, centre weak) joins the pose optimisation
-//!    ([`crate::optim::PosePrior`]; Table 5.1 "tracking = reprojections + IMU prior").
-//! 2. The VO tracks the frame ([`VoTracker::process_inertial`]); the navigator takes the
-//!    visual pose (orientation from vision, position and velocity by a Kalman update).
+//!    and a pose prior (the gyro's rotation, the filter's position covariance) joins the
+//!    pose optimisation ([`crate::optim::PosePrior`]; Table 5.1 "tracking = reprojections +
+//!    IMU prior"). The optimisation itself starts from the VO's constant-velocity pose
+//!    (see `VoTracker::optimisation_start` for why).
+//! 2. The VO tracks the frame ([`VoTracker::process_with_hint`]); the navigator takes the
+//!    visual pose: orientation from vision, position and velocity by a Kalman update whose
+//!    measurement covariance is the pose optimisation's
+//!    ([`crate::optim::PoseOptResult::information`]); with the prior in it, the optimised
+//!    pose is already the posterior and the velocity follows by conditioning.
 //! 3. **Keyframes.** A keyframe the VO makes from the frame carries, attached when it is made
 //!    (before local mapping sees it, so inline and threaded mapping and lock-step runs stay
 //!    deterministic), the IMU samples since the previous keyframe and the calibration
@@ -46,10 +51,14 @@
 //!    gets an orientation only ([`PoseSource::OrientationOnly`]): the gyro propagates the
 //!    last known orientation (the first frame's camera is the identity, the world a
 //!    monocular map starts in when that frame is its reference). No scale is ever invented.
+//! 6. **Resumed sessions** ([`VioTracker::resume`], `resume.rs`): a client can start on a
+//!    VO holding a session rebuilt from stored keyframes (a killed tracker's spool) as
+//!    initialised, from the newest keyframe's velocity and biases ([`VioStatus::Resumed`]).
 use nalgebra::{Isometry3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::imu::coupler::{CouplerEvent, CouplerParams, CouplerStatus, InertialCoupler};
 use crate::imu::init::{InertialInit, InitError};
+use crate::imu::static_init::{detect_static, StaticInit, StaticParams};
 use crate::imu::{ImuBiases, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
 use crate::lie::so3_log;
 use crate::vo::{ImuCalibration, KeyframeInertial, PoseHint, VoFrame, VoOutput, VoTracker};
@@ -57,9 +66,11 @@ use crate::CoreError;
 
 pub mod imu_buffer;
 pub mod navigator;
+mod resume;
 
 pub use imu_buffer::{ImuBuffer, ImuCheck, ImuSampleError};
 pub use navigator::{NavParams, Navigator, Prediction};
+pub use resume::Resumed;
 
 /// Settings of [`VioTracker`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -81,19 +92,19 @@ pub struct VioParams {
     /// The IMU's pose prior in the pose optimisation (`false`: prediction and rolling
     /// shutter only, for comparison).
     pub pose_prior: bool,
-    /// Track every frame with the IMU's prediction and prior (module docs, step 1).
-    /// **Off by default**: on the rendered drone (seed 3) it tracks as well as the motion
-    /// model for 11.4 s, then vision drifts from the IMU (1.5-5 cm per frame from 11.5 s)
-    /// and tracking is lost at ~13 s. Measured (`debug_drone`, frame-to-frame motion vs the
-    /// truth): the IMU's prediction stays right (0.2-0.3 cm and 0.005° per 50 ms, with or
-    /// without this flag; biases within 5e-4 rad/s and 0.03 m/s² of the truth), the prior
-    /// is not the cause (the drift is the same with `pose_prior = false`), no world move
-    /// happens then; it is vision's own pose (the motion-model step's optimisation lands
-    /// 2-8 cm from the prediction) that drifts once the projection search is centred on
-    /// the IMU's prediction instead of the motion model's. Not yet understood. Off, the
-    /// motion model tracks and the IMU initialises, coasts through dropouts and searches
-    /// around its prediction when vision returns.
+    /// Track every frame with the IMU's prediction and prior (module docs, step 1; on by
+    /// default). `false`: the VO's motion model tracks and the IMU only initialises, coasts
+    /// through dropouts and searches around its prediction when vision returns (for
+    /// comparison).
     pub imu_tracking: bool,
+    /// Run the inertial initialisation (`false`: the camera-IMU extrinsics are not known,
+    /// `t_bc` is only a device-axis guess: the IMU gives the orientations of frames vision
+    /// does not pose and the static gyro bias, never a scale, a velocity or the
+    /// rolling-shutter rates of the VO).
+    pub inertial_init: bool,
+    /// The static initialisation before the visual-inertial one (gyro bias and gravity of a
+    /// device at rest, [`crate::imu::static_init`]).
+    pub static_init: StaticParams,
     /// Longest wait for the local-mapping runner before a world move
     /// ([`VoTracker::transform_world`]); a move that times out is retried at the next frame.
     pub world_move_timeout: std::time::Duration,
@@ -111,7 +122,9 @@ impl VioParams {
             imu_check: ImuCheck::default(),
             nav: NavParams::default(),
             pose_prior: true,
-            imu_tracking: false,
+            imu_tracking: true,
+            static_init: StaticParams::default(),
+            inertial_init: true,
             world_move_timeout: std::time::Duration::from_secs(5),
         }
     }
@@ -179,6 +192,21 @@ pub enum VioStatus {
         /// Coasting on the IMU through a visual dropout now.
         coasting: bool,
     },
+    /// Metric and gravity-aligned: a session initialised by a predecessor and resumed from
+    /// its stored keyframes ([`VioTracker::resume`]); no initialisation runs.
+    Resumed {
+        /// Where it started.
+        from: Resumed,
+        /// Coasting on the IMU (from the stored keyframe, or through a dropout) now.
+        coasting: bool,
+    },
+}
+
+impl VioStatus {
+    /// The client's poses are metric and gravity-aligned.
+    pub fn is_metric(&self) -> bool {
+        matches!(self, Self::Initialised { .. } | Self::Resumed { .. })
+    }
 }
 
 /// What one frame produced.
@@ -199,6 +227,10 @@ pub struct VioOutput {
     /// The navigator's prediction of this frame (before vision), when it had one.
     pub prediction: Option<Prediction>,
 }
+
+/// Longest start of the IMU stream after an orientation over which the orientation is held
+/// (no rotation assumed), ns.
+pub const ORIENTATION_HOLD_NS: i64 = 100_000_000;
 
 /// The VO failed its last frame (the next one may start a dropout).
 fn out_of_vision(vo: &VoTracker) -> bool {
@@ -228,10 +260,15 @@ pub struct VioTracker {
     pending: Option<(InertialInit, bool)>,
     /// Last known body orientation `R_wb` and its IMU time (for orientation-only frames).
     orientation: Option<(i64, Rotation3<f64>)>,
-    /// Best known biases (the initialisation's, then local mapping's window's; zero
-    /// before).
+    /// Best known biases (the initialisation's, then local mapping's window's; before
+    /// them, the static gyro bias or zero).
     biases: ImuBiases,
     coasting: bool,
+    /// The device was found at rest before the initialisation, and "up" then in the world
+    /// of the orientations (when the frame had one).
+    static_init: Option<(StaticInit, Option<Vector3<f64>>)>,
+    /// The session was resumed from stored keyframes ([`VioTracker::resume`]).
+    resumed: Option<Resumed>,
     /// The last keyframe made and its IMU time, until local mapping's result for it (or a
     /// later one) is taken ([`VioTracker::adopt_window_state`]).
     last_kf: Option<(crate::vo::KfId, i64)>,
@@ -261,6 +298,8 @@ impl VioTracker {
             coasting: false,
             last_kf: None,
             window_tracks: false,
+            static_init: None,
+            resumed: None,
             params,
         }
     }
@@ -278,6 +317,12 @@ impl VioTracker {
     /// The settings.
     pub fn params(&self) -> &VioParams {
         &self.params
+    }
+
+    /// The static initialisation, if the device rested before the visual-inertial one, and
+    /// the "up" direction in the world of the orientations then.
+    pub fn static_init(&self) -> Option<&(StaticInit, Option<Vector3<f64>>)> {
+        self.static_init.as_ref()
     }
 
     /// The coupler (attempts, span).
@@ -299,6 +344,9 @@ impl VioTracker {
 
     /// Where the client stands.
     pub fn status(&self) -> VioStatus {
+        if let Some(r) = self.resumed_status() {
+            return r;
+        }
         if let Some(i) = self.init {
             return VioStatus::Initialised {
                 t_ns: i.t_ns,
@@ -326,7 +374,7 @@ impl VioTracker {
         let rate_b = self.mean_rate_b(t_ns, frame.readout_ns);
         let frame = VoFrame {
             angular_velocity: frame.angular_velocity.or_else(|| {
-                (frame.readout_ns > 0)
+                (frame.readout_ns > 0 && self.params.inertial_init)
                     .then_some(rate_b)
                     .flatten()
                     .map(|w| self.params.t_bc.rotation.inverse() * w)
@@ -366,10 +414,12 @@ impl VioTracker {
         if out.vo.new_session {
             self.start_over();
         }
-        self.update_pose(t_ns, pred.as_ref(), coast_ok, &mut out);
+        let with_prior = hint.is_some_and(|h| h.prior.is_some());
+        self.update_pose(t_ns, pred.as_ref(), coast_ok, with_prior, &mut out);
         self.adopt_window_state(&mut out);
         self.apply_world_correction(&mut out);
         self.keyframe(t_ns, &mut out);
+        self.detect_rest(t_ns);
         self.imu
             .keep_from(self.oldest_needed_ns(t_ns) - frame.readout_ns / 2 - 10_000_000);
         Ok(out)
@@ -411,6 +461,7 @@ impl VioTracker {
         }
         self.nav = None;
         self.init = None;
+        self.resumed = None;
         self.pending = None;
         self.last_visual_ns = None;
         self.coasting = false;
@@ -425,6 +476,7 @@ impl VioTracker {
         t_ns: i64,
         pred: Option<&Prediction>,
         coast_ok: bool,
+        with_prior: bool,
         out: &mut VioOutput,
     ) {
         let r_cb = self.params.t_bc.rotation.inverse();
@@ -434,7 +486,7 @@ impl VioTracker {
             if let Some(nav) = self.nav.as_mut() {
                 match pred {
                     Some(p) => {
-                        nav.correct(p, &t_cw);
+                        nav.correct(p, &t_cw, out.vo.pose_information.as_ref(), with_prior);
                         if self.params.imu_tracking {
                             out.source = PoseSource::VisualInertial;
                         }
@@ -447,6 +499,7 @@ impl VioTracker {
             self.orientation = Some((t_ns, r_wb.to_rotation_matrix()));
             self.last_visual_ns = Some(t_ns);
             self.coasting = false;
+            self.note_visual_pose(t_ns);
             return;
         }
         if let (Some(nav), Some(p), true) = (self.nav.as_mut(), pred, coast_ok) {
@@ -468,10 +521,19 @@ impl VioTracker {
     }
 
     /// The last orientation propagated to `t_ns` with the gyro (identity camera
-    /// orientation at the first frame); `None` without IMU over the interval.
+    /// orientation at the first frame); `None` without IMU over the interval. When the IMU
+    /// stream starts up to [`ORIENTATION_HOLD_NS`] after the last orientation (a camera
+    /// that starts first, as on the phone clip), the orientation is held until its first
+    /// sample.
     fn propagate_orientation(&self, t_ns: i64) -> Option<Rotation3<f64>> {
-        let Some((t0, r_wb)) = self.orientation else {
+        let Some((t_last, r_wb)) = self.orientation else {
             return Some(self.params.t_bc.rotation.inverse().to_rotation_matrix());
+        };
+        let first = self.imu.samples().first().map_or(t_last, |m| m.t_ns);
+        let t0 = if first > t_last && first - t_last <= ORIENTATION_HOLD_NS {
+            first
+        } else {
+            t_last
         };
         if !self.imu.covers(t0, t_ns) {
             return None;
@@ -494,6 +556,9 @@ impl VioTracker {
         self.last_kf = Some((id, t_ns));
         // The poses before local mapping adjusted them, inline or threaded alike.
         let window = &out.vo.keyframe_poses;
+        if !self.params.inertial_init {
+            return;
+        }
         for (t, t_wc) in window {
             self.coupler.set_keyframe(*t, *t_wc);
         }
@@ -636,6 +701,9 @@ impl VioTracker {
     }
 
     fn record_init(&mut self, init: &InertialInit, first: bool, t_ns: i64) {
+        if self.note_resumed_refinement() {
+            return;
+        }
         self.init = Some(match (self.init, first) {
             (Some(i), false) => InitSummary {
                 scale: i.scale * init.scale,
@@ -666,13 +734,37 @@ impl VioTracker {
         self.move_world(&init, first, t_ns, newest)
     }
 
-    /// The oldest IMU time still needed (the navigator's, the orientation's and the last
-    /// keyframe's until its window's result is taken).
+    /// The static initialisation (module docs of [`crate::imu::static_init`]) while neither
+    /// it nor the visual-inertial one happened: the window ending at this frame; its gyro
+    /// bias then propagates the orientations.
+    fn detect_rest(&mut self, t_ns: i64) {
+        if self.init.is_some() || self.static_init.is_some() {
+            return;
+        }
+        let c = &self.params.preint.correction;
+        let Some(s) = detect_static(self.imu.samples(), t_ns, c, &self.params.static_init) else {
+            return;
+        };
+        self.biases.gyro = s.gyro_bias;
+        let up_w = self
+            .orientation
+            .filter(|o| o.0 == t_ns)
+            .map(|(_, r_wb)| r_wb * s.up_b);
+        self.static_init = Some((s, up_w));
+    }
+
+    /// The oldest IMU time still needed (the navigator's, the orientation's, the last
+    /// keyframe's until its window's result is taken, and the static window while it may
+    /// still be found).
     fn oldest_needed_ns(&self, t_ns: i64) -> i64 {
         let nav = self.nav.as_ref().map_or(t_ns, |n| n.t_ns());
         let ori = self.orientation.map_or(t_ns, |o| o.0);
         let kf = self.last_kf.map_or(t_ns, |k| k.1);
-        nav.min(ori).min(kf).min(t_ns)
+        let rest = match (self.init, self.static_init) {
+            (None, None) => t_ns - (self.params.static_init.window_s * 1e9) as i64,
+            _ => t_ns,
+        };
+        nav.min(ori).min(kf).min(t_ns).min(rest)
     }
 
     /// Local mapping's visual-inertial window refined the newest keyframe it finished

@@ -26,7 +26,7 @@
 use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3};
 
 use crate::imu::{gravity_w, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
-use crate::optim::{PosePrior, Velocity};
+use crate::optim::{centre_covariance, PosePrior, Velocity};
 
 /// Settings of [`Navigator`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -40,11 +40,15 @@ pub struct NavParams {
     /// 1σ of the gyro bias after the initialisation (grows the rotation prior with `Δt`),
     /// rad/s.
     pub gyro_bias_sigma: f64,
-    /// The prior's centre 1σ is the filter's times this (a weak translation prior: the
-    /// map's own drift is not in the filter).
+    /// The prior's centre 1σ is the filter's times this (1: the filter's own; larger, a
+    /// weaker translation prior).
     pub position_prior_inflation: f64,
     /// 1σ of the initial velocity, m/s.
     pub initial_velocity_sigma: f64,
+    /// Acceleration the velocity may have had over an interval the IMU does not cover
+    /// (an IMU gap, a restarted tracker's first frames): its 1σ grows by this times the
+    /// interval ([`Navigator::reset_to`]), m/s².
+    pub unmodelled_accel: f64,
 }
 
 impl Default for NavParams {
@@ -54,8 +58,9 @@ impl Default for NavParams {
             visual_rotation_sigma_rad: 1e-3,
             accel_error_sigma: 0.1,
             gyro_bias_sigma: 2e-3,
-            position_prior_inflation: 3.0,
+            position_prior_inflation: 1.0,
             initial_velocity_sigma: 0.05,
+            unmodelled_accel: 3.0,
         }
     }
 }
@@ -200,8 +205,9 @@ impl Navigator {
     }
 
     /// The pose prior: rotation 1σ from the visual floor, the preintegrated rotation's
-    /// covariance and the gyro bias over `dt`; centre 1σ from the filter's position
-    /// covariance times [`NavParams::position_prior_inflation`].
+    /// covariance and the gyro bias over `dt` (isotropic); the centre's information is the
+    /// inverse of the filter's position covariance (full 3x3; the lever arm's share of the
+    /// rotation uncertainty is neglected) over [`NavParams::position_prior_inflation`]².
     fn prior(
         &self,
         pre: &Preintegrated,
@@ -213,9 +219,18 @@ impl Navigator {
         let rot_var = p.visual_rotation_sigma_rad.powi(2)
             + pre.covariance().fixed_view::<3, 3>(0, 0).trace() / 3.0
             + (p.gyro_bias_sigma * dt).powi(2);
-        let pos_var =
-            cov.fixed_view::<3, 3>(0, 0).trace() / 3.0 * p.position_prior_inflation.powi(2);
-        PosePrior::isotropic(t_cw, rot_var.sqrt(), pos_var.sqrt())
+        let pos_cov = cov.fixed_view::<3, 3>(0, 0) * p.position_prior_inflation.powi(2);
+        let pos_info = pos_cov
+            .try_inverse()
+            .unwrap_or_else(|| Matrix3::identity() / (pos_cov.trace() / 3.0).max(1e-12));
+        let mut information = Matrix6::zeros();
+        information
+            .fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(Matrix3::identity() / rot_var));
+        information
+            .fixed_view_mut::<3, 3>(3, 3)
+            .copy_from(&pos_info);
+        PosePrior { t_cw, information }
     }
 
     /// Takes the prediction as the new state without a visual correction (coasting).
@@ -225,51 +240,70 @@ impl Navigator {
         self.t_ns = pred.t_ns;
     }
 
-    /// Corrects the prediction with the tracked camera pose `t_cw`: orientation from
-    /// vision, position and velocity from the filter's update (module docs).
-    pub fn correct(&mut self, pred: &Prediction, t_cw: &Isometry3<f64>) {
+    /// Corrects the prediction with the tracked camera pose `t_cw` and the information of
+    /// its pose optimisation (module docs, "Update"): orientation from vision; position and
+    /// velocity by the Kalman update with the centre covariance of the reprojections'
+    /// information (with `prior_included`, the prediction's prior taken out of it again,
+    /// [`PosePrior::information_at`]) plus the floor [`NavParams::visual_position_sigma_m`]
+    /// (the map points' own errors are not in that information). Without `information`,
+    /// the floor alone. Measured: conditioning on the optimised pose as the posterior
+    /// instead (no floor) made the velocity follow vision's noise; the in-process
+    /// `blackout` then missed its rejoin after 2 s of coasting.
+    pub fn correct(
+        &mut self,
+        pred: &Prediction,
+        t_cw: &Isometry3<f64>,
+        information: Option<&Matrix6<f64>>,
+        prior_included: bool,
+    ) {
         let t_wb = t_cw.inverse() * self.t_bc.inverse();
         let z = t_wb.translation.vector;
-        let r2 = self.params.visual_position_sigma_m.powi(2);
-        let p = pred.cov;
-        let s = p.fixed_view::<3, 3>(0, 0) + Matrix3::identity() * r2;
-        let Some(s_inv) = s.try_inverse() else {
+        let vision = information.map(|h| match prior_included {
+            true => h - pred.prior.information_at(t_cw),
+            false => *h,
+        });
+        let sigma_c = vision.and_then(|h| centre_covariance(t_cw, &h));
+        let floor = Matrix3::identity() * self.params.visual_position_sigma_m.powi(2);
+        let updated = kalman_position_update(&pred.cov, &(sigma_c.unwrap_or_default() + floor));
+        let Some((gain_v, cov)) = updated else {
             self.reset_to(t_cw, pred.t_ns);
             return;
         };
-        let k = p.fixed_view::<6, 3>(0, 0) * s_inv;
-        let innov = z - pred.nav.p;
-        let dx = k * innov;
         let mut nav = pred.nav;
-        nav.p += Vector3::new(dx[0], dx[1], dx[2]);
-        nav.v += Vector3::new(dx[3], dx[4], dx[5]);
+        nav.v += gain_v * (z - pred.nav.p);
         nav.r = t_wb.rotation.to_rotation_matrix();
         // The pose stays vision's (the next prediction starts from the tracked frame, as
         // ORB-SLAM3's); the filter gives the velocity.
         nav.p = z;
-        let mut ikh = Matrix6::<f64>::identity();
-        for r in 0..6 {
-            for c in 0..3 {
-                ikh[(r, c)] -= k[(r, c)];
-            }
-        }
-        self.cov = ikh * p;
-        self.cov = (self.cov + self.cov.transpose()) * 0.5;
+        self.cov = cov;
         self.nav = nav;
         self.t_ns = pred.t_ns;
     }
 
     /// Re-anchors the pose at a visual `t_cw` at IMU time `t_ns` with no prediction (the
     /// IMU did not cover the interval): velocity and biases kept, position uncertainty
-    /// reset, velocity uncertainty grown to its initial value at least.
+    /// reset, velocity uncertainty at least its initial value and grown by
+    /// [`NavParams::unmodelled_accel`] over the interval, so that the next visual positions
+    /// correct a velocity that went stale (e.g. a resumed session's, taken from a keyframe
+    /// before the gap).
     pub fn reset_to(&mut self, t_cw: &Isometry3<f64>, t_ns: i64) {
+        let dt = (t_ns - self.t_ns).max(0) as f64 * 1e-9;
+        let var_v = self.cov.fixed_view::<3, 3>(3, 3).trace() / 3.0;
+        let var_v = var_v.max(self.params.initial_velocity_sigma.powi(2))
+            + (self.params.unmodelled_accel * dt).powi(2);
+        let mut nav = self.nav;
         let t_wb = t_cw.inverse() * self.t_bc.inverse();
-        self.nav.r = t_wb.rotation.to_rotation_matrix();
-        self.nav.p = t_wb.translation.vector;
-        self.t_ns = t_ns;
-        let v = self.nav.v;
-        *self = Self::new(self.nav, t_ns, self.t_bc, self.preint, self.params);
-        self.nav.v = v;
+        nav.r = t_wb.rotation.to_rotation_matrix();
+        nav.p = t_wb.translation.vector;
+        *self = Self::new(nav, t_ns, self.t_bc, self.preint, self.params);
+        self.cov
+            .fixed_view_mut::<3, 3>(3, 3)
+            .copy_from(&(Matrix3::identity() * var_v));
+    }
+
+    /// The 1σ of the velocity (mean over the axes), m/s.
+    pub fn velocity_sigma(&self) -> f64 {
+        (self.cov.fixed_view::<3, 3>(3, 3).trace() / 3.0).sqrt()
     }
 
     /// Takes a keyframe's state `kf` at IMU time `t_kf_ns` as local mapping's
@@ -308,6 +342,28 @@ impl Navigator {
     }
 }
 
+/// The Kalman update of `[p; v]` (covariance `p`) by a position measurement of covariance
+/// `r`: the velocity gain `K_v` (applied to the innovation `z - p⁻`) and the updated
+/// covariance. `None` when `P_pp + R` is singular.
+fn kalman_position_update(
+    p: &Matrix6<f64>,
+    r: &Matrix3<f64>,
+) -> Option<(Matrix3<f64>, Matrix6<f64>)> {
+    let s_inv = (p.fixed_view::<3, 3>(0, 0) + r).try_inverse()?;
+    let k = p.fixed_view::<6, 3>(0, 0) * s_inv;
+    let mut ikh = Matrix6::<f64>::identity();
+    for r in 0..6 {
+        for c in 0..3 {
+            ikh[(r, c)] -= k[(r, c)];
+        }
+    }
+    let cov = ikh * p;
+    Some((
+        k.fixed_view::<3, 3>(3, 0).into_owned(),
+        (cov + cov.transpose()) * 0.5,
+    ))
+}
+
 /// `T_wb` of a navigation state ([`NavState::body_pose`]).
 pub fn body_pose(nav: &NavState) -> Isometry3<f64> {
     nav.body_pose()
@@ -322,4 +378,38 @@ pub fn nav_from_camera(
     biases: crate::imu::ImuBiases,
 ) -> NavState {
     NavState::from_camera(t_cw, t_bc, v_wb, biases)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Rotation3;
+
+    /// With an informative measurement the velocity follows the position's innovation over
+    /// the prediction interval; a measurement of huge covariance leaves it alone.
+    #[test]
+    fn the_velocity_gain_follows_the_measurement_noise() {
+        let nav = NavState {
+            r: Rotation3::identity(),
+            p: Vector3::zeros(),
+            v: Vector3::zeros(),
+            biases: Default::default(),
+        };
+        let preint = PreintegrationParams::new(
+            &crate::imu::ImuNoise::default(),
+            &crate::imu::ImuIntrinsics::default(),
+        )
+        .expect("preint");
+        let n = Navigator::new(nav, 0, Isometry3::identity(), preint, NavParams::default());
+        let mut p = n.cov;
+        // One 50 ms constant-velocity step of process noise.
+        let mut f = Matrix6::identity();
+        f.fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&(Matrix3::identity() * 0.05));
+        p = f * p * f.transpose() + Matrix6::identity() * 1e-6;
+        let (k_tight, _) = kalman_position_update(&p, &(Matrix3::identity() * 1e-8)).expect("kf");
+        let (k_loose, _) = kalman_position_update(&p, &(Matrix3::identity() * 1e2)).expect("kf");
+        assert!(k_tight[(0, 0)] > 1.0, "gain {}", k_tight[(0, 0)]);
+        assert!(k_loose.norm() < 1e-3);
+    }
 }

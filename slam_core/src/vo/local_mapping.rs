@@ -1,45 +1,18 @@
 //! Local mapping steps of the client VO (seed §3.3): new map points by triangulation with
 //! neighbour keyframes, and culling of recent points that are rarely re-found.
-use nalgebra::{Matrix3x4, Vector2, Vector3};
+use nalgebra::Vector2;
 
 use super::map::{ClientMap, KfId};
 use crate::features::{match_brute_force, MatchParams};
 use crate::twoview::triangulate::{
-    check_point, projection_matrix, triangulate_dlt, triangulate_dlt_normalised, CheckView,
-    TriangulationCheck,
+    check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
 };
-
-/// A two-view triangulation: projection matrices and bearings of the two views.
-type Triangulate =
-    fn(&Matrix3x4<f64>, &Vector3<f64>, &Matrix3x4<f64>, &Vector3<f64>) -> Option<Vector3<f64>>;
 
 /// Triangulates new points between keyframe `k` and up to `n_neighbours` of its best
 /// covisible keyframes (or the previous keyframes when it has no covisible ones yet), from
 /// descriptor matches of keypoints without a map point, checked by the epipolar constraint,
 /// positive depth, reprojection error (χ² 5.991) and parallax. Returns the points created.
 pub fn create_points_with_neighbours(map: &mut ClientMap, k: KfId, n_neighbours: usize) -> usize {
-    create_points(map, k, n_neighbours, triangulate_dlt)
-}
-
-/// [`create_points_with_neighbours`] with the normalised DLT
-/// ([`triangulate_dlt_normalised`]): the points move with a similarity of the map, so the
-/// result does not depend on the map's unit or origin (the server's maps, seed §3.4.1,
-/// are in the client maps' units: arbitrary for a monocular client, metric for a
-/// visual-inertial one).
-pub fn create_points_with_neighbours_scale_free(
-    map: &mut ClientMap,
-    k: KfId,
-    n_neighbours: usize,
-) -> usize {
-    create_points(map, k, n_neighbours, triangulate_dlt_normalised)
-}
-
-fn create_points(
-    map: &mut ClientMap,
-    k: KfId,
-    n_neighbours: usize,
-    triangulate: Triangulate,
-) -> usize {
     let mut neighbours = map.covisible(k, n_neighbours, 1);
     if neighbours.len() < 2 {
         for id in map.keyframes.keys().rev().copied() {
@@ -97,7 +70,7 @@ fn create_points(
             if dist * dist > 3.84 * sigma2 {
                 continue;
             }
-            let Some(p_w) = triangulate(&p1, &b1, &p2, &b2) else {
+            let Some(p_w) = triangulate_dlt(&p1, &b1, &p2, &b2) else {
                 continue;
             };
             let views = [

@@ -220,6 +220,24 @@ impl ClientMap {
         id
     }
 
+    /// Inserts point `id` at `p_w` with no observation yet, for a map rebuilt from stored
+    /// keyframes ([`crate::vo::resume`]): the keyframes inserted after it register theirs.
+    /// The id counter moves past `id`, so that new points never take a stored id.
+    pub fn insert_point(&mut self, id: PointId, p_w: Vector3<f64>, first_kf: KfId) {
+        let mp = MapPoint {
+            id,
+            p_w,
+            descriptor: [0; 32],
+            observations: Vec::new(),
+            normal: Vector3::zeros(),
+            first_kf,
+            visible: 1,
+            found: 1,
+        };
+        self.points.insert(id, mp);
+        self.next_point_id = self.next_point_id.max(id.saturating_add(1));
+    }
+
     /// Adds an observation of point `p` by keypoint `i` of keyframe `k`.
     pub fn add_observation(&mut self, p: PointId, k: KfId, i: u32) {
         let Some(kf) = self.keyframes.get_mut(&k) else {

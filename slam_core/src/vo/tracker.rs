@@ -139,6 +139,9 @@ pub struct VoOutput {
     pub t_cw: Option<Isometry3<f64>>,
     /// Inlier map points of the frame.
     pub tracked: usize,
+    /// Information of `t_cw` from its final pose optimisation (left increment `[ω; v]`,
+    /// [`crate::optim::PoseOptResult::information`]; the hint's prior included).
+    pub pose_information: Option<nalgebra::Matrix6<f64>>,
     /// The frame became this keyframe.
     pub keyframe: Option<KfId>,
     /// With [`VoOutput::keyframe`]: `(frame time, T_wc)` of every keyframe of the map when
@@ -359,6 +362,8 @@ pub struct VoTracker {
     obs: Vec<PoseObservation>,
     obs_kp: Vec<usize>,
     inliers: Vec<bool>,
+    /// Information of the last pose optimisation's result.
+    last_information: nalgebra::Matrix6<f64>,
 }
 
 impl VoTracker {
@@ -417,6 +422,7 @@ impl VoTracker {
             obs: Vec::new(),
             obs_kp: Vec::new(),
             inliers: Vec::new(),
+            last_information: nalgebra::Matrix6::zeros(),
             params,
             camera,
         })
@@ -533,6 +539,7 @@ impl VoTracker {
             state: self.state,
             t_cw: None,
             tracked: 0,
+            pose_information: None,
             keyframe: None,
             keyframe_poses: Vec::new(),
             new_session: false,
@@ -877,6 +884,7 @@ mod inertial;
 mod init;
 mod local_mapper;
 mod reloc;
+mod resume;
 mod track;
 
 use local_mapper::lock;

@@ -9,7 +9,7 @@ use slam_core::imu::ImuMeasurement;
 use slam_core::vio::{ImuSampleError, VioStatus, VioTracker, WorldMove};
 use slam_core::vo::{VoFrame, VoOutput, VoState, VoTracker};
 
-use super::VioReport;
+use super::{StaticReport, VioReport};
 
 /// The monocular VO, or the visual-inertial client around it.
 pub enum Client {
@@ -93,7 +93,7 @@ impl Client {
             }
             Self::Vio(v) => {
                 let o = v.process(frame)?;
-                let metric = matches!(v.status(), VioStatus::Initialised { .. });
+                let metric = v.status().is_metric();
                 Ok(ClientOutput {
                     t_cw: o.t_cw,
                     source: wire_source(o.source),
@@ -131,13 +131,28 @@ pub fn vio_report(v: &VioTracker, first_frame_ns: Option<i64>) -> VioReport {
         vi_windows_failed: m.vi_failed as u64,
         vi_window_ms_mean: (m.vi_windows > 0).then(|| m.vi_ms_total / m.vi_windows as f64),
         vi_window_ms_max: (m.vi_windows > 0).then_some(m.vi_ms_max),
+        static_init: v.static_init().map(|(s, up_w)| StaticReport {
+            t_ns: s.t1_ns,
+            window_s: (s.t1_ns - s.t0_ns) as f64 * 1e-9,
+            gyro_bias: s.gyro_bias.into(),
+            up_b: s.up_b.into(),
+            up_w: up_w.map(Into::into),
+            accel_norm: s.accel_norm,
+            gyro_std: s.gyro_std,
+            accel_std: s.accel_std,
+        }),
         ..VioReport::default()
     };
     match v.status() {
         VioStatus::Collecting => {
             r.status = "collecting".into();
+            let rest = if r.static_init.is_some() {
+                "found at rest (static_init: gyro bias and gravity; scale and velocity need motion); "
+            } else {
+                ""
+            };
             r.reason = Some(format!(
-                "{:.2} s of keyframes so far; an attempt needs {} keyframes over {:.1} s",
+                "{rest}{:.2} s of keyframes so far; an attempt needs {} keyframes over {:.1} s",
                 v.coupler().span_s(),
                 v.params().coupler.min_keyframes,
                 v.params().coupler.min_span_s
@@ -161,6 +176,8 @@ pub fn vio_report(v: &VioTracker, first_frame_ns: Option<i64>) -> VioReport {
             r.scale_sigma_percent = Some(scale_sigma * 100.0);
             r.refinements = refinements as u64;
         }
+        // Initialised by a predecessor: the tracker core adds what it knows of that.
+        VioStatus::Resumed { .. } => r.status = "initialised".into(),
     }
     r
 }

@@ -78,6 +78,11 @@ pub struct TrackerCounters {
     pub imu_gaps: u64,
     /// World moves published (the inertial initialisation and its refinements).
     pub world_moves: u64,
+    /// Visual-inertial sessions resumed from a killed predecessor's spool (issue 17).
+    pub vio_resumes: u64,
+    /// Spooled keyframes a resumed session took back into its VO window (sent when they
+    /// leave it, not at the start as `keyframes_recovered` are).
+    pub keyframes_resumed: u64,
 }
 
 /// The visual-inertial client's state, in the tracker's status (`details`) and the run
@@ -116,6 +121,47 @@ pub struct VioReport {
     pub vi_window_ms_mean: Option<f64>,
     /// Longest window, ms.
     pub vi_window_ms_max: Option<f64>,
+    /// The device rested before the visual-inertial initialisation: gyro bias and gravity.
+    pub static_init: Option<StaticReport>,
+    /// Sessions resumed from a killed predecessor's spool, all restarts (a resumed session
+    /// is `initialised`: the initialisation fields above are its predecessor's).
+    pub resumed: u64,
+    /// The spooled keyframe the current session resumed from (its velocity and biases).
+    pub resumed_from_keyframe: Option<u64>,
+    /// Keyframes rebuilt into the resumed client map.
+    pub resumed_keyframes: Option<u64>,
+    /// Map points rebuilt into it.
+    pub resumed_points: Option<u64>,
+    /// Frames the resumed client handled until vision posed one (1: its first frame).
+    pub resumed_after_frames: Option<u64>,
+    /// Host time from the successor's spool read to that frame's pose, ms.
+    pub resumed_after_ms: Option<f64>,
+    /// Sensor time from the keyframe resumed from to that frame, s.
+    pub resumed_gap_s: Option<f64>,
+    /// Why the last restart did not resume its predecessor's session (it started anew).
+    pub resume_refused: Option<String>,
+}
+
+/// The static initialisation ([`slam_core::imu::static_init`]).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct StaticReport {
+    /// End of the static window, ns (IMU clock).
+    pub t_ns: i64,
+    /// Window length, s.
+    pub window_s: f64,
+    /// Gyro bias (mean corrected rate), rad/s, body frame.
+    pub gyro_bias: [f64; 3],
+    /// "Up" (unit mean specific force) in the body frame.
+    pub up_b: [f64; 3],
+    /// "Up" in the world of the session's orientations then (when the frame had one).
+    pub up_w: Option<[f64; 3]>,
+    /// Norm of the mean specific force, m/s².
+    pub accel_norm: f64,
+    /// Largest per-axis spread over the window: gyro rad/s, accelerometer m/s².
+    pub gyro_std: f64,
+    /// See `gyro_std`.
+    pub accel_std: f64,
 }
 
 /// Format version of [`TrackerResume`].

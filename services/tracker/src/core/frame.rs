@@ -144,10 +144,13 @@ impl TrackerCore {
     /// Whether gyro samples up to `need_ns` are still to come (in lock-step also before the
     /// stream's first sample: whether it is in before the first frames would otherwise
     /// change the initialisation).
+    /// In lock-step a restarted tracker's first frame waits for nothing: the samples up to
+    /// it were published to its predecessor (up to the lock-step horizon of the last frame
+    /// that one acknowledged) and are not published again.
     pub fn imu_missing(&self, need_ns: i64) -> bool {
         let short = self.imu.newest_ns().is_none_or(|t| t < need_ns);
         if self.cfg.lockstep_sync && !self.imu_never_came {
-            short && !self.imu.ended
+            short && !self.imu.ended && !self.imu_wait_waived
         } else {
             short && self.imu.live()
         }
@@ -174,6 +177,7 @@ impl TrackerCore {
         if self.trackable(&h, f.pixels.len()) {
             self.run_vo(&f, &mut t)?;
         }
+        self.imu_wait_waived = false;
         Ok(FrameStep::Tracked(t))
     }
 
@@ -243,7 +247,9 @@ impl TrackerCore {
     fn run_vo(&mut self, f: &FrameIn, t: &mut Tracked) -> anyhow::Result<()> {
         let h = &f.header;
         if self.client.is_none() {
-            self.client = Some(self.new_client(h)?);
+            let (client, out) = self.new_client(h, f.now_ns)?;
+            self.client = Some(client);
+            t.out.extend(out);
             for m in std::mem::take(&mut self.pending_imu) {
                 self.sample_to_client(m);
             }
@@ -337,6 +343,7 @@ impl TrackerCore {
         out.push(self.ack(h, now_ns));
         out.push(Out::Pose(self.tracked_pose(&t, now_ns)));
         self.count_frame(&t);
+        self.note_resumed_frame(now_ns);
         out
     }
 
@@ -438,13 +445,37 @@ impl TrackerCore {
         let new: Vec<_> = v.with_map(|m| {
             m.keyframes
                 .range(after.map_or(0, |a| a + 1)..)
-                .map(|(id, kf)| (*id, keyframe_message(client, kf, session)))
+                .map(|(id, kf)| (*id, spool_entry(m, client, kf, session)))
                 .collect()
         });
-        for (id, msg) in new {
-            out.push(Out::SpoolWrite(msg));
+        for (id, entry) in new {
+            out.push(Out::SpoolWrite(entry));
             self.spooled = Some((session, id));
             self.counters.keyframes_spooled += 1;
         }
+    }
+}
+
+/// The spool entry of keyframe `kf` of `map` (VO session `session`): its message and the
+/// positions of the map points it observes.
+fn spool_entry(
+    map: &slam_core::vo::ClientMap,
+    client: u32,
+    kf: &slam_core::vo::Keyframe,
+    session: u32,
+) -> crate::spool::SpoolEntry {
+    let points = kf
+        .points
+        .iter()
+        .flatten()
+        .filter_map(|p| map.points.get(p))
+        .map(|mp| shoal_runtime::journal::SpooledPoint {
+            id: mp.id,
+            p_w: mp.p_w.into(),
+        })
+        .collect();
+    crate::spool::SpoolEntry {
+        msg: keyframe_message(client, kf, session),
+        points,
     }
 }

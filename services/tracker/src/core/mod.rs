@@ -6,7 +6,8 @@
 //! the frame in two steps ([`TrackerCore::track`], then, after a lock-step wait for the
 //! server, [`TrackerCore::publish_frame`]), the end of stream ([`TrackerCore::take_window`],
 //! [`TrackerCore::end_of_stream`]) and the spool's recovered keyframes
-//! ([`TrackerCore::recover_keyframe`]). Outputs: [`Out`] messages, in the order the ports
+//! ([`TrackerCore::recover_spool`]: sent, or held to resume a visual-inertial session,
+//! `resume.rs`). Outputs: [`Out`] messages, in the order the ports
 //! must carry them out. Counters and errors go to the core's [`Status`].
 use shm_schema::{
     Feedback, FrameAck, FrameHeader, ImuMsg, MsgMeta, TrackedPose, FLAG_END_OF_STREAM,
@@ -24,11 +25,12 @@ use crate::outbox::{keyframe_message, KeyframeMsg, Outbox};
 mod client;
 mod counters;
 mod frame;
+mod resume;
 mod server;
 #[cfg(test)]
 mod tests;
 
-pub use counters::{TrackerCounters, TrackerResume, VioReport, RESUME_VERSION};
+pub use counters::{StaticReport, TrackerCounters, TrackerResume, VioReport, RESUME_VERSION};
 pub use frame::{FrameIn, FrameStep, Tracked};
 pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 
@@ -36,10 +38,13 @@ pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 /// [`slam_core::ids`]'s): its sessions are new ones ([`SessionId`]: the start count and the
 /// VO's own session counter), its keyframe ids start at
 /// [`ClientKeyframeId::first_of_start`] (unique per client across restarts: the server names
-/// keyframes by them).
+/// keyframes by them). A start that resumes its predecessor's session (`resume.rs`) gives
+/// the VO's first session that session's id.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct StartIds {
     start: u32,
+    /// The wire session id the VO's first session continues, when resumed.
+    resumed: Option<u32>,
 }
 
 impl StartIds {
@@ -47,12 +52,26 @@ impl StartIds {
     pub fn new(start: u64) -> Self {
         Self {
             start: start as u32,
+            resumed: None,
         }
+    }
+
+    /// The start number.
+    pub fn start(self) -> u32 {
+        self.start
+    }
+
+    /// The VO's first session continues wire session `session` (a predecessor's).
+    pub fn resume_session(&mut self, session: u32) {
+        self.resumed = Some(session);
     }
 
     /// The wire session id of the VO's session `vo_session` in this start.
     pub fn session(self, vo_session: u32) -> u32 {
-        SessionId::new(self.start, vo_session).raw()
+        match self.resumed {
+            Some(s) if vo_session == 1 => s,
+            _ => SessionId::new(self.start, vo_session).raw(),
+        }
     }
 
     /// The first keyframe id of this start.
@@ -63,6 +82,13 @@ impl StartIds {
 
 /// IMU samples kept from before the first frame for the visual-inertial client, ns.
 const PENDING_IMU_NS: i64 = 2_000_000_000;
+
+/// Why a visual-inertial client without camera-IMU extrinsics does not initialise, and what
+/// it does instead.
+pub const NO_EXTRINSICS: &str = "no camera-IMU extrinsics (T_BS) given: no inertial \
+     initialisation (no metric scale); the VO tracks monocular, frames it cannot pose get a \
+     gyro orientation through the dataset's assumed camera-IMU rotation (its device-axis \
+     convention, identity when it has none), and a device at rest its gyro bias";
 
 /// A keyframe unacknowledged for this long is sent again (e.g. to a restarted mapper), ns.
 pub const RESEND_AFTER_NS: i64 = 2_000_000_000;
@@ -76,8 +102,9 @@ pub enum Out {
     Pose(TrackedPose),
     /// Publish a keyframe message to the mapper (first send or re-send).
     Keyframe(KeyframeMsg),
-    /// Write a keyframe of the VO map to the spool (it survives a SIGKILL there).
-    SpoolWrite(KeyframeMsg),
+    /// Write a keyframe of the VO map and its points' positions to the spool (it survives
+    /// a SIGKILL there).
+    SpoolWrite(crate::spool::SpoolEntry),
     /// A keyframe left the VO map and was sent: drop it from the spool.
     SpoolSent(KeyframeKey),
 }
@@ -153,6 +180,9 @@ pub struct TrackerCore {
     imu_never_came: bool,
     /// The next frame is the first after a restart (its gap is counted apart).
     first_after_restart: bool,
+    /// The next frame is the first after a restart: in lock-step it does not wait for IMU
+    /// samples ([`TrackerCore::imu_missing`]).
+    imu_wait_waived: bool,
     ack_seq: u64,
     ended: bool,
     /// Newest keyframe written to the spool: (VO session, id).
@@ -161,6 +191,10 @@ pub struct TrackerCore {
     vo_timeouts_base: u64,
     /// The VO's diagnostics of the last frame tracked.
     diagnostics: Vec<VoDiagnostic>,
+    /// Resuming a killed predecessor's visual-inertial session (`resume.rs`).
+    spool_resume: resume::SpoolResume,
+    /// The predecessor's visual-inertial report (its initialisation, for a resumed one).
+    predecessor_vio: Option<VioReport>,
 }
 
 impl TrackerCore {
@@ -171,6 +205,7 @@ impl TrackerCore {
         let restarted = status.starts > 1;
         let kf_counts = KeyframeCounts::resume(&mut counters, &resume, restarted);
         counters.lockstep_sync = cfg.lockstep_sync as u64;
+        let predecessor_vio = status.details_as::<VioReport>().filter(|_| restarted);
         Self {
             ids: StartIds::new(status.starts),
             client: None,
@@ -186,11 +221,14 @@ impl TrackerCore {
             // After a restart `last_frame_seq` is the dead process's last status write: the
             // first frame's jump past it also covers frames that process handled after it.
             first_after_restart: restarted,
+            imu_wait_waived: restarted,
             ack_seq: 0,
             ended: false,
             spooled: None,
             vo_timeouts_base: counters.local_mapping_sync_timeouts,
             diagnostics: Vec::new(),
+            spool_resume: Default::default(),
+            predecessor_vio,
             cfg,
             status,
             counters,
@@ -213,10 +251,16 @@ impl TrackerCore {
         if self.cfg.mode != crate::ClientMode::Vio {
             return None;
         }
+        let vio = self.client.as_ref().and_then(|c| c.vio());
         if let Some(why) = &self.vio_disabled {
-            return Some(client::vio_disabled(why));
+            // Orientation-only (no extrinsics): the static initialisation still reports.
+            let static_init = vio.and_then(|v| client::vio_report(v, None).static_init);
+            return Some(VioReport {
+                static_init,
+                ..client::vio_disabled(why)
+            });
         }
-        let Some(v) = self.client.as_ref().and_then(|c| c.vio()) else {
+        let Some(v) = vio else {
             return Some(client::vio_disabled("no frame tracked yet"));
         };
         let mut r = client::vio_report(v, self.first_frame_ns);
@@ -224,6 +268,7 @@ impl TrackerCore {
             r.gyro_bias = Some(b.gyro.into());
             r.accel_bias = Some(b.accel.into());
         }
+        self.put_resume_report(v, &mut r);
         Some(r)
     }
 
@@ -431,31 +476,40 @@ impl TrackerCore {
         self.status
     }
 
-    /// A new VO for frames like `h`, its keyframe ids in this start's own range (the server
-    /// names keyframes by them, so they stay unique per client across restarts), its local
-    /// mapping on this service's thread ([`crate::mapping_thread`]) unless inline.
-    fn new_client(&mut self, h: &FrameHeader) -> anyhow::Result<Client> {
-        let vo = self.new_vo(h)?;
-        if self.cfg.mode != crate::ClientMode::Vio {
-            return Ok(Client::Mono(Box::new(vo)));
-        }
-        match self.vio_params(h) {
-            Ok(p) => Ok(Client::Vio(Box::new(slam_core::vio::VioTracker::new(
-                vo, p,
-            )))),
-            Err(why) => {
+    /// The client for frames like `h` (at host time `now_ns`): the visual-inertial one
+    /// continuing a held session (`resume.rs`), or a new one on a new VO; with the outputs
+    /// of held keyframes not resumed (sent now, before the frame's own keyframes).
+    fn new_client(&mut self, h: &FrameHeader, now_ns: i64) -> anyhow::Result<(Client, Vec<Out>)> {
+        let params = match self.cfg.mode {
+            crate::ClientMode::Vio => self.vio_params(h).map_err(|why| {
                 self.vio_disabled = Some(why);
-                Ok(Client::Mono(Box::new(vo)))
+            }),
+            _ => Err(()),
+        };
+        if let (Ok(p), true) = (params, self.holds_session()) {
+            match self.resume_client(h, p) {
+                Ok(v) => return Ok((Client::Vio(Box::new(v)), vec![])),
+                Err(why) => {
+                    let detail = format!("client {}: not resumed: {why}", self.cfg.client);
+                    self.status
+                        .error(shoal_runtime::ErrorKind::VioResume, detail);
+                    self.spool_resume.refused = Some(why);
+                }
             }
         }
+        let out = self.release_held(now_ns);
+        let vo = self.new_vo(h)?;
+        let client = match params {
+            Ok(p) => Client::Vio(Box::new(slam_core::vio::VioTracker::new(vo, p))),
+            Err(()) => Client::Mono(Box::new(vo)),
+        };
+        Ok((client, out))
     }
 
-    /// The visual-inertial client's settings for frames like `h` (its `T_BS` is the
+    /// The visual-inertial client's settings for frames like `h` (without given extrinsics:
+    /// orientation-only, [`NO_EXTRINSICS`]) (its `T_BS` is the
     /// camera-IMU extrinsic); why it cannot run otherwise.
     fn vio_params(&mut self, h: &FrameHeader) -> Result<slam_core::vio::VioParams, String> {
-        if !self.cfg.imu.extrinsics_given {
-            return Err("no camera-IMU extrinsics (T_BS) given: running monocular".into());
-        }
         let preint = self.cfg.imu.preintegration().map_err(|e| {
             self.status
                 .error(shoal_runtime::ErrorKind::ImuCalibration, e.clone());
@@ -464,9 +518,19 @@ impl TrackerCore {
         let t_bc = shoal_runtime::wire::iso_from_wire(&h.t_bs)
             .ok_or("the frames' T_BS is not a rigid transform: running monocular")?;
         // The ingest applied t_d to the frame stamps: they are on the IMU clock already.
-        Ok(slam_core::vio::VioParams::new(preint, t_bc))
+        let given = self.cfg.imu.extrinsics_given;
+        if !given {
+            self.vio_disabled = Some(NO_EXTRINSICS.into());
+        }
+        Ok(slam_core::vio::VioParams {
+            inertial_init: given,
+            ..slam_core::vio::VioParams::new(preint, t_bc)
+        })
     }
 
+    /// A new VO for frames like `h`, its keyframe ids in this start's own range (the server
+    /// names keyframes by them, so they stay unique per client across restarts), its local
+    /// mapping on this service's thread ([`crate::mapping_thread`]) unless inline.
     fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
         let camera = shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
         let mut vp = VoParams {

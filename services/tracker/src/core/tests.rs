@@ -202,7 +202,7 @@ impl Run {
                 }
                 Out::Pose(p) if p.meta.flags & FLAG_BACKFILL != 0 => self.backfilled += 1,
                 Out::Pose(p) => self.poses.push(p),
-                Out::SpoolWrite(m) => assert!(self.spooled.insert(m.key())),
+                Out::SpoolWrite(e) => assert!(self.spooled.insert(e.msg.key())),
                 Out::SpoolSent(k) => assert!(self.spooled.remove(&k), "{k:?} was spooled"),
                 Out::Ack(_) => {}
             }
@@ -478,7 +478,25 @@ fn vio_without_extrinsics_runs_monocular_and_says_why() {
     let report: VioReport = status.details_as().expect("vio report");
     assert_eq!(report.status, "disabled");
     assert!(report.reason.unwrap_or_default().contains("extrinsics"));
-    assert!(poses
+    // Monocular: positions come from vision only (never the IMU, never metric); before the
+    // monocular initialisation the gyro gives the camera's orientation through the frames'
+    // nominal rotation, never a position.
+    use shm_schema::PoseSource as S;
+    let visual = poses
         .iter()
-        .all(|p| p.source != shm_schema::PoseSource::OrientationOnly as u32));
+        .filter(|p| p.source == S::Visual as u32)
+        .count();
+    assert!(
+        visual >= 20,
+        "{visual} of {} frames posed by vision",
+        poses.len()
+    );
+    for p in &poses {
+        assert!(p.metric == 0, "{p:?}");
+        let source = S::from_u32(p.source).expect("source");
+        assert!(!matches!(source, S::Inertial | S::VisualInertial), "{p:?}");
+        if source == S::OrientationOnly {
+            assert_eq!(p.pose.t, [0.0; 3], "{p:?}");
+        }
+    }
 }

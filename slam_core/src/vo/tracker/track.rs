@@ -60,6 +60,7 @@ impl VoTracker {
         self.update_motion_model(frame.t_ns, &t_cw, first.relocalized);
         out.t_cw = Some(t_cw);
         out.tracked = tracked;
+        out.pose_information = Some(self.last_information);
         self.update_reference_keyframe();
         // 5. Keyframe?
         self.keyframe_decision(frame, feats, t_cw, tracked, out);
@@ -164,7 +165,23 @@ impl VoTracker {
         if n < 20 {
             return None;
         }
-        self.optimize_timed(frame, feats, pred, vel, out)
+        let guess = self.optimisation_start(frame.t_ns, pred);
+        self.optimize_timed(frame, feats, &guess, vel, out)
+    }
+
+    /// Where the motion-model step's pose optimisation starts: the VO's own constant-velocity
+    /// pose when it has one, even with an outside hint (whose pose centres the search and,
+    /// with its prior, pulls the result). Measured on the rendered drone (seed 3, 90°/s
+    /// turns, far points): started at the IMU's prediction instead, the optimisation ends
+    /// up to 6 mm away along a flat direction of the reprojection cost (converged: the same
+    /// with 200 LM iterations, cost 138.36 vs 138.40), the navigator's velocity follows the
+    /// prediction's own error and tracking drifts 5-40 cm within a second (ATE 4.0% vs
+    /// 0.07% of the path). The constant-velocity pose is vision's own and has no such bias.
+    fn optimisation_start(&self, t_ns: i64, pred: &Isometry3<f64>) -> Isometry3<f64> {
+        match (self.hint, self.predict(t_ns)) {
+            (Some(_), Some((own, _))) if self.velocity.is_some() => own,
+            _ => *pred,
+        }
     }
 
     /// Step 0, after a dropout with an outside prediction ([`super::PoseHint::rejoin_radius`]):
@@ -436,6 +453,7 @@ impl VoTracker {
                 &mut self.inliers,
             )
             .ok()?;
+        self.last_information = res.information;
         for (j, &k) in self.obs_kp.iter().enumerate() {
             if !self.inliers[j] {
                 self.frame_points[k] = None;
