@@ -105,6 +105,15 @@ pub struct VioParams {
     /// The static initialisation before the visual-inertial one (gyro bias and gravity of a
     /// device at rest, [`crate::imu::static_init`]).
     pub static_init: StaticParams,
+    /// The coupler's inertial-only refinements (at [`CouplerParams::refine_at_s`]) applied
+    /// once local mapping's window tracks the keyframe states, counting those before: later
+    /// ones are computed, counted ([`VioTracker::refinements_skipped`]) and dropped. The
+    /// refinement holds the keyframe poses fixed; ten seconds into the window's tracking,
+    /// the window (poses, points, velocities and biases together) knows the scale better.
+    /// Measured in-process on `blackout` (24 s, seed 3): with both refinements 0.286 %
+    /// (SE(3) ATE), scale +0.98 %; with the first only 0.105 %, −0.04 %; drone 0.053 % →
+    /// 0.058 %, phone 0.081 % unchanged.
+    pub refinements_with_window: usize,
     /// Longest wait for the local-mapping runner before a world move
     /// ([`VoTracker::transform_world`]); a move that times out is retried at the next frame.
     pub world_move_timeout: std::time::Duration,
@@ -123,6 +132,7 @@ impl VioParams {
             nav: NavParams::default(),
             pose_prior: true,
             imu_tracking: true,
+            refinements_with_window: 1,
             static_init: StaticParams::default(),
             inertial_init: true,
             world_move_timeout: std::time::Duration::from_secs(5),
@@ -275,6 +285,8 @@ pub struct VioTracker {
     /// Local mapping's window has refined a keyframe of this session (it tracks the
     /// velocities and biases).
     window_tracks: bool,
+    /// Refinements not applied ([`VioParams::refinements_with_window`]), all sessions.
+    refinements_skipped: usize,
 }
 
 impl VioTracker {
@@ -298,6 +310,7 @@ impl VioTracker {
             coasting: false,
             last_kf: None,
             window_tracks: false,
+            refinements_skipped: 0,
             static_init: None,
             resumed: None,
             params,
@@ -317,6 +330,12 @@ impl VioTracker {
     /// The settings.
     pub fn params(&self) -> &VioParams {
         &self.params
+    }
+
+    /// The coupler's refinements computed but not applied because local mapping's window
+    /// tracked the states ([`VioParams::refinements_with_window`]), all sessions.
+    pub fn refinements_skipped(&self) -> usize {
+        self.refinements_skipped
     }
 
     /// The static initialisation, if the device rested before the visual-inertial one, and
@@ -646,6 +665,11 @@ impl VioTracker {
         newest: Option<(i64, Isometry3<f64>, crate::vo::KfId)>,
     ) -> Option<WorldMove> {
         let r = UnitQuaternion::from_rotation_matrix(&init.r_gw);
+        let done = self.init.map_or(0, |i| i.refinements);
+        if !first && self.window_tracks && done >= self.params.refinements_with_window {
+            self.refinements_skipped += 1;
+            return None;
+        }
         if !self
             .vo
             .transform_world(init.scale, &r, self.params.world_move_timeout)

@@ -141,6 +141,7 @@ pub fn vio_report(v: &VioTracker, first_frame_ns: Option<i64>) -> VioReport {
             gyro_std: s.gyro_std,
             accel_std: s.accel_std,
         }),
+        refinements_skipped: v.refinements_skipped() as u64,
         ..VioReport::default()
     };
     match v.status() {

@@ -99,6 +99,9 @@ pub struct VioReport {
     pub attempts: u64,
     /// Refinements done after the initialisation (0-2).
     pub refinements: u64,
+    /// Refinements computed but not applied: local mapping's window tracked the states
+    /// (`slam_core::vio::VioParams::refinements_with_window`).
+    pub refinements_skipped: u64,
     /// Frame time of the first initialisation, ns (IMU clock).
     pub initialised_t_ns: Option<i64>,
     /// Seconds from the client's first frame to the first initialisation.
