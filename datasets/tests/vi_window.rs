@@ -159,7 +159,9 @@ impl Sim {
                 if self.birth[i].abs_diff(k) > VIS_KFS {
                     continue;
                 }
-                if let Some((uv, _, _)) = reprojection_jacobians(&cam, &t_bc, &self.truth[k], p) {
+                if let Some((uv, _, _)) =
+                    reprojection_jacobians(&cam, &t_bc, &self.truth[k], p, 0.0)
+                {
                     if cam.contains(&uv) {
                         let n = Vector2::new(rng.normal(), rng.normal()) * PX_SIGMA;
                         v.push((i as u32, uv + n));
@@ -211,6 +213,7 @@ impl Sim {
                     point: slot[i as usize],
                     uv,
                     sigma_px: PX_SIGMA,
+                    dt_s: 0.0,
                 });
             }
         }
@@ -222,6 +225,7 @@ impl Sim {
                     fixed: k == first,
                 })
                 .collect(),
+            n_visual: 0,
             preints: (first..last)
                 .map(|k| self.preint(k, states[k].biases))
                 .collect(),

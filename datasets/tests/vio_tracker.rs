@@ -1,23 +1,38 @@
 //! The visual-inertial client core (`slam_core::vio`, issue 17) on rendered sim scenarios,
 //! against the monocular VO on the same frames: ATE with an SE(3) alignment (no scale), the
-//! scale error (Sim(3) alignment scale), the time to initialise, the frames posed, and a
-//! 2 s blackout bridged on the IMU. Frames are fed on the IMU clock (the ingest applies
-//! t_d), the IMU up to 50 ms after each frame (as the tracker service has it by then).
+//! scale error (Sim(3) alignment scale), the time to initialise, the frames posed, a 2 s
+//! blackout bridged on the IMU, and local mapping's visual-inertial window against the same
+//! client without it (accuracy, biases against the truth). Frames are fed on the IMU clock
+//! (the ingest applies t_d), the IMU up to 50 ms after each frame (as the tracker service
+//! has it by then); local mapping runs inline.
 use std::collections::HashMap;
 
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use nalgebra::{Isometry3, Vector3};
 use slam_core::geometry::umeyama;
-use slam_core::imu::{ImuMeasurement, PreintegrationParams};
+use slam_core::imu::{ImuBiases, ImuMeasurement, PreintegrationParams};
 use slam_core::vio::{NavParams, Navigator, PoseSource, VioParams, VioStatus, VioTracker};
 use slam_core::vo::map::transform_pose_cw;
-use slam_core::vo::{VoFrame, VoParams, VoTracker};
+use slam_core::vo::{
+    LocalMappingStats, ViMappingMode, ViMappingParams, VoFrame, VoParams, VoTracker,
+};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Mode {
     Mono,
-    Vio { prior: bool },
+    /// The visual-inertial client, with the IMU's pose prior, with local mapping's
+    /// visual-inertial window or without it (the visual local BA only).
+    Vio {
+        prior: bool,
+        window: bool,
+    },
 }
+
+/// The client with the prior and the window (the defaults).
+const VIO: Mode = Mode::Vio {
+    prior: true,
+    window: true,
+};
 
 type MaybePose = Option<Isometry3<f64>>;
 
@@ -33,6 +48,21 @@ struct Run {
     /// Seconds from the first frame to the initialisation.
     init_s: Option<f64>,
     status: Option<VioStatus>,
+    /// The last frame's biases (effective) and IMU time.
+    biases: Option<(i64, ImuBiases)>,
+    /// Local mapping's totals.
+    mapping: LocalMappingStats,
+    /// CPU time of the run (this thread), ms.
+    cpu_ms: f64,
+}
+
+/// CPU time of the current thread, ms (Linux `/proc/thread-self/schedstat`; 0 elsewhere):
+/// the machine is shared, so wall time says little. Printed, never asserted.
+fn cpu_ms() -> f64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<f64>().ok())
+        .map_or(0.0, |ns| ns * 1e-6)
 }
 
 fn world(scenario: Scenario, seconds: f64) -> SimWorld {
@@ -62,12 +92,27 @@ fn vio_params(world: &SimWorld, prior: bool) -> VioParams {
 }
 
 fn run(world: &SimWorld, mode: Mode) -> Run {
+    let cpu0 = cpu_ms();
     let cam = world.calib().model;
-    let vo = VoTracker::new(VoParams::default(), cam).expect("vo");
     let mut mono =
         (mode == Mode::Mono).then(|| VoTracker::new(VoParams::default(), cam).expect("vo"));
     let mut vio = match mode {
-        Mode::Vio { prior } => Some(VioTracker::new(vo, vio_params(world, prior))),
+        Mode::Vio { prior, window } => {
+            let vi_window = ViMappingParams {
+                mode: if window {
+                    ViMappingMode::InsteadOfVisualBa
+                } else {
+                    ViMappingMode::Off
+                },
+                ..Default::default()
+            };
+            let vp = VoParams {
+                vi_window,
+                ..VoParams::default()
+            };
+            let vo = VoTracker::new(vp, cam).expect("vo");
+            Some(VioTracker::new(vo, vio_params(world, prior)))
+        }
         Mode::Mono => None,
     };
     let r_cb = world.calib().t_bs.rotation.inverse();
@@ -86,6 +131,9 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
         new_sessions: 0,
         init_s: None,
         status: None,
+        biases: None,
+        mapping: LocalMappingStats::default(),
+        cpu_ms: 0.0,
     };
     let index: HashMap<i64, usize> = r.times.iter().enumerate().map(|(k, &t)| (t, k)).collect();
     let mut session_start = 0;
@@ -136,6 +184,7 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
                     }
                 }
                 r.orientations += usize::from(o.source == PoseSource::OrientationOnly);
+                r.biases = o.nav.map(|n| (t_ns, n.biases)).or(r.biases);
                 r.vision[k] = (o.vo.t_cw, o.prediction.map(|p| p.t_cw));
                 (o.vo, o.t_cw, o.source)
             }
@@ -155,7 +204,11 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
         r.poses[k] = t_cw;
         r.sources[k] = source;
     }
-    r.status = vio.map(|v| v.status());
+    r.status = vio.as_ref().map(|v| v.status());
+    r.mapping = vio
+        .map(|v| v.vo().local_mapping_stats())
+        .unwrap_or_default();
+    r.cpu_ms = cpu_ms() - cpu0;
     r
 }
 
@@ -257,10 +310,13 @@ fn figures(name: &str, world: &SimWorld, r: &Run, mode: Mode) -> Figures {
 #[test]
 fn drone_vio_is_metric_and_accurate() {
     let world = world(Scenario::Drone, 20.0);
-    let vio = run(&world, Mode::Vio { prior: true });
-    let f = figures("drone", &world, &vio, Mode::Vio { prior: true });
-    let no_prior = run(&world, Mode::Vio { prior: false });
-    figures("drone", &world, &no_prior, Mode::Vio { prior: false });
+    let vio = run(&world, VIO);
+    let f = figures("drone", &world, &vio, VIO);
+    let no_prior = Mode::Vio {
+        prior: false,
+        window: true,
+    };
+    figures("drone", &world, &run(&world, no_prior), no_prior);
     let mono = run(&world, Mode::Mono);
     figures("drone", &world, &mono, Mode::Mono);
     assert_eq!(vio.new_sessions, 0);
@@ -272,18 +328,29 @@ fn drone_vio_is_metric_and_accurate() {
     assert!(f.vi_after_init_percent >= 95.0);
 }
 
-/// Phone (10 s hand-held walking, 30 Hz, 25 ms rolling shutter, phone IMU).
+/// Phone (10 s hand-held walking, 30 Hz, 25 ms rolling shutter, phone IMU): the issue's
+/// targets, ATE ≤ 0.2 % of the path and scale within 1 %, initialised within 3 s
+/// (measured: 0.081 %, −0.15 %, 2.5 s).
 #[test]
 fn phone_vio_is_metric() {
     let world = world(Scenario::Phone, 10.0);
-    let vio = run(&world, Mode::Vio { prior: true });
-    let f = figures("phone", &world, &vio, Mode::Vio { prior: true });
+    let vio = run(&world, VIO);
+    let f = figures("phone", &world, &vio, VIO);
     let mono = run(&world, Mode::Mono);
     figures("phone", &world, &mono, Mode::Mono);
     assert_eq!(vio.new_sessions, 0);
-    assert!(vio.init_s.is_some());
+    assert!(
+        vio.init_s.is_some_and(|s| s <= 3.0),
+        "init {:?}",
+        vio.init_s
+    );
     assert!(f.posed_percent >= 98.0);
-    assert!(f.scale_error_percent.abs() < 5.0);
+    assert!(
+        f.scale_error_percent.abs() < 1.0,
+        "scale {:.2}%",
+        f.scale_error_percent
+    );
+    assert!(f.ate_se3_percent < 0.2, "ATE {:.3}%", f.ate_se3_percent);
 }
 
 /// The first 0.8 s of the phone (as the real clip): never initialised, every frame gets a
@@ -291,8 +358,8 @@ fn phone_vio_is_metric() {
 #[test]
 fn a_short_phone_clip_gets_orientations_and_no_scale() {
     let world = world(Scenario::Phone, 0.8);
-    let vio = run(&world, Mode::Vio { prior: true });
-    figures("phone 0.8 s", &world, &vio, Mode::Vio { prior: true });
+    let vio = run(&world, VIO);
+    figures("phone 0.8 s", &world, &vio, VIO);
     assert!(vio.init_s.is_none());
     assert!(!matches!(vio.status, Some(VioStatus::Initialised { .. })));
     assert!(vio.sources.iter().all(|s| *s != PoseSource::None));
@@ -346,15 +413,19 @@ fn navigator_predicts_the_true_motion() {
     assert!(worst[1].0 < 0.05 && worst[1].1 < 0.1);
 }
 
-/// A debugging run (`SECS`, `PRIOR`, `SHOAL_VIO_IMU_TRACKING`): per-frame residuals.
+/// A debugging run (`SECS`, `PRIOR`, `NO_WINDOW`, `SHOAL_VIO_IMU_TRACKING`): per-frame
+/// residuals.
 #[test]
 #[ignore = "debugging aid"]
 fn debug_drone() {
     let secs: f64 = std::env::var("SECS").map_or(8.0, |s| s.parse().expect("SECS"));
     let world = world(Scenario::Drone, secs);
-    let prior = std::env::var("PRIOR").is_ok();
-    let vio = run(&world, Mode::Vio { prior });
-    figures("debug", &world, &vio, Mode::Vio { prior });
+    let mode = Mode::Vio {
+        prior: std::env::var("PRIOR").is_ok(),
+        window: std::env::var("NO_WINDOW").is_err(),
+    };
+    let vio = run(&world, mode);
+    figures("debug", &world, &vio, mode);
     let (_, _, res) = align(&world, &vio, false);
     {
         let (mut src, mut dst) = (Vec::new(), Vec::new());
@@ -429,8 +500,8 @@ fn debug_drone() {
 fn blackout_is_bridged_on_the_imu() {
     let world = world(Scenario::Blackout, 24.0);
     let gap = Scenario::Blackout.blank_frames(world.n_frames(), world.params().rate_hz);
-    let vio = run(&world, Mode::Vio { prior: true });
-    figures("blackout", &world, &vio, Mode::Vio { prior: true });
+    let vio = run(&world, VIO);
+    let f = figures("blackout", &world, &vio, VIO);
     let (_, _, res) = align(&world, &vio, false);
     let before = rms(res[..gap.start].iter().flatten().copied());
     let after = rms(res[gap.end..].iter().flatten().copied());
@@ -450,4 +521,99 @@ fn blackout_is_bridged_on_the_imu() {
         gap.len()
     );
     assert!(after <= 2.0 * before, "after {after} > 2 × before {before}");
+    // The issue's targets (measured: 0.105 %, scale −0.04 %).
+    assert!(f.ate_se3_percent < 0.2, "ATE {:.3}%", f.ate_se3_percent);
+    assert!(
+        f.scale_error_percent.abs() < 1.0,
+        "scale {:.2}%",
+        f.scale_error_percent
+    );
+}
+
+/// RMS tilt (roll/pitch) error of the posed frames, °: the angle between the estimated and
+/// the true gravity direction in the camera (both worlds are z up).
+fn tilt_rms_deg(world: &SimWorld, r: &Run) -> f64 {
+    let z = Vector3::z();
+    rms(r.times.iter().zip(&r.poses).filter_map(|(t, p)| {
+        let est = p.as_ref()?.rotation * z;
+        let truth = world.pose_cam_at(*t).rotation.inverse() * z;
+        Some(est.angle(&truth).to_degrees())
+    }))
+}
+
+/// The last frame's (gyro, accel) bias errors against the truth (effective biases).
+fn bias_errors(world: &SimWorld, r: &Run) -> (f64, f64) {
+    let (t, b) = r.biases.expect("biases");
+    let gt = world.ground_truth_states();
+    let i = gt.partition_point(|s| s.t_ns <= t).saturating_sub(1);
+    let truth = vio_params(world, true)
+        .preint
+        .correction
+        .effective_biases(&gt[i].biases);
+    ((b.gyro - truth.gyro).norm(), (b.accel - truth.accel).norm())
+}
+
+/// Local mapping's visual-inertial window against the same client without it (the visual
+/// local BA only), on the drone (20 s, global shutter) and the phone (10 s, 25 ms rolling
+/// shutter, phone IMU): the window runs on every keyframe after the initialisation, never
+/// fails, keeps or improves the trajectory (SE(3) ATE) and keeps the tilt within 0.15°,
+/// and the biases it tracks end near the truth, which the client without it (biases from
+/// the initialisation and its refinements only) does not reach. Thresholds: the measured
+/// figures with margin (printed with `--nocapture`; drone: 0.058% vs 0.076%, tilt 0.090°
+/// vs 0.077°, biases 2.0e-4 rad/s and 0.010 m/s² vs 1.1e-4 and 0.019; phone: 0.081% vs
+/// 0.616%, 0.083° vs 0.318°, 3.5e-4 and 0.006 vs 1.1e-3 and 0.021).
+#[test]
+fn vi_window_refines_the_trajectory_and_tracks_the_biases() {
+    let without = Mode::Vio {
+        prior: true,
+        window: false,
+    };
+    // (scenario, seconds, largest gyro bias error rad/s, accel bias error m/s²).
+    for (scenario, secs, max_bg, max_ba) in [
+        (Scenario::Drone, 20.0, 3e-4, 0.015),
+        (Scenario::Phone, 10.0, 6e-4, 0.015),
+    ] {
+        let world = world(scenario, secs);
+        let name = format!("{scenario:?}");
+        let (a, b) = (run(&world, VIO), run(&world, without));
+        let (fa, fb) = (
+            figures(&name, &world, &a, VIO),
+            figures(&name, &world, &b, without),
+        );
+        let (ta, tb) = (tilt_rms_deg(&world, &a), tilt_rms_deg(&world, &b));
+        let (ea, eb) = (bias_errors(&world, &a), bias_errors(&world, &b));
+        let m = a.mapping;
+        eprintln!(
+            "{name}: window ATE SE(3) {:.3}% tilt {ta:.3}° bias errors {:.2e} rad/s {:.4} m/s²; \
+             without {:.3}% {tb:.3}° {:.2e} rad/s {:.4} m/s²",
+            fa.ate_se3_percent, ea.0, ea.1, fb.ate_se3_percent, eb.0, eb.1
+        );
+        eprintln!(
+            "  {} windows ({} skipped, {} failed) on {} keyframes mapped; wall mean {:.1} ms, \
+             max {:.1} ms; CPU of the run {:.0} ms with, {:.0} ms without ({:.1} ms more per \
+             window)",
+            m.vi_windows,
+            m.vi_skipped,
+            m.vi_failed,
+            m.steps,
+            m.vi_ms_total / m.vi_windows.max(1) as f64,
+            m.vi_ms_max,
+            a.cpu_ms,
+            b.cpu_ms,
+            (a.cpu_ms - b.cpu_ms) / m.vi_windows.max(1) as f64
+        );
+        assert_eq!(a.new_sessions, 0, "{name}");
+        assert!(m.vi_windows * 10 >= m.steps * 6, "{name}: {m:?}");
+        assert_eq!((m.vi_failed, b.mapping.vi_windows), (0, 0), "{name}");
+        assert!(
+            fa.ate_se3_percent <= 1.1 * fb.ate_se3_percent,
+            "{name}: ATE"
+        );
+        assert!(ta < 0.15, "{name}: tilt {ta}° (without the window {tb}°)");
+        assert!(ea.0 < max_bg && ea.1 < max_ba, "{name}: biases {ea:?}");
+        assert!(
+            eb.0 > max_bg || eb.1 > max_ba,
+            "{name}: without, biases {eb:?}"
+        );
+    }
 }

@@ -9,19 +9,21 @@
 //! (`VoParams::sync_local_mapping`): it then takes the decisions of inline local mapping,
 //! whatever the thread's timing.
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender};
-use slam_core::vo::{KfId, LocalMapper, LocalMappingRunner, SharedMap, VoTracker};
+use slam_core::vo::{
+    KfId, LocalMapper, LocalMappingRunner, LocalMappingStats, SharedMap, VoTracker,
+};
 
 /// Handle of the local-mapping thread; dropping it ends the thread (after the keyframes
 /// queued) and joins it.
 pub struct LocalMappingThread {
     tx: Option<Sender<KfId>>,
     pending: Arc<AtomicUsize>,
-    culled: Arc<AtomicUsize>,
+    stats: Arc<Mutex<LocalMappingStats>>,
     handle: Option<JoinHandle<()>>,
 }
 
@@ -30,15 +32,15 @@ impl LocalMappingThread {
     pub fn spawn(map: SharedMap, mapper: LocalMapper) -> std::io::Result<Self> {
         let (tx, rx) = crossbeam_channel::unbounded();
         let pending = Arc::new(AtomicUsize::new(0));
-        let culled = Arc::new(AtomicUsize::new(0));
-        let (pending_t, culled_t) = (Arc::clone(&pending), Arc::clone(&culled));
+        let stats = Arc::new(Mutex::new(LocalMappingStats::default()));
+        let (pending_t, stats_t) = (Arc::clone(&pending), Arc::clone(&stats));
         let handle = std::thread::Builder::new()
             .name("local-mapping".into())
-            .spawn(move || run(&map, &rx, &pending_t, &culled_t, mapper))?;
+            .spawn(move || run(&map, &rx, &pending_t, &stats_t, mapper))?;
         Ok(Self {
             tx: Some(tx),
             pending,
-            culled,
+            stats,
             handle: Some(handle),
         })
     }
@@ -77,8 +79,8 @@ impl LocalMappingRunner for LocalMappingThread {
         true
     }
 
-    fn culled(&self) -> usize {
-        self.culled.load(Ordering::Relaxed)
+    fn stats(&self) -> LocalMappingStats {
+        *self.stats.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -96,12 +98,12 @@ fn run(
     map: &SharedMap,
     rx: &Receiver<KfId>,
     pending: &AtomicUsize,
-    culled: &AtomicUsize,
+    stats: &Mutex<LocalMappingStats>,
     mut mapper: LocalMapper,
 ) {
     while let Ok(k) = rx.recv() {
         let step = mapper.step(map, k, || !rx.is_empty());
-        culled.fetch_add(step.culled, Ordering::Relaxed);
+        stats.lock().unwrap_or_else(|e| e.into_inner()).add(&step);
         pending.fetch_sub(1, Ordering::SeqCst);
     }
 }

@@ -190,13 +190,13 @@ impl InertialCoupler {
         }
     }
 
-    /// Moves the stored poses as the caller moved its world with `init`:
-    /// `x_new = s R_gw x` (positions), `R_new = R_gw R` (orientations).
-    pub fn transform_world(&mut self, init: &InertialInit) {
-        let r_gw = UnitQuaternion::from_rotation_matrix(&init.r_gw);
+    /// Moves the stored poses as the caller moved its world (e.g. with an initialisation's
+    /// `s = scale`, `R = R_gw`): `x_new = s R x` (positions), `R_new = R R_old`
+    /// (orientations).
+    pub fn transform_world(&mut self, s: f64, r: &UnitQuaternion<f64>) {
         for t_wc in self.keyframes.values_mut() {
-            let p = r_gw * (t_wc.translation.vector * init.scale);
-            *t_wc = Isometry3::from_parts(Translation3::from(p), r_gw * t_wc.rotation);
+            let p = r * (t_wc.translation.vector * s);
+            *t_wc = Isometry3::from_parts(Translation3::from(p), r * t_wc.rotation);
         }
     }
 

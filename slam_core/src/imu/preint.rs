@@ -62,7 +62,9 @@
 //! applied by [`NavState::retract`]: `R ← R Exp(δθ)` (right, body frame), `p ← p + δp`,
 //! `v ← v + δv` (world frame), `b ← b + δb` (the VINS-Mono convention).
 
-use nalgebra::{Matrix3, Rotation3, SMatrix, SVector, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Rotation3, SMatrix, SVector, Translation3, UnitQuaternion, Vector3,
+};
 
 use super::{ImuBiases, ImuIntrinsics, ImuNoise};
 use crate::lie::{skew, so3_exp, so3_jr, so3_jr_inv, so3_log};
@@ -259,6 +261,36 @@ pub struct NavState {
 }
 
 impl NavState {
+    /// The body state of a camera pose `t_cw` (world to camera) for a camera at `t_bc` in
+    /// the body (`p_b = T_bc p_c`): `T_wb = T_cw⁻¹ T_bc⁻¹`, velocity `v_wb`, `biases`.
+    pub fn from_camera(
+        t_cw: &Isometry3<f64>,
+        t_bc: &Isometry3<f64>,
+        v_wb: Vector3<f64>,
+        biases: ImuBiases,
+    ) -> NavState {
+        let t_wb = t_cw.inverse() * t_bc.inverse();
+        NavState {
+            r: Rotation3::from(t_wb.rotation),
+            p: t_wb.translation.vector,
+            v: v_wb,
+            biases,
+        }
+    }
+
+    /// The body pose `T_wb`.
+    pub fn body_pose(&self) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(self.p),
+            UnitQuaternion::from_rotation_matrix(&self.r),
+        )
+    }
+
+    /// The camera pose `T_cw` (world to camera) of a camera at `t_bc` in the body.
+    pub fn camera_pose(&self, t_bc: &Isometry3<f64>) -> Isometry3<f64> {
+        (self.body_pose() * t_bc).inverse()
+    }
+
     /// The state moved by a tangent `d = [δθ; δp; δv; δb_g; δb_a]`: `R Exp(δθ)`, `p + δp`,
     /// `v + δv`, `b + δb` (the perturbation of the residual Jacobians).
     pub fn retract(&self, d: &Vector15) -> NavState {

@@ -3,7 +3,8 @@
 //! `ã = b_a - R_wbᵀ g` (seed 5.2 with `v̇ = 0`), so the mean specific force points up in the
 //! body frame. A window of samples is taken as static when the spread of the corrected gyro
 //! and accelerometer stays below a vibration bound and the mean specific force has the
-//! norm of gravity. The gyro bias is the window's mean rate; the gravity direction is the
+//! norm of gravity, and the mean rate is no larger than a gyro bias can be (a steady turn
+//! is as still as rest). The gyro bias is the window's mean rate; the gravity direction is the
 //! mean specific force's (the accelerometer bias, ~0.01-0.1 m/s², is not separable from
 //! gravity at rest: it tilts the estimate by up to `|b_a⊥| / 9.81`, 0.1-0.6°). Scale,
 //! velocity and yaw are not observable at rest: a monocular-inertial client still needs
@@ -29,6 +30,11 @@ pub struct StaticParams {
     pub max_accel_std: f64,
     /// Largest `| |ā| - 9.81 |`, m/s².
     pub max_gravity_error: f64,
+    /// Largest norm of the mean corrected rate, rad/s: what a gyro's bias can be. A slow
+    /// turn at a constant rate has the spread of a device at rest (the `loop` scene's
+    /// 0.24 rad/s yaw passed the spread bounds and became a 0.24 rad/s "bias"); EuRoC's
+    /// ADIS16448 has up to 0.08 rad/s on V1_01.
+    pub max_gyro_rate: f64,
 }
 
 impl Default for StaticParams {
@@ -38,6 +44,7 @@ impl Default for StaticParams {
             max_gyro_std: 0.08,
             max_accel_std: 1.0,
             max_gravity_error: 0.3,
+            max_gyro_rate: 0.1,
         }
     }
 }
@@ -103,6 +110,7 @@ pub fn detect_static(
     let (accel, accel_std) = mean_and_std(corrected.map(|(_, a)| a));
     let accel_norm = accel.norm();
     let still = gyro_std <= params.max_gyro_std
+        && gyro_bias.norm() <= params.max_gyro_rate
         && accel_std <= params.max_accel_std
         && (accel_norm - GRAVITY).abs() <= params.max_gravity_error;
     still.then(|| StaticInit {
@@ -134,7 +142,8 @@ mod tests {
     }
 
     /// At rest with a tilted body, biases and vibration: the gyro bias and the up direction
-    /// come back; moving (a slow turn, a push) is refused, and so is a window with a gap.
+    /// come back; moving (a slow turn, a steady turn, a push) is refused, and so is a window
+    /// with a gap.
     #[test]
     fn a_resting_imu_gives_its_gyro_bias_and_gravity() {
         let r_wb = Rotation3::from_euler_angles(0.3, -0.2, 1.0);
@@ -162,6 +171,9 @@ mod tests {
             |_| up_b * GRAVITY,
         );
         assert!(detect_static(&turning, 2_900_000_000, &c, &p).is_none());
+        // A steady turn at 0.24 rad/s (the `loop` scene's yaw) is as still as rest.
+        let steady = samples(|_| bias + Vector3::z() * 0.24, |_| up_b * GRAVITY);
+        assert!(detect_static(&steady, 2_900_000_000, &c, &p).is_none());
         let pushed = samples(
             |_| bias,
             |k| up_b * GRAVITY + Vector3::x() * if k % 200 < 100 { 1.5 } else { -1.5 },

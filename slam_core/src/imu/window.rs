@@ -10,8 +10,8 @@
 //! but its factors stay: the keyframe just before the window is fixed *with its IMU factor*
 //! to the first free keyframe, which anchors position, yaw, velocity, biases and, through the
 //! IMU factor, gravity (roll/pitch); older covisible keyframes may be added fixed with their
-//! observations only (ORB-SLAM3's local inertial BA, Mur-Artal & Tardós 2017, `VI_NOTES.md`
-//! §4 Fig. 5.5, our proposal). Why not a marginalisation prior (OKVIS, VINS): (1) a Schur-complement
+//! observations only, without IMU factors ([`ViWindow::n_visual`]; ORB-SLAM3's local
+//! inertial BA, Mur-Artal & Tardós 2017, `VI_NOTES.md` §4 Fig. 5.5, our proposal). Why not a marginalisation prior (OKVIS, VINS): (1) a Schur-complement
 //! prior must stay at its linearisation point (first-estimate Jacobians) or it injects
 //! spurious information along the 4 unobservable directions (x, y, z, yaw); fixing a state
 //! adds none; (2) the prior becomes dense over every state it touches (the marginalised
@@ -33,32 +33,38 @@
 //! [`super::gravity_w`]); `t_bc` maps camera points to the body (`p_b = R_bc p_c + p_bc`,
 //! the EuRoC `T_BS`):
 //! ```text
-//! reprojection (seed 2.57-2.60):  p_b = R_wbᵀ (p_w - p_wb),  p_c = R_bcᵀ (p_b - p_bc),
+//! reprojection (seed 2.57-2.60), row captured Δ after the keyframe (seed 2.61, rolling
+//! shutter; Δ = 0 for a global shutter; the row's rotation is taken out of the keypoints):
+//!   p_b = R_wbᵀ (p_w - p_wb - v_wb Δ),  p_c = R_bcᵀ (p_b - p_bc),
 //!   r = (π(p_c) - z) / σ,   cost ρ_Huber(|r|²)
-//!   ∂r/∂δθ = M [p_b]x,  ∂r/∂δp = -M R_wbᵀ,  ∂r/∂p_w = M R_wbᵀ,  M = ∂π/∂p_c R_bcᵀ / σ
+//!   ∂r/∂δθ = M [p_b]x,  ∂r/∂δp = -M R_wbᵀ,  ∂r/∂δv = -Δ M R_wbᵀ,  ∂r/∂p_w = M R_wbᵀ,
+//!   M = ∂π/∂p_c R_bcᵀ / σ   (VI_NOTES §3: ∂z/∂dv_j = -Δ M)
 //! IMU (Forster 2017, VI_NOTES §4): r = [r_R; r_v; r_p; r_bg; r_ba] of Preintegrated::residual,
 //!   whitened by L⁻¹ with L Lᵀ = Preintegrated::residual_covariance (no robust kernel)
 //! prior: r = [Log(R̄ᵀ R); p - p̄; v - v̄; b_g - b̄_g; b_a - b̄_a], cost rᵀ Ω r
 //! ```
 //!
 //! **Solver.** Levenberg-Marquardt on `(H + λI) δ = -g`. The points are eliminated by the
-//! Schur complement (each point's 3x3 block, damped by the same λ); the reduced keyframe
-//! system (15-dof blocks: the IMU factors couple neighbours, co-observed points any pair) is
+//! Schur complement (each point's 3x3 block, damped by the same λ; the points couple the
+//! `[θ; p; v]` corner of the keyframe blocks); the reduced keyframe system (15-dof blocks:
+//! the IMU factors couple neighbours, co-observed points any pair) is
 //! [`BlockSparseSystem`] with a dense LLᵀ (a window has ≤ ~20 free keyframes). A point with
 //! fewer than two valid observations in the window has no depth information and is held
 //! fixed (its observation still constrains its keyframe). Keep one
 //! [`ViSolver`] per thread: after the first call on a window of a given size, `optimize`
 //! allocates nothing (the Jacobians of every factor go into reused buffers).
 //!
-//! **Use in the local mapper** (per new keyframe, not per frame):
+//! **Use in the local mapper** (per new keyframe, not per frame; `crate::vo::vi_window`
+//! builds and writes back the window from the client map):
 //! ```text
-//! keyframes = [K_{n-N-1} fixed, K_{n-N} .. K_n free]   // N ≈ 10; the first window after the
-//!                                                      // initialisation: all free + gauge_prior
+//! keyframes = [C_1 .. C_m fixed (n_visual = m, observations only),
+//!              K_{n-N-1} fixed, K_{n-N} .. K_n free]   // N ≈ 10; the first window after the
+//!                                                      // initialisation: all K free + gauge_prior
 //! preints[k] = Preintegrated::from_window(imu, t_k, t_k+1, K_k.state.biases, params)
 //!                                                      // re-integrated at the current biases
-//! points/observations = the map points seen by the window's keyframes (σ = 1.2^octave px)
+//! points/observations = the map points seen by the free keyframes (σ = 1.2^octave px)
 //! report = solver.optimize(&mut window, &ViParams::default())?   // one ViSolver per thread
-//! write back keyframes[1..] states and points_w; drop observations with χ² > 5.991
+//! write back the free states and points_w; drop observations with χ² > 5.991
 //! ```
 
 use nalgebra::{Cholesky, Isometry3, Matrix2x3, Matrix3, Rotation3, SMatrix, Vector2, Vector3};
@@ -71,10 +77,11 @@ use crate::optim::block_sparse::{BlockSparseSystem, Factorization};
 use crate::optim::robust::RobustKernel;
 use crate::CoreError;
 
-/// 2x6 Jacobian of a reprojection w.r.t. a keyframe's `[δθ; δp]`.
-pub type Matrix2x6 = SMatrix<f64, 2, 6>;
-type Matrix6 = SMatrix<f64, 6, 6>;
-type Matrix6x3 = SMatrix<f64, 6, 3>;
+/// 2x9 Jacobian of a reprojection w.r.t. a keyframe's `[δθ; δp; δv]` (the velocity moves
+/// a rolling-shutter row's camera).
+pub type Matrix2x9 = SMatrix<f64, 2, 9>;
+type Matrix9 = SMatrix<f64, 9, 9>;
+type Matrix9x3 = SMatrix<f64, 9, 3>;
 
 /// A keyframe of the window: its time and navigation state (IMU body in the gravity-aligned
 /// world).
@@ -99,6 +106,9 @@ pub struct ViObservation {
     pub uv: Vector2<f64>,
     /// Pixel standard deviation (e.g. `1.2^octave`), px.
     pub sigma_px: f64,
+    /// Capture time of the pixel's row after the keyframe's time, s (rolling shutter, seed
+    /// eq. 2.61; 0 for a global shutter).
+    pub dt_s: f64,
 }
 
 /// A Gaussian prior on one keyframe's state, residual `[Log(R̄ᵀ R); p - p̄; v - v̄; b - b̄]`.
@@ -116,10 +126,14 @@ pub struct StatePrior {
 /// keyframe states and the points in place.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViWindow {
-    /// Keyframes sorted by time.
+    /// Keyframes: the first [`ViWindow::n_visual`] with observations only, then the
+    /// IMU-linked ones sorted by time.
     pub keyframes: Vec<ViKeyframe>,
-    /// `preints[k]` integrates the IMU from keyframe `k` to `k + 1`
-    /// (`keyframes.len() - 1` entries).
+    /// Keyframes at the start of [`ViWindow::keyframes`] without IMU factors (older
+    /// covisible keyframes that only anchor the points; normally fixed).
+    pub n_visual: usize,
+    /// `preints[k]` integrates the IMU from keyframe `n_visual + k` to `n_visual + k + 1`
+    /// (`keyframes.len() - n_visual - 1` entries).
     pub preints: Vec<Preintegrated>,
     /// Map points in the world frame, m.
     pub points_w: Vec<Vector3<f64>>,
@@ -133,6 +147,24 @@ pub struct ViWindow {
     pub gravity_w: Vector3<f64>,
     /// Optional Gaussian prior on one keyframe.
     pub prior: Option<StatePrior>,
+}
+
+impl ViWindow {
+    /// An empty window (no keyframe; a placeholder camera and `t_bc`, set by whoever fills
+    /// it), e.g. a buffer to fill again for each window.
+    pub fn empty() -> Self {
+        Self {
+            keyframes: Vec::new(),
+            n_visual: 0,
+            preints: Vec::new(),
+            points_w: Vec::new(),
+            observations: Vec::new(),
+            t_bc: Isometry3::identity(),
+            camera: PinholeRadtan::pinhole(1, 1, 1.0, 1.0, 0.0, 0.0),
+            gravity_w: super::gravity_w(),
+            prior: None,
+        }
+    }
 }
 
 /// Settings of [`ViSolver::optimize`].
@@ -203,26 +235,29 @@ pub struct ViReport {
     pub converged: bool,
 }
 
-/// Reprojection of `p_w` in a body state with camera-to-body `t_bc`: the pixel, `∂uv/∂[δθ;
-/// δp]` (2x6, [`NavState::retract`] perturbation) and `∂uv/∂p_w` (module docs; unwhitened).
-/// `None` when the point is behind the camera.
+/// Reprojection of `p_w` in a body state with camera-to-body `t_bc`, in a row captured
+/// `dt_s` after the state's time: the pixel, `∂uv/∂[δθ; δp; δv]` (2x9, [`NavState::retract`]
+/// perturbation) and `∂uv/∂p_w` (module docs; unwhitened). `None` when the point is behind
+/// the camera.
 pub fn reprojection_jacobians(
     camera: &PinholeRadtan,
     t_bc: &Isometry3<f64>,
     state: &NavState,
     p_w: &Vector3<f64>,
-) -> Option<(Vector2<f64>, Matrix2x6, Matrix2x3<f64>)> {
+    dt_s: f64,
+) -> Option<(Vector2<f64>, Matrix2x9, Matrix2x3<f64>)> {
     let r_wb_t = state.r.matrix().transpose();
-    let p_b = r_wb_t * (p_w - state.p);
+    let p_b = r_wb_t * (p_w - state.p - state.v * dt_s);
     let r_cb = t_bc.rotation.to_rotation_matrix().matrix().transpose();
     let p_c = r_cb * (p_b - t_bc.translation.vector);
     let (uv, d_uv_dpc) = camera.project_with_jacobian(&p_c)?;
     let m = d_uv_dpc * r_cb;
     let d_pw = m * r_wb_t;
-    let mut d_x = Matrix2x6::zeros();
+    let mut d_x = Matrix2x9::zeros();
     d_x.fixed_view_mut::<2, 3>(0, 0)
         .copy_from(&(m * skew(&p_b)));
     d_x.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-d_pw));
+    d_x.fixed_view_mut::<2, 3>(0, 6).copy_from(&(-d_pw * dt_s));
     Some((uv, d_x, d_pw))
 }
 
@@ -312,7 +347,7 @@ struct ObsLin {
     valid: bool,
     w: f64,
     r: Vector2<f64>,
-    j_x: Matrix2x6,
+    j_x: Matrix2x9,
     j_p: Matrix2x3<f64>,
 }
 
@@ -352,9 +387,9 @@ pub struct ViSolver {
     g_p: Vec<Vector3<f64>>,
     dp: Vec<Vector3<f64>>,
     /// Per observation: `W = w J_xᵀ J_p` (6x3).
-    w_blk: Vec<Matrix6x3>,
+    w_blk: Vec<Matrix9x3>,
     /// Schur terms per free keyframe pair `(a ≤ b)`, `a * n + b`.
-    pair_acc: Vec<Matrix6>,
+    pair_acc: Vec<Matrix9>,
     cand_states: Vec<NavState>,
     cand_points: Vec<Vector3<f64>>,
 }
@@ -493,7 +528,7 @@ impl ViSolver {
     fn setup(&mut self, w: &ViWindow) -> Result<(), CoreError> {
         let (nk, np) = (w.keyframes.len(), w.points_w.len());
         let bad = |m: &str| Err(CoreError::InvalidArgument(format!("vi window: {m}")));
-        if w.preints.len() + 1 != nk.max(1) {
+        if w.n_visual >= nk.max(1) || w.preints.len() + w.n_visual + 1 != nk.max(1) {
             return bad("need one preintegration per consecutive keyframe pair");
         }
         if w.observations.iter().any(|o| {
@@ -537,7 +572,7 @@ impl ViSolver {
         }
         // Pattern: IMU neighbours and co-observing keyframes.
         self.pairs.clear();
-        for k in 1..nk {
+        for k in w.n_visual + 1..nk {
             let (a, b) = (self.var_of_kf[k - 1], self.var_of_kf[k]);
             if a != u32::MAX && b != u32::MAX {
                 self.pairs.push((a, b));
@@ -566,9 +601,9 @@ impl ViSolver {
         self.lin.obs.resize(no, ObsLin::default());
         self.lin_cand.obs.resize(no, ObsLin::default());
         self.lin_cand.imu.resize(w.preints.len(), ImuLin::default());
-        self.w_blk.resize(no, Matrix6x3::zeros());
+        self.w_blk.resize(no, Matrix9x3::zeros());
         let nv = n_var as usize;
-        self.pair_acc.resize(nv * nv, Matrix6::zeros());
+        self.pair_acc.resize(nv * nv, Matrix9::zeros());
         self.lin.imu.resize(w.preints.len(), ImuLin::default());
         self.v_inv.resize(np, Matrix3::zeros());
         self.g_p.resize(np, Vector3::zeros());

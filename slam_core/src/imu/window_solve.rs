@@ -4,7 +4,7 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::{
-    prior_residual, reprojection_jacobians, ImuLin, Linearization, Matrix15, Matrix6, Matrix6x3,
+    prior_residual, reprojection_jacobians, ImuLin, Linearization, Matrix15, Matrix9, Matrix9x3,
     NavState, ObsLin, Vector15, ViChi2, ViParams, ViSolver, ViWindow,
 };
 use crate::CoreError;
@@ -29,8 +29,9 @@ fn evaluate(
     for (k, o) in w.observations.iter().enumerate() {
         let st = &states[o.kf as usize];
         let pt = &points[o.point as usize];
-        let proj = reprojection_jacobians(&w.camera, &w.t_bc, st, pt);
-        let Some((uv, j_x, j_p)) = proj.filter(|_| in_view(w, st, pt, p.min_depth_m)) else {
+        let proj = reprojection_jacobians(&w.camera, &w.t_bc, st, pt, o.dt_s);
+        let Some((uv, j_x, j_p)) = proj.filter(|_| in_view(w, st, pt, o.dt_s, p.min_depth_m))
+        else {
             chi.behind += 1;
             if let Some(l) = lin.as_deref_mut() {
                 l.obs[k].valid = false;
@@ -54,7 +55,8 @@ fn evaluate(
         }
     }
     for (k, pre) in w.preints.iter().enumerate() {
-        let res = pre.residual(&states[k], &states[k + 1], &w.gravity_w);
+        let i = w.n_visual + k;
+        let res = pre.residual(&states[i], &states[i + 1], &w.gravity_w);
         let l_inv = &sqrt_info[k];
         let r = l_inv * res.r;
         let e_pre = r.fixed_rows::<9>(0).norm_squared();
@@ -86,17 +88,17 @@ fn evaluate(
 /// and within the normalised field `|x/z|, |y/z| ≤ MAX_TAN` (beyond it the distortion
 /// polynomial is meaningless and its Jacobian explodes).
 #[inline]
-fn in_view(w: &ViWindow, st: &NavState, p_w: &Vector3<f64>, min_depth: f64) -> bool {
-    let p_b = st.r.inverse() * (p_w - st.p);
+fn in_view(w: &ViWindow, st: &NavState, p_w: &Vector3<f64>, dt_s: f64, min_depth: f64) -> bool {
+    let p_b = st.r.inverse() * (p_w - st.p - st.v * dt_s);
     let p_c = w.t_bc.rotation.inverse() * (p_b - w.t_bc.translation.vector);
     p_c.z >= min_depth && p_c.x.abs() <= MAX_TAN * p_c.z && p_c.y.abs() <= MAX_TAN * p_c.z
 }
 
-/// Adds the 6x6 `m` (or its transpose) to the top-left corner of a 15x15 column-major block.
+/// Adds the 9x9 `m` (or its transpose) to the top-left corner of a 15x15 column-major block.
 #[inline]
-fn add6(blk: &mut [f64], m: &Matrix6, transpose: bool) {
-    for c in 0..6 {
-        for r in 0..6 {
+fn add9(blk: &mut [f64], m: &Matrix9, transpose: bool) {
+    for c in 0..9 {
+        for r in 0..9 {
             blk[r + 15 * c] += if transpose { m[(c, r)] } else { m[(r, c)] };
         }
     }
@@ -153,7 +155,8 @@ impl ViSolver {
     fn assemble_keyframe_factors(&mut self, w: &ViWindow) -> Result<(), CoreError> {
         self.sys.clear();
         for (k, l) in self.lin.imu.iter().enumerate() {
-            let (a, b) = (self.var_of_kf[k], self.var_of_kf[k + 1]);
+            let i = w.n_visual + k;
+            let (a, b) = (self.var_of_kf[i], self.var_of_kf[i + 1]);
             if a != u32::MAX {
                 self.sys
                     .add_to_block(a as usize, a as usize, &(l.j_i.transpose() * l.j_i))?;
@@ -188,7 +191,7 @@ impl ViSolver {
             }
             let h = l.j_x.transpose() * l.j_x * l.w;
             let di = self.sys.diag_index(a as usize);
-            add6(self.sys.block_values_mut(di), &h, false);
+            add9(self.sys.block_values_mut(di), &h, false);
             let g = l.j_x.transpose() * l.r * l.w;
             for (d, v) in self.sys.rhs_mut(a as usize, 0).iter_mut().zip(g.iter()) {
                 *d -= v;
@@ -199,7 +202,7 @@ impl ViSolver {
 
     /// Eliminates point `pt` (Schur complement, damping `lambda` on its 3x3 block): stores
     /// `(V + λI)⁻¹`, `g_p` and the `W` blocks, updates the reduced right-hand side and
-    /// accumulates `-W V⁻¹ Wᵀ` per keyframe pair (6x6 pose corners) in `pair_acc`.
+    /// accumulates `-W V⁻¹ Wᵀ` per keyframe pair (9x9 pose-velocity corners) in `pair_acc`.
     fn eliminate_point(&mut self, w: &ViWindow, pt: usize, lambda: f64) {
         let n = self.sys.n();
         let (s, e) = (
@@ -234,7 +237,7 @@ impl ViSolver {
             self.w_blk[oi as usize] = if l.valid && a != u32::MAX && n_valid >= 2 {
                 l.j_x.transpose() * l.j_p * l.w
             } else {
-                Matrix6x3::zeros()
+                Matrix9x3::zeros()
             };
             if a != u32::MAX {
                 let wvg = self.w_blk[oi as usize] * vg;
@@ -276,20 +279,20 @@ impl ViSolver {
         }
     }
 
-    /// Adds the accumulated 6x6 Schur terms of the points into the system's blocks.
+    /// Adds the accumulated 9x9 Schur terms of the points into the system's blocks.
     fn flush_pair_acc(&mut self) -> Result<(), CoreError> {
         let n = self.sys.n();
         for a in 0..n {
             for b in a..n {
                 let m = self.pair_acc[a * n + b];
-                if m == Matrix6::zeros() {
+                if m == Matrix9::zeros() {
                     continue;
                 }
                 let k = self
                     .sys
                     .block_index(a, b)
                     .ok_or_else(|| CoreError::Degenerate("vi window: pattern".into()))?;
-                add6(self.sys.block_values_mut(k), &m, false);
+                add9(self.sys.block_values_mut(k), &m, false);
             }
         }
         Ok(())
@@ -301,7 +304,7 @@ impl ViSolver {
         self.assemble_keyframe_factors(w)?;
         let n = self.sys.n();
         self.pair_acc.clear();
-        self.pair_acc.resize(n * n, Matrix6::zeros());
+        self.pair_acc.resize(n * n, Matrix9::zeros());
         for pt in 0..w.points_w.len() {
             self.eliminate_point(w, pt, lambda);
         }
@@ -323,8 +326,8 @@ impl ViSolver {
                 let a = self.var_of_kf[w.observations[oi as usize].kf as usize];
                 if a != u32::MAX {
                     let o = a as usize * 15;
-                    let dx6 = nalgebra::Vector6::from_column_slice(&x[o..o + 6]);
-                    rhs -= self.w_blk[oi as usize].transpose() * dx6;
+                    let dx9 = nalgebra::SVector::<f64, 9>::from_column_slice(&x[o..o + 9]);
+                    rhs -= self.w_blk[oi as usize].transpose() * dx9;
                 }
             }
             self.dp[pt] = self.v_inv[pt] * rhs;

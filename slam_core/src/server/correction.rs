@@ -205,6 +205,7 @@ mod tests {
             features,
             points: vec![None; n],
             inertial: None,
+            imu: None,
         }
     }
 

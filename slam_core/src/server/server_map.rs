@@ -220,6 +220,7 @@ impl ServerMap {
             features: kf.features.clone(),
             points: points.to_vec(),
             inertial: None,
+            imu: None,
         });
         for p in points.iter().flatten() {
             self.map.update_point(*p);

@@ -10,8 +10,9 @@
 //! preintegrated accelerations and updated by the visual position of each tracked frame.
 //! Why not ORB-SLAM3's per-frame pose-velocity-bias optimisation: the orientation from
 //! vision is already better than the gyro's over a frame, the biases come from the
-//! initialisation and its refinements (the sliding window of local mapping is the place to
-//! track them, `imu::window`), so the only state left to estimate per frame is the velocity,
+//! initialisation and then from local mapping's visual-inertial window at every keyframe
+//! ([`Navigator::adopt_keyframe`], `crate::vo::vi_window`), so the only state left to
+//! estimate per frame is the velocity,
 //! which is linear in the positions given the rotations: a 6-state filter does it exactly,
 //! in constant time and with no allocation, and its covariance is the translation part of
 //! the pose prior. Differencing two visual positions instead (`v = (p_j - p_i)/Δt - ...`)
@@ -22,7 +23,7 @@
 //!   preintegration covariance does not hold).
 //! - Update: `z = p_wb` from vision, `H = [I 0]`, `R = σ_vis² I`
 //!   ([`NavParams::visual_position_sigma_m`]).
-use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3};
 
 use crate::imu::{gravity_w, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
 use crate::optim::{centre_covariance, PosePrior, Velocity};
@@ -132,7 +133,7 @@ impl Navigator {
 
     /// The camera pose `T_cw` of body state `nav`.
     pub fn camera_pose(&self, nav: &NavState) -> Isometry3<f64> {
-        (body_pose(nav) * self.t_bc).inverse()
+        nav.camera_pose(&self.t_bc)
     }
 
     /// The state predicted at IMU time `t_ns` from `samples` (`None` when they do not
@@ -305,6 +306,22 @@ impl Navigator {
         (self.cov.fixed_view::<3, 3>(3, 3).trace() / 3.0).sqrt()
     }
 
+    /// Takes a keyframe's state `kf` at IMU time `t_kf_ns` as local mapping's
+    /// visual-inertial window left it (`imu::window`): its biases, and its velocity carried
+    /// to this state's time with the IMU, `v = v_kf + g Δt + R_kf Δv` (the pose stays
+    /// vision's). Only the biases when `samples` do not cover the interval.
+    pub fn adopt_keyframe(&mut self, samples: &[ImuMeasurement], kf: &NavState, t_kf_ns: i64) {
+        self.nav.biases = kf.biases;
+        if t_kf_ns > self.t_ns {
+            return;
+        }
+        if let Some(pre) =
+            Preintegrated::from_window(samples, t_kf_ns, self.t_ns, kf.biases, self.preint)
+        {
+            self.nav.v = pre.predict(kf, &gravity_w()).v;
+        }
+    }
+
     /// Sets the velocity and biases (an initialisation's refinement).
     pub fn set_velocity_biases(&mut self, v_wb: Vector3<f64>, biases: crate::imu::ImuBiases) {
         self.nav.v = v_wb;
@@ -347,33 +364,26 @@ fn kalman_position_update(
     ))
 }
 
-/// `T_wb` of a navigation state.
+/// `T_wb` of a navigation state ([`NavState::body_pose`]).
 pub fn body_pose(nav: &NavState) -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::from(nav.p),
-        UnitQuaternion::from_rotation_matrix(&nav.r),
-    )
+    nav.body_pose()
 }
 
-/// The body state of camera pose `t_cw` (camera at `t_bc` in the body), velocity `v_wb`.
+/// The body state of camera pose `t_cw` (camera at `t_bc` in the body), velocity `v_wb`
+/// ([`NavState::from_camera`]).
 pub fn nav_from_camera(
     t_cw: &Isometry3<f64>,
     t_bc: &Isometry3<f64>,
     v_wb: Vector3<f64>,
     biases: crate::imu::ImuBiases,
 ) -> NavState {
-    let t_wb = t_cw.inverse() * t_bc.inverse();
-    NavState {
-        r: Rotation3::from(t_wb.rotation),
-        p: t_wb.translation.vector,
-        v: v_wb,
-        biases,
-    }
+    NavState::from_camera(t_cw, t_bc, v_wb, biases)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Rotation3;
 
     /// With an informative measurement the velocity follows the position's innovation over
     /// the prediction interval; a measurement of huge covariance leaves it alone.

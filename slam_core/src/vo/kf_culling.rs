@@ -2,7 +2,8 @@
 //! KeyFrameCulling): a keyframe whose map points are more than 90% seen by at least three
 //! other keyframes, at the same or a finer scale, adds nothing and is removed. Usable by the
 //! client's local mapping and by the server's keyframe handler.
-use super::map::{ClientMap, KfId};
+use super::keyframe_imu::join_segments;
+use super::map::{ClientMap, Keyframe, KfId};
 
 /// Parameters of [`redundant_fraction`] and [`cull_redundant_keyframes`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -93,10 +94,8 @@ pub fn cull_redundant_keyframes(
         }
         if redundant_fraction(map, k, params) > params.redundancy {
             let neighbours = map.covisible(k, usize::MAX, 1);
-            if map
-                .remove_keyframe(k, params.min_point_observations)
-                .is_some()
-            {
+            if let Some(culled) = map.remove_keyframe(k, params.min_point_observations) {
+                join_imu_into_successor(map, &culled);
                 for n in neighbours {
                     map.update_covisibility(n);
                 }
@@ -107,12 +106,27 @@ pub fn cull_redundant_keyframes(
     removed
 }
 
+/// A culled keyframe's IMU segment joins the next keyframe's, so the keyframes around it
+/// stay linked ([`crate::vo::keyframe_imu`]).
+fn join_imu_into_successor(map: &mut ClientMap, culled: &Keyframe) {
+    let Some(seg) = &culled.imu else {
+        return;
+    };
+    if let Some(next) = map
+        .keyframes
+        .range_mut(culled.id + 1..)
+        .next()
+        .and_then(|(_, kf)| kf.imu.as_mut())
+    {
+        join_segments(seg, next);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::camera::PinholeRadtan;
     use crate::features::{KeyPoint, OrbFeatures};
-    use crate::vo::map::Keyframe;
     use nalgebra::{Isometry3, Vector3};
 
     fn kf(id: KfId, n: usize, octave: u8) -> Keyframe {
@@ -137,6 +151,7 @@ mod tests {
             },
             points: vec![None; n],
             inertial: None,
+            imu: None,
         }
     }
 
@@ -170,6 +185,54 @@ mod tests {
         assert_eq!(m.points.len(), 20);
         let mut m = build();
         assert_eq!(cull_redundant_keyframes(&mut m, 4, &[1, 2], &p), vec![3]);
+    }
+
+    /// Keyframes carrying IMU segments (every 10 ns, samples each ns): culling 1 and 2
+    /// leaves keyframe 3's segment starting at keyframe 0, with every sample once.
+    #[test]
+    fn culled_keyframes_join_their_imu_segments_into_the_next() {
+        use crate::imu::ImuMeasurement;
+        use crate::vo::keyframe_imu::{bracket, ImuCalibration, KeyframeImu};
+        let calib = ImuCalibration {
+            preint: crate::imu::PreintegrationParams::new(&Default::default(), &Default::default())
+                .expect("params"),
+            t_bc: Isometry3::identity(),
+            t_d_ns: 0,
+        };
+        let samples: Vec<ImuMeasurement> = (0..=50)
+            .map(|t| ImuMeasurement {
+                t_ns: t,
+                gyro: Vector3::zeros(),
+                accel: Vector3::zeros(),
+            })
+            .collect();
+        let mut m = ClientMap::new(1, 0);
+        for id in 0..5 {
+            let mut k = kf(id, 20, 0);
+            let t = 10 * id as i64;
+            let t_prev = (id > 0).then(|| t - 10);
+            k.imu = Some(KeyframeImu {
+                t_prev_ns: t_prev,
+                t_ns: t,
+                samples: bracket(&samples, t_prev.unwrap_or(t), t).to_vec(),
+                calib,
+            });
+            m.insert_keyframe(k);
+        }
+        for i in 0..20u32 {
+            let obs: Vec<(KfId, u32)> = (0..5).map(|k| (k, i)).collect();
+            m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
+        }
+        for k in 0..5 {
+            m.update_covisibility(k);
+        }
+        let p = KfCullingParams::default();
+        assert_eq!(cull_redundant_keyframes(&mut m, 4, &[], &p), vec![1, 2]);
+        let (k0, k3) = (&m.keyframes[&0], &m.keyframes[&3]);
+        let seg = k3.imu.as_ref().expect("imu");
+        assert!(seg.links(k0.imu.as_ref().expect("imu")));
+        let times: Vec<i64> = seg.samples.iter().map(|s| s.t_ns).collect();
+        assert_eq!(times, (0..=30).collect::<Vec<_>>());
     }
 
     #[test]

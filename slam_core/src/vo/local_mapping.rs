@@ -283,31 +283,50 @@ pub fn apply_local_ba(
             mp.p_w = pp.p_w;
         }
     }
-    for (j, (p, kid, i)) in job.obs_keys.iter().enumerate() {
-        if !inliers.get(j).copied().unwrap_or(true) {
-            let erase = match map.points.get_mut(p) {
-                Some(mp) => {
-                    mp.observations.retain(|o| *o != (*kid, *i));
-                    mp.observations.len() < 2
-                }
-                None => false,
-            };
-            if let Some(kf) = map.keyframes.get_mut(kid) {
-                if kf.points.get(*i as usize).copied().flatten() == Some(*p) {
-                    kf.points[*i as usize] = None;
-                }
+    remove_outlier_observations(map, &job.obs_keys, inliers);
+    refresh_adjusted(map, &job.local, &job.pt_ids);
+}
+
+/// Removes the observations `obs_keys[j]` = `(point, keyframe, keypoint)` whose
+/// `inliers[j]` is false from the map (a point left with fewer than 2 observations is
+/// erased); entries no longer in the map are skipped. Shared by the visual local BA and
+/// the visual-inertial window ([`super::vi_window`]).
+pub(crate) fn remove_outlier_observations(
+    map: &mut ClientMap,
+    obs_keys: &[(u64, KfId, u32)],
+    inliers: &[bool],
+) {
+    for (j, (p, kid, i)) in obs_keys.iter().enumerate() {
+        if inliers.get(j).copied().unwrap_or(true) {
+            continue;
+        }
+        let erase = match map.points.get_mut(p) {
+            Some(mp) => {
+                mp.observations.retain(|o| *o != (*kid, *i));
+                mp.observations.len() < 2
             }
-            if erase {
-                map.erase_point(*p);
+            None => false,
+        };
+        if let Some(kf) = map.keyframes.get_mut(kid) {
+            if kf.points.get(*i as usize).copied().flatten() == Some(*p) {
+                kf.points[*i as usize] = None;
             }
         }
+        if erase {
+            map.erase_point(*p);
+        }
     }
-    for id in &job.local {
+}
+
+/// After an adjustment: the covisibility of the keyframes `kfs` and the viewing direction
+/// and descriptor of the points `points` (those still in the map).
+pub(crate) fn refresh_adjusted(map: &mut ClientMap, kfs: &[KfId], points: &[u64]) {
+    for id in kfs {
         if map.keyframes.contains_key(id) {
             map.update_covisibility(*id);
         }
     }
-    for p in &job.pt_ids {
+    for p in points {
         if map.points.contains_key(p) {
             map.update_point(*p);
         }

@@ -34,6 +34,9 @@ pub struct Keyframe {
     /// Velocity and biases when a visual-inertial client made it ([`crate::vio`]), in the
     /// metric, gravity-aligned world of the map; `None` for a monocular keyframe.
     pub inertial: Option<KeyframeInertial>,
+    /// The IMU samples since the previous keyframe when a visual-inertial client made it
+    /// ([`super::keyframe_imu`]); `None` for a monocular keyframe.
+    pub imu: Option<super::keyframe_imu::KeyframeImu>,
 }
 
 /// The inertial state of a keyframe ([`Keyframe::inertial`]).
@@ -43,6 +46,9 @@ pub struct KeyframeInertial {
     pub v_wb: Vector3<f64>,
     /// Effective IMU biases (`crate::imu::preint` module docs).
     pub biases: crate::imu::ImuBiases,
+    /// Visual-inertial windows of local mapping that refined this state
+    /// ([`super::vi_window`]; 0: the IMU's prediction or the initialisation's).
+    pub refined: u32,
 }
 
 impl Keyframe {
@@ -101,6 +107,29 @@ pub struct ClientMap {
     /// Covisibility weights: shared points between two keyframes.
     covis: HashMap<KfId, HashMap<KfId, u32>>,
     next_point_id: PointId,
+    /// A similarity of the world the visual-inertial window found (its gravity and scale
+    /// correction, [`super::vi_window`]) that the client has still to apply to the whole
+    /// session (map, tracking state, earlier poses) as a world move.
+    pub world_correction: Option<WorldCorrection>,
+}
+
+/// A similarity `x' = s R x` of a map's world (positions; orientations `R_wc' = R R_wc`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WorldCorrection {
+    /// Scale `s`.
+    pub scale: f64,
+    /// Rotation `R` (old world to new).
+    pub rotation: UnitQuaternion<f64>,
+}
+
+impl WorldCorrection {
+    /// This correction followed by `later`: `x'' = s_l R_l (s R x)`.
+    pub fn then(&self, later: &WorldCorrection) -> WorldCorrection {
+        WorldCorrection {
+            scale: self.scale * later.scale,
+            rotation: later.rotation * self.rotation,
+        }
+    }
 }
 
 impl ClientMap {
@@ -119,6 +148,10 @@ impl ClientMap {
         for p in self.points.values_mut() {
             p.p_w = r * (p.p_w * s);
             p.normal = r * p.normal;
+        }
+        // A pending correction of the old world, in the new one (`M C M⁻¹`).
+        if let Some(c) = self.world_correction.as_mut() {
+            c.rotation = r * c.rotation * r.inverse();
         }
     }
 
@@ -493,6 +526,7 @@ mod tests {
             },
             points: vec![None; n],
             inertial: None,
+            imu: None,
         }
     }
 

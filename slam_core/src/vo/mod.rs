@@ -10,6 +10,7 @@
 //! tracking) and local mapping come with the tracker issue, built on `features`,
 //! `twoview`, `optim` and bundle adjustment.
 
+pub mod keyframe_imu;
 pub mod keyframe_rule;
 pub mod kf_culling;
 pub mod local_mapping;
@@ -17,12 +18,16 @@ pub mod map;
 pub mod resume;
 pub mod search;
 pub mod tracker;
+pub mod vi_window;
 
+pub use keyframe_imu::{ImuCalibration, KeyframeImu};
 pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
 pub use kf_culling::{cull_redundant_keyframes, KfCullingParams};
 pub use map::{ClientMap, Keyframe, KeyframeInertial, KfId, MapPoint, PointId};
 pub use resume::{restore_map, RestoredMap, StoredPoint};
 pub use tracker::{
-    LocalMapper, LocalMappingRunner, LocalMappingStep, PoseHint, SharedMap, StageTimes,
-    VoDiagnostic, VoFrame, VoOutput, VoParams, VoState, VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,
+    LocalMapper, LocalMappingRunner, LocalMappingStats, LocalMappingStep, MappedKeyframe, PoseHint,
+    SharedMap, StageTimes, ViWindowRun, VoDiagnostic, VoFrame, VoOutput, VoParams, VoState,
+    VoTracker, LOCAL_MAPPING_SYNC_TIMEOUT,
 };
+pub use vi_window::{ViMappingMode, ViMappingParams};

@@ -366,6 +366,7 @@ mod tests {
             features: feats.clone(),
             points: vec![None; pts.len()],
             inertial: None,
+            imu: None,
         });
         for (i, p) in pts.iter().enumerate() {
             map.add_point(*p, 0, &[(0, i as u32)]);

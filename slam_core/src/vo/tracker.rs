@@ -54,6 +54,9 @@ pub struct VoParams {
     pub mapping_neighbours: usize,
     /// Keyframes tried per frame when relocalising.
     pub reloc_candidates: usize,
+    /// The visual-inertial window of local mapping (it runs on keyframes with an inertial
+    /// state and an IMU segment: a visual-inertial client's, once metric).
+    pub vi_window: super::vi_window::ViMappingParams,
 }
 
 impl VoParams {
@@ -61,6 +64,7 @@ impl VoParams {
         local_mapper::LocalMappingParams {
             neighbours: self.mapping_neighbours,
             local_ba: self.local_ba,
+            vi: self.vi_window,
         }
     }
 }
@@ -81,6 +85,7 @@ impl Default for VoParams {
             sync_local_mapping: false,
             mapping_neighbours: 10,
             reloc_candidates: 8,
+            vi_window: Default::default(),
         }
     }
 }
@@ -139,6 +144,10 @@ pub struct VoOutput {
     pub pose_information: Option<nalgebra::Matrix6<f64>>,
     /// The frame became this keyframe.
     pub keyframe: Option<KfId>,
+    /// With [`VoOutput::keyframe`]: `(frame time, T_wc)` of every keyframe of the map when
+    /// it was made, itself last, before local mapping adjusted them (the same whether local
+    /// mapping runs inline or on its own thread).
+    pub keyframe_poses: Vec<(i64, Isometry3<f64>)>,
     /// A new VO session started with this frame.
     pub new_session: bool,
     /// Keyframes evicted from the window (oldest first), to be sent to the server.
@@ -153,6 +162,27 @@ pub struct VoOutput {
     /// What the initialiser and the backward walk tried and why it failed (the caller
     /// prints them on request: the tracker service's `debug_init`).
     pub diagnostics: Vec<VoDiagnostic>,
+    /// The newest keyframe whose local mapping had finished when this frame read the map
+    /// (reported once, by the first frame after its mapping; never the keyframe this frame
+    /// made), with its state then: e.g. the visual-inertial window's refined velocity and
+    /// biases for the IMU navigator ([`crate::vio`]).
+    pub mapped: Option<MappedKeyframe>,
+    /// The map's pending gravity correction when this frame read it
+    /// ([`ClientMap::world_correction`]; [`VoTracker::apply_world_correction`]).
+    pub world_correction: Option<super::map::WorldCorrection>,
+}
+
+/// A keyframe as local mapping left it ([`VoOutput::mapped`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MappedKeyframe {
+    /// Its id.
+    pub id: KfId,
+    /// Frame time (mid-row), ns.
+    pub t_ns: i64,
+    /// World → camera pose.
+    pub t_cw: Isometry3<f64>,
+    /// Its inertial state, if any.
+    pub inertial: Option<super::map::KeyframeInertial>,
 }
 
 /// A diagnostic of the VO's initialisation (issue 15: where and why frames stay unposed).
@@ -279,7 +309,7 @@ pub struct VoTracker {
     /// Inline local mapping (its buffers).
     inline_mapper: LocalMapper,
     /// Keyframes culled by inline local mapping.
-    culled_inline: usize,
+    inline_stats: local_mapper::LocalMappingStats,
     /// Frames that waited for the local-mapping thread ([`VoParams::sync_local_mapping`]).
     sync_waits: usize,
     /// Of those, waits that ran into [`LOCAL_MAPPING_SYNC_TIMEOUT`].
@@ -315,6 +345,14 @@ pub struct VoTracker {
     derotated: bool,
     /// The outside prediction of the frame being processed ([`VoTracker::process_with_hint`]).
     hint: Option<PoseHint>,
+    /// The inertial state a keyframe made from the frame being processed starts with
+    /// ([`VoTracker::process_inertial`]).
+    kf_state: Option<super::map::KeyframeInertial>,
+    /// The IMU samples cut into each keyframe's segment (a visual-inertial client's;
+    /// [`VoTracker::enable_keyframe_imu`]).
+    imu_source: Option<super::keyframe_imu::KeyframeImuSource>,
+    /// The newest keyframe made whose mapping was not reported yet ([`VoOutput::mapped`]).
+    unreported_kf: Option<KfId>,
     // Reusable buffers.
     feats: OrbFeatures,
     /// Matching by projection (last frame, local map).
@@ -345,7 +383,7 @@ impl VoTracker {
             shared,
             mapping: None,
             inline_mapper: LocalMapper::new(params.local_mapping()),
-            culled_inline: 0,
+            inline_stats: Default::default(),
             sync_waits: 0,
             sync_timeouts: 0,
             mapped_last_kf: None,
@@ -374,6 +412,9 @@ impl VoTracker {
             failures: 0,
             derotated: false,
             hint: None,
+            kf_state: None,
+            imu_source: None,
+            unreported_kf: None,
             feats: OrbFeatures::with_capacity(params.orb.n_features),
             matcher: LocalMapMatcher::new(),
             frame_points: Vec::new(),
@@ -431,9 +472,25 @@ impl VoTracker {
         frame: &VoFrame<'_>,
         hint: Option<&PoseHint>,
     ) -> Result<VoOutput, CoreError> {
+        self.process_inertial(frame, hint, None)
+    }
+
+    /// [`VoTracker::process_with_hint`] for a visual-inertial client: a keyframe made from
+    /// this frame starts with the inertial state `kf_state` (e.g. the IMU's prediction of
+    /// the frame, once the world is metric) and, with [`VoTracker::enable_keyframe_imu`],
+    /// carries the IMU samples since the previous keyframe. Both are attached when the
+    /// keyframe is made, before local mapping sees it.
+    pub fn process_inertial(
+        &mut self,
+        frame: &VoFrame<'_>,
+        hint: Option<&PoseHint>,
+        kf_state: Option<super::map::KeyframeInertial>,
+    ) -> Result<VoOutput, CoreError> {
         self.hint = hint.copied();
+        self.kf_state = kf_state;
         let res = self.process_frame(frame);
         self.hint = None;
+        self.kf_state = None;
         res
     }
 
@@ -484,11 +541,14 @@ impl VoTracker {
             tracked: 0,
             pose_information: None,
             keyframe: None,
+            keyframe_poses: Vec::new(),
             new_session: false,
             evicted: Vec::new(),
             backfill: Vec::new(),
             times,
             diagnostics: Vec::new(),
+            mapped: None,
+            world_correction: None,
         };
         // Lock-step: local mapping of earlier keyframes has finished before the map is used.
         self.sync_with_local_mapping(LOCAL_MAPPING_SYNC_TIMEOUT);
@@ -498,6 +558,8 @@ impl VoTracker {
         let mut guard = lock(&shared);
         std::mem::swap(&mut self.map, &mut *guard);
         self.adopt_mapped_points();
+        out.mapped = self.report_mapped_keyframe();
+        out.world_correction = self.map.world_correction;
         let res = match self.state {
             VoState::NotInitialized | VoState::Initializing => {
                 self.try_initialize(frame, &feats, &mut out);
@@ -538,7 +600,13 @@ impl VoTracker {
 
     /// Keyframes culled as redundant by local mapping so far.
     pub fn keyframes_culled(&self) -> usize {
-        self.culled_inline + self.mapping.as_ref().map_or(0, |m| m.culled())
+        self.local_mapping_stats().culled
+    }
+
+    /// Totals of local mapping so far (inline and behind a runner).
+    pub fn local_mapping_stats(&self) -> LocalMappingStats {
+        let runner = self.mapping.as_ref().map(|m| m.stats()).unwrap_or_default();
+        self.inline_stats.merged(&runner)
     }
 
     /// Frames that waited for the local-mapping thread to be idle
@@ -641,13 +709,40 @@ impl VoTracker {
             return false;
         }
         lock(&self.shared).transform_world(s, r);
+        self.move_tracking_state(s, r);
+        true
+    }
+
+    /// Applies the map's pending world correction ([`ClientMap::world_correction`], a
+    /// similarity `x' = s R x` found by local mapping's visual-inertial window): the map
+    /// and the tracking state move as with [`VoTracker::transform_world`]. Returns it;
+    /// `None` (nothing moved) when none is pending or local mapping does not become idle
+    /// within `timeout`.
+    pub fn apply_world_correction(
+        &mut self,
+        timeout: std::time::Duration,
+    ) -> Option<super::map::WorldCorrection> {
+        if !self.wait_local_mapping(timeout) {
+            return None;
+        }
+        let c = {
+            let mut m = lock(&self.shared);
+            let c = m.world_correction.take()?;
+            m.transform_world(c.scale, &c.rotation);
+            c
+        };
+        self.move_tracking_state(c.scale, &c.rotation);
+        Some(c)
+    }
+
+    /// The last frame's pose and the motion model after a world move `x' = s R x`.
+    fn move_tracking_state(&mut self, s: f64, r: &nalgebra::UnitQuaternion<f64>) {
         if let Some(last) = self.last.as_mut() {
             last.t_cw = super::map::transform_pose_cw(&last.t_cw, s, r);
         }
         if let Some((v, _)) = self.velocity.as_mut() {
             v.translation.vector *= s;
         }
-        true
     }
 
     /// Waits until the local-mapping thread has mapped every keyframe (at most `timeout`).
@@ -674,7 +769,22 @@ impl VoTracker {
         self.velocity = None;
         self.ref_kf = None;
         self.failures = 0;
+        self.unreported_kf = None;
+        if let Some(s) = self.imu_source.as_mut() {
+            s.new_session();
+        }
         out.new_session = true;
+    }
+
+    /// `(frame time, T_wc)` of every keyframe of the map into `out` (oldest first).
+    fn keyframe_poses(&self, out: &mut Vec<(i64, Isometry3<f64>)>) {
+        out.clear();
+        out.extend(
+            self.map
+                .keyframes
+                .values()
+                .map(|kf| (kf.t_ns, kf.t_cw.inverse())),
+        );
     }
 
     fn last_from_kf(&self, k: KfId) -> LastFrame {
@@ -770,6 +880,7 @@ mod tests {
 }
 
 mod backward;
+mod inertial;
 mod init;
 mod local_mapper;
 mod reloc;
@@ -777,4 +888,6 @@ mod resume;
 mod track;
 
 use local_mapper::lock;
-pub use local_mapper::{LocalMapper, LocalMappingRunner, LocalMappingStep, SharedMap};
+pub use local_mapper::{
+    LocalMapper, LocalMappingRunner, LocalMappingStats, LocalMappingStep, SharedMap, ViWindowRun,
+};

@@ -123,8 +123,14 @@ fn wire_source(s: slam_core::vio::PoseSource) -> PoseSource {
 /// The visual-inertial client's report from its status (`first_frame_ns`: the IMU time of
 /// the client's first frame, for the time it took to initialise).
 pub fn vio_report(v: &VioTracker, first_frame_ns: Option<i64>) -> VioReport {
+    let m = v.vo().local_mapping_stats();
     let mut r = VioReport {
         attempts: v.coupler().attempts() as u64,
+        vi_windows: m.vi_windows as u64,
+        vi_windows_skipped: m.vi_skipped as u64,
+        vi_windows_failed: m.vi_failed as u64,
+        vi_window_ms_mean: (m.vi_windows > 0).then(|| m.vi_ms_total / m.vi_windows as f64),
+        vi_window_ms_max: (m.vi_windows > 0).then_some(m.vi_ms_max),
         static_init: v.static_init().map(|(s, up_w)| StaticReport {
             t_ns: s.t1_ns,
             window_s: (s.t1_ns - s.t0_ns) as f64 * 1e-9,
@@ -135,6 +141,7 @@ pub fn vio_report(v: &VioTracker, first_frame_ns: Option<i64>) -> VioReport {
             gyro_std: s.gyro_std,
             accel_std: s.accel_std,
         }),
+        refinements_skipped: v.refinements_skipped() as u64,
         ..VioReport::default()
     };
     match v.status() {

@@ -99,6 +99,9 @@ pub struct VioReport {
     pub attempts: u64,
     /// Refinements done after the initialisation (0-2).
     pub refinements: u64,
+    /// Refinements computed but not applied: local mapping's window tracked the states
+    /// (`slam_core::vio::VioParams::refinements_with_window`).
+    pub refinements_skipped: u64,
     /// Frame time of the first initialisation, ns (IMU clock).
     pub initialised_t_ns: Option<i64>,
     /// Seconds from the client's first frame to the first initialisation.
@@ -111,6 +114,16 @@ pub struct VioReport {
     pub gyro_bias: Option<[f64; 3]>,
     /// Accelerometer bias of the last frame's state, m/s².
     pub accel_bias: Option<[f64; 3]>,
+    /// Visual-inertial windows of local mapping solved and applied (this tracker's life).
+    pub vi_windows: u64,
+    /// Keyframes with an inertial state for which no window could be built.
+    pub vi_windows_skipped: u64,
+    /// Windows whose solve failed (skipped, counted).
+    pub vi_windows_failed: u64,
+    /// Mean time of a window (build, solve, write back), ms.
+    pub vi_window_ms_mean: Option<f64>,
+    /// Longest window, ms.
+    pub vi_window_ms_max: Option<f64>,
     /// The device rested before the visual-inertial initialisation: gyro bias and gravity.
     pub static_init: Option<StaticReport>,
     /// Sessions resumed from a killed predecessor's spool, all restarts (a resumed session

@@ -278,6 +278,9 @@ fn stored_keyframe(k: &Recovered, readout_ns: i64) -> Result<Keyframe, String> {
             gyro: Vector3::from(h.gyro_bias),
             accel: Vector3::from(h.accel_bias),
         },
+        // Whether a window refined it is not spooled: the resumed session's first window
+        // is gauged (`slam_core::vo::vi_window` module docs).
+        refined: 0,
     });
     Ok(Keyframe {
         id,
@@ -288,6 +291,7 @@ fn stored_keyframe(k: &Recovered, readout_ns: i64) -> Result<Keyframe, String> {
         features,
         points,
         inertial,
+        imu: None,
     })
 }
 

@@ -30,6 +30,7 @@ fn keyframe(
         features: OrbFeatures::default(),
         points: vec![],
         inertial,
+        imu: None,
     }
 }
 
@@ -74,6 +75,7 @@ fn stored_vo(v: Vector3<f64>, newest_inertial: bool) -> VoTracker {
     let inertial = newest_inertial.then_some(KeyframeInertial {
         v_wb: v,
         biases: biases(),
+        refined: 0,
     });
     map.insert_keyframe(keyframe(
         8,

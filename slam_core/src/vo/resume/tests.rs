@@ -56,6 +56,7 @@ fn keyframe(k: u64, wall: &[StoredPoint]) -> Keyframe {
         features,
         points: wall.iter().map(|p| Some(p.id)).collect(),
         inertial: Some(KeyframeInertial::default()),
+        imu: None,
     }
 }
 

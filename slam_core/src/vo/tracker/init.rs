@@ -218,6 +218,10 @@ impl VoTracker {
         let id2 = id1 + 1;
         self.next_kf_id += 2;
         let n1 = reference.features.len();
+        let (imu1, imu2) = (
+            self.keyframe_imu(reference.t_ns),
+            self.keyframe_imu(frame.t_ns),
+        );
         self.map.insert_keyframe(Keyframe {
             id: id1,
             t_ns: reference.t_ns,
@@ -227,6 +231,7 @@ impl VoTracker {
             features: reference.features,
             points: vec![None; n1],
             inertial: None,
+            imu: imu1,
         });
         self.map.insert_keyframe(Keyframe {
             id: id2,
@@ -237,6 +242,7 @@ impl VoTracker {
             features: feats.clone(),
             points: vec![None; feats.len()],
             inertial: None,
+            imu: imu2,
         });
         // Reference feature -> (point, position) for the backfill.
         let mut ref_points = vec![None; n1];
@@ -303,6 +309,7 @@ impl VoTracker {
         self.frames_since_kf = 0;
         out.t_cw = Some(t_cw2);
         out.keyframe = Some(id2);
+        self.keyframe_poses(&mut out.keyframe_poses);
         out.tracked = self.map.keyframes.get(&id2).map_or(0, |k| k.n_points());
     }
 

@@ -70,6 +70,7 @@ mod tests {
             features: OrbFeatures::default(),
             points: vec![],
             inertial: None,
+            imu: None,
         }
     }
 

@@ -321,7 +321,7 @@ impl VoTracker {
             .rule
             .needs_keyframe(tracked, ref_tracked, self.frames_since_kf, mapping_idle)
         {
-            let id = self.create_keyframe(frame, feats, t_cw);
+            let id = self.create_keyframe(frame, feats, t_cw, &mut out.keyframe_poses);
             out.keyframe = Some(id);
             while self.map.keyframes.len() > self.params.window {
                 let Some(&oldest) = self.map.keyframes.keys().next() else {
@@ -486,11 +486,14 @@ impl VoTracker {
         }
     }
 
+    /// Makes the frame a keyframe (`poses`: [`super::VoOutput::keyframe_poses`]) and hands it
+    /// to local mapping.
     fn create_keyframe(
         &mut self,
         frame: &VoFrame<'_>,
         feats: &OrbFeatures,
         t_cw: Isometry3<f64>,
+        poses: &mut Vec<(i64, Isometry3<f64>)>,
     ) -> KfId {
         let id = self.next_kf_id;
         self.next_kf_id += 1;
@@ -502,7 +505,8 @@ impl VoTracker {
             readout_ns: frame.readout_ns,
             features: feats.clone(),
             points: self.frame_points.clone(),
-            inertial: None,
+            inertial: self.kf_state,
+            imu: self.keyframe_imu(frame.t_ns),
         };
         self.map.insert_keyframe(kf);
         for p in self.frame_points.iter().flatten() {
@@ -512,6 +516,7 @@ impl VoTracker {
         // so that tracking survives fast rotation; the rest of local mapping runs in the
         // local-mapping thread (or inline).
         create_points_with_neighbours(&mut self.map, id, 1);
+        self.keyframe_poses(poses);
         match &self.mapping {
             Some(m) => {
                 m.submit(id);
@@ -520,7 +525,8 @@ impl VoTracker {
                 }
             }
             None => {
-                self.culled_inline += self.inline_mapper.step_inline(&mut self.map, id).culled;
+                let step = self.inline_mapper.step_inline(&mut self.map, id);
+                self.inline_stats.add(&step);
             }
         }
         // The new points are seen by this frame too; points culled are not.
@@ -538,6 +544,7 @@ impl VoTracker {
         }
         self.ref_kf = Some(id);
         self.frames_since_kf = 0;
+        self.unreported_kf = Some(id);
         id
     }
 }

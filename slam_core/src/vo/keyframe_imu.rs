@@ -1,0 +1,221 @@
+//! The IMU a keyframe of a visual-inertial client carries (issue 17; `VI_NOTES.md` §4,
+//! Fig. 5.4: "raw IMU since the last one (with bracketing samples)"): the samples between
+//! the previous keyframe of its VO session and itself, and the calibration to preintegrate
+//! them, so that local mapping's visual-inertial window ([`super::vi_window`]) re-integrates
+//! them at the current biases, inline or on its own thread, from the map alone.
+//!
+//! - The VO attaches a segment to each keyframe it makes ([`KeyframeImuSource::segment`]),
+//!   from samples the visual-inertial client hands it as they arrive
+//!   ([`KeyframeImuSource::push`]); the segment is cut at creation, under the map's lock,
+//!   before local mapping sees the keyframe, so lock-step runs stay deterministic.
+//! - A culled keyframe's segment joins its successor's ([`join_segments`]; `VI_NOTES.md` §4
+//!   "[P] A culled keyframe joins its two segments"), so consecutive keyframes of the map
+//!   stay linked.
+//! - Times are on the IMU clock (`t_imu = t_cam + t_d`, `VI_NOTES.md` §1).
+use nalgebra::Isometry3;
+
+use crate::imu::{ImuMeasurement, PreintegrationParams};
+
+/// The fixed IMU calibration of a visual-inertial client.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImuCalibration {
+    /// Noise densities and intrinsics of the preintegration.
+    pub preint: PreintegrationParams,
+    /// Camera to body (IMU): `p_b = T_bc p_c` (EuRoC `T_BS`), metric.
+    pub t_bc: Isometry3<f64>,
+    /// Camera-IMU time offset: `t_imu = t_cam + t_d`, ns.
+    pub t_d_ns: i64,
+}
+
+/// A keyframe's IMU segment ([`crate::vo::Keyframe::imu`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct KeyframeImu {
+    /// IMU-clock time of the previous keyframe of the session when this one was made (or
+    /// of the keyframe it replaced by a join), ns; `None` for a session's first keyframe.
+    pub t_prev_ns: Option<i64>,
+    /// IMU-clock time of this keyframe (`t_ns + t_d`), ns.
+    pub t_ns: i64,
+    /// The samples over `[t_prev_ns, t_ns]` with one bracketing sample at each end where
+    /// the stream had it, time order.
+    pub samples: Vec<ImuMeasurement>,
+    /// The calibration to preintegrate them with.
+    pub calib: ImuCalibration,
+}
+
+impl KeyframeImu {
+    /// Whether the samples bracket `[t_prev_ns, t_ns]` (a complete segment: the
+    /// preintegration from the previous keyframe exists).
+    pub fn is_complete(&self) -> bool {
+        match (self.t_prev_ns, self.samples.first(), self.samples.last()) {
+            (Some(t0), Some(a), Some(b)) => a.t_ns <= t0 && b.t_ns >= self.t_ns,
+            _ => false,
+        }
+    }
+
+    /// Whether this segment starts at `prev` (the keyframe before it in the map) and is
+    /// complete: the two keyframes are linked by an IMU factor.
+    pub fn links(&self, prev: &KeyframeImu) -> bool {
+        self.t_prev_ns == Some(prev.t_ns) && self.is_complete()
+    }
+}
+
+/// The samples of `samples` (time order) over `[t0_ns, t1_ns]` with one bracketing sample
+/// at each end when there is one.
+pub fn bracket(samples: &[ImuMeasurement], t0_ns: i64, t1_ns: i64) -> &[ImuMeasurement] {
+    let start = samples
+        .partition_point(|s| s.t_ns <= t0_ns)
+        .saturating_sub(1);
+    let end = (samples.partition_point(|s| s.t_ns < t1_ns) + 1).min(samples.len());
+    &samples[start.min(end)..end]
+}
+
+/// The segment of a culled keyframe (`culled`) joined into its successor's (`next`):
+/// `next` then starts where `culled` started, with `culled`'s samples before its own. When
+/// `next` does not start at `culled` (it was not linked to it) nothing changes.
+pub fn join_segments(culled: &KeyframeImu, next: &mut KeyframeImu) {
+    if next.t_prev_ns != Some(culled.t_ns) {
+        return;
+    }
+    let first = next.samples.first().map_or(i64::MAX, |s| s.t_ns);
+    let cut = culled.samples.partition_point(|s| s.t_ns < first);
+    next.samples
+        .splice(0..0, culled.samples[..cut].iter().copied());
+    next.t_prev_ns = culled.t_prev_ns;
+}
+
+/// Samples kept before a session's first keyframe, ns (the two-view reference is at most
+/// 64 frames older than the frame that initialises the map).
+const KEEP_BEFORE_FIRST_KF_NS: i64 = 4_000_000_000;
+
+/// The VO's IMU samples since its last keyframe, cut into a segment for each new keyframe
+/// (module docs).
+#[derive(Debug, Clone)]
+pub struct KeyframeImuSource {
+    calib: ImuCalibration,
+    samples: Vec<ImuMeasurement>,
+    /// IMU time of the session's last keyframe.
+    last_kf_ns: Option<i64>,
+}
+
+impl KeyframeImuSource {
+    /// An empty source with the client's calibration.
+    pub fn new(calib: ImuCalibration) -> Self {
+        Self {
+            calib,
+            samples: Vec::new(),
+            last_kf_ns: None,
+        }
+    }
+
+    /// Takes a sample (ignored when not after the last one). Before the session's first
+    /// keyframe only the last few seconds are kept. Amortised O(1).
+    pub fn push(&mut self, m: ImuMeasurement) {
+        if self.samples.last().is_some_and(|l| l.t_ns >= m.t_ns) {
+            return;
+        }
+        self.samples.push(m);
+        if self.last_kf_ns.is_none() && self.samples[0].t_ns < m.t_ns - 2 * KEEP_BEFORE_FIRST_KF_NS
+        {
+            let keep_from = m.t_ns - KEEP_BEFORE_FIRST_KF_NS;
+            let k = self.samples.partition_point(|s| s.t_ns < keep_from);
+            self.samples.drain(..k);
+        }
+    }
+
+    /// The segment of a new keyframe at camera time `t_cam_ns` (after the session's last
+    /// one): the samples since the last keyframe; then only the samples from this keyframe
+    /// on are kept.
+    pub fn segment(&mut self, t_cam_ns: i64) -> KeyframeImu {
+        let t_ns = t_cam_ns + self.calib.t_d_ns;
+        let t0 = self.last_kf_ns.unwrap_or(t_ns);
+        let seg = KeyframeImu {
+            t_prev_ns: self.last_kf_ns,
+            t_ns,
+            samples: bracket(&self.samples, t0, t_ns).to_vec(),
+            calib: self.calib,
+        };
+        self.last_kf_ns = Some(t_ns);
+        let k = self
+            .samples
+            .partition_point(|s| s.t_ns <= t_ns)
+            .saturating_sub(1);
+        self.samples.drain(..k);
+        seg
+    }
+
+    /// A new VO session: its first keyframe has no predecessor (the samples are kept).
+    pub fn new_session(&mut self) {
+        self.last_kf_ns = None;
+    }
+
+    /// The calibration.
+    pub fn calibration(&self) -> &ImuCalibration {
+        &self.calib
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    fn m(t_ns: i64) -> ImuMeasurement {
+        ImuMeasurement {
+            t_ns,
+            gyro: Vector3::new(t_ns as f64, 0.0, 0.0),
+            accel: Vector3::zeros(),
+        }
+    }
+
+    fn source() -> KeyframeImuSource {
+        let preint =
+            PreintegrationParams::new(&Default::default(), &Default::default()).expect("params");
+        KeyframeImuSource::new(ImuCalibration {
+            preint,
+            t_bc: Isometry3::identity(),
+            t_d_ns: 2,
+        })
+    }
+
+    /// Samples every 10 ns; keyframes at camera times 18, 48 (IMU 20, 50), 78 (IMU 80):
+    /// each segment brackets the span from its predecessor; a culled middle keyframe's
+    /// segment joins the next one's without duplicates.
+    #[test]
+    fn segments_bracket_the_span_and_join_on_culling() {
+        let mut s = source();
+        for t in (0..=100).step_by(10) {
+            s.push(m(t));
+        }
+        s.push(m(100));
+        let a = s.segment(18);
+        assert_eq!((a.t_prev_ns, a.t_ns), (None, 20));
+        assert!(!a.is_complete());
+        let b = s.segment(48);
+        let times = |k: &KeyframeImu| k.samples.iter().map(|x| x.t_ns).collect::<Vec<_>>();
+        assert_eq!(times(&b), vec![20, 30, 40, 50]);
+        assert!(b.links(&a) && b.is_complete());
+        let mut c = s.segment(78);
+        assert_eq!(times(&c), vec![50, 60, 70, 80]);
+        assert!(c.links(&b) && !c.links(&a));
+        join_segments(&b, &mut c);
+        assert_eq!(times(&c), vec![20, 30, 40, 50, 60, 70, 80]);
+        assert!(c.links(&a));
+        // A segment whose end sample has not arrived is incomplete.
+        let d = s.segment(108);
+        assert!(!d.is_complete());
+        assert_eq!(bracket(&[m(0), m(10)], 3, 7).len(), 2);
+        assert!(bracket(&[], 3, 7).is_empty());
+    }
+
+    /// Before the first keyframe only the last seconds are kept.
+    #[test]
+    fn samples_before_the_first_keyframe_are_bounded() {
+        let mut s = source();
+        for k in 0..4000 {
+            s.push(m(k * 5_000_000));
+        }
+        assert!(s.samples.len() <= 1601, "{}", s.samples.len());
+        let t_last = s.samples.last().expect("samples").t_ns;
+        assert!(s.samples[0].t_ns <= t_last - KEEP_BEFORE_FIRST_KF_NS);
+    }
+}
