@@ -87,6 +87,7 @@ fn vio_params(world: &SimWorld, prior: bool) -> VioParams {
     VioParams {
         pose_prior: prior,
         imu_tracking: std::env::var("SHOAL_VIO_IMU_TRACKING").map_or(true, |v| v != "0"),
+        refinements_with_window: std::env::var("REFINE").map_or(1, |v| v.parse().expect("REFINE")),
         ..VioParams::new(preint, world.calib().t_bs)
     }
 }
@@ -176,6 +177,15 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
                 let o = v.process(&frame).expect("vio");
 
                 if let Some(m) = o.world_move {
+                    if std::env::var("VERBOSE").is_ok() {
+                        let t = (t_ns - r.times[0]) as f64 * 1e-9;
+                        eprintln!(
+                            "world move at {t:.2} s: scale {:.5}, {:.3}°, init {}",
+                            m.scale,
+                            m.rotation.angle().to_degrees(),
+                            m.initialisation
+                        );
+                    }
                     for p in r.poses[session_start..k].iter_mut().flatten() {
                         *p = transform_pose_cw(p, m.scale, &m.rotation);
                     }
@@ -413,13 +423,21 @@ fn navigator_predicts_the_true_motion() {
     assert!(worst[1].0 < 0.05 && worst[1].1 < 0.1);
 }
 
-/// A debugging run (`SECS`, `PRIOR`, `NO_WINDOW`, `SHOAL_VIO_IMU_TRACKING`): per-frame
-/// residuals.
+/// A debugging run (`SECS`, `SCENARIO` = drone (default), loop, fast-rs, blackout or phone,
+/// `PRIOR`, `NO_WINDOW`, `REFINE` = `VioParams::refinements_with_window`,
+/// `SHOAL_VIO_IMU_TRACKING`, `VERBOSE` for the world moves): per-frame residuals.
 #[test]
 #[ignore = "debugging aid"]
 fn debug_drone() {
     let secs: f64 = std::env::var("SECS").map_or(8.0, |s| s.parse().expect("SECS"));
-    let world = world(Scenario::Drone, secs);
+    let scenario = match std::env::var("SCENARIO").as_deref() {
+        Ok("loop") => Scenario::Loop,
+        Ok("fast-rs") => Scenario::FastRs,
+        Ok("blackout") => Scenario::Blackout,
+        Ok("phone") => Scenario::Phone,
+        _ => Scenario::Drone,
+    };
+    let world = world(scenario, secs);
     let mode = Mode::Vio {
         prior: std::env::var("PRIOR").is_ok(),
         window: std::env::var("NO_WINDOW").is_err(),
