@@ -92,6 +92,11 @@ fn vio_params(world: &SimWorld, prior: bool) -> VioParams {
     }
 }
 
+/// A debugging override (`VW_N`, `VW_COV`): unset in the tests.
+fn env_or(key: &str, default: usize) -> usize {
+    std::env::var(key).map_or(default, |v| v.parse().expect(key))
+}
+
 fn run(world: &SimWorld, mode: Mode) -> Run {
     let cpu0 = cpu_ms();
     let cam = world.calib().model;
@@ -105,6 +110,8 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
                 } else {
                     ViMappingMode::Off
                 },
+                keyframes: env_or("VW_N", 10),
+                fixed_covisible: env_or("VW_COV", 10),
                 ..Default::default()
             };
             let vp = VoParams {
@@ -424,7 +431,8 @@ fn navigator_predicts_the_true_motion() {
 }
 
 /// A debugging run (`SECS`, `SCENARIO` = drone (default), loop, fast-rs, blackout or phone,
-/// `PRIOR`, `NO_WINDOW`, `REFINE` = `VioParams::refinements_with_window`,
+/// `PRIOR`, `NO_WINDOW`, `REFINE` = `VioParams::refinements_with_window`, `VW_N` and
+/// `VW_COV` = the window's free and fixed covisible keyframes,
 /// `SHOAL_VIO_IMU_TRACKING`, `VERBOSE` for the world moves): per-frame residuals.
 #[test]
 #[ignore = "debugging aid"]
