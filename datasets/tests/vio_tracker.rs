@@ -84,7 +84,15 @@ fn imu_at(world: &SimWorld, k: usize) -> ImuMeasurement {
 fn vio_params(world: &SimWorld, prior: bool) -> VioParams {
     let sensor = world.params();
     let preint = PreintegrationParams::new(&sensor.noise, &sensor.imu_intrinsics).expect("preint");
+    let mut coupler = slam_core::imu::coupler::CouplerParams::default();
+    if let Ok(v) = std::env::var("ACC_PRIOR") {
+        coupler.init.prior_accel_bias = v.parse().expect("ACC_PRIOR");
+    }
+    if let Ok(v) = std::env::var("POSE_SIGMA") {
+        coupler.init.pose_sigma_m = v.parse().expect("POSE_SIGMA");
+    }
     VioParams {
+        coupler,
         pose_prior: prior,
         imu_tracking: std::env::var("SHOAL_VIO_IMU_TRACKING").map_or(true, |v| v != "0"),
         refinements_with_window: std::env::var("REFINE").map_or(1, |v| v.parse().expect("REFINE")),
@@ -182,6 +190,11 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
             }
             (None, Some(v)) => {
                 let o = v.process(&frame).expect("vio");
+                if std::env::var("VERBOSE").is_ok() && o.vo.keyframe.is_some() {
+                    if let VioStatus::Refused(e) = v.status() {
+                        eprintln!("{:.2} s: {e}", (t_ns - r.times[0]) as f64 * 1e-9);
+                    }
+                }
 
                 if let Some(m) = o.world_move {
                     if std::env::var("VERBOSE").is_ok() {
@@ -432,8 +445,9 @@ fn navigator_predicts_the_true_motion() {
 
 /// A debugging run (`SECS`, `SCENARIO` = drone (default), loop, fast-rs, blackout or phone,
 /// `PRIOR`, `NO_WINDOW`, `REFINE` = `VioParams::refinements_with_window`, `VW_N` and
-/// `VW_COV` = the window's free and fixed covisible keyframes,
-/// `SHOAL_VIO_IMU_TRACKING`, `VERBOSE` for the world moves): per-frame residuals.
+/// `VW_COV` = the window's free and fixed covisible keyframes, `ACC_PRIOR` and `POSE_SIGMA`
+/// = the initialisation's accelerometer-bias prior and keyframe position σ,
+/// `SHOAL_VIO_IMU_TRACKING`, `VERBOSE` for the world moves and refusals): per-frame residuals.
 #[test]
 #[ignore = "debugging aid"]
 fn debug_drone() {
