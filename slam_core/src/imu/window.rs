@@ -619,4 +619,4 @@ mod solve;
 
 #[cfg(test)]
 #[path = "window_tests.rs"]
-mod tests;
+pub(crate) mod tests;

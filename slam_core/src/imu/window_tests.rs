@@ -9,12 +9,12 @@ use crate::imu::{gravity_w, ImuBiases, ImuNoise, PreintegrationParams};
 use crate::lie::so3_exp;
 use crate::twoview::synth::Rng;
 
-fn rand3(rng: &mut Rng, s: f64) -> Vector3<f64> {
+pub(crate) fn rand3(rng: &mut Rng, s: f64) -> Vector3<f64> {
     Vector3::new(rng.uniform(-s, s), rng.uniform(-s, s), rng.uniform(-s, s))
 }
 
 /// Camera z along body x, a small lever arm.
-fn t_bc() -> Isometry3<f64> {
+pub(crate) fn t_bc() -> Isometry3<f64> {
     let r_bc = Matrix3::new(0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0);
     Isometry3::from_parts(
         Translation3::new(0.05, 0.01, -0.02),
@@ -22,7 +22,7 @@ fn t_bc() -> Isometry3<f64> {
     )
 }
 
-fn true_biases() -> ImuBiases {
+pub(crate) fn true_biases() -> ImuBiases {
     ImuBiases {
         gyro: Vector3::new(0.002, -0.003, 0.001),
         accel: Vector3::new(0.03, -0.02, 0.04),

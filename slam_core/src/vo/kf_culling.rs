@@ -155,25 +155,28 @@ mod tests {
         }
     }
 
+    /// Keyframes 0-4 made by `kf`, each seeing the same 20 points.
+    fn five_keyframes_seeing_20_points(kf: impl Fn(KfId) -> Keyframe) -> ClientMap {
+        let mut m = ClientMap::new(1, 0);
+        for id in 0..5 {
+            m.insert_keyframe(kf(id));
+        }
+        for i in 0..20u32 {
+            let obs: Vec<(KfId, u32)> = (0..5).map(|k| (k, i)).collect();
+            m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
+        }
+        for k in 0..5 {
+            m.update_covisibility(k);
+        }
+        m
+    }
+
     /// Five keyframes see the same 20 points. One removal at a time: keyframes 1 and 2 go,
     /// then the points of keyframe 3 are seen by only two others and it stays; the first and
     /// the latest always stay, protected keyframes too.
     #[test]
     fn culls_redundant_but_never_first_or_latest() {
-        let build = || {
-            let mut m = ClientMap::new(1, 0);
-            for id in 0..5 {
-                m.insert_keyframe(kf(id, 20, 0));
-            }
-            for i in 0..20u32 {
-                let obs: Vec<(KfId, u32)> = (0..5).map(|k| (k, i)).collect();
-                m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
-            }
-            for k in 0..5 {
-                m.update_covisibility(k);
-            }
-            m
-        };
+        let build = || five_keyframes_seeing_20_points(|id| kf(id, 20, 0));
         let p = KfCullingParams::default();
         let mut m = build();
         assert_eq!(redundant_fraction(&m, 2, &p), 1.0);
@@ -206,8 +209,7 @@ mod tests {
                 accel: Vector3::zeros(),
             })
             .collect();
-        let mut m = ClientMap::new(1, 0);
-        for id in 0..5 {
+        let mut m = five_keyframes_seeing_20_points(|id| {
             let mut k = kf(id, 20, 0);
             let t = 10 * id as i64;
             let t_prev = (id > 0).then(|| t - 10);
@@ -217,15 +219,8 @@ mod tests {
                 samples: bracket(&samples, t_prev.unwrap_or(t), t).to_vec(),
                 calib,
             });
-            m.insert_keyframe(k);
-        }
-        for i in 0..20u32 {
-            let obs: Vec<(KfId, u32)> = (0..5).map(|k| (k, i)).collect();
-            m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
-        }
-        for k in 0..5 {
-            m.update_covisibility(k);
-        }
+            k
+        });
         let p = KfCullingParams::default();
         assert_eq!(cull_redundant_keyframes(&mut m, 4, &[], &p), vec![1, 2]);
         let (k0, k3) = (&m.keyframes[&0], &m.keyframes[&3]);

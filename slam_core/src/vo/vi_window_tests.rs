@@ -2,11 +2,12 @@
 //! are chained by their own IMU segments (exact IMU, exact pixels, optionally a rolling
 //! shutter), perturbed, then one window built, solved and written back.
 
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 
 use super::*;
 use crate::camera::PinholeRadtan;
 use crate::features::{KeyPoint, OrbFeatures};
+use crate::imu::window::tests::{rand3, t_bc, true_biases as biases};
 use crate::imu::window::ViSolver;
 use crate::imu::{ImuMeasurement, ImuNoise, PreintegrationParams};
 use crate::lie::so3_log;
@@ -16,26 +17,6 @@ use crate::vo::map::Keyframe;
 
 const KF_STEP_NS: i64 = 250_000_000;
 const IMU_STEP_NS: i64 = 5_000_000;
-
-fn rand3(rng: &mut Rng, s: f64) -> Vector3<f64> {
-    Vector3::new(rng.uniform(-s, s), rng.uniform(-s, s), rng.uniform(-s, s))
-}
-
-/// Camera z along body x, a small lever arm.
-fn t_bc() -> Isometry3<f64> {
-    let r_bc = Matrix3::new(0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0);
-    Isometry3::from_parts(
-        Translation3::new(0.05, 0.01, -0.02),
-        UnitQuaternion::from_matrix(&r_bc),
-    )
-}
-
-fn biases() -> ImuBiases {
-    ImuBiases {
-        gyro: Vector3::new(0.002, -0.003, 0.001),
-        accel: Vector3::new(0.03, -0.02, 0.04),
-    }
-}
 
 /// IMU samples every 5 ms from -0.1 s to the last keyframe + 0.1 s (raw: biases added).
 fn samples(n_kf: usize) -> Vec<ImuMeasurement> {
