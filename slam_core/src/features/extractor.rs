@@ -67,6 +67,21 @@ pub struct KeyPoint {
     pub octave: u8,
 }
 
+impl KeyPoint {
+    /// A keypoint on level 0 at `(x, y)` with no orientation and a unit response (synthetic
+    /// features: tests, measurements made elsewhere).
+    pub fn at_level0(x: f32, y: f32) -> Self {
+        Self {
+            x,
+            y,
+            angle: 0.0,
+            response: 1.0,
+            size: 31.0,
+            octave: 0,
+        }
+    }
+}
+
 /// Keypoints and their 256-bit descriptors (`descriptors[i]` belongs to `keypoints[i]`),
 /// with the scale of the pyramid they were detected on.
 #[derive(Debug, Clone, Default)]

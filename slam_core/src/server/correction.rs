@@ -186,14 +186,7 @@ mod tests {
     fn kf(id: KfId, t_wk: Isometry3<f64>, n: usize) -> Keyframe {
         let mut features = OrbFeatures::default();
         for i in 0..n {
-            features.keypoints.push(KeyPoint {
-                x: i as f32,
-                y: 0.0,
-                angle: 0.0,
-                response: 1.0,
-                size: 31.0,
-                octave: 0,
-            });
+            features.keypoints.push(KeyPoint::at_level0(i as f32, 0.0));
             features.descriptors.push([i as u8; 32]);
         }
         Keyframe {

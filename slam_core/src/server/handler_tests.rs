@@ -46,14 +46,9 @@ fn keyframe(id: u64, session: u32, t_wk: &Isometry3<f64>, t_ck: &Isometry3<f64>)
         if !cam.contains(&uv) {
             continue;
         }
-        features.keypoints.push(KeyPoint {
-            x: uv.x as f32,
-            y: uv.y as f32,
-            angle: 0.0,
-            response: 1.0,
-            size: 31.0,
-            octave: 0,
-        });
+        features
+            .keypoints
+            .push(KeyPoint::at_level0(uv.x as f32, uv.y as f32));
         features.descriptors.push(*d);
         client_points.push(Some(i as u64));
     }

@@ -505,14 +505,7 @@ mod tests {
     use crate::features::KeyPoint;
 
     fn kf(id: KfId, n: usize, x: f64) -> Keyframe {
-        let kp = KeyPoint {
-            x: 0.0,
-            y: 0.0,
-            angle: 0.0,
-            response: 1.0,
-            size: 31.0,
-            octave: 0,
-        };
+        let kp = KeyPoint::at_level0(0.0, 0.0);
         Keyframe {
             id,
             t_ns: id as i64,

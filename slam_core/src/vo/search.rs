@@ -327,14 +327,7 @@ mod tests {
     use crate::vo::map::Keyframe;
 
     fn keypoint(x: f64, y: f64) -> KeyPoint {
-        KeyPoint {
-            x: x as f32,
-            y: y as f32,
-            angle: 0.0,
-            response: 1.0,
-            size: 31.0,
-            octave: 0,
-        }
+        KeyPoint::at_level0(x as f32, y as f32)
     }
 
     /// A map with one keyframe at the origin seeing 20 points, and that keyframe's features.

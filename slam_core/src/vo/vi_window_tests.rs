@@ -82,14 +82,9 @@ fn scene(n_kf: usize, readout_ns: i64, refined: u32) -> (ClientMap, Vec<NavState
         let mut seen = Vec::new();
         for (i, p) in points.iter().enumerate() {
             if let Some(uv) = rs_pixel(&camera, s, p, readout_ns) {
-                features.keypoints.push(KeyPoint {
-                    x: uv.x as f32,
-                    y: uv.y as f32,
-                    angle: 0.0,
-                    response: 1.0,
-                    size: 31.0,
-                    octave: 0,
-                });
+                features
+                    .keypoints
+                    .push(KeyPoint::at_level0(uv.x as f32, uv.y as f32));
                 features.descriptors.push([0; 32]);
                 seen.push(i);
             }

@@ -35,14 +35,9 @@ fn keyframe(k: u64, wall: &[StoredPoint]) -> Keyframe {
     for (i, p) in wall.iter().enumerate() {
         let uv = cam.project(&(t_cw * nalgebra::Point3::from(p.p_w)).coords);
         let uv = uv.expect("in view");
-        features.keypoints.push(KeyPoint {
-            x: uv.x as f32,
-            y: uv.y as f32,
-            angle: 0.0,
-            response: 1.0,
-            size: 31.0,
-            octave: 0,
-        });
+        features
+            .keypoints
+            .push(KeyPoint::at_level0(uv.x as f32, uv.y as f32));
         let mut d = [i as u8; 32];
         d[0] = k as u8;
         features.descriptors.push(d);
