@@ -21,8 +21,9 @@
 //! *with its IMU factor* to the next: it anchors position, yaw, velocity, biases and,
 //! through the IMU factor, gravity.
 //!
-//! **First windows** (`VI_NOTES.md` §4, "then VI BA"): when the oldest keyframe of the chain
-//! has no state refined by an earlier window (right after the inertial initialisation),
+//! **First windows** (`VI_NOTES.md` §4, "then VI BA"): when no keyframe of the map has a
+//! state refined by an earlier window (right after the inertial initialisation; a resumed
+//! session's keyframes count as refined: its scale and gravity were corrected before),
 //! every chain keyframe is free, with a 4-DoF gauge prior on the oldest one's position and
 //! yaw ([`gauge_prior`]), and no covisible keyframe: the window may then correct the
 //! initialisation's gravity direction and scale. That correction is a similarity of the
@@ -187,9 +188,10 @@ pub fn prepare_vi_window(
     if job.chain.len() < 3 {
         return Err(ViSkip::ShortChain);
     }
-    let gauged = map.keyframes[&job.chain[0]]
-        .inertial
-        .is_none_or(|i| i.refined == 0);
+    let refined = |id: &KfId| map.keyframes[id].inertial.is_some_and(|i| i.refined > 0);
+    // Gauged: the session's first windows only (a resumed session's keyframes count as
+    // refined: its scale and gravity are not corrected twice).
+    let gauged = !refined(&job.chain[0]) && !map.keyframes.keys().any(refined);
     collect_points(map, job, w, gauged);
     let n_visual = if gauged {
         0

@@ -278,9 +278,10 @@ fn stored_keyframe(k: &Recovered, readout_ns: i64) -> Result<Keyframe, String> {
             gyro: Vector3::from(h.gyro_bias),
             accel: Vector3::from(h.accel_bias),
         },
-        // Whether a window refined it is not spooled: the resumed session's first window
-        // is gauged (`slam_core::vo::vi_window` module docs).
-        refined: 0,
+        // The predecessor's state (its window's or its navigator's): counted as refined,
+        // so the successor's windows are anchored, not gauged (the session's scale and
+        // gravity are corrected once, `slam_core::vo::vi_window` module docs).
+        refined: 1,
     });
     Ok(Keyframe {
         id,

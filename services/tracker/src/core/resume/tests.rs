@@ -142,7 +142,8 @@ fn run_predecessor(world: &SimWorld) -> (Ports, Status, Vec<ImuMsg>) {
     let mut core = TrackerCore::new(config(), Status::new("tracker:0"));
     let (mut ports, mut next) = (Ports::default(), 0);
     drive(&mut core, world, 0..KILLED_AT, &imu, &mut next, &mut ports);
-    assert_eq!(ports.world_moves, 1, "initialised before the kill");
+    // The initialisation, and the first window's correction of scale and gravity.
+    assert!(ports.world_moves >= 1, "initialised before the kill");
     assert!(ports.sent.is_empty() && ports.spool.len() >= 8);
     let mut status = core.status().clone();
     status.starts = 2;
