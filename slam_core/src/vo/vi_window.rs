@@ -188,10 +188,13 @@ pub fn prepare_vi_window(
     if job.chain.len() < 3 {
         return Err(ViSkip::ShortChain);
     }
-    let refined = |id: &KfId| map.keyframes[id].inertial.is_some_and(|i| i.refined > 0);
-    // Gauged: the session's first windows only (a resumed session's keyframes count as
-    // refined: its scale and gravity are not corrected twice).
-    let gauged = !refined(&job.chain[0]) && !map.keyframes.keys().any(refined);
+    // Gauged: the session's first windows only, while no keyframe of the map is refined
+    // (a resumed session's keyframes count as refined: its scale and gravity are not
+    // corrected twice).
+    let gauged = !map
+        .keyframes
+        .values()
+        .any(|k| k.inertial.is_some_and(|i| i.refined > 0));
     collect_points(map, job, w, gauged);
     let n_visual = if gauged {
         0
