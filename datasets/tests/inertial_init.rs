@@ -242,3 +242,48 @@ fn camera_imu_rotation_from_gyro_and_visual_rotations() {
     assert!(err < 3.0 * est.sigma_rad.to_degrees() + 0.01, "beyond 3σ");
     assert!(bg_err < 2e-3, "gyro bias error {bg_err}");
 }
+
+/// Experiment (ignored): how the `loop` scenario's scale information grows with the span
+/// of keyframes, and what limits it. EuRoC noise; keyframes every 0.5 s; pose noise
+/// `POSE_MM` (default 2 mm, and 0.05°/mm); `SIM_NO_RW`: the simulated biases do not walk
+/// (the estimator's noise model is unchanged); `ACC_PRIOR`: the accelerometer bias prior σ.
+/// Measured (session 13, seed 5): with 0.2 mm poses the constant-bias estimate after 60 s
+/// is +3.6 % off with σ 0.54 % (and +9.6 % with σ 1.0 % after 20 s), but +0.6 % (σ 0.55 %)
+/// when the simulated accelerometer bias does not walk: EuRoC's random walk (3e-3
+/// m/s³/√Hz, about 0.02 m/s² a minute) is as large as the ellipse's accelerations, so the
+/// scale of `loop` is not determined to 1 % by its motion (BENCHMARKS.md, issue 17).
+#[test]
+#[ignore = "experiment: prints the scale error and σ per span"]
+fn loop_scale_information_over_time() {
+    let noise = ImuNoise::default();
+    for span in [5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 60.0] {
+        let mut sim_noise = noise;
+        if std::env::var("SIM_NO_RW").is_ok() {
+            sim_noise.accel_bias_rw = 0.0;
+            sim_noise.gyro_bias_rw = 0.0;
+        }
+        let case = Case::new(Scenario::Loop, sim_noise, span, 0.5);
+        let t_bc = case.world.calib().t_bs;
+        let mut params = InitParams {
+            max_scale_sigma: 10.0,
+            max_gravity_sigma: 1.0,
+            ..InitParams::default()
+        };
+        if let Ok(v) = std::env::var("ACC_PRIOR") {
+            params.prior_accel_bias = v.parse().expect("ACC_PRIOR");
+        }
+        let pm: f64 = std::env::var("POSE_MM").map_or(2.0, |v| v.parse().expect("POSE_MM"));
+        let pn = (pm * 1e-3, (0.05 * pm).to_radians());
+        (params.pose_sigma_m, params.pose_sigma_rad) = pn;
+        match initialize(&case.vo_poses(pn), &case.preints(&noise), &t_bc, &params) {
+            Ok(r) => {
+                let (s, g, _, _, ba) = case.errors(&r);
+                eprintln!(
+                    "span {span:5.1} s: scale {s:+.2}% σ {:.2}%, gravity {g:.3}°, b_a err {ba:.3}",
+                    r.scale_sigma * 100.0
+                );
+            }
+            Err(e) => eprintln!("span {span:5.1} s: {e}"),
+        }
+    }
+}
