@@ -12,6 +12,7 @@ pub mod detect;
 pub mod error;
 pub mod euroc;
 pub mod image_io;
+pub mod kalibr;
 pub mod kitti;
 pub mod phone;
 pub mod sim;
