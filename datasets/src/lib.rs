@@ -7,6 +7,7 @@
 //! recorded in [`Dataset::issues`] (file + line), so the pipeline can count it and go on.
 #![deny(missing_docs)]
 
+pub mod april;
 pub mod calibration;
 pub mod detect;
 pub mod error;

@@ -189,3 +189,35 @@ fn not_a_dataset_folder() {
     );
     assert!(err.to_string().contains("kitti06_frames"));
 }
+
+/// The EuRoC camera-IMU calibration recording as AprilGrid detections (issue 18): 72 s,
+/// 1439 frames, 14,374 IMU samples, every corner line parsed into at most 144 tracks.
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/euroc_imu_april (set SHOAL_DATA)"
+)]
+#[test]
+fn euroc_imu_april_detections() {
+    let ds =
+        datasets::april::read(&data_dir("euroc_imu_april").join("euroc_imu_april")).expect("read");
+    assert_eq!(ds.frames.len(), 1439);
+    assert_eq!(ds.imu.len(), 14_374);
+    assert!(
+        ds.issues.is_empty(),
+        "{:?}",
+        &ds.issues[..ds.issues.len().min(3)]
+    );
+    assert_eq!((ds.camera.width, ds.camera.height), (752, 480));
+    let corners: usize = ds.frames.iter().map(|f| f.observations.len()).sum();
+    let tracks: std::collections::BTreeSet<_> = ds
+        .frames
+        .iter()
+        .flat_map(|f| f.observations.iter().map(|o| o.track))
+        .collect();
+    eprintln!("{corners} corners in {} tracks", tracks.len());
+    assert!(
+        tracks.len() <= 144 && corners > 10_000,
+        "{corners} corners, {} tracks",
+        tracks.len()
+    );
+}
