@@ -40,7 +40,7 @@ pub use imu_gen::GtState;
 pub use params::{phone_imu, SimParams};
 pub use render::{PixelNoise, Renderer};
 pub use rng::{mix_seed, splitmix64, Rng};
-pub use scenario::{Scenario, LAP_S, PHONE_LAP_S, PHONE_STEP_HZ};
+pub use scenario::{Scenario, CALIB_S, LAP_S, PHONE_LAP_S, PHONE_STEP_HZ};
 pub use scene::{Rect, Scene, FIRST_PANEL, MAX_RECTS};
 pub use texture::MipTexture;
 pub use trajectory::{euroc_t_bs, AnalyticTrajectory, BodyState, Signal, Sine};

@@ -45,11 +45,11 @@ pub struct SimParams {
 impl SimParams {
     /// The defaults for `scenario`: 752x480 EuRoC-like camera at 20 Hz, IMU at 200 Hz with
     /// EuRoC noise and small initial biases, pixel noise 1.5, t_d = 0; for
-    /// [`Scenario::Phone`] the camera runs at 30 Hz and the IMU is [`phone_imu`]'s with
-    /// t_d = 40 ms.
+    /// [`Scenario::Phone`] and [`Scenario::Calib`] the camera runs at 30 Hz and the IMU is
+    /// [`phone_imu`]'s with t_d = 40 ms.
     pub fn new(scenario: Scenario) -> Self {
         let base = Self::euroc_like(scenario);
-        if scenario != Scenario::Phone {
+        if !matches!(scenario, Scenario::Phone | Scenario::Calib) {
             return base;
         }
         let (noise, imu_intrinsics, initial_biases) = phone_imu();

@@ -38,7 +38,17 @@ pub enum Scenario {
     /// (t_r 25 ms), a phone-grade 200 Hz IMU with biases and non-ideal `T_g`, `T_s`, `T_a`,
     /// and a camera-IMU offset t_d of 40 ms (the defaults of [`super::SimParams::new`]).
     Phone,
+    /// Camera-IMU calibration motion after the seed's Fig. 4.4 (issue 18): the rig turns about
+    /// a point near the room centre ([`calib_trajectory`]) with body rates up to 2.3-2.5 rad/s
+    /// about every axis, roll and pitch swinging ±0.6 rad (attitude to gravity varied over
+    /// 87°), accelerations up to 2.6-4.6 m/s² per axis, the room's six faces and its panels all around as landmarks; the
+    /// `phone` camera and IMU (30 Hz, t_r 25 ms, t_d 40 ms, non-ideal `T_g`, `T_s`, `T_a`),
+    /// 120 s.
+    Calib,
 }
+
+/// Duration of the `calib` scenario, seconds.
+pub const CALIB_S: f64 = 120.0;
 
 /// Lap period of the `drone` scenario, seconds.
 pub const DRONE_LAP_S: f64 = 20.0;
@@ -54,17 +64,18 @@ pub const BLACKOUT_S: f64 = 2.0;
 
 impl Scenario {
     /// All scenarios.
-    pub const ALL: [Scenario; 6] = [
+    pub const ALL: [Scenario; 7] = [
         Scenario::Loop,
         Scenario::TwoAgents,
         Scenario::FastRs,
         Scenario::Drone,
         Scenario::Blackout,
         Scenario::Phone,
+        Scenario::Calib,
     ];
 
     /// The name used on the command line (`loop`, `two-agents`, `fast-rs`, `drone`,
-    /// `blackout`, `phone`).
+    /// `blackout`, `phone`, `calib`).
     pub fn name(self) -> &'static str {
         match self {
             Scenario::Loop => "loop",
@@ -73,6 +84,7 @@ impl Scenario {
             Scenario::Drone => "drone",
             Scenario::Blackout => "blackout",
             Scenario::Phone => "phone",
+            Scenario::Calib => "calib",
         }
     }
 
@@ -84,7 +96,8 @@ impl Scenario {
             | Scenario::FastRs
             | Scenario::Drone
             | Scenario::Blackout
-            | Scenario::Phone => 1,
+            | Scenario::Phone
+            | Scenario::Calib => 1,
         }
     }
 
@@ -95,6 +108,7 @@ impl Scenario {
             Scenario::TwoAgents | Scenario::FastRs => LAP_S,
             Scenario::Drone => 2.0 * DRONE_LAP_S,
             Scenario::Phone => PHONE_LAP_S,
+            Scenario::Calib => CALIB_S,
         }
     }
 
@@ -102,7 +116,7 @@ impl Scenario {
     pub fn default_readout_ms(self) -> f64 {
         match self {
             Scenario::FastRs => 30.0,
-            Scenario::Phone => 25.0,
+            Scenario::Phone | Scenario::Calib => 25.0,
             Scenario::Loop | Scenario::TwoAgents | Scenario::Drone | Scenario::Blackout => 0.0,
         }
     }
@@ -252,6 +266,7 @@ impl Scenario {
                 }
             }
             (Scenario::Phone, 0) => phone_trajectory(),
+            (Scenario::Calib, 0) => calib_trajectory(),
             _ => return None,
         };
         Some(traj)
@@ -371,6 +386,7 @@ impl FromStr for Scenario {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Vector3;
 
     #[test]
     fn names_round_trip() {
@@ -382,6 +398,35 @@ mod tests {
             assert!(s.trajectory(s.n_agents()).is_none());
         }
         assert!("nope".parse::<Scenario>().is_err());
+    }
+
+    /// The `calib` motion excites what calibration needs (`VI_NOTES.md` §3 "Observability"):
+    /// every body axis turns faster than 1 rad/s, every world axis accelerates more than
+    /// 1 m/s², gravity's direction in the body frame varies by more than 60°, and the rig
+    /// stays within 1 m of the room centre (far from the panels).
+    #[test]
+    fn calib_excites_every_axis() {
+        let tr = Scenario::Calib.trajectory(0).expect("agent 0");
+        let (mut w_peak, mut a_peak) = (Vector3::<f64>::zeros(), Vector3::<f64>::zeros());
+        let (mut g_dirs, mut far) = (Vec::new(), 0.0f64);
+        for i in 0..24_000 {
+            let s = tr.body_state(f64::from(i) * 0.005);
+            w_peak = w_peak.zip_map(&s.omega_b, |p, w| p.max(w.abs()));
+            a_peak = a_peak.zip_map(&s.a_w, |p, a| p.max(a.abs()));
+            g_dirs.push(s.q_wb.inverse() * Vector3::z());
+            far = far.max((s.p_wb - Vector3::new(0.0, 0.0, 1.5)).norm());
+        }
+        let spread = g_dirs
+            .iter()
+            .step_by(50)
+            .flat_map(|a| g_dirs.iter().step_by(50).map(move |b| a.angle(b)))
+            .fold(0.0, f64::max);
+        eprintln!("peak rates {w_peak:.2?} rad/s, accelerations {a_peak:.2?} m/s², gravity spread {:.0}°, farthest {far:.2} m", spread.to_degrees());
+        assert!(
+            w_peak.min() > 1.0 && a_peak.min() > 1.0,
+            "{w_peak} {a_peak}"
+        );
+        assert!(spread > 60f64.to_radians() && far < 1.0);
     }
 
     #[test]
@@ -459,5 +504,31 @@ mod tests {
         assert!((0.3..1.0).contains(&rate), "peak rate {rate}");
         assert!((0.08..0.2).contains(&(z.1 - z.0)), "height range {z:?}");
         assert_eq!(Scenario::Phone.default_readout_ms(), 25.0);
+    }
+}
+
+/// The `calib` motion (seed Fig. 4.4, `VI_NOTES.md` §3 "Simulation": rates ≥ 1 rad/s,
+/// ≥ 1 m/s²): a rig held at 1.5 m near the room centre, moving ±0.3-0.4 m at 0.3-1.2 Hz
+/// (peak accelerations 2.6-4.6 m/s² per world axis), its yaw sweeping round the room once
+/// every 18 s with ±0.6 rad swings, pitch and roll ±0.55-0.6 rad (the attitude to gravity
+/// varies, as `T_a` needs) with faster ±0.1 rad swings: peak body rates 2.3-2.5 rad/s about
+/// every body axis (`tests::calib_excites_every_axis`).
+/// All sinusoids, so the IMU is exact.
+pub fn calib_trajectory() -> AnalyticTrajectory {
+    let sine = Sine::with_period;
+    AnalyticTrajectory {
+        pos: [
+            Signal::new(0.3, 0.0, vec![sine(0.35, 2.3, 0.0), sine(0.04, 0.9, 1.0)]),
+            Signal::new(-0.2, 0.0, vec![sine(0.3, 2.9, 1.0), sine(0.04, 1.1, 0.3)]),
+            Signal::new(1.5, 0.0, vec![sine(0.25, 3.7, 0.5), sine(0.03, 0.8, 2.0)]),
+        ],
+        yaw: Signal::new(
+            0.0,
+            TAU / 18.0,
+            vec![sine(0.6, 2.6, 0.0), sine(0.06, 0.9, 0.4)],
+        ),
+        pitch: Signal::new(0.0, 0.0, vec![sine(0.45, 3.1, 0.7), sine(0.1, 1.3, 0.0)]),
+        roll: Signal::new(0.0, 0.0, vec![sine(0.5, 2.7, 1.9), sine(0.1, 1.1, 0.2)]),
+        t_bs: euroc_t_bs(),
     }
 }
