@@ -26,6 +26,9 @@ use crate::launcher::faults::{ChaosSpec, KillSpec};
 pub struct RunConfig {
     /// One dataset per client (EuRoC ASL, KITTI odometry, phone logger; auto-detected).
     pub datasets: Vec<PathBuf>,
+    /// Calibration files put in place of the datasets' own (`shoal run --calib`): none, one
+    /// for every dataset, or one per dataset in the order of `datasets`.
+    pub calib: Vec<PathBuf>,
     /// Replay mode: `"lockstep"` (nothing dropped, reproducible) or `"realtime"`.
     pub mode: ReplayMode,
     /// Speed factor in real time (1.0 = the dataset's clock).
@@ -66,6 +69,7 @@ impl Default for RunConfig {
     fn default() -> Self {
         Self {
             datasets: Vec::new(),
+            calib: Vec::new(),
             mode: ReplayMode::Lockstep,
             rate: 1.0,
             out: PathBuf::from("out"),
@@ -194,7 +198,22 @@ impl RunConfig {
         if let Some(s) = self.max_seconds {
             anyhow::ensure!(s > 0.0, "max_seconds must be positive (got {s})");
         }
+        anyhow::ensure!(
+            self.calib.len() <= 1 || self.calib.len() == self.datasets.len(),
+            "{} calibration files for {} datasets: give one for all or one per dataset",
+            self.calib.len(),
+            self.datasets.len()
+        );
         Ok(())
+    }
+
+    /// The calibration file of client `client`, if any (`calib`).
+    pub fn calib_of(&self, client: usize) -> Option<&Path> {
+        match self.calib.as_slice() {
+            [] => None,
+            [one] => Some(one),
+            many => many.get(client).map(PathBuf::as_path),
+        }
     }
 
     /// The configuration file of service `desc` (its section; for a tracker, `{c}` in

@@ -67,6 +67,11 @@ struct RunArgs {
     /// and camera-IMU extrinsics, else monocular), `mono` or `vio`. Sets `tracker.mode`.
     #[arg(long = "mode", value_enum)]
     client_mode: Option<tracker::ClientMode>,
+    /// Calibration file (`shoal calibrate`'s output) put in place of the dataset's own
+    /// camera model, camera-IMU pose, t_d, t_r and IMU model. Once for every dataset, or once
+    /// per `--dataset` in the same order. Replaces the file's `calib`.
+    #[arg(long = "calib", value_name = "FILE")]
+    calib: Vec<PathBuf>,
     /// Lock-step replay: nothing dropped, deterministic (the default).
     #[arg(long, conflicts_with = "rate")]
     lockstep: bool,
@@ -155,6 +160,9 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     }
     if let Some(m) = args.client_mode {
         cfg.tracker.mode = m;
+    }
+    if !args.calib.is_empty() {
+        cfg.calib = args.calib;
     }
     if args.lockstep {
         cfg.mode = shoal_runtime::ReplayMode::Lockstep;

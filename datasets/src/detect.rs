@@ -47,3 +47,20 @@ pub fn open(path: &Path) -> Result<Dataset, DatasetError> {
         DatasetKind::Phone => phone::read(path),
     }
 }
+
+/// Opens the dataset in `path` ([`open`]) and, with `calibration`, puts that calibration file
+/// in place of the dataset's own ([`crate::calibration::CalibrationFile::apply_to`]: camera
+/// model, `T_BS`, `t_r`, and the frames re-stamped with its `t_d`). A calibration that cannot
+/// be read or does not fit the dataset is an error naming the file.
+pub fn open_calibrated(path: &Path, calibration: Option<&Path>) -> Result<Dataset, DatasetError> {
+    let mut ds = open(path)?;
+    if let Some(file) = calibration {
+        let c = crate::calibration::CalibrationFile::read(file)?;
+        c.apply_to(&mut ds).map_err(|detail| DatasetError::Parse {
+            path: file.to_path_buf(),
+            line: 0,
+            detail: format!("does not fit the dataset {}: {detail}", path.display()),
+        })?;
+    }
+    Ok(ds)
+}

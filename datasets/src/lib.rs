@@ -22,7 +22,7 @@ pub mod trajectory;
 
 use std::path::PathBuf;
 
-pub use detect::open;
+pub use detect::{open, open_calibrated};
 pub use error::DatasetError;
 pub use image_io::{decode_gray, decode_gray_into, image_size};
 pub use slam_core::camera::PinholeRadtan;

@@ -250,7 +250,7 @@ fn new_client(
     if args.mode != tracker::ClientMode::Vio {
         return Ok(tracker::core::Client::Mono(Box::new(vo)));
     }
-    let setup = crate::launcher::modes::client_setup(tracker::ClientMode::Vio, ds);
+    let setup = crate::launcher::modes::client_setup(tracker::ClientMode::Vio, ds, None);
     anyhow::ensure!(
         setup.imu.extrinsics_given && !ds.imu.is_empty(),
         "--mode vio: {}",

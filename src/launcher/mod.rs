@@ -152,9 +152,12 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) 
             args.extend(["--spool".to_string(), path_arg(&spool)]);
         }
         Kind::ImuIngest | Kind::CameraIngest => {
-            let ds = &cfg.datasets[desc.client.unwrap_or(0) as usize];
+            let client = desc.client.unwrap_or(0) as usize;
             args.extend(["--client".to_string(), c.clone()]);
-            args.extend(["--dataset".to_string(), path_arg(ds)]);
+            args.extend(["--dataset".to_string(), path_arg(&cfg.datasets[client])]);
+            if let Some(calib) = cfg.calib_of(client) {
+                args.extend(["--calib".to_string(), path_arg(calib)]);
+            }
             args.extend(["--rate".to_string(), cfg.rate.to_string()]);
             args.extend(["--t0-mono-ns".to_string(), t0_mono_ns.to_string()]);
             if let Some(m) = cfg.max_frames {
@@ -200,7 +203,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         std::thread::spawn(move || provenance::dataset_checksums(&paths))
     };
     prepare_out_dir(&cfg.out)?;
-    let datasets = match open_datasets(&cfg.datasets) {
+    let datasets = match open_datasets(cfg) {
         Ok(d) => d,
         Err((e, errors)) => {
             let mut rep = report::RunReport::failed(cfg, errors, started.elapsed());
@@ -222,7 +225,8 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let topology = topology::topology(cfg.datasets.len() as u32);
     let setups: Vec<modes::ClientSetup> = datasets
         .iter()
-        .map(|ds| modes::client_setup(cfg.tracker.mode, ds))
+        .enumerate()
+        .map(|(c, ds)| modes::client_setup(cfg.tracker.mode, ds, cfg.calib_of(c)))
         .collect();
     write_configs(cfg, &topology, &setups)?;
     let mut services = services_for(cfg, &topology, t0);
@@ -333,12 +337,13 @@ fn prepare_out_dir(out: &Path) -> anyhow::Result<()> {
 
 /// Opens every dataset; on failure the error and the launcher's error record.
 fn open_datasets(
-    paths: &[PathBuf],
+    cfg: &RunConfig,
 ) -> Result<Vec<datasets::Dataset>, (datasets::DatasetError, Vec<ErrorRecord>)> {
-    paths
+    cfg.datasets
         .iter()
-        .map(|path| {
-            datasets::open(path).map_err(|e| {
+        .enumerate()
+        .map(|(c, path)| {
+            datasets::open_calibrated(path, cfg.calib_of(c)).map_err(|e| {
                 let record = ErrorRecord {
                     service: "launcher".into(),
                     kind: ErrorKind::Dataset,

@@ -1,7 +1,7 @@
 //! What each client runs (`shoal run --mode`, `tracker.mode`): monocular or
 //! visual-inertial, decided per client from its dataset, with the reason the report gives,
-//! and the IMU calibration the visual-inertial client is configured with (the dataset's
-//! `imu0/sensor.yaml`).
+//! and the IMU calibration the visual-inertial client is configured with (the calibration
+//! file of `shoal run --calib`, else the dataset's `imu0/sensor.yaml`).
 use std::path::{Path, PathBuf};
 
 use tracker::{ClientMode, ImuCalibConfig};
@@ -29,19 +29,30 @@ fn imu_sensor_yaml(root: &Path) -> Option<PathBuf> {
     .find(|p| p.is_file())
 }
 
-/// The IMU calibration of `ds`: its `imu0/sensor.yaml` when it has one (noise, and the IMU
+/// The IMU calibration of `ds`: the calibration file `calib` when given (the launcher
+/// has read it already), else its `imu0/sensor.yaml` when it has one (noise, and the IMU
 /// intrinsics when given), else EuRoC's defaults; `extrinsics_given` from its camera.
-fn imu_calibration(ds: &datasets::Dataset) -> (ImuCalibConfig, Option<String>) {
+fn imu_calibration(
+    ds: &datasets::Dataset,
+    calib: Option<&Path>,
+) -> (ImuCalibConfig, Option<String>) {
     let mut c = ImuCalibConfig {
         extrinsics_given: ds.camera.t_bs_given,
         ..ImuCalibConfig::default()
     };
-    let Some(path) = imu_sensor_yaml(&ds.root) else {
-        return (c, None);
-    };
-    let y = match datasets::euroc::read_imu_sensor_yaml(&path) {
-        Ok(y) => y,
-        Err(e) => return (c, Some(e.to_string())),
+    let (y, path) = if let Some(file) = calib {
+        match datasets::calibration::CalibrationFile::read(file) {
+            Ok(f) => (f.imu_calib(), file.to_path_buf()),
+            Err(e) => return (c, Some(e.to_string())),
+        }
+    } else {
+        let Some(path) = imu_sensor_yaml(&ds.root) else {
+            return (c, None);
+        };
+        match datasets::euroc::read_imu_sensor_yaml(&path) {
+            Ok(y) => (y, path),
+            Err(e) => return (c, Some(e.to_string())),
+        }
     };
     c.gyroscope_noise_density = y.noise.gyro_noise_density;
     c.accelerometer_noise_density = y.noise.accel_noise_density;
@@ -62,8 +73,13 @@ fn imu_calibration(ds: &datasets::Dataset) -> (ImuCalibConfig, Option<String>) {
 }
 
 /// The mode of a client asked to run `requested` on `ds`, and why.
-pub fn client_setup(requested: ClientMode, ds: &datasets::Dataset) -> ClientSetup {
-    let (imu, calibration_error) = imu_calibration(ds);
+/// `calib`: the run's calibration file of this client, already applied to `ds`.
+pub fn client_setup(
+    requested: ClientMode,
+    ds: &datasets::Dataset,
+    calib: Option<&Path>,
+) -> ClientSetup {
+    let (imu, calibration_error) = imu_calibration(ds, calib);
     let has_imu = !ds.imu.is_empty();
     let missing = match (has_imu, ds.camera.t_bs_given) {
         (false, _) => Some("the dataset has no IMU stream"),
@@ -117,26 +133,29 @@ mod tests {
     fn auto_mode_follows_the_dataset() {
         let dir = tempfile::tempdir().expect("tmp");
         let mut ds = sim_dataset(dir.path(), Scenario::Phone);
-        let s = client_setup(ClientMode::Auto, &ds);
+        let s = client_setup(ClientMode::Auto, &ds, None);
         assert_eq!(s.mode, ClientMode::Vio, "{}", s.reason);
         assert!(s.imu.extrinsics_given && s.calibration_error.is_none());
         assert!(s.imu.source.ends_with("sensor.yaml"), "{}", s.imu.source);
         assert_ne!(s.imu.t_a, ImuCalibConfig::default().t_a, "phone T_a read");
         assert!(s.imu.preintegration().is_ok());
-        assert_eq!(client_setup(ClientMode::Mono, &ds).mode, ClientMode::Mono);
+        assert_eq!(
+            client_setup(ClientMode::Mono, &ds, None).mode,
+            ClientMode::Mono
+        );
         ds.camera.t_bs_given = false;
-        let s = client_setup(ClientMode::Auto, &ds);
+        let s = client_setup(ClientMode::Auto, &ds, None);
         assert_eq!(s.mode, ClientMode::Vio);
         assert!(
             s.reason.contains("without inertial initialisation"),
             "{}",
             s.reason
         );
-        let s = client_setup(ClientMode::Vio, &ds);
+        let s = client_setup(ClientMode::Vio, &ds, None);
         assert_eq!(s.mode, ClientMode::Vio);
         assert!(s.reason.contains("will not initialise"), "{}", s.reason);
         ds.imu.clear();
-        let s = client_setup(ClientMode::Auto, &ds);
+        let s = client_setup(ClientMode::Auto, &ds, None);
         assert_eq!(s.mode, ClientMode::Mono);
         assert!(s.reason.contains("no IMU"), "{}", s.reason);
     }
@@ -148,7 +167,7 @@ mod tests {
         let ds = sim_dataset(dir.path(), Scenario::Drone);
         let yaml = imu_sensor_yaml(dir.path()).expect("sensor.yaml");
         std::fs::write(&yaml, "gyroscope_noise_density: -1\n").expect("write");
-        let s = client_setup(ClientMode::Auto, &ds);
+        let s = client_setup(ClientMode::Auto, &ds, None);
         assert!(s.calibration_error.is_some());
         assert_eq!(s.imu.source, "default");
     }

@@ -188,7 +188,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let c = params.replay.client;
     let start = params.replay.start(&service_name(c), "camera_ingest")?;
     let mut file = start.file;
-    let dataset = datasets::open(&params.replay.dataset)?;
+    let dataset = params.replay.open_dataset()?;
     let mut core = CameraReplayCore::new(plan(params, cfg, &dataset), start.status);
     shoal_runtime::report_dataset_issues(core.status_mut(), &dataset, false);
     let cam = &dataset.camera.model;

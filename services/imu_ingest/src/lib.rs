@@ -120,7 +120,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let c = params.replay.client;
     let start = params.replay.start(&service_name(c), "imu_ingest")?;
     let (mut file, node): (_, Node<Ipc>) = (start.file, start.node);
-    let dataset = datasets::open(&params.replay.dataset)?;
+    let dataset = params.replay.open_dataset()?;
     let mut core = ImuReplayCore::new(plan(params, &cfg, &dataset), start.status);
     shoal_runtime::report_dataset_issues(core.status_mut(), &dataset, true);
     let publisher = topics::publisher(&topics::imu_service(&node, c)?)?;

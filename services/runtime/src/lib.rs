@@ -584,6 +584,9 @@ pub struct ReplayArgs {
     /// Dataset folder (format auto-detected).
     #[arg(long)]
     pub dataset: PathBuf,
+    /// Calibration file put in place of the dataset's own (`shoal run --calib`).
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
     /// Replay mode: realtime | lockstep.
     #[arg(long, default_value = "lockstep")]
     pub mode: ReplayMode,
@@ -605,6 +608,12 @@ pub struct ReplayArgs {
 }
 
 impl ReplayArgs {
+    /// The dataset, with the calibration file when one is given
+    /// ([`datasets::open_calibrated`]).
+    pub fn open_dataset(&self) -> Result<datasets::Dataset, datasets::DatasetError> {
+        datasets::open_calibrated(&self.dataset, self.calib.as_deref())
+    }
+
     /// The [`ServiceStart`] of ingest service `service` (node `{node}_c{client}`).
     pub fn start(&self, service: &str, node: &str) -> anyhow::Result<ServiceStart> {
         let node_name = format!("{node}_c{}", self.client);
