@@ -2,11 +2,12 @@
 //!
 //! - `mav0/` (or the folder is itself a `mav0` with `cam0/` or `imu0/`) → EuRoC ASL;
 //! - `image_0/` + `times.txt` → KITTI odometry;
-//! - `movie_metadata.csv` → phone logger.
+//! - `movie_metadata.csv` → phone logger;
+//! - `frame_timestamps.csv` + `gyro.csv` + `accl.csv` + `frames/` → GoPro clip.
 
 use std::path::Path;
 
-use crate::{euroc, kitti, phone, Dataset, DatasetError, DatasetKind};
+use crate::{euroc, gopro, kitti, phone, Dataset, DatasetError, DatasetKind};
 
 /// The kind of dataset in `path`, without reading it. `NotFound` for a missing folder,
 /// `UnknownFormat` when no layout matches.
@@ -29,11 +30,14 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
         Ok(DatasetKind::Kitti)
     } else if phone::is_phone(path) {
         Ok(DatasetKind::Phone)
+    } else if gopro::is_gopro(path) {
+        Ok(DatasetKind::GoPro)
     } else {
         Err(DatasetError::UnknownFormat {
             path: path.into(),
-            detail: "expected `mav0/` (EuRoC), `image_0/` + `times.txt` (KITTI) or \
-                     `movie_metadata.csv` (phone logger)"
+            detail: "expected `mav0/` (EuRoC), `image_0/` + `times.txt` (KITTI), \
+                     `movie_metadata.csv` (phone logger) or `frame_timestamps.csv` + \
+                     `gyro.csv` + `accl.csv` (GoPro)"
                 .into(),
         })
     }
@@ -45,6 +49,7 @@ pub fn open(path: &Path) -> Result<Dataset, DatasetError> {
         DatasetKind::Euroc => euroc::read(path),
         DatasetKind::Kitti => kitti::read(path),
         DatasetKind::Phone => phone::read(path),
+        DatasetKind::GoPro => gopro::read(path),
     }
 }
 

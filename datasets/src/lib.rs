@@ -12,6 +12,7 @@ pub mod calibration;
 pub mod detect;
 pub mod error;
 pub mod euroc;
+pub mod gopro;
 pub mod image_io;
 pub mod kalibr;
 pub mod kitti;
@@ -36,6 +37,9 @@ pub enum DatasetKind {
     Kitti,
     /// The phone logger format (`frames/`, `movie_metadata.csv`, `gyro_accel.csv`).
     Phone,
+    /// A GoPro clip with its GPMF streams (`frames/*.jpg`, `frame_timestamps.csv`,
+    /// `gyro.csv`, `accl.csv`).
+    GoPro,
 }
 
 /// Camera calibration and timing of a dataset's camera.

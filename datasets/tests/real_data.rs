@@ -221,3 +221,46 @@ fn euroc_imu_april_detections() {
         tracks.len()
     );
 }
+
+/// The GoPro HERO5 clip with its GPMF streams (issue 18): 362 JPEG frames at 29.97 Hz,
+/// 854x480, the ~400 Hz gyro with the ~200 Hz accelerometer interpolated to its times,
+/// reordered to (right/left, forward/back, up/down): gravity on the third axis.
+#[cfg_attr(
+    not(shoal_data),
+    ignore = "needs ../shared/data/gopro_karma_rs_imu (set SHOAL_DATA)"
+)]
+#[test]
+fn gopro_karma_clip() {
+    let ds = open(&data_dir("gopro_karma_rs_imu").join("gopro_karma_rs_imu")).expect("open");
+    assert_eq!(ds.kind, DatasetKind::GoPro);
+    assert_eq!(ds.frames.len(), 362);
+    assert!(
+        ds.issues.is_empty(),
+        "{:?}",
+        &ds.issues[..ds.issues.len().min(3)]
+    );
+    assert_eq!((ds.camera.model.width, ds.camera.model.height), (854, 480));
+    assert!(
+        (ds.camera.rate_hz - 29.97).abs() < 0.01,
+        "{}",
+        ds.camera.rate_hz
+    );
+    assert!(
+        (4700..=4795).contains(&ds.imu.len()),
+        "{} IMU samples",
+        ds.imu.len()
+    );
+    let n = ds.imu.len() as f64;
+    let mean: Vec<f64> = (0..3)
+        .map(|k| ds.imu.iter().map(|s| s.accel[k]).sum::<f64>() / n)
+        .collect();
+    eprintln!("mean specific force {mean:.2?} m/s²");
+    assert!(
+        mean[2] > 8.5 && mean[0].abs() < 2.0 && mean[1].abs() < 5.0,
+        "{mean:?}"
+    );
+    let mut buf = vec![0u8; 854 * 480];
+    decode_gray_into(&ds.frames[100].path, &mut buf, 854, 480).expect("decode");
+    let mean_px = buf.iter().map(|&b| f64::from(b)).sum::<f64>() / buf.len() as f64;
+    assert!((20.0..235.0).contains(&mean_px), "{mean_px}");
+}
