@@ -85,16 +85,30 @@ pub fn run_pipeline(datasets: &[&Path], out: &Path, test: &str, extra: &[&str]) 
         .arg("--quiet")
         .arg("--ipc-prefix")
         .arg(prefix(test));
-    cmd.arg("--max-seconds").arg("240");
+    cmd.arg("--max-seconds").arg(MAX_RUN_S.to_string());
     cmd.args(pin_mono(extra));
     cmd.args(extra);
-    let out = cmd.output().expect("run shoal");
-    if !out.status.success() {
-        eprintln!("stdout:\n{}", String::from_utf8_lossy(&out.stdout));
-        eprintln!("stderr:\n{}", String::from_utf8_lossy(&out.stderr));
+    let res = cmd.output().expect("run shoal");
+    if !res.status.success() {
+        eprintln!("stdout:\n{}", String::from_utf8_lossy(&res.stdout));
+        eprintln!("stderr:\n{}", String::from_utf8_lossy(&res.stderr));
     }
-    out
+    let timed_out = std::fs::read_to_string(out.join("report.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .is_some_and(|r| r["timed_out"] == true);
+    assert!(
+        !timed_out,
+        "the run was cut at --max-seconds {MAX_RUN_S} (a hang, or a machine far too loaded): \
+         its figures would describe part of the data"
+    );
+    res
 }
+
+/// The hang guard of [`run_pipeline`], s: far above a lock-step run's time on 2 cores
+/// (a 900-frame `loop` run took over 240 s under a load average of 7, sessions 11 and 13,
+/// and its loop test then failed as if no loop had been found).
+pub const MAX_RUN_S: u32 = 900;
 
 /// Starts `shoal run --quiet` on `dataset` into `out` in the background (stdout discarded,
 /// iceoryx2 prefix of `test`, at most 120 s) with `extra` arguments; the caller waits for it.
