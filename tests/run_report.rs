@@ -200,7 +200,7 @@ fn report_records_provenance() {
     assert_eq!(cfg["datasets"][0], ds[0].to_str().unwrap());
     assert_eq!(cfg["mode"], "lockstep");
     assert_eq!(cfg["max_frames"], 20);
-    assert_eq!(cfg["max_seconds"], 240.0);
+    assert_eq!(cfg["max_seconds"], f64::from(MAX_RUN_S));
     // `--tracker-arg=--no-vo` (deprecated) mapped onto the tracker's section.
     assert_eq!(cfg["tracker"]["vo"], false);
     assert_eq!(cfg["tracker"]["window"], 100);
