@@ -383,6 +383,32 @@ impl FromStr for Scenario {
     }
 }
 
+/// The `calib` motion (seed Fig. 4.4, `VI_NOTES.md` §3 "Simulation": rates ≥ 1 rad/s,
+/// ≥ 1 m/s²): a rig held at 1.5 m near the room centre, moving ±0.3-0.4 m at 0.3-1.2 Hz
+/// (peak accelerations 2.6-4.6 m/s² per world axis), its yaw sweeping round the room once
+/// every 18 s with ±0.6 rad swings, pitch and roll ±0.55-0.6 rad (the attitude to gravity
+/// varies, as `T_a` needs) with faster ±0.1 rad swings: peak body rates 2.3-2.5 rad/s about
+/// every body axis (`tests::calib_excites_every_axis`).
+/// All sinusoids, so the IMU is exact.
+pub fn calib_trajectory() -> AnalyticTrajectory {
+    let sine = Sine::with_period;
+    AnalyticTrajectory {
+        pos: [
+            Signal::new(0.3, 0.0, vec![sine(0.35, 2.3, 0.0), sine(0.04, 0.9, 1.0)]),
+            Signal::new(-0.2, 0.0, vec![sine(0.3, 2.9, 1.0), sine(0.04, 1.1, 0.3)]),
+            Signal::new(1.5, 0.0, vec![sine(0.25, 3.7, 0.5), sine(0.03, 0.8, 2.0)]),
+        ],
+        yaw: Signal::new(
+            0.0,
+            TAU / 18.0,
+            vec![sine(0.6, 2.6, 0.0), sine(0.06, 0.9, 0.4)],
+        ),
+        pitch: Signal::new(0.0, 0.0, vec![sine(0.45, 3.1, 0.7), sine(0.1, 1.3, 0.0)]),
+        roll: Signal::new(0.0, 0.0, vec![sine(0.5, 2.7, 1.9), sine(0.1, 1.1, 0.2)]),
+        t_bs: euroc_t_bs(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -504,31 +530,5 @@ mod tests {
         assert!((0.3..1.0).contains(&rate), "peak rate {rate}");
         assert!((0.08..0.2).contains(&(z.1 - z.0)), "height range {z:?}");
         assert_eq!(Scenario::Phone.default_readout_ms(), 25.0);
-    }
-}
-
-/// The `calib` motion (seed Fig. 4.4, `VI_NOTES.md` §3 "Simulation": rates ≥ 1 rad/s,
-/// ≥ 1 m/s²): a rig held at 1.5 m near the room centre, moving ±0.3-0.4 m at 0.3-1.2 Hz
-/// (peak accelerations 2.6-4.6 m/s² per world axis), its yaw sweeping round the room once
-/// every 18 s with ±0.6 rad swings, pitch and roll ±0.55-0.6 rad (the attitude to gravity
-/// varies, as `T_a` needs) with faster ±0.1 rad swings: peak body rates 2.3-2.5 rad/s about
-/// every body axis (`tests::calib_excites_every_axis`).
-/// All sinusoids, so the IMU is exact.
-pub fn calib_trajectory() -> AnalyticTrajectory {
-    let sine = Sine::with_period;
-    AnalyticTrajectory {
-        pos: [
-            Signal::new(0.3, 0.0, vec![sine(0.35, 2.3, 0.0), sine(0.04, 0.9, 1.0)]),
-            Signal::new(-0.2, 0.0, vec![sine(0.3, 2.9, 1.0), sine(0.04, 1.1, 0.3)]),
-            Signal::new(1.5, 0.0, vec![sine(0.25, 3.7, 0.5), sine(0.03, 0.8, 2.0)]),
-        ],
-        yaw: Signal::new(
-            0.0,
-            TAU / 18.0,
-            vec![sine(0.6, 2.6, 0.0), sine(0.06, 0.9, 0.4)],
-        ),
-        pitch: Signal::new(0.0, 0.0, vec![sine(0.45, 3.1, 0.7), sine(0.1, 1.3, 0.0)]),
-        roll: Signal::new(0.0, 0.0, vec![sine(0.5, 2.7, 1.9), sine(0.1, 1.1, 0.2)]),
-        t_bs: euroc_t_bs(),
     }
 }
