@@ -24,6 +24,7 @@ mod scale;
 mod simd;
 #[cfg(test)]
 mod tests;
+pub mod tracks;
 
 pub use extractor::{KeyPoint, OrbExtractor, OrbFeatures, OrbParams, OrbTimings, PATCH_SIZE};
 pub use image::{GrayBuffer, GrayImage};
