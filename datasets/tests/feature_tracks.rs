@@ -113,13 +113,16 @@ fn tracks_on_the_calib_scenario_follow_scene_points() {
         errors[n * 95 / 100],
         long.len()
     );
-    assert!(n > 20_000, "{n} observations");
+    // Measured (session 13, seed 3): 46,287 observations, median 0.68 px, 99.1% within
+    // 3 px, 16,196 tracks of ≥ 2 frames, mean length 3.9, 898 of ≥ 10 frames (without
+    // keeping missed tracks: 30,057, mean 3.0, 265).
+    assert!(n > 40_000, "{n} observations");
     assert!(
-        median < 1.0 && within3 > 0.95,
+        median < 1.0 && within3 > 0.97,
         "median {median}, within 3 px {within3}"
     );
     assert!(
-        mean_len > 5.0 && at_least_10 > 500,
+        mean_len > 3.5 && at_least_10 > 700,
         "mean {mean_len}, {at_least_10} long"
     );
 }
