@@ -1,0 +1,340 @@
+//! [`CalibFilter`]: the rolling-shutter MSCKF of seed chapter 4 (`VI_NOTES.md` §3, Table 4.1
+//! of the seed): IMU samples in, frames of `(track, pixel)` observations in, the state and
+//! calibration with 1σ out. No threads, IO or clocks.
+//!
+//! Per frame ([`CalibFilter::add_frame`]):
+//! 1. propagate to `τ_j = t_mid,j + t̂_d` ([`super::propagate`]) and clone `(R, p, v)` with
+//!    `P ← [P, P Jᵀ; J P, J P Jᵀ]` (§3 "Augmentation"), storing `t̂_d,j`;
+//! 2. record the observations; the features to use are the tracks that ended (not seen in
+//!    this frame) and, when the window is over [`CalibParams::max_clones`], the tracks seen
+//!    by the oldest clone (§3: "features of clones about to leave"); a used track's stored
+//!    observations are dropped, so no measurement is used twice;
+//! 3. per feature: triangulate ([`super::triangulate`]), predict each observation at its row
+//!    time ([`super::measure`]), project on the null space of `H_f`, χ² gate;
+//!    stack, compress, EKF update ([`super::update`]) and retract;
+//! 4. drop the oldest clone past the cap (the 2007 paper drops a third, evenly spaced; we
+//!    drop the oldest, one per frame, after using its features).
+
+use std::collections::{HashMap, VecDeque};
+
+use nalgebra::{DMatrix, Vector2};
+
+use super::integrate::{integrate, segments};
+use super::measure::{observe, AnchorPose, RowPose};
+use super::params::{CalibEstimate, CalibParams, CalibPriors};
+use super::propagate::{propagate_step, FirstEstimates, Transition};
+use super::state::{clone_offset, CalibState, CloneState, NavState};
+use super::triangulate::{triangulate, CameraPose};
+use super::update::{chi2_95, compress, ekf_update, mahalanobis, project_null_space, stack, Projected};
+use super::{ImuSample, Observation, TrackId, CAM_BLOCK, CLONE_DIM, CORE_DIM, IDX_PCB, IDX_TD};
+
+/// Errors of [`CalibFilter`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibError {
+    /// The frame's clone time lies before the filter's time (frames out of order).
+    #[error("frame clone time {tau_ns} ns is before the filter time {state_ns} ns")]
+    FrameBeforeState {
+        /// The frame's clone time `t_mid + t̂_d`.
+        tau_ns: i64,
+        /// The filter's time.
+        state_ns: i64,
+    },
+    /// The IMU samples do not reach the time the filter must propagate to.
+    #[error("IMU samples end at {last_ns:?} ns, before {need_ns} ns")]
+    ImuNotCovering {
+        /// Time of the last sample, if any.
+        last_ns: Option<i64>,
+        /// The time needed.
+        need_ns: i64,
+    },
+}
+
+/// What one frame did.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FrameReport {
+    /// Features whose rows went into the update.
+    pub used: usize,
+    /// Features rejected by the χ² gate.
+    pub gated: usize,
+    /// Features that failed triangulation or prediction.
+    pub failed: usize,
+    /// Rows of the update after compression.
+    pub rows: usize,
+}
+
+/// The rolling-shutter MSCKF with online calibration.
+#[derive(Debug, Clone)]
+pub struct CalibFilter {
+    params: CalibParams,
+    state: CalibState,
+    fej: FirstEstimates,
+    p: DMatrix<f64>,
+    clones: VecDeque<CloneState>,
+    tracks: HashMap<TrackId, Vec<(u64, Vector2<f64>)>>,
+    imu: Vec<ImuSample>,
+    next_clone: u64,
+}
+
+impl CalibFilter {
+    /// A filter at `initial` (its `t_ns` is the start time) with the diagonal prior of
+    /// `priors`.
+    pub fn new(params: CalibParams, priors: CalibPriors, initial: CalibState) -> Self {
+        Self {
+            params,
+            fej: FirstEstimates::of(&initial.nav),
+            state: initial,
+            p: priors.covariance(),
+            clones: VecDeque::new(),
+            tracks: HashMap::new(),
+            imu: Vec::new(),
+            next_clone: 0,
+        }
+    }
+
+    /// Buffers one IMU sample (samples must come in time order; an older one is ignored).
+    /// The filter propagates lazily, in [`CalibFilter::add_frame`]. Push the samples up to
+    /// the frame's last row (`t_mid + t_d + t_r/2`) before the frame.
+    pub fn push_imu(&mut self, sample: ImuSample) {
+        if self.imu.last().is_none_or(|l| sample.t_ns > l.t_ns) {
+            self.imu.push(sample);
+        }
+    }
+
+    /// The current nominal state.
+    pub fn state(&self) -> &CalibState {
+        &self.state
+    }
+
+    /// The full covariance (core then clones, oldest first).
+    pub fn covariance(&self) -> &DMatrix<f64> {
+        &self.p
+    }
+
+    /// The clones in the window, oldest first.
+    pub fn clones(&self) -> &VecDeque<CloneState> {
+        &self.clones
+    }
+
+    /// Every calibration parameter with its 1σ.
+    pub fn estimate(&self) -> CalibEstimate {
+        CalibEstimate::from_state(&self.state, &self.p)
+    }
+
+    /// Propagates state and covariance to `t_ns` with the buffered samples.
+    pub fn propagate_to(&mut self, t_ns: i64) -> Result<(), CalibError> {
+        if t_ns < self.state.t_ns {
+            return Err(CalibError::FrameBeforeState { tau_ns: t_ns, state_ns: self.state.t_ns });
+        }
+        let last_ns = self.imu.last().map(|s| s.t_ns);
+        let covered = self.imu.first().is_some_and(|f| f.t_ns <= self.state.t_ns);
+        if !covered || last_ns.is_none_or(|l| l < t_ns) {
+            return Err(CalibError::ImuNotCovering { last_ns, need_ns: t_ns });
+        }
+        let segs = segments(&self.imu, self.state.t_ns as f64, t_ns as f64)
+            .ok_or(CalibError::ImuNotCovering { last_ns, need_ns: t_ns })?;
+        for (dt, g, a) in segs {
+            let tr = propagate_step(&mut self.state, &mut self.fej, &g, &a, dt, &self.params.imu_noise);
+            apply_transition(&mut self.p, &tr);
+            self.p[(IDX_TD, IDX_TD)] += self.params.t_d_random_walk.powi(2) * dt;
+        }
+        self.state.t_ns = t_ns;
+        Ok(())
+    }
+
+    /// Processes one frame: `t_mid_ns` is its middle-row stamp (camera clock with the prior
+    /// `t_d0` applied, `VI_NOTES.md` §1), `obs` its feature observations.
+    pub fn add_frame(&mut self, t_mid_ns: i64, obs: &[Observation]) -> Result<FrameReport, CalibError> {
+        let tau = t_mid_ns + (self.state.t_d * 1e9).round() as i64;
+        self.propagate_to(tau)?;
+        self.augment(tau);
+        let id = self.clones.back().map_or(0, |c| c.id);
+        for o in obs {
+            self.tracks.entry(o.track).or_default().push((id, o.uv));
+        }
+        let features = self.select_features(id);
+        let report = self.update(&features);
+        if self.clones.len() > self.params.max_clones {
+            self.drop_oldest();
+        }
+        self.prune_imu();
+        Ok(report)
+    }
+
+    /// Appends the clone of the current body state at `tau_ns` (§3 "Augmentation").
+    fn augment(&mut self, tau_ns: i64) {
+        let n = self.p.nrows();
+        let mut big = DMatrix::zeros(n + CLONE_DIM, n + CLONE_DIM);
+        big.view_mut((0, 0), (n, n)).copy_from(&self.p);
+        big.view_mut((n, 0), (CLONE_DIM, n)).copy_from(&self.p.rows(0, CLONE_DIM));
+        big.view_mut((0, n), (n, CLONE_DIM)).copy_from(&self.p.columns(0, CLONE_DIM));
+        big.view_mut((n, n), (CLONE_DIM, CLONE_DIM))
+            .copy_from(&self.p.view((0, 0), (CLONE_DIM, CLONE_DIM)));
+        self.p = big;
+        self.clones.push_back(CloneState {
+            id: self.next_clone,
+            tau_ns,
+            t_d_at_clone: self.state.t_d,
+            nav: self.state.nav,
+            p_fej: self.fej.p,
+            v_fej: self.fej.v,
+        });
+        self.next_clone += 1;
+    }
+
+    /// Takes the tracks to use now out of the track table: ended ones (not seen by clone
+    /// `current`) and, when the window is full, those seen by the oldest clone. Longest
+    /// first, at most [`CalibParams::max_features_per_update`].
+    fn select_features(&mut self, current: u64) -> Vec<Vec<(u64, Vector2<f64>)>> {
+        let oldest = (self.clones.len() > self.params.max_clones)
+            .then(|| self.clones.front().map(|c| c.id))
+            .flatten();
+        let take: Vec<TrackId> = self
+            .tracks
+            .iter()
+            .filter(|(_, o)| {
+                let ended = o.last().is_some_and(|l| l.0 != current);
+                ended || oldest.is_some_and(|id| o.first().is_some_and(|f| f.0 == id))
+            })
+            .map(|(t, _)| *t)
+            .collect();
+        let mut out: Vec<Vec<(u64, Vector2<f64>)>> = take
+            .iter()
+            .filter_map(|t| self.tracks.remove(t))
+            .filter(|o| o.len() >= self.params.min_track_len.max(2))
+            .collect();
+        out.sort_by(|a, b| b.len().cmp(&a.len()));
+        if self.params.max_features_per_update > 0 {
+            out.truncate(self.params.max_features_per_update);
+        }
+        out
+    }
+
+    /// The row pose of an observation at pixel row `v` in clone `c`.
+    fn row_pose(&self, c: &CloneState, v: f64) -> Option<RowPose> {
+        let n_rows = f64::from(self.state.camera.height.max(1));
+        let shutter = v / n_rows - 0.5;
+        let delta = (self.state.t_d - c.t_d_at_clone) + shutter * self.state.t_r;
+        let t0 = c.tau_ns as f64;
+        let (nav, omega_b) = integrate(&self.state, &self.imu, &c.nav, t0, t0 + delta * 1e9)?;
+        let p_lin = if self.params.fej { c.p_fej + c.v_fej * delta } else { nav.p_gb };
+        Some(RowPose { nav, omega_b, delta, shutter, p_lin })
+    }
+
+    /// Camera pose of a body state: `R_gc = R_gb R_cbᵀ`, `p_gc = p_gb - R_gc p_cb`.
+    fn camera_pose(&self, nav: &NavState) -> CameraPose {
+        let r_gc = nav.r_gb * self.state.r_cb.inverse();
+        CameraPose { r_gc, p_gc: nav.p_gb - r_gc * self.state.p_cb }
+    }
+
+    /// One feature's projected rows, or `None` when it cannot be used.
+    fn feature_rows(&self, track: &[(u64, Vector2<f64>)]) -> Option<Projected> {
+        let first = self.clones.front()?.id;
+        let idx: Vec<usize> = track.iter().map(|o| (o.0 - first) as usize).collect();
+        let a = *idx.iter().max()?;
+        let anchor_c = self.clones.get(a)?;
+        let rows: Vec<RowPose> = track
+            .iter()
+            .zip(&idx)
+            .map(|(o, &i)| self.row_pose(self.clones.get(i)?, o.1.y))
+            .collect::<Option<_>>()?;
+        let views: Vec<(CameraPose, Vector2<f64>)> =
+            rows.iter().zip(track).map(|(r, o)| (self.camera_pose(&r.nav), o.1)).collect();
+        let tri = triangulate(&self.state.camera, &self.camera_pose(&anchor_c.nav), &views)?;
+        if tri.rms > self.params.max_triangulation_rms {
+            return None;
+        }
+        let p_lin = if self.params.fej { anchor_c.p_fej } else { anchor_c.nav.p_gb };
+        let anchor = AnchorPose { nav: anchor_c.nav, p_lin };
+        let m = 2 * track.len();
+        let dim = self.p.nrows();
+        let mut h_x = DMatrix::zeros(m, dim);
+        let mut h_f = DMatrix::zeros(m, 3);
+        let mut r = nalgebra::DVector::zeros(m);
+        for (k, ((o, &i), row)) in track.iter().zip(&idx).zip(&rows).enumerate() {
+            let j = observe(&self.state, row, &anchor, &tri.f)?;
+            let at = 2 * k;
+            r.rows_mut(at, 2).copy_from(&(o.1 - j.z));
+            h_f.view_mut((at, 0), (2, 3)).copy_from(&j.h_f);
+            h_x.view_mut((at, clone_offset(i)), (2, CLONE_DIM)).copy_from(&j.h_clone);
+            let mut ha = h_x.view_mut((at, clone_offset(a)), (2, 6));
+            ha += j.h_anchor;
+            h_x.view_mut((at, IDX_PCB), (2, CAM_BLOCK)).copy_from(&j.h_cam);
+        }
+        project_null_space(h_x, h_f, r)
+    }
+
+    /// Uses the selected features: gate, stack, compress, update, retract.
+    fn update(&mut self, features: &[Vec<(u64, Vector2<f64>)>]) -> FrameReport {
+        let sigma2 = self.params.pixel_sigma.powi(2);
+        let mut report = FrameReport::default();
+        let mut parts = Vec::new();
+        for f in features {
+            let Some(proj) = self.feature_rows(f) else {
+                report.failed += 1;
+                continue;
+            };
+            match mahalanobis(&proj.h, &proj.r, &self.p, sigma2) {
+                Some(d) if d <= chi2_95(proj.r.len()) => parts.push(proj),
+                _ => report.gated += 1,
+            }
+        }
+        report.used = parts.len();
+        if parts.is_empty() {
+            return report;
+        }
+        let m = compress(stack(&parts, self.p.nrows()));
+        report.rows = m.r.len();
+        if let Some(dx) = ekf_update(&mut self.p, &m, sigma2) {
+            self.state.retract(&dx);
+            for (i, c) in self.clones.iter_mut().enumerate() {
+                c.nav.retract(&dx, clone_offset(i));
+            }
+        }
+        report
+    }
+
+    /// Removes the oldest clone from the state and its observations from the tracks.
+    fn drop_oldest(&mut self) {
+        let Some(old) = self.clones.pop_front() else { return };
+        let p = std::mem::replace(&mut self.p, DMatrix::zeros(0, 0));
+        self.p = p.remove_rows(CORE_DIM, CLONE_DIM).remove_columns(CORE_DIM, CLONE_DIM);
+        self.tracks.retain(|_, o| {
+            o.retain(|x| x.0 != old.id);
+            !o.is_empty()
+        });
+    }
+
+    /// Forgets IMU samples no row of a kept clone can need (keeps 0.2 s before the oldest).
+    fn prune_imu(&mut self) {
+        let keep_from = self.clones.front().map_or(self.state.t_ns, |c| c.tau_ns) - 200_000_000;
+        let n = self.imu.partition_point(|s| s.t_ns < keep_from);
+        if n > 1 {
+            self.imu.drain(..n - 1);
+        }
+    }
+
+    /// True when the covariance is symmetric and positive definite (Cholesky succeeds).
+    pub fn covariance_is_positive(&self) -> bool {
+        let sym = (&self.p - self.p.transpose()).amax() <= 1e-12 * self.p.amax().max(1.0);
+        sym && self.p.clone().cholesky().is_some()
+    }
+}
+
+/// `P ← Φ P Φᵀ + Q` with Φ the identity outside the rows `dθ, dp, dv` (clones included).
+fn apply_transition(p: &mut DMatrix<f64>, tr: &Transition) {
+    let phi = DMatrix::from_column_slice(9, CORE_DIM, tr.phi.as_slice());
+    let top = &phi * p.rows(0, CORE_DIM);
+    p.rows_mut(0, 9).copy_from(&top);
+    let left = p.columns(0, CORE_DIM) * phi.transpose();
+    p.columns_mut(0, 9).copy_from(&left);
+    for i in 0..9 {
+        for j in 0..9 {
+            p[(i, j)] += tr.q_nav[(i, j)];
+        }
+    }
+    for k in 0..3 {
+        p[(9 + k, 9 + k)] += tr.q_bias.0;
+        p[(12 + k, 12 + k)] += tr.q_bias.1;
+    }
+    super::update::symmetrise(p);
+}
