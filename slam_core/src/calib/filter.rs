@@ -15,7 +15,7 @@
 //! 4. drop the oldest clone past the cap (the 2007 paper drops a third, evenly spaced; we
 //!    drop the oldest, one per frame, after using its features).
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeMap, VecDeque};
 
 use nalgebra::{DMatrix, Vector2};
 
@@ -70,7 +70,7 @@ pub struct CalibFilter {
     fej: FirstEstimates,
     p: DMatrix<f64>,
     clones: VecDeque<CloneState>,
-    tracks: HashMap<TrackId, Vec<(u64, Vector2<f64>)>>,
+    tracks: BTreeMap<TrackId, Vec<(u64, Vector2<f64>)>>,
     imu: Vec<ImuSample>,
     next_clone: u64,
 }
@@ -85,7 +85,7 @@ impl CalibFilter {
             state: initial,
             p: priors.covariance(),
             clones: VecDeque::new(),
-            tracks: HashMap::new(),
+            tracks: BTreeMap::new(),
             imu: Vec::new(),
             next_clone: 0,
         }
@@ -313,10 +313,13 @@ impl CalibFilter {
         }
     }
 
-    /// True when the covariance is symmetric and positive definite (Cholesky succeeds).
+    /// True when the covariance is symmetric and positive semi-definite (smallest
+    /// eigenvalue ≥ -1e-12 of the largest). Right after a frame the newest clone duplicates
+    /// the IMU state, so P is singular there by construction; propagation makes it definite.
     pub fn covariance_is_positive(&self) -> bool {
         let sym = (&self.p - self.p.transpose()).amax() <= 1e-12 * self.p.amax().max(1.0);
-        sym && self.p.clone().cholesky().is_some()
+        let eig = self.p.clone().symmetric_eigenvalues();
+        sym && eig.min() >= -1e-12 * eig.max().max(0.0)
     }
 }
 
