@@ -25,7 +25,10 @@ use super::params::{CalibEstimate, CalibParams, CalibPriors};
 use super::propagate::{propagate_step, FirstEstimates, Transition};
 use super::state::{clone_offset, CalibState, CloneState, NavState};
 use super::triangulate::{triangulate, CameraPose};
-use super::update::{chi2_95, compress, ekf_update, mahalanobis, project_null_space, stack, Projected};
+use super::update::{
+    chi2_95, compress, joseph_in_place, kalman_gain, mahalanobis, project_null_space, stack,
+    Projected,
+};
 use super::{ImuSample, Observation, TrackId, CAM_BLOCK, CLONE_DIM, CORE_DIM, IDX_PCB, IDX_TD};
 
 /// Errors of [`CalibFilter`].
@@ -239,7 +242,8 @@ impl CalibFilter {
             .collect::<Option<_>>()?;
         let views: Vec<(CameraPose, Vector2<f64>)> =
             rows.iter().zip(track).map(|(r, o)| (self.camera_pose(&r.nav), o.1)).collect();
-        let tri = triangulate(&self.state.camera, &self.camera_pose(&anchor_c.nav), &views)?;
+        let anchor_cam = self.camera_pose(&anchor_c.nav);
+        let tri = triangulate(&self.state.camera, &anchor_cam, &views, self.params.min_parallax)?;
         if tri.rms > self.params.max_triangulation_rms {
             return None;
         }
@@ -263,10 +267,15 @@ impl CalibFilter {
         project_null_space(h_x, h_f, r)
     }
 
-    /// Uses the selected features: gate, stack, compress, update, retract.
+    /// Uses the selected features: gate (at the prior), stack, compress, update, retract.
+    /// Iterated EKF: while the correction is large ([`CalibParams::iterate_above_sigma`]),
+    /// the features are re-triangulated and the rows relinearised at the new iterate
+    /// `x_i`, and `x_{i+1} = x_0 ⊞ K_i (r_i + H_i (x_i ⊟ x_0))` with `K_i` from the prior
+    /// `P_0`; the covariance takes the last gain (Joseph form).
     fn update(&mut self, features: &[Vec<(u64, Vector2<f64>)>]) -> FrameReport {
         let sigma2 = self.params.pixel_sigma.powi(2);
         let mut report = FrameReport::default();
+        let mut kept = Vec::new();
         let mut parts = Vec::new();
         for f in features {
             let Some(proj) = self.feature_rows(f) else {
@@ -274,7 +283,10 @@ impl CalibFilter {
                 continue;
             };
             match mahalanobis(&proj.h, &proj.r, &self.p, sigma2) {
-                Some(d) if d <= chi2_95(proj.r.len()) => parts.push(proj),
+                Some(d) if d <= chi2_95(proj.r.len()) => {
+                    parts.push(proj);
+                    kept.push(f.clone());
+                }
                 _ => report.gated += 1,
             }
         }
@@ -282,15 +294,60 @@ impl CalibFilter {
         if parts.is_empty() {
             return report;
         }
-        let m = compress(stack(&parts, self.p.nrows()));
-        report.rows = m.r.len();
-        if let Some(dx) = ekf_update(&mut self.p, &m, sigma2) {
-            self.state.retract(&dx);
-            for (i, c) in self.clones.iter_mut().enumerate() {
-                c.nav.retract(&dx, clone_offset(i));
+        let (x0, clones0) = (self.state, self.clones.clone());
+        let sigma0: Vec<f64> = (0..CORE_DIM).map(|i| self.p[(i, i)].sqrt()).collect();
+        let mut last: Option<(DMatrix<f64>, DMatrix<f64>)> = None;
+        let mut y_prev: Option<nalgebra::DVector<f64>> = None;
+        for it in 0..self.params.max_iterations.max(1) {
+            if it > 0 {
+                parts = kept.iter().filter_map(|f| self.feature_rows(f)).collect();
+                if parts.is_empty() {
+                    break;
+                }
+            }
+            let m = compress(stack(&parts, self.p.nrows()));
+            report.rows = m.r.len();
+            let Some(k) = kalman_gain(&self.p, &m.h, sigma2) else { break };
+            let r_eff = &m.r + &m.h * self.error_from(&x0, &clones0);
+            let y = &k * r_eff;
+            self.state = x0;
+            self.clones = clones0.clone();
+            self.retract_all(&y);
+            last = Some((k, m.h));
+            let moved = |v: &nalgebra::DVector<f64>| {
+                (0..CORE_DIM).map(|i| v[i].abs() / sigma0[i].max(1e-300)).fold(0.0, f64::max)
+            };
+            let change = match &y_prev {
+                None => moved(&y),
+                Some(prev) => moved(&(&y - prev)),
+            };
+            y_prev = Some(y);
+            if change < self.params.iterate_above_sigma {
+                break;
             }
         }
+        if let Some((k, h)) = last {
+            joseph_in_place(&mut self.p, &k, &h, sigma2);
+        }
         report
+    }
+
+    /// The error taking `(x0, clones0)` to the current state, full error-state order.
+    fn error_from(&self, x0: &CalibState, clones0: &VecDeque<CloneState>) -> nalgebra::DVector<f64> {
+        let mut e = nalgebra::DVector::zeros(self.p.nrows());
+        e.rows_mut(0, CORE_DIM).copy_from(&self.state.boxminus(x0));
+        for (i, (c, c0)) in self.clones.iter().zip(clones0).enumerate() {
+            e.fixed_rows_mut::<CLONE_DIM>(clone_offset(i)).copy_from(&c.nav.boxminus(&c0.nav));
+        }
+        e
+    }
+
+    /// Retracts the state and every clone by a full error-state vector.
+    fn retract_all(&mut self, dx: &nalgebra::DVector<f64>) {
+        self.state.retract(dx);
+        for (i, c) in self.clones.iter_mut().enumerate() {
+            c.nav.retract(dx, clone_offset(i));
+        }
     }
 
     /// Removes the oldest clone from the state and its observations from the tracks.

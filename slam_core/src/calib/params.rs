@@ -24,10 +24,17 @@ pub struct CalibParams {
     pub max_features_per_update: usize,
     /// Random walk of `t_d`, s/√s (`VI_NOTES.md` §1: drifting stamps); 0 = constant.
     pub t_d_random_walk: f64,
+    /// Smallest parallax of a used feature: largest camera baseline over its depth, rad.
+    pub min_parallax: f64,
     /// Largest Gauss-Newton reprojection RMS (px) for a triangulated feature to be used.
     pub max_triangulation_rms: f64,
     /// Use first-estimate Jacobians (FEJ) for p and v (propagation and measurement).
     pub fej: bool,
+    /// Most relinearisations of one update (iterated EKF); 1 = plain EKF.
+    pub max_iterations: usize,
+    /// Relinearise only when the first correction moves some core entry by more than this
+    /// many prior σ (large corrections are where linearisation errors bite: the start).
+    pub iterate_above_sigma: f64,
 }
 
 impl Default for CalibParams {
@@ -36,11 +43,14 @@ impl Default for CalibParams {
             imu_noise: ImuNoise::default(),
             pixel_sigma: 1.0,
             max_clones: 12,
-            min_track_len: 3,
+            min_track_len: 5,
             max_features_per_update: 60,
             t_d_random_walk: 0.0,
             max_triangulation_rms: 4.0,
+            min_parallax: 0.02,
             fej: true,
+            max_iterations: 4,
+            iterate_above_sigma: 0.3,
         }
     }
 }

@@ -35,6 +35,16 @@ impl NavState {
         self.r_gb = self.r_gb * so3_exp(&(omega * dt));
     }
 
+    /// The error `(dθ, dp, dv)` taking `other` to `self`: `R_self = Exp(dθ) R_other`.
+    pub fn boxminus(&self, other: &NavState) -> nalgebra::SVector<f64, 9> {
+        let mut e = nalgebra::SVector::<f64, 9>::zeros();
+        e.fixed_rows_mut::<3>(0)
+            .copy_from(&crate::lie::so3_log(&(self.r_gb * other.r_gb.inverse())));
+        e.fixed_rows_mut::<3>(3).copy_from(&(self.p_gb - other.p_gb));
+        e.fixed_rows_mut::<3>(6).copy_from(&(self.v_gb - other.v_gb));
+        e
+    }
+
     /// Applies a 9-vector error `(dθ, dp, dv)` starting at `dx[at]`.
     pub fn retract(&mut self, dx: &DVector<f64>, at: usize) {
         let dth = Vector3::new(dx[at], dx[at + 1], dx[at + 2]);
@@ -123,6 +133,14 @@ impl CalibState {
         c.p2 += dx[IDX_DIST + 3];
         self.t_d += dx[IDX_TD];
         self.t_r += dx[IDX_TR];
+    }
+
+    /// The core error taking `other` to `self` (inverse of [`CalibState::retract`] to first
+    /// order in the rotation, exact elsewhere).
+    pub fn boxminus(&self, other: &CalibState) -> DVector<f64> {
+        let mut e = self.calib_vector() - other.calib_vector();
+        e.fixed_rows_mut::<9>(IDX_THETA).copy_from(&self.nav.boxminus(&other.nav));
+        e
     }
 
     /// The calibration part `x[15..55]` as a vector in error-state order (for tests and

@@ -23,6 +23,14 @@ fn start_state(sc: &Scenario, priors: &CalibPriors, rng: &mut Rng) -> CalibState
     let (t, e) = (sc.truth.calib_vector(), s.calib_vector());
     let mut dx = (t.clone() - e) * (1.0 - scale);
     dx.rows_mut(0, super::IDX_TG).fill(0.0);
+    // Diagnostic: CALIB_INIT_KEEP=a-b,c-d keeps the full starting error on those entries.
+    if let Ok(keep) = std::env::var("CALIB_INIT_KEEP") {
+        for r in keep.split(',') {
+            let (a, b) = r.split_once('-').unwrap_or((r, r));
+            let (a, b): (usize, usize) = (a.parse().unwrap(), b.parse().unwrap());
+            dx.rows_mut(a, b + 1 - a).fill(0.0);
+        }
+    }
     s.retract(&dx);
     s
 }
@@ -117,6 +125,14 @@ fn simulate(sc: &Scenario, params: CalibParams, priors: CalibPriors, seconds: f6
         let e = err.rows(CAL0, n).into_owned();
         let block = p.view((CAL0, CAL0), (n, n)).into_owned();
         nees_sum += block.cholesky().map_or(f64::INFINITY, |c| e.dot(&c.solve(&e)));
+        if std::env::var("CALIB_TRACE").is_ok() && k <= 40 {
+            let d = |i: usize| format!("{:+.3e}±{:.1e}", err[i], p[(i, i)].sqrt());
+            eprintln!(
+                "k {k} used {} gated {} failed {} rows {} fx {} cx {} k1 {} k2 {} p1 {} p2 {} td {}",
+                rep.used, rep.gated, rep.failed, rep.rows, d(IDX_INTR), d(IDX_INTR + 2),
+                d(IDX_DIST), d(IDX_DIST + 1), d(IDX_DIST + 2), d(IDX_DIST + 3), d(IDX_TD)
+            );
+        }
         if k % 150 == 0 {
             tr.positive &= f.covariance_is_positive();
             let d = |i: usize| (err[i], p[(i, i)].sqrt());
@@ -186,6 +202,9 @@ fn diagnostic_run() {
         pixel_sigma: sc.pixel_sigma,
         fej: env("CALIB_FEJ", 1.0) > 0.5,
         max_clones: env("CALIB_CLONES", 12.0) as usize,
+        min_parallax: env("CALIB_PARALLAX", 0.02),
+        min_track_len: env("CALIB_MINLEN", 5.0) as usize,
+        max_iterations: env("CALIB_ITERS", 4.0) as usize,
         ..Default::default()
     };
     let tr = simulate(&sc, params, CalibPriors::default(), env("CALIB_SECONDS", 10.0), 11);

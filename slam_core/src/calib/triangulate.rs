@@ -36,11 +36,15 @@ const MIN_DEPTH: f64 = 0.05;
 const MIN_PARALLAX: f64 = 1e-5;
 
 /// Triangulates a feature seen at `obs` (camera pose at the row time, pixel), anchored in
-/// the camera `anchor`. `None` without parallax, behind a camera or when Gauss-Newton fails.
+/// the camera `anchor`. `None` without parallax (largest baseline over the anchor depth
+/// below `min_parallax`, rad), behind a camera or when Gauss-Newton fails. Short-baseline
+/// features are refused because their depth absorbs model errors (wrong intrinsics or
+/// distortion at the start), and the linearised null-space rows are then inconsistent.
 pub fn triangulate(
     cam: &PinholeRadtan,
     anchor: &CameraPose,
     obs: &[(CameraPose, Vector2<f64>)],
+    min_parallax: f64,
 ) -> Option<Triangulated> {
     let x = midpoint(cam, obs)?;
     let p_a = anchor.r_gc.inverse() * (x - anchor.p_gc);
@@ -64,10 +68,21 @@ pub fn triangulate(
             _ => break,
         }
     }
-    if f.rho <= 0.0 {
+    if f.rho <= 0.0 || baseline(obs) * f.rho < min_parallax {
         return None;
     }
     Some(Triangulated { f, rms: (cost / obs.len() as f64).sqrt() })
+}
+
+/// Largest distance between two of the camera centres, m.
+fn baseline(obs: &[(CameraPose, Vector2<f64>)]) -> f64 {
+    let mut b: f64 = 0.0;
+    for (i, a) in obs.iter().enumerate() {
+        for c in &obs[i + 1..] {
+            b = b.max((a.0.p_gc - c.0.p_gc).norm());
+        }
+    }
+    b
 }
 
 /// Least-squares point closest to every bearing ray; `None` without parallax.
@@ -159,11 +174,11 @@ mod tests {
             .iter()
             .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
             .collect();
-        let t = triangulate(&cam, &poses[2], &obs).expect("triangulates");
+        let t = triangulate(&cam, &poses[2], &obs, 0.01).expect("triangulates");
         let back = in_camera(&poses[2], &CameraPose { r_gc: Rotation3::identity(), p_gc: Vector3::zeros() }, &t.f);
         assert!((back - x).norm() < 1e-8, "{back} vs {x}");
         assert!(t.rms < 1e-8);
         let same = vec![obs[0]; 3];
-        assert!(triangulate(&cam, &poses[0], &same).is_none(), "no parallax");
+        assert!(triangulate(&cam, &poses[0], &same, 0.0).is_none(), "no parallax");
     }
 }

@@ -93,22 +93,32 @@ pub fn compress(m: Projected) -> Projected {
 /// `P ← (I - K H) P (I - K H)ᵀ + σ² K Kᵀ` (Joseph form), symmetrised. `None` (P untouched)
 /// if `S` is not positive definite.
 pub fn ekf_update(p: &mut DMatrix<f64>, m: &Projected, sigma2: f64) -> Option<DVector<f64>> {
-    let pht = &*p * m.h.transpose();
-    let mut s = &m.h * &pht;
+    let k = kalman_gain(p, &m.h, sigma2)?;
+    let dx = &k * &m.r;
+    joseph_in_place(p, &k, &m.h, sigma2);
+    Some(dx)
+}
+
+/// `K = P Hᵀ (H P Hᵀ + σ² I)⁻¹`; `None` if the innovation covariance is not positive.
+pub fn kalman_gain(p: &DMatrix<f64>, h: &DMatrix<f64>, sigma2: f64) -> Option<DMatrix<f64>> {
+    let pht = p * h.transpose();
+    let mut s = h * &pht;
     for k in 0..s.nrows() {
         s[(k, k)] += sigma2;
     }
     let chol = s.cholesky()?;
-    let k = chol.solve(&pht.transpose()).transpose();
-    let dx = &k * &m.r;
-    let mut ikh = -&k * &m.h;
+    Some(chol.solve(&pht.transpose()).transpose())
+}
+
+/// `P ← (I - K H) P (I - K H)ᵀ + σ² K Kᵀ`, symmetrised (Joseph form: stays positive).
+pub fn joseph_in_place(p: &mut DMatrix<f64>, k: &DMatrix<f64>, h: &DMatrix<f64>, sigma2: f64) {
+    let mut ikh = -k * h;
     for d in 0..ikh.nrows() {
         ikh[(d, d)] += 1.0;
     }
-    let mut next = &ikh * &*p * ikh.transpose() + &k * k.transpose() * sigma2;
+    let mut next = &ikh * &*p * ikh.transpose() + k * k.transpose() * sigma2;
     symmetrise(&mut next);
     *p = next;
-    Some(dx)
 }
 
 /// `P ← (P + Pᵀ)/2`.
