@@ -22,7 +22,7 @@ use nalgebra::{DMatrix, Vector2};
 use super::integrate::{integrate, segments};
 use super::measure::{observe, AnchorPose, RowPose};
 use super::params::{CalibEstimate, CalibParams, CalibPriors};
-use super::propagate::{propagate_step, FirstEstimates, Transition};
+use super::propagate::{propagate_step, rate_jacobians, FirstEstimates, Transition};
 use super::state::{clone_offset, CalibState, CloneState, NavState};
 use super::triangulate::{triangulate, CameraPose};
 use super::update::{
@@ -213,14 +213,15 @@ impl CalibFilter {
     }
 
     /// The row pose of an observation at pixel row `v` in clone `c`.
-    fn row_pose(&self, c: &CloneState, v: f64) -> Option<RowPose> {
+    pub(crate) fn row_pose(&self, c: &CloneState, v: f64) -> Option<RowPose> {
         let n_rows = f64::from(self.state.camera.height.max(1));
         let shutter = v / n_rows - 0.5;
         let delta = (self.state.t_d - c.t_d_at_clone) + shutter * self.state.t_r;
         let t0 = c.tau_ns as f64;
-        let (nav, omega_b) = integrate(&self.state, &self.imu, &c.nav, t0, t0 + delta * 1e9)?;
+        let (nav, omega_b, accel_b) =
+            integrate(&self.state, &self.imu, &c.nav, t0, t0 + delta * 1e9)?;
         let p_lin = if self.params.fej { c.p_fej + c.v_fej * delta } else { nav.p_gb };
-        Some(RowPose { nav, omega_b, delta, shutter, p_lin })
+        Some(RowPose { nav, omega_b, accel_b, delta, shutter, p_lin })
     }
 
     /// Camera pose of a body state: `R_gc = R_gb R_cbᵀ`, `p_gc = p_gb - R_gc p_cb`.
@@ -263,6 +264,9 @@ impl CalibFilter {
             let mut ha = h_x.view_mut((at, clone_offset(a)), (2, 6));
             ha += j.h_anchor;
             h_x.view_mut((at, IDX_PCB), (2, CAM_BLOCK)).copy_from(&j.h_cam);
+            let (_, jw) = rate_jacobians(&self.state, &row.omega_b, &row.accel_b);
+            let mut hc = h_x.view_mut((at, 0), (2, CORE_DIM));
+            hc += j.h_omega * jw;
         }
         project_null_space(h_x, h_f, r)
     }

@@ -56,21 +56,22 @@ pub fn segments(
 
 /// Integrates `nav` from `t0_ns` to `t1_ns` with the samples corrected by the calibration
 /// of `state` ([`CalibState::correct`]); returns the body state at `t1_ns` and the corrected
-/// body rate there.
+/// body rate and specific force there.
 pub fn integrate(
     state: &CalibState,
     samples: &[ImuSample],
     nav: &NavState,
     t0_ns: f64,
     t1_ns: f64,
-) -> Option<(NavState, Vector3<f64>)> {
+) -> Option<(NavState, Vector3<f64>, Vector3<f64>)> {
     let mut out = *nav;
     for (dt, g, a) in segments(samples, t0_ns, t1_ns)? {
         let (w, a_s) = state.correct(&g, &a);
         out.step(&w, &a_s, dt);
     }
     let (g, a) = sample_at(samples, t1_ns)?;
-    Some((out, state.correct(&g, &a).0))
+    let (w, a_s) = state.correct(&g, &a);
+    Some((out, w, a_s))
 }
 
 #[cfg(test)]
@@ -91,8 +92,8 @@ mod tests {
             })
             .collect();
         let state = test_state();
-        let (mid, _) = integrate(&state, &samples, &state.nav, 12.3e6, 81.7e6).unwrap();
-        let (back, _) = integrate(&state, &samples, &mid, 81.7e6, 12.3e6).unwrap();
+        let (mid, _, _) = integrate(&state, &samples, &state.nav, 12.3e6, 81.7e6).unwrap();
+        let (back, _, _) = integrate(&state, &samples, &mid, 81.7e6, 12.3e6).unwrap();
         assert!((back.p_gb - state.nav.p_gb).norm() < 1e-9);
         assert!((back.v_gb - state.nav.v_gb).norm() < 1e-9);
         assert!(crate::lie::so3_log(&(back.r_gb.inverse() * state.nav.r_gb)).norm() < 1e-9);

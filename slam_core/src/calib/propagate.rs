@@ -79,8 +79,9 @@ pub fn kron_row(x: &Vector3<f64>) -> SMatrix<f64, 3, 9> {
     m
 }
 
-/// Jacobians of `da_s` and `dω` with respect to the core error state (3x55 each).
-fn input_jacobians(
+/// Jacobians of `da_s` and `dω` with respect to the core error state (3x55 each), at the
+/// corrected rate `w` and specific force `a`.
+pub fn rate_jacobians(
     state: &CalibState,
     w: &Vector3<f64>,
     a: &Vector3<f64>,
@@ -114,7 +115,7 @@ pub fn propagate_step(
 ) -> Transition {
     let (w, a) = state.correct(gyro, accel);
     let r_mid = (state.nav.r_gb * so3_exp(&(w * (0.5 * dt)))).into_inner();
-    let (ja, jw) = input_jacobians(state, &w, &a);
+    let (ja, jw) = rate_jacobians(state, &w, &a);
     state.nav.step(&w, &a, dt);
     state.t_ns += (dt * 1e9).round() as i64;
     let r_next = state.nav.r_gb.into_inner();

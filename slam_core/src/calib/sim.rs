@@ -199,7 +199,7 @@ impl Scenario {
 
     /// The observations of the frame stamped `t_mid_ns` (camera clock): every landmark at
     /// its rolling-shutter row (fixed point of `v = π(pose(t_mid + t_d + (v/N - ½) t_r))`),
-    /// inside the image, with pixel noise.
+    /// inside the image (before noise), with pixel noise.
     pub(crate) fn frame(&self, t_mid_ns: i64, rng: &mut Rng) -> Vec<Observation> {
         let tr = &self.truth;
         let n_rows = f64::from(tr.camera.height);
@@ -212,10 +212,11 @@ impl Scenario {
                 continue;
             }
             let Some(uv) = self.rolling_pixel(x, t_mid, n_rows) else { continue };
+            // Kept by the true pixel: cutting by the noisy one would bias the noise of the
+            // last observation of every track leaving the image (against its motion), which
+            // the filter reads as readout time.
             let noisy = uv + Vector2::new(rng.normal(), rng.normal()) * self.pixel_sigma;
-            if tr.camera.contains(&noisy) {
-                out.push(Observation { track: TrackId(id as u64), uv: noisy });
-            }
+            out.push(Observation { track: TrackId(id as u64), uv: noisy });
         }
         out
     }

@@ -20,6 +20,9 @@ const CAL1: usize = IDX_TR + 1;
 fn start_state(sc: &Scenario, priors: &CalibPriors, rng: &mut Rng) -> CalibState {
     let scale = std::env::var("CALIB_INIT_SCALE").ok().and_then(|v| v.parse().ok()).unwrap_or(1.0);
     let mut s = start_state_scaled(sc, priors, rng);
+    if std::env::var("CALIB_TRUE_BIAS").is_ok() {
+        s.biases = sc.truth.biases;
+    }
     let (t, e) = (sc.truth.calib_vector(), s.calib_vector());
     let mut dx = (t.clone() - e) * (1.0 - scale);
     dx.rows_mut(0, super::IDX_TG).fill(0.0);
@@ -195,11 +198,23 @@ fn summary(tr: &Trace) {
 #[test]
 #[ignore = "diagnostic; run by hand"]
 fn diagnostic_run() {
-    let mut rng = Rng::new(7);
-    let sc = Scenario::calib(Motion::calib(), &mut rng);
     let env = |k: &str, d: f64| std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d);
+    let seed = env("CALIB_SEED", 7.0) as u64;
+    let mut rng = Rng::new(seed);
+    let mut sc = Scenario::calib(Motion::calib(), &mut rng);
+    if std::env::var("CALIB_NOISE_FREE").is_ok() {
+        sc.noise = crate::imu::ImuNoise::zero();
+        sc.pixel_sigma = 0.0;
+    }
+    if std::env::var("CALIB_IMU_FREE").is_ok() {
+        sc.noise = crate::imu::ImuNoise::zero();
+    }
+    if std::env::var("CALIB_PIXEL_FREE").is_ok() {
+        sc.pixel_sigma = 0.0;
+    }
+    sc.pixel_sigma = env("CALIB_PIX", sc.pixel_sigma);
     let params = CalibParams {
-        pixel_sigma: sc.pixel_sigma,
+        pixel_sigma: sc.pixel_sigma.max(0.1),
         fej: env("CALIB_FEJ", 1.0) > 0.5,
         max_clones: env("CALIB_CLONES", 12.0) as usize,
         min_parallax: env("CALIB_PARALLAX", 0.02),
@@ -207,7 +222,7 @@ fn diagnostic_run() {
         max_iterations: env("CALIB_ITERS", 4.0) as usize,
         ..Default::default()
     };
-    let tr = simulate(&sc, params, CalibPriors::default(), env("CALIB_SECONDS", 10.0), 11);
+    let tr = simulate(&sc, params, CalibPriors::default(), env("CALIB_SECONDS", 10.0), seed + 4);
     summary(&tr);
 }
 
@@ -222,4 +237,94 @@ fn short_run_is_consistent_and_shrinks_sigmas() {
     assert!(tr.used > 100);
     assert!(tr.sigma[IDX_TD] < 0.2 * priors.t_d && tr.sigma[IDX_TR] < 0.5 * priors.t_r);
     assert!(tr.sigma[IDX_INTR] < 0.5 * priors.focal);
+}
+
+/// End-to-end check of the measurement model: a filter at the true state with noise-free
+/// IMU and pixels and no updates predicts every observation at its row time to a small
+/// fraction of a pixel (clone, row-time integration, rolling shutter, lens, lever arm).
+#[test]
+fn prediction_at_the_truth_matches_the_simulated_pixels() {
+    let mut rng = Rng::new(5);
+    let mut sc = Scenario::calib(Motion::calib(), &mut rng);
+    sc.noise = crate::imu::ImuNoise::zero();
+    sc.pixel_sigma = 0.0;
+    let mut init = sc.truth;
+    init.nav = sc.motion.at(0.0).nav;
+    let params = CalibParams { min_track_len: 1000, max_clones: 40, ..Default::default() };
+    let mut f = CalibFilter::new(params, CalibPriors::default(), init);
+    let mut biases = sc.truth.biases;
+    let mut k_imu = 0;
+    let mut frames = Vec::new();
+    for k in 1..=30 {
+        let t_mid = k * sc.frame_period_ns;
+        while k_imu * sc.imu_period_ns <= t_mid + 100_000_000 {
+            f.push_imu(sc.imu_sample(k_imu, &mut biases, &mut rng));
+            k_imu += 1;
+        }
+        let obs = sc.frame(t_mid, &mut rng);
+        f.add_frame(t_mid, &obs).expect("frame");
+        frames.push(obs);
+    }
+    let (mut worst, mut n): (f64, usize) = (0.0, 0);
+    for (c, obs) in f.clones().iter().zip(&frames) {
+        for o in obs {
+            let row = f.row_pose(c, o.uv.y).expect("row pose");
+            let x = sc.landmarks[o.track.0 as usize];
+            let pc = super::measure::world_to_camera(f.state(), &row.nav, &x);
+            let z = f.state().camera.project(&pc).expect("in front");
+            worst = worst.max((z - o.uv).norm());
+            n += 1;
+        }
+    }
+    eprintln!("{n} observations, worst prediction error {worst:.2e} px");
+    assert!(n > 1000);
+    assert!(worst < 0.01, "worst {worst} px");
+}
+
+/// The simulation targets after 60 s from the VI_NOTES §3 starting errors, and the
+/// consistency (errors within ±3σ), on one run. About 15-30 s in release mode.
+#[test]
+fn sixty_seconds_reach_the_targets() {
+    let mut rng = Rng::new(7);
+    let sc = Scenario::calib(Motion::calib(), &mut rng);
+    let params = CalibParams { pixel_sigma: sc.pixel_sigma, ..Default::default() };
+    let tr = simulate(&sc, params, CalibPriors::default(), 60.0, 11);
+    summary(&tr);
+    assert!(tr.positive, "covariance symmetric and positive semi-definite");
+    let targets = [
+        ("t_d", IDX_TD, 1, 0.5e-3),
+        ("t_r", IDX_TR, 1, 0.5e-3),
+        ("fx fy", IDX_INTR, 2, 1.0),
+        ("cx cy", IDX_INTR + 2, 2, 1.5),
+        ("k1 k2", IDX_DIST, 2, 0.005),
+        ("p_cb", IDX_PCB, 3, 0.005),
+        ("T_g", IDX_TG, 9, 1e-3),
+        ("T_s", IDX_TS, 9, 5e-4),
+        ("T_a", IDX_TA, 9, 1e-3),
+    ];
+    for (name, at, n, target) in targets {
+        let w = worst(&tr, at, n);
+        assert!(w <= target, "{name}: final error {w:.3e} > target {target:.1e}");
+    }
+    let all3 = tr.inside3.iter().sum::<f64>() / tr.inside3.len() as f64;
+    assert!(all3 >= 0.95, "only {all3:.3} of (entry, frame) pairs within 3σ");
+}
+
+/// Without motion `t_d` has no Jacobian (`VI_NOTES.md` §3 "Observability") and its σ must
+/// not shrink; the filter stays finite and its covariance positive. "Not shrink" is checked
+/// as staying above 95 % of the prior: the estimated rate and velocity are not exactly zero
+/// (bias and velocity errors), and a few noisy features pass the parallax test, so the
+/// filter takes a sliver of information (measured: 10 ms → 9.8 ms).
+#[test]
+fn static_body_leaves_the_time_offset_unobserved() {
+    let mut rng = Rng::new(9);
+    let sc = Scenario::calib(Motion::still(), &mut rng);
+    let params = CalibParams { pixel_sigma: sc.pixel_sigma, ..Default::default() };
+    let priors = CalibPriors::default();
+    let tr = simulate(&sc, params, priors, 10.0, 3);
+    summary(&tr);
+    assert!(tr.positive);
+    assert!(tr.err.iter().all(|e| e.is_finite()));
+    assert!(tr.sigma[IDX_TD] > 0.95 * priors.t_d, "t_d σ {:.2e}", tr.sigma[IDX_TD]);
+    assert!(tr.sigma[IDX_TR] > 0.95 * priors.t_r, "t_r σ {:.2e}", tr.sigma[IDX_TR]);
 }
