@@ -126,17 +126,34 @@ impl CalibFilter {
     /// Propagates state and covariance to `t_ns` with the buffered samples.
     pub fn propagate_to(&mut self, t_ns: i64) -> Result<(), CalibError> {
         if t_ns < self.state.t_ns {
-            return Err(CalibError::FrameBeforeState { tau_ns: t_ns, state_ns: self.state.t_ns });
+            return Err(CalibError::FrameBeforeState {
+                tau_ns: t_ns,
+                state_ns: self.state.t_ns,
+            });
         }
         let last_ns = self.imu.last().map(|s| s.t_ns);
         let covered = self.imu.first().is_some_and(|f| f.t_ns <= self.state.t_ns);
         if !covered || last_ns.is_none_or(|l| l < t_ns) {
-            return Err(CalibError::ImuNotCovering { last_ns, need_ns: t_ns });
+            return Err(CalibError::ImuNotCovering {
+                last_ns,
+                need_ns: t_ns,
+            });
         }
-        let segs = segments(&self.imu, self.state.t_ns as f64, t_ns as f64)
-            .ok_or(CalibError::ImuNotCovering { last_ns, need_ns: t_ns })?;
+        let segs = segments(&self.imu, self.state.t_ns as f64, t_ns as f64).ok_or(
+            CalibError::ImuNotCovering {
+                last_ns,
+                need_ns: t_ns,
+            },
+        )?;
         for (dt, g, a) in segs {
-            let tr = propagate_step(&mut self.state, &mut self.fej, &g, &a, dt, &self.params.imu_noise);
+            let tr = propagate_step(
+                &mut self.state,
+                &mut self.fej,
+                &g,
+                &a,
+                dt,
+                &self.params.imu_noise,
+            );
             apply_transition(&mut self.p, &tr);
             self.p[(IDX_TD, IDX_TD)] += self.params.t_d_random_walk.powi(2) * dt;
         }
@@ -146,7 +163,11 @@ impl CalibFilter {
 
     /// Processes one frame: `t_mid_ns` is its middle-row stamp (camera clock with the prior
     /// `t_d0` applied, `VI_NOTES.md` §1), `obs` its feature observations.
-    pub fn add_frame(&mut self, t_mid_ns: i64, obs: &[Observation]) -> Result<FrameReport, CalibError> {
+    pub fn add_frame(
+        &mut self,
+        t_mid_ns: i64,
+        obs: &[Observation],
+    ) -> Result<FrameReport, CalibError> {
         let tau = t_mid_ns + (self.state.t_d * 1e9).round() as i64;
         self.propagate_to(tau)?;
         self.augment(tau);
@@ -168,8 +189,10 @@ impl CalibFilter {
         let n = self.p.nrows();
         let mut big = DMatrix::zeros(n + CLONE_DIM, n + CLONE_DIM);
         big.view_mut((0, 0), (n, n)).copy_from(&self.p);
-        big.view_mut((n, 0), (CLONE_DIM, n)).copy_from(&self.p.rows(0, CLONE_DIM));
-        big.view_mut((0, n), (n, CLONE_DIM)).copy_from(&self.p.columns(0, CLONE_DIM));
+        big.view_mut((n, 0), (CLONE_DIM, n))
+            .copy_from(&self.p.rows(0, CLONE_DIM));
+        big.view_mut((0, n), (n, CLONE_DIM))
+            .copy_from(&self.p.columns(0, CLONE_DIM));
         big.view_mut((n, n), (CLONE_DIM, CLONE_DIM))
             .copy_from(&self.p.view((0, 0), (CLONE_DIM, CLONE_DIM)));
         self.p = big;
@@ -205,7 +228,7 @@ impl CalibFilter {
             .filter_map(|t| self.tracks.remove(t))
             .filter(|o| o.len() >= self.params.min_track_len.max(2))
             .collect();
-        out.sort_by(|a, b| b.len().cmp(&a.len()));
+        out.sort_by_key(|o| std::cmp::Reverse(o.len()));
         if self.params.max_features_per_update > 0 {
             out.truncate(self.params.max_features_per_update);
         }
@@ -220,14 +243,28 @@ impl CalibFilter {
         let t0 = c.tau_ns as f64;
         let (nav, omega_b, accel_b) =
             integrate(&self.state, &self.imu, &c.nav, t0, t0 + delta * 1e9)?;
-        let p_lin = if self.params.fej { c.p_fej + c.v_fej * delta } else { nav.p_gb };
-        Some(RowPose { nav, omega_b, accel_b, delta, shutter, p_lin })
+        let p_lin = if self.params.fej {
+            c.p_fej + c.v_fej * delta
+        } else {
+            nav.p_gb
+        };
+        Some(RowPose {
+            nav,
+            omega_b,
+            accel_b,
+            delta,
+            shutter,
+            p_lin,
+        })
     }
 
     /// Camera pose of a body state: `R_gc = R_gb R_cbᵀ`, `p_gc = p_gb - R_gc p_cb`.
     fn camera_pose(&self, nav: &NavState) -> CameraPose {
         let r_gc = nav.r_gb * self.state.r_cb.inverse();
-        CameraPose { r_gc, p_gc: nav.p_gb - r_gc * self.state.p_cb }
+        CameraPose {
+            r_gc,
+            p_gc: nav.p_gb - r_gc * self.state.p_cb,
+        }
     }
 
     /// One feature's projected rows, or `None` when it cannot be used.
@@ -241,15 +278,30 @@ impl CalibFilter {
             .zip(&idx)
             .map(|(o, &i)| self.row_pose(self.clones.get(i)?, o.1.y))
             .collect::<Option<_>>()?;
-        let views: Vec<(CameraPose, Vector2<f64>)> =
-            rows.iter().zip(track).map(|(r, o)| (self.camera_pose(&r.nav), o.1)).collect();
+        let views: Vec<(CameraPose, Vector2<f64>)> = rows
+            .iter()
+            .zip(track)
+            .map(|(r, o)| (self.camera_pose(&r.nav), o.1))
+            .collect();
         let anchor_cam = self.camera_pose(&anchor_c.nav);
-        let tri = triangulate(&self.state.camera, &anchor_cam, &views, self.params.min_parallax)?;
+        let tri = triangulate(
+            &self.state.camera,
+            &anchor_cam,
+            &views,
+            self.params.min_parallax,
+        )?;
         if tri.rms > self.params.max_triangulation_rms {
             return None;
         }
-        let p_lin = if self.params.fej { anchor_c.p_fej } else { anchor_c.nav.p_gb };
-        let anchor = AnchorPose { nav: anchor_c.nav, p_lin };
+        let p_lin = if self.params.fej {
+            anchor_c.p_fej
+        } else {
+            anchor_c.nav.p_gb
+        };
+        let anchor = AnchorPose {
+            nav: anchor_c.nav,
+            p_lin,
+        };
         let m = 2 * track.len();
         let dim = self.p.nrows();
         let mut h_x = DMatrix::zeros(m, dim);
@@ -260,10 +312,12 @@ impl CalibFilter {
             let at = 2 * k;
             r.rows_mut(at, 2).copy_from(&(o.1 - j.z));
             h_f.view_mut((at, 0), (2, 3)).copy_from(&j.h_f);
-            h_x.view_mut((at, clone_offset(i)), (2, CLONE_DIM)).copy_from(&j.h_clone);
+            h_x.view_mut((at, clone_offset(i)), (2, CLONE_DIM))
+                .copy_from(&j.h_clone);
             let mut ha = h_x.view_mut((at, clone_offset(a)), (2, 6));
             ha += j.h_anchor;
-            h_x.view_mut((at, IDX_PCB), (2, CAM_BLOCK)).copy_from(&j.h_cam);
+            h_x.view_mut((at, IDX_PCB), (2, CAM_BLOCK))
+                .copy_from(&j.h_cam);
             let (_, jw) = rate_jacobians(&self.state, &row.omega_b, &row.accel_b);
             let mut hc = h_x.view_mut((at, 0), (2, CORE_DIM));
             hc += j.h_omega * jw;
@@ -311,7 +365,9 @@ impl CalibFilter {
             }
             let m = compress(stack(&parts, self.p.nrows()));
             report.rows = m.r.len();
-            let Some(k) = kalman_gain(&self.p, &m.h, sigma2) else { break };
+            let Some(k) = kalman_gain(&self.p, &m.h, sigma2) else {
+                break;
+            };
             let r_eff = &m.r + &m.h * self.error_from(&x0, &clones0);
             let y = &k * r_eff;
             self.state = x0;
@@ -319,7 +375,9 @@ impl CalibFilter {
             self.retract_all(&y);
             last = Some((k, m.h));
             let moved = |v: &nalgebra::DVector<f64>| {
-                (0..CORE_DIM).map(|i| v[i].abs() / sigma0[i].max(1e-300)).fold(0.0, f64::max)
+                (0..CORE_DIM)
+                    .map(|i| v[i].abs() / sigma0[i].max(1e-300))
+                    .fold(0.0, f64::max)
             };
             let change = match &y_prev {
                 None => moved(&y),
@@ -337,11 +395,16 @@ impl CalibFilter {
     }
 
     /// The error taking `(x0, clones0)` to the current state, full error-state order.
-    fn error_from(&self, x0: &CalibState, clones0: &VecDeque<CloneState>) -> nalgebra::DVector<f64> {
+    fn error_from(
+        &self,
+        x0: &CalibState,
+        clones0: &VecDeque<CloneState>,
+    ) -> nalgebra::DVector<f64> {
         let mut e = nalgebra::DVector::zeros(self.p.nrows());
         e.rows_mut(0, CORE_DIM).copy_from(&self.state.boxminus(x0));
         for (i, (c, c0)) in self.clones.iter().zip(clones0).enumerate() {
-            e.fixed_rows_mut::<CLONE_DIM>(clone_offset(i)).copy_from(&c.nav.boxminus(&c0.nav));
+            e.fixed_rows_mut::<CLONE_DIM>(clone_offset(i))
+                .copy_from(&c.nav.boxminus(&c0.nav));
         }
         e
     }
@@ -356,9 +419,13 @@ impl CalibFilter {
 
     /// Removes the oldest clone from the state and its observations from the tracks.
     fn drop_oldest(&mut self) {
-        let Some(old) = self.clones.pop_front() else { return };
+        let Some(old) = self.clones.pop_front() else {
+            return;
+        };
         let p = std::mem::replace(&mut self.p, DMatrix::zeros(0, 0));
-        self.p = p.remove_rows(CORE_DIM, CLONE_DIM).remove_columns(CORE_DIM, CLONE_DIM);
+        self.p = p
+            .remove_rows(CORE_DIM, CLONE_DIM)
+            .remove_columns(CORE_DIM, CLONE_DIM);
         self.tracks.retain(|_, o| {
             o.retain(|x| x.0 != old.id);
             !o.is_empty()

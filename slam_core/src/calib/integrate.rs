@@ -24,17 +24,23 @@ pub fn sample_at(samples: &[ImuSample], t_ns: f64) -> Option<(Vector3<f64>, Vect
     let i = samples.partition_point(|s| (s.t_ns as f64) <= t_ns);
     let (a, b) = (&samples[i - 1], &samples[i]);
     let span = (b.t_ns - a.t_ns) as f64;
-    let w = if span > 0.0 { (t_ns - a.t_ns as f64) / span } else { 0.0 };
-    Some((a.gyro + (b.gyro - a.gyro) * w, a.accel + (b.accel - a.accel) * w))
+    let w = if span > 0.0 {
+        (t_ns - a.t_ns as f64) / span
+    } else {
+        0.0
+    };
+    Some((
+        a.gyro + (b.gyro - a.gyro) * w,
+        a.accel + (b.accel - a.accel) * w,
+    ))
 }
+
+/// A piece of an interval: `(dt seconds (signed), raw gyro, raw accel)` at its middle.
+pub type Segment = (f64, Vector3<f64>, Vector3<f64>);
 
 /// The pieces of `[t0, t1]` (ns; `t1 < t0` walks backwards) cut at the sample times, each
 /// as `(dt seconds (signed), gyro, accel)` with the raw values at the piece's middle.
-pub fn segments(
-    samples: &[ImuSample],
-    t0_ns: f64,
-    t1_ns: f64,
-) -> Option<Vec<(f64, Vector3<f64>, Vector3<f64>)>> {
+pub fn segments(samples: &[ImuSample], t0_ns: f64, t1_ns: f64) -> Option<Vec<Segment>> {
     let (lo, hi) = (t0_ns.min(t1_ns), t0_ns.max(t1_ns));
     let mut cuts: Vec<f64> = samples
         .iter()

@@ -110,7 +110,9 @@ pub fn predict(
     f: &InvDepth,
 ) -> Option<Vector2<f64>> {
     let p_g = feature_in_world(state, anchor, f);
-    state.camera.project(&world_to_camera(state, &row.nav, &p_g))
+    state
+        .camera
+        .project(&world_to_camera(state, &row.nav, &p_g))
 }
 
 /// Prediction and every Jacobian block of the module docs; `None` when the point is not in
@@ -131,20 +133,34 @@ pub fn observe(
     let (z, j_pi) = cam.project_with_jacobian(&p_c)?;
     let m = j_pi * r_cb * r.transpose();
     let mut h_clone = SMatrix::<f64, 2, 9>::zeros();
-    h_clone.fixed_view_mut::<2, 3>(0, 0).copy_from(&(m * skew(&(p_f - row.p_lin))));
+    h_clone
+        .fixed_view_mut::<2, 3>(0, 0)
+        .copy_from(&(m * skew(&(p_f - row.p_lin))));
     h_clone.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-m));
-    h_clone.fixed_view_mut::<2, 3>(0, 6).copy_from(&(-m * row.delta));
+    h_clone
+        .fixed_view_mut::<2, 3>(0, 6)
+        .copy_from(&(-m * row.delta));
     let mut h_anchor = SMatrix::<f64, 2, 6>::zeros();
-    h_anchor.fixed_view_mut::<2, 3>(0, 0).copy_from(&(-m * skew(&(p_f - anchor.p_lin))));
+    h_anchor
+        .fixed_view_mut::<2, 3>(0, 0)
+        .copy_from(&(-m * skew(&(p_f - anchor.p_lin))));
     h_anchor.fixed_view_mut::<2, 3>(0, 3).copy_from(&m);
     let h_td = j_pi * r_cb * (skew(&p_b) * row.omega_b - r.transpose() * row.nav.v_gb);
     let r_cj_ca = r_cb * r.transpose() * r_a * r_cb.transpose();
     let mut h_cam = SMatrix::<f64, 2, CAM_BLOCK>::zeros();
-    h_cam.fixed_view_mut::<2, 3>(0, 0).copy_from(&(j_pi * (Matrix3::identity() - r_cj_ca)));
-    h_cam.fixed_view_mut::<2, 4>(0, 3).copy_from(&cam.pinhole_jacobian(&p_c)?);
-    h_cam.fixed_view_mut::<2, 4>(0, 7).copy_from(&cam.distortion_jacobian(&p_c)?);
+    h_cam
+        .fixed_view_mut::<2, 3>(0, 0)
+        .copy_from(&(j_pi * (Matrix3::identity() - r_cj_ca)));
+    h_cam
+        .fixed_view_mut::<2, 4>(0, 3)
+        .copy_from(&cam.pinhole_jacobian(&p_c)?);
+    h_cam
+        .fixed_view_mut::<2, 4>(0, 7)
+        .copy_from(&cam.distortion_jacobian(&p_c)?);
     h_cam.fixed_view_mut::<2, 1>(0, 11).copy_from(&h_td);
-    h_cam.fixed_view_mut::<2, 1>(0, 12).copy_from(&(h_td * row.shutter));
+    h_cam
+        .fixed_view_mut::<2, 1>(0, 12)
+        .copy_from(&(h_td * row.shutter));
     let ir = 1.0 / f.rho;
     let d_pca = Matrix3::from_columns(&[
         Vector3::new(ir, 0.0, 0.0),
@@ -153,27 +169,47 @@ pub fn observe(
     ]);
     let h_f = m * r_a * r_cb.transpose() * d_pca;
     let h_omega = m * skew(&(p_f - row.p_lin)) * r * so3_jr(&(row.omega_b * row.delta)) * row.delta;
-    Some(ObsJacobians { z, h_clone, h_anchor, h_cam, h_f, h_omega })
+    Some(ObsJacobians {
+        z,
+        h_clone,
+        h_anchor,
+        h_cam,
+        h_f,
+        h_omega,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::calib::sim::test_state;
-    use crate::calib::{IDX_PCB, CORE_DIM};
+    use crate::calib::{CORE_DIM, IDX_PCB};
     use crate::lie::so3_exp;
     use nalgebra::{DVector, Rotation3};
 
     /// Row pose of a constant-rate, constant-velocity model from `clone`: the model the
     /// Jacobians are exact for (the filter integrates the IMU instead).
-    fn row_of(state: &CalibState, clone: &NavState, t_d_clone: f64, shutter: f64, w: &Vector3<f64>) -> RowPose {
+    fn row_of(
+        state: &CalibState,
+        clone: &NavState,
+        t_d_clone: f64,
+        shutter: f64,
+        w: &Vector3<f64>,
+    ) -> RowPose {
         let delta = (state.t_d - t_d_clone) + shutter * state.t_r;
         let nav = NavState {
             r_gb: clone.r_gb * so3_exp(&(w * delta)),
             p_gb: clone.p_gb + clone.v_gb * delta,
             v_gb: clone.v_gb,
         };
-        RowPose { nav, omega_b: *w, accel_b: Vector3::zeros(), delta, shutter, p_lin: nav.p_gb }
+        RowPose {
+            nav,
+            omega_b: *w,
+            accel_b: Vector3::zeros(),
+            delta,
+            shutter,
+            p_lin: nav.p_gb,
+        }
     }
 
     #[derive(Clone, Copy)]
@@ -200,19 +236,46 @@ mod tests {
                 p_gb: Vector3::new(0.2, 0.1, 0.15),
                 v_gb: Vector3::zeros(),
             };
-            let f = InvDepth { alpha: 0.15, beta: -0.1, rho: 0.4 };
+            let f = InvDepth {
+                alpha: 0.15,
+                beta: -0.1,
+                rho: 0.4,
+            };
             let w = Vector3::new(1.2, -0.7, 0.9);
-            Self { state, clone, anchor, f, w, shutter: 0.3, t_d_clone: 0.004 }
+            Self {
+                state,
+                clone,
+                anchor,
+                f,
+                w,
+                shutter: 0.3,
+                t_d_clone: 0.004,
+            }
         }
 
         fn z(&self) -> Vector2<f64> {
-            let row = row_of(&self.state, &self.clone, self.t_d_clone, self.shutter, &self.w);
+            let row = row_of(
+                &self.state,
+                &self.clone,
+                self.t_d_clone,
+                self.shutter,
+                &self.w,
+            );
             predict(&self.state, &row, &self.anchor, &self.f).unwrap()
         }
 
         fn jac(&self) -> ObsJacobians {
-            let row = row_of(&self.state, &self.clone, self.t_d_clone, self.shutter, &self.w);
-            let anchor = AnchorPose { nav: self.anchor, p_lin: self.anchor.p_gb };
+            let row = row_of(
+                &self.state,
+                &self.clone,
+                self.t_d_clone,
+                self.shutter,
+                &self.w,
+            );
+            let anchor = AnchorPose {
+                nav: self.anchor,
+                p_lin: self.anchor.p_gb,
+            };
             observe(&self.state, &row, &anchor, &self.f).unwrap()
         }
     }
@@ -234,7 +297,10 @@ mod tests {
 
     fn close(num: &Vector2<f64>, ana: &Vector2<f64>, what: &str) {
         let err = (num - ana).norm();
-        assert!(err < 1e-5 * (1.0 + num.norm()), "{what}: fd {num} vs {ana} ({err})");
+        assert!(
+            err < 1e-5 * (1.0 + num.norm()),
+            "{what}: fd {num} vs {ana} ({err})"
+        );
     }
 
     #[test]
@@ -275,7 +341,11 @@ mod tests {
                 dx[IDX_PCB + k] = h;
                 c.state.retract(&dx);
             });
-            close(&num, &j.h_cam.column(k).into(), &format!("camera block {k}"));
+            close(
+                &num,
+                &j.h_cam.column(k).into(),
+                &format!("camera block {k}"),
+            );
         }
     }
 
@@ -313,7 +383,7 @@ mod tests {
                 c.clone.retract(&nav_dx(k, h), 0);
                 c.anchor.retract(&nav_dx(k, h), 0);
             });
-            let ana: Vector2<f64> = (j.h_clone.column(k) + j.h_anchor.column(k)).into();
+            let ana: Vector2<f64> = j.h_clone.column(k) + j.h_anchor.column(k);
             close(&num, &ana, &format!("joint {k}"));
         }
     }

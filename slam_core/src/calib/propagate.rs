@@ -53,7 +53,10 @@ pub struct FirstEstimates {
 impl FirstEstimates {
     /// First estimates equal to the current state (the start, and after augmentation).
     pub fn of(nav: &NavState) -> Self {
-        Self { p: nav.p_gb, v: nav.v_gb }
+        Self {
+            p: nav.p_gb,
+            v: nav.v_gb,
+        }
     }
 }
 
@@ -89,7 +92,8 @@ pub fn rate_jacobians(
     let (ta_inv, tg_inv) = state.imu_inverses();
     let mut ja = SMatrix::<f64, 3, CORE_DIM>::zeros();
     ja.fixed_view_mut::<3, 3>(0, IDX_BA).copy_from(&(-ta_inv));
-    ja.fixed_view_mut::<3, 9>(0, IDX_TA).copy_from(&(-ta_inv * kron_row(a)));
+    ja.fixed_view_mut::<3, 9>(0, IDX_TA)
+        .copy_from(&(-ta_inv * kron_row(a)));
     let mut jw = -(tg_inv * state.imu.t_s) * ja;
     let mut add = |col: usize, m: SMatrix<f64, 3, 9>| {
         let mut v = jw.fixed_view_mut::<3, 9>(0, col);
@@ -129,15 +133,21 @@ pub fn propagate_step(
     let dv = state.nav.v_gb - fej.v - g * dt;
     let dp = state.nav.p_gb - fej.p - fej.v * dt - g * (0.5 * dt * dt);
     let mut phi = PhiTop::zeros();
-    phi.fixed_view_mut::<3, CORE_DIM>(0, 0).copy_from(&(g_tw * jw));
-    phi.fixed_view_mut::<3, CORE_DIM>(3, 0).copy_from(&(g_pa * ja + g_pw * jw));
-    phi.fixed_view_mut::<3, CORE_DIM>(6, 0).copy_from(&(g_va * ja + g_vw * jw));
+    phi.fixed_view_mut::<3, CORE_DIM>(0, 0)
+        .copy_from(&(g_tw * jw));
+    phi.fixed_view_mut::<3, CORE_DIM>(3, 0)
+        .copy_from(&(g_pa * ja + g_pw * jw));
+    phi.fixed_view_mut::<3, CORE_DIM>(6, 0)
+        .copy_from(&(g_va * ja + g_vw * jw));
     for k in 0..9 {
         phi[(k, k)] += 1.0;
     }
-    phi.fixed_view_mut::<3, 3>(3, IDX_THETA).copy_from(&(-skew(&dp)));
-    phi.fixed_view_mut::<3, 3>(6, IDX_THETA).copy_from(&(-skew(&dv)));
-    phi.fixed_view_mut::<3, 3>(3, IDX_V).copy_from(&(Matrix3::identity() * dt));
+    phi.fixed_view_mut::<3, 3>(3, IDX_THETA)
+        .copy_from(&(-skew(&dp)));
+    phi.fixed_view_mut::<3, 3>(6, IDX_THETA)
+        .copy_from(&(-skew(&dv)));
+    phi.fixed_view_mut::<3, 3>(3, IDX_V)
+        .copy_from(&(Matrix3::identity() * dt));
     debug_assert_eq!(IDX_P, 3);
     *fej = FirstEstimates::of(&state.nav);
     Transition {
@@ -170,9 +180,11 @@ fn process_noise(
     gn.fixed_view_mut::<3, 3>(0, 0).copy_from(&(g_w[0] * w_ng));
     gn.fixed_view_mut::<3, 3>(0, 3).copy_from(&(g_w[0] * w_na));
     gn.fixed_view_mut::<3, 3>(3, 0).copy_from(&(g_w[1] * w_ng));
-    gn.fixed_view_mut::<3, 3>(3, 3).copy_from(&(g_a[0] * a_na + g_w[1] * w_na));
+    gn.fixed_view_mut::<3, 3>(3, 3)
+        .copy_from(&(g_a[0] * a_na + g_w[1] * w_na));
     gn.fixed_view_mut::<3, 3>(6, 0).copy_from(&(g_w[2] * w_ng));
-    gn.fixed_view_mut::<3, 3>(6, 3).copy_from(&(g_a[1] * a_na + g_w[2] * w_na));
+    gn.fixed_view_mut::<3, 3>(6, 3)
+        .copy_from(&(g_a[1] * a_na + g_w[2] * w_na));
     let sg = noise.gyro_noise_density.powi(2) / dt;
     let sa = noise.accel_noise_density.powi(2) / dt;
     let d = SMatrix::<f64, 6, 6>::from_diagonal(&nalgebra::Vector6::new(sg, sg, sg, sa, sa, sa));
@@ -189,7 +201,8 @@ mod tests {
     /// The error `(dθ, dp, dv)` of `a` relative to `b`: `R_a = Exp(dθ) R_b`.
     fn nav_error(a: &NavState, b: &NavState) -> SMatrix<f64, 9, 1> {
         let mut e = SMatrix::<f64, 9, 1>::zeros();
-        e.fixed_rows_mut::<3>(0).copy_from(&so3_log(&(a.r_gb * b.r_gb.inverse())));
+        e.fixed_rows_mut::<3>(0)
+            .copy_from(&so3_log(&(a.r_gb * b.r_gb.inverse())));
         e.fixed_rows_mut::<3>(3).copy_from(&(a.p_gb - b.p_gb));
         e.fixed_rows_mut::<3>(6).copy_from(&(a.v_gb - b.v_gb));
         e
@@ -221,7 +234,10 @@ mod tests {
                 / (2.0 * h);
             let ana = tr.phi.column(col);
             let err = (num - ana).norm();
-            assert!(err < 1e-6 * (1.0 + num.norm()), "column {col}: {err}\n{num}\n{ana}");
+            assert!(
+                err < 1e-6 * (1.0 + num.norm()),
+                "column {col}: {err}\n{num}\n{ana}"
+            );
         }
         assert!(tr.q_nav.symmetric_eigenvalues().min() >= -1e-18);
     }

@@ -37,7 +37,11 @@ impl Rng {
     }
 
     pub(crate) fn sign(&mut self) -> f64 {
-        if self.uniform() < 0.5 { -1.0 } else { 1.0 }
+        if self.uniform() < 0.5 {
+            -1.0
+        } else {
+            1.0
+        }
     }
 
     pub(crate) fn vec3(&mut self, s: f64) -> Vector3<f64> {
@@ -80,7 +84,11 @@ impl Motion {
 
     /// At rest at the attitude `rot_offset`.
     pub(crate) fn still() -> Self {
-        Self { rot_amp: Vector3::zeros(), pos_amp: Vector3::zeros(), ..Self::calib() }
+        Self {
+            rot_amp: Vector3::zeros(),
+            pos_amp: Vector3::zeros(),
+            ..Self::calib()
+        }
     }
 
     pub(crate) fn at(&self, t: f64) -> BodyTruth {
@@ -98,7 +106,11 @@ impl Motion {
             a[i] = -self.pos_amp[i] * u * u * arg.sin();
         }
         BodyTruth {
-            nav: NavState { r_gb: so3_exp(&phi), p_gb: p, v_gb: v },
+            nav: NavState {
+                r_gb: so3_exp(&phi),
+                p_gb: p,
+                v_gb: v,
+            },
             omega_b: so3_jr(&phi) * phi_d,
             accel_w: a,
         }
@@ -118,7 +130,10 @@ pub(crate) fn test_state() -> CalibState {
             p_gb: Vector3::new(0.3, -0.2, 1.1),
             v_gb: Vector3::new(0.7, 0.4, -0.3),
         },
-        biases: ImuBiases { gyro: Vector3::new(0.01, -0.02, 0.015), accel: Vector3::new(0.1, -0.05, 0.08) },
+        biases: ImuBiases {
+            gyro: Vector3::new(0.01, -0.02, 0.015),
+            accel: Vector3::new(0.1, -0.05, 0.08),
+        },
         imu,
         r_cb: Rotation3::from_scaled_axis(Vector3::new(1.2, -0.3, 0.5)),
         p_cb: Vector3::new(0.04, -0.03, 0.02),
@@ -160,7 +175,10 @@ impl Scenario {
         let truth = CalibState {
             t_ns: 0,
             nav: motion.at(0.0).nav,
-            biases: ImuBiases { gyro: rng.vec3(0.01), accel: rng.vec3(0.05) },
+            biases: ImuBiases {
+                gyro: rng.vec3(0.01),
+                accel: rng.vec3(0.05),
+            },
             imu,
             r_cb: Rotation3::from_scaled_axis(Vector3::new(1.2, -1.2, 1.2)),
             p_cb: Vector3::new(0.05, -0.03, 0.02),
@@ -194,7 +212,11 @@ impl Scenario {
         let a_s = b.nav.r_gb.inverse() * (b.accel_w - gravity_w());
         let (a, g) = measure(&a_s, &b.omega_b, biases, &self.truth.imu);
         let (sg, sa) = self.noise.discrete_white_sigma(dt);
-        ImuSample { t_ns, gyro: g + rng.vec3(sg), accel: a + rng.vec3(sa) }
+        ImuSample {
+            t_ns,
+            gyro: g + rng.vec3(sg),
+            accel: a + rng.vec3(sa),
+        }
     }
 
     /// The observations of the frame stamped `t_mid_ns` (camera clock): every landmark at
@@ -211,12 +233,17 @@ impl Scenario {
             if pc.z < 0.2 || pc.x.abs() > 1.0 * pc.z || pc.y.abs() > 0.8 * pc.z {
                 continue;
             }
-            let Some(uv) = self.rolling_pixel(x, t_mid, n_rows) else { continue };
+            let Some(uv) = self.rolling_pixel(x, t_mid, n_rows) else {
+                continue;
+            };
             // Kept by the true pixel: cutting by the noisy one would bias the noise of the
             // last observation of every track leaving the image (against its motion), which
             // the filter reads as readout time.
             let noisy = uv + Vector2::new(rng.normal(), rng.normal()) * self.pixel_sigma;
-            out.push(Observation { track: TrackId(id as u64), uv: noisy });
+            out.push(Observation {
+                track: TrackId(id as u64),
+                uv: noisy,
+            });
         }
         out
     }

@@ -4,8 +4,8 @@
 use nalgebra::{DVector, Matrix3, Rotation3, Vector3};
 
 use super::{
-    CLONE_DIM, CORE_DIM, IDX_BA, IDX_BG, IDX_DIST, IDX_INTR, IDX_P, IDX_PCB, IDX_TA, IDX_TD,
-    IDX_TG, IDX_THETA, IDX_TR, IDX_TS, IDX_V,
+    CLONE_DIM, CORE_DIM, IDX_BA, IDX_BG, IDX_DIST, IDX_INTR, IDX_PCB, IDX_TA, IDX_TD, IDX_TG,
+    IDX_THETA, IDX_TR, IDX_TS,
 };
 use crate::camera::PinholeRadtan;
 use crate::imu::{gravity_w, ImuBiases, ImuIntrinsics};
@@ -32,7 +32,7 @@ impl NavState {
         let acc = r_mid * a_s + gravity_w();
         self.p_gb += self.v_gb * dt + acc * (0.5 * dt * dt);
         self.v_gb += acc * dt;
-        self.r_gb = self.r_gb * so3_exp(&(omega * dt));
+        self.r_gb *= so3_exp(&(omega * dt));
     }
 
     /// The error `(dθ, dp, dv)` taking `other` to `self`: `R_self = Exp(dθ) R_other`.
@@ -40,8 +40,10 @@ impl NavState {
         let mut e = nalgebra::SVector::<f64, 9>::zeros();
         e.fixed_rows_mut::<3>(0)
             .copy_from(&crate::lie::so3_log(&(self.r_gb * other.r_gb.inverse())));
-        e.fixed_rows_mut::<3>(3).copy_from(&(self.p_gb - other.p_gb));
-        e.fixed_rows_mut::<3>(6).copy_from(&(self.v_gb - other.v_gb));
+        e.fixed_rows_mut::<3>(3)
+            .copy_from(&(self.p_gb - other.p_gb));
+        e.fixed_rows_mut::<3>(6)
+            .copy_from(&(self.v_gb - other.v_gb));
         e
     }
 
@@ -98,7 +100,11 @@ pub struct CalibState {
 impl CalibState {
     /// Corrected body rate and specific force from raw `(ω_m, a_m)` (`VI_NOTES.md` §2):
     /// `a_s = T_a⁻¹ (a_m - b_a)`, `ω = T_g⁻¹ (ω_m - T_s a_s - b_g)`.
-    pub fn correct(&self, gyro: &Vector3<f64>, accel: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    pub fn correct(
+        &self,
+        gyro: &Vector3<f64>,
+        accel: &Vector3<f64>,
+    ) -> (Vector3<f64>, Vector3<f64>) {
         let (ta_inv, tg_inv) = self.imu_inverses();
         let a_s = ta_inv * (accel - self.biases.accel);
         let w = tg_inv * (gyro - self.imu.t_s * a_s - self.biases.gyro);
@@ -115,7 +121,6 @@ impl CalibState {
     /// Applies the first [`CORE_DIM`] entries of an error-state correction.
     pub fn retract(&mut self, dx: &DVector<f64>) {
         self.nav.retract(dx, IDX_THETA);
-        debug_assert!(IDX_P == 3 && IDX_V == 6);
         self.biases.gyro += dx.fixed_rows::<3>(IDX_BG);
         self.biases.accel += dx.fixed_rows::<3>(IDX_BA);
         add_row_major(&mut self.imu.t_g, dx, IDX_TG);
@@ -139,7 +144,8 @@ impl CalibState {
     /// order in the rotation, exact elsewhere).
     pub fn boxminus(&self, other: &CalibState) -> DVector<f64> {
         let mut e = self.calib_vector() - other.calib_vector();
-        e.fixed_rows_mut::<9>(IDX_THETA).copy_from(&self.nav.boxminus(&other.nav));
+        e.fixed_rows_mut::<9>(IDX_THETA)
+            .copy_from(&self.nav.boxminus(&other.nav));
         e
     }
 
@@ -149,7 +155,11 @@ impl CalibState {
         let mut v = DVector::zeros(CORE_DIM);
         v.fixed_rows_mut::<3>(IDX_BG).copy_from(&self.biases.gyro);
         v.fixed_rows_mut::<3>(IDX_BA).copy_from(&self.biases.accel);
-        for (at, m) in [(IDX_TG, &self.imu.t_g), (IDX_TS, &self.imu.t_s), (IDX_TA, &self.imu.t_a)] {
+        for (at, m) in [
+            (IDX_TG, &self.imu.t_g),
+            (IDX_TS, &self.imu.t_s),
+            (IDX_TA, &self.imu.t_a),
+        ] {
             for r in 0..3 {
                 for c in 0..3 {
                     v[at + 3 * r + c] = m[(r, c)];
@@ -158,7 +168,10 @@ impl CalibState {
         }
         v.fixed_rows_mut::<3>(IDX_PCB).copy_from(&self.p_cb);
         let c = &self.camera;
-        for (k, x) in [c.fx, c.fy, c.cx, c.cy, c.k1, c.k2, c.p1, c.p2].into_iter().enumerate() {
+        for (k, x) in [c.fx, c.fy, c.cx, c.cy, c.k1, c.k2, c.p1, c.p2]
+            .into_iter()
+            .enumerate()
+        {
             v[IDX_INTR + k] = x;
         }
         v[IDX_TD] = self.t_d;

@@ -18,7 +18,10 @@ const CAL1: usize = IDX_TR + 1;
 /// pinhole 5 px, p_cb 2 cm per axis, T nominal, i.e. 5e-3 / 1e-3 off; distortion half its
 /// prior σ off) and the body state drawn from its prior.
 fn start_state(sc: &Scenario, priors: &CalibPriors, rng: &mut Rng) -> CalibState {
-    let scale = std::env::var("CALIB_INIT_SCALE").ok().and_then(|v| v.parse().ok()).unwrap_or(1.0);
+    let scale = std::env::var("CALIB_INIT_SCALE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1.0);
     let mut s = start_state_scaled(sc, priors, rng);
     if std::env::var("CALIB_TRUE_BIAS").is_ok() {
         s.biases = sc.truth.biases;
@@ -85,7 +88,13 @@ struct Trace {
 }
 
 /// Runs the filter over `seconds` of the scenario.
-fn simulate(sc: &Scenario, params: CalibParams, priors: CalibPriors, seconds: f64, seed: u64) -> Trace {
+fn simulate(
+    sc: &Scenario,
+    params: CalibParams,
+    priors: CalibPriors,
+    seconds: f64,
+    seed: u64,
+) -> Trace {
     let mut rng = Rng::new(seed);
     let init = start_state(sc, &priors, &mut rng);
     let mut f = CalibFilter::new(params, priors, init);
@@ -117,7 +126,11 @@ fn simulate(sc: &Scenario, params: CalibParams, priors: CalibPriors, seconds: f6
         let t0 = Instant::now();
         let rep = f.add_frame(t_mid, &obs).expect("frame");
         tr.ms.push(t0.elapsed().as_secs_f64() * 1e3);
-        (tr.used, tr.gated, tr.failed) = (tr.used + rep.used, tr.gated + rep.gated, tr.failed + rep.failed);
+        (tr.used, tr.gated, tr.failed) = (
+            tr.used + rep.used,
+            tr.gated + rep.gated,
+            tr.failed + rep.failed,
+        );
         let err = f.state().calib_vector() - &truth;
         let p = f.covariance();
         for i in 0..n {
@@ -127,7 +140,9 @@ fn simulate(sc: &Scenario, params: CalibParams, priors: CalibPriors, seconds: f6
         }
         let e = err.rows(CAL0, n).into_owned();
         let block = p.view((CAL0, CAL0), (n, n)).into_owned();
-        nees_sum += block.cholesky().map_or(f64::INFINITY, |c| e.dot(&c.solve(&e)));
+        nees_sum += block
+            .cholesky()
+            .map_or(f64::INFINITY, |c| e.dot(&c.solve(&e)));
         if std::env::var("CALIB_TRACE").is_ok() && k <= 40 {
             let d = |i: usize| format!("{:+.3e}±{:.1e}", err[i], p[(i, i)].sqrt());
             eprintln!(
@@ -187,7 +202,10 @@ fn summary(tr: &Trace) {
         .filter(|(_, &f)| f < 0.95)
         .map(|(i, f)| format!("{}:{:.2}", CAL0 + i, f))
         .collect();
-    eprintln!("entries below 95 % within 3σ (index:fraction): {}", bad.join(" "));
+    eprintln!(
+        "entries below 95 % within 3σ (index:fraction): {}",
+        bad.join(" ")
+    );
     eprintln!(
         "within 3σ: all entries {:.3}, worst entry {:.3}; mean NEES (40 dof) {:.1}; P positive {}",
         all3, min3, tr.mean_nees, tr.positive
@@ -198,7 +216,12 @@ fn summary(tr: &Trace) {
 #[test]
 #[ignore = "diagnostic; run by hand"]
 fn diagnostic_run() {
-    let env = |k: &str, d: f64| std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d);
+    let env = |k: &str, d: f64| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
     let seed = env("CALIB_SEED", 7.0) as u64;
     let mut rng = Rng::new(seed);
     let mut sc = Scenario::calib(Motion::calib(), &mut rng);
@@ -222,7 +245,13 @@ fn diagnostic_run() {
         max_iterations: env("CALIB_ITERS", 4.0) as usize,
         ..Default::default()
     };
-    let tr = simulate(&sc, params, CalibPriors::default(), env("CALIB_SECONDS", 10.0), seed + 4);
+    let tr = simulate(
+        &sc,
+        params,
+        CalibPriors::default(),
+        env("CALIB_SECONDS", 10.0),
+        seed + 4,
+    );
     summary(&tr);
 }
 
@@ -231,7 +260,16 @@ fn short_run_is_consistent_and_shrinks_sigmas() {
     let mut rng = Rng::new(7);
     let sc = Scenario::calib(Motion::calib(), &mut rng);
     let priors = CalibPriors::default();
-    let tr = simulate(&sc, CalibParams { pixel_sigma: sc.pixel_sigma, ..Default::default() }, priors, 10.0, 11);
+    let tr = simulate(
+        &sc,
+        CalibParams {
+            pixel_sigma: sc.pixel_sigma,
+            ..Default::default()
+        },
+        priors,
+        10.0,
+        11,
+    );
     summary(&tr);
     assert!(tr.positive);
     assert!(tr.used > 100);
@@ -250,7 +288,11 @@ fn prediction_at_the_truth_matches_the_simulated_pixels() {
     sc.pixel_sigma = 0.0;
     let mut init = sc.truth;
     init.nav = sc.motion.at(0.0).nav;
-    let params = CalibParams { min_track_len: 1000, max_clones: 40, ..Default::default() };
+    let params = CalibParams {
+        min_track_len: 1000,
+        max_clones: 40,
+        ..Default::default()
+    };
     let mut f = CalibFilter::new(params, CalibPriors::default(), init);
     let mut biases = sc.truth.biases;
     let mut k_imu = 0;
@@ -287,10 +329,16 @@ fn prediction_at_the_truth_matches_the_simulated_pixels() {
 fn sixty_seconds_reach_the_targets() {
     let mut rng = Rng::new(7);
     let sc = Scenario::calib(Motion::calib(), &mut rng);
-    let params = CalibParams { pixel_sigma: sc.pixel_sigma, ..Default::default() };
+    let params = CalibParams {
+        pixel_sigma: sc.pixel_sigma,
+        ..Default::default()
+    };
     let tr = simulate(&sc, params, CalibPriors::default(), 60.0, 11);
     summary(&tr);
-    assert!(tr.positive, "covariance symmetric and positive semi-definite");
+    assert!(
+        tr.positive,
+        "covariance symmetric and positive semi-definite"
+    );
     let targets = [
         ("t_d", IDX_TD, 1, 0.5e-3),
         ("t_r", IDX_TR, 1, 0.5e-3),
@@ -304,10 +352,16 @@ fn sixty_seconds_reach_the_targets() {
     ];
     for (name, at, n, target) in targets {
         let w = worst(&tr, at, n);
-        assert!(w <= target, "{name}: final error {w:.3e} > target {target:.1e}");
+        assert!(
+            w <= target,
+            "{name}: final error {w:.3e} > target {target:.1e}"
+        );
     }
     let all3 = tr.inside3.iter().sum::<f64>() / tr.inside3.len() as f64;
-    assert!(all3 >= 0.95, "only {all3:.3} of (entry, frame) pairs within 3σ");
+    assert!(
+        all3 >= 0.95,
+        "only {all3:.3} of (entry, frame) pairs within 3σ"
+    );
 }
 
 /// Without motion `t_d` has no Jacobian (`VI_NOTES.md` §3 "Observability") and its σ must
@@ -319,12 +373,23 @@ fn sixty_seconds_reach_the_targets() {
 fn static_body_leaves_the_time_offset_unobserved() {
     let mut rng = Rng::new(9);
     let sc = Scenario::calib(Motion::still(), &mut rng);
-    let params = CalibParams { pixel_sigma: sc.pixel_sigma, ..Default::default() };
+    let params = CalibParams {
+        pixel_sigma: sc.pixel_sigma,
+        ..Default::default()
+    };
     let priors = CalibPriors::default();
     let tr = simulate(&sc, params, priors, 10.0, 3);
     summary(&tr);
     assert!(tr.positive);
     assert!(tr.err.iter().all(|e| e.is_finite()));
-    assert!(tr.sigma[IDX_TD] > 0.95 * priors.t_d, "t_d σ {:.2e}", tr.sigma[IDX_TD]);
-    assert!(tr.sigma[IDX_TR] > 0.95 * priors.t_r, "t_r σ {:.2e}", tr.sigma[IDX_TR]);
+    assert!(
+        tr.sigma[IDX_TD] > 0.95 * priors.t_d,
+        "t_d σ {:.2e}",
+        tr.sigma[IDX_TD]
+    );
+    assert!(
+        tr.sigma[IDX_TR] > 0.95 * priors.t_r,
+        "t_r σ {:.2e}",
+        tr.sigma[IDX_TR]
+    );
 }

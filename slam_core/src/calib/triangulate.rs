@@ -51,12 +51,22 @@ pub fn triangulate(
     if p_a.z < MIN_DEPTH {
         return None;
     }
-    let mut f = InvDepth { alpha: p_a.x / p_a.z, beta: p_a.y / p_a.z, rho: 1.0 / p_a.z };
+    let mut f = InvDepth {
+        alpha: p_a.x / p_a.z,
+        beta: p_a.y / p_a.z,
+        rho: 1.0 / p_a.z,
+    };
     let mut cost = cost_ok(cam, anchor, obs, &f)?;
     for _ in 0..MAX_ITERS {
         let (jtj, jtr) = normal_equations(cam, anchor, obs, &f)?;
-        let step = (jtj + Matrix3::identity() * 1e-9 * jtj.trace()).lu().solve(&jtr)?;
-        let cand = InvDepth { alpha: f.alpha + step.x, beta: f.beta + step.y, rho: f.rho + step.z };
+        let step = (jtj + Matrix3::identity() * 1e-9 * jtj.trace())
+            .lu()
+            .solve(&jtr)?;
+        let cand = InvDepth {
+            alpha: f.alpha + step.x,
+            beta: f.beta + step.y,
+            rho: f.rho + step.z,
+        };
         match cost_ok(cam, anchor, obs, &cand) {
             Some(c) if c <= cost => {
                 let done = cost - c < 1e-10 * cost.max(1e-12) || step.norm() < 1e-12;
@@ -71,7 +81,10 @@ pub fn triangulate(
     if f.rho <= 0.0 || baseline(obs) * f.rho < min_parallax {
         return None;
     }
-    Some(Triangulated { f, rms: (cost / obs.len() as f64).sqrt() })
+    Some(Triangulated {
+        f,
+        rms: (cost / obs.len() as f64).sqrt(),
+    })
 }
 
 /// Largest distance between two of the camera centres, m.
@@ -175,10 +188,20 @@ mod tests {
             .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
             .collect();
         let t = triangulate(&cam, &poses[2], &obs, 0.01).expect("triangulates");
-        let back = in_camera(&poses[2], &CameraPose { r_gc: Rotation3::identity(), p_gc: Vector3::zeros() }, &t.f);
+        let back = in_camera(
+            &poses[2],
+            &CameraPose {
+                r_gc: Rotation3::identity(),
+                p_gc: Vector3::zeros(),
+            },
+            &t.f,
+        );
         assert!((back - x).norm() < 1e-8, "{back} vs {x}");
         assert!(t.rms < 1e-8);
         let same = vec![obs[0]; 3];
-        assert!(triangulate(&cam, &poses[0], &same, 0.0).is_none(), "no parallax");
+        assert!(
+            triangulate(&cam, &poses[0], &same, 0.0).is_none(),
+            "no parallax"
+        );
     }
 }

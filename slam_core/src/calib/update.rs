@@ -18,7 +18,11 @@ pub struct Projected {
 /// Multiplies `(H_x, r)` by `Aᵀ`, `A` the left null space of `H_f` (m x 3, full column
 /// rank): the QR of `H_f` gives `Qᵀ`, whose last `m - 3` rows are `Aᵀ`. `None` when `H_f`
 /// is rank-deficient or `m <= 3`.
-pub fn project_null_space(h_x: DMatrix<f64>, h_f: DMatrix<f64>, r: DVector<f64>) -> Option<Projected> {
+pub fn project_null_space(
+    h_x: DMatrix<f64>,
+    h_f: DMatrix<f64>,
+    r: DVector<f64>,
+) -> Option<Projected> {
     let m = h_f.nrows();
     if m <= 3 || h_f.ncols() != 3 {
         return None;
@@ -32,13 +36,18 @@ pub fn project_null_space(h_x: DMatrix<f64>, h_f: DMatrix<f64>, r: DVector<f64>)
     let (mut h, mut r) = (h_x, r);
     qr.q_tr_mul(&mut h);
     qr.q_tr_mul(&mut r);
-    Some(Projected { h: h.rows(3, m - 3).into_owned(), r: r.rows(3, m - 3).into_owned() })
+    Some(Projected {
+        h: h.rows(3, m - 3).into_owned(),
+        r: r.rows(3, m - 3).into_owned(),
+    })
 }
 
 /// The 95 % quantile of χ² with `dof` degrees of freedom (Wilson-Hilferty; within ~1 % of
 /// the exact value for `dof ≥ 3`, exact table below).
 pub fn chi2_95(dof: usize) -> f64 {
-    const TABLE: [f64; 10] = [3.841, 5.991, 7.815, 9.488, 11.070, 12.592, 14.067, 15.507, 16.919, 18.307];
+    const TABLE: [f64; 10] = [
+        3.841, 5.991, 7.815, 9.488, 11.070, 12.592, 14.067, 15.507, 16.919, 18.307,
+    ];
     if dof == 0 {
         return 0.0;
     }
@@ -52,7 +61,12 @@ pub fn chi2_95(dof: usize) -> f64 {
 
 /// Mahalanobis distance `rᵀ (H P Hᵀ + σ² I)⁻¹ r`; `None` if the innovation covariance is
 /// not positive definite.
-pub fn mahalanobis(h: &DMatrix<f64>, r: &DVector<f64>, p: &DMatrix<f64>, sigma2: f64) -> Option<f64> {
+pub fn mahalanobis(
+    h: &DMatrix<f64>,
+    r: &DVector<f64>,
+    p: &DMatrix<f64>,
+    sigma2: f64,
+) -> Option<f64> {
     let mut s = h * p * h.transpose();
     for k in 0..s.nrows() {
         s[(k, k)] += sigma2;
@@ -86,7 +100,10 @@ pub fn compress(m: Projected) -> Projected {
     let qr = m.h.qr();
     let mut r = m.r;
     qr.q_tr_mul(&mut r);
-    Projected { h: qr.r(), r: r.rows(0, cols).into_owned() }
+    Projected {
+        h: qr.r(),
+        r: r.rows(0, cols).into_owned(),
+    }
 }
 
 /// EKF update with noise `σ² I`: `K = P Hᵀ S⁻¹`, returns `dx = K r` and sets
@@ -149,7 +166,9 @@ mod tests {
         assert!(p.r.norm() < 1e-12);
         // The projection is orthonormal: its rows A^T satisfy A^T A = I. Recover A^T by
         // projecting the identity.
-        let a_t = project_null_space(DMatrix::identity(8, 8), h_f.clone(), DVector::zeros(8)).unwrap().h;
+        let a_t = project_null_space(DMatrix::identity(8, 8), h_f.clone(), DVector::zeros(8))
+            .unwrap()
+            .h;
         assert!((&a_t * a_t.transpose() - DMatrix::identity(5, 5)).norm() < 1e-12);
         assert!((&a_t * &h_f).norm() < 1e-12);
         assert!(project_null_space(h_x, DMatrix::zeros(8, 3), DVector::zeros(8)).is_none());
@@ -169,7 +188,10 @@ mod tests {
         let h = DMatrix::from_fn(9, n, |_, _| rng.normal());
         let r = DVector::from_fn(9, |_, _| rng.normal());
         let p0 = DMatrix::from_fn(n, n, |i, j| if i == j { 2.0 } else { 0.1 });
-        let full = Projected { h: h.clone(), r: r.clone() };
+        let full = Projected {
+            h: h.clone(),
+            r: r.clone(),
+        };
         let (mut pa, mut pb) = (p0.clone(), p0.clone());
         let dxa = ekf_update(&mut pa, &full, 0.5).unwrap();
         let small = compress(full);
