@@ -15,8 +15,8 @@
 //! discrete transition (§3 "Propagation"); [`measure`] the prediction of one observation at
 //! its own row time and its Jacobians (§3 "Measurement in row v of image j"); [`triangulate`]
 //! the anchored inverse-depth Gauss-Newton; [`update`] the null-space projection, χ² gate,
-//! QR compression and EKF update (§3 "Update"); [`filter`] the [`CalibFilter`] that wires
-//! them.
+//! QR compression and EKF update (§3 "Update"); `rows` one feature's projected rows;
+//! [`filter`] the [`CalibFilter`] that wires them.
 //!
 //! ```no_run
 //! use slam_core::calib::{CalibFilter, CalibParams, CalibPriors, CalibState, ImuSample};
@@ -38,6 +38,7 @@ pub mod integrate;
 pub mod measure;
 pub mod params;
 pub mod propagate;
+mod rows;
 pub mod state;
 pub mod triangulate;
 pub mod update;

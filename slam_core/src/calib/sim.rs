@@ -239,7 +239,11 @@ impl Scenario {
             // Kept by the true pixel: cutting by the noisy one would bias the noise of the
             // last observation of every track leaving the image (against its motion), which
             // the filter reads as readout time.
-            let noisy = uv + Vector2::new(rng.normal(), rng.normal()) * self.pixel_sigma;
+            let mut n = Vector2::new(rng.normal(), rng.normal()) * self.pixel_sigma;
+            if let Ok(axis) = std::env::var("CALIB_NOISE_AXIS") {
+                n[if axis == "u" { 1 } else { 0 }] = 0.0;
+            }
+            let noisy = uv + n;
             out.push(Observation {
                 track: TrackId(id as u64),
                 uv: noisy,
