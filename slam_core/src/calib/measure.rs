@@ -8,25 +8,24 @@
 //! integrated from the clone ([`super::integrate`]). Then
 //! `p^b = R̂ᵀ (p^g_f - p̂)`, `p^c = R_cb p^b + p_cb`, `z = π(p^c)`.
 //!
-//! To first order `dp(τ+Δ) = dp_j + Δ dv_j`, `dθ(τ+Δ) = dθ_j` (the dependence of the
-//! integration over Δ on biases and T is neglected: Δ ≤ ~t_r/2 + |t_d error|). With
-//! `J_π = ∂z/∂p^c`, `M = J_π R_cb R̂ᵀ`:
+//! To first order `dp(τ+Δ) = dp_j + Δ dv_j`, `dθ(τ+Δ) = dθ_j + R̂ Jr(ω̂Δ) Δ δω`, where `δω` is
+//! the error of the corrected rate (biases, `T_g`, `T_s`, `T_a`); the position terms of
+//! the IMU errors over Δ (≤ ~t_r/2 + |t_d error|) are dropped. With `J_π = ∂z/∂p^c`,
+//! `M = J_π R_cb R̂ᵀ`:
 //! ```text
 //! ∂z/∂dθ_j = M [p^g_f - p̂]x   ∂z/∂dp_j = -M   ∂z/∂dv_j = -Δ M
 //! ∂z/∂t_d  = J_π R_cb ([p^b]x ω̂ - R̂ᵀ v̂)   ∂z/∂t_r = (v/N - ½) ∂z/∂t_d
 //! ∂z/∂p_cb = J_π (I - R_cb R̂ᵀ R_a R_cbᵀ)
 //! ∂z/∂dθ_a = -M [p^g_f - p̂_a]x   ∂z/∂dp_a = M
 //! ∂z/∂(α,β,ρ) = M R_a R_cbᵀ [e1/ρ, e2/ρ, -(α,β,1)/ρ²]
+//! ∂z/∂δω   = M [p^g_f - p̂]x R̂ Jr(ω̂Δ) Δ
 //! ```
-//! ∂z/∂δω   = M [p^g_f - p̂]x R̂ Jr(ω̂Δ) Δ      (rate error over Δ: b_g, T_g, T_s, b_a, T_a)
-//! ```
-//! The last row is what keeps a gyro-bias error (0.01 rad/s ≈ 0.7 % of a 1.5 rad/s rate)
-//! from being absorbed by `t_r`; the small position terms of the biases over Δ are dropped.
-//! ```text
 //! and the pinhole and distortion columns of [`PinholeRadtan::pinhole_jacobian`] and
-//! [`PinholeRadtan::distortion_jacobian`]. With FEJ the positions inside the `dθ` columns
-//! are the clones' first estimates (`p̂ ≈ p_j,fej + Δ v_j,fej`, `p̂_a = p_a,fej`), so that a
-//! global yaw moves no residual (the filter's consistency, §3 "Observability").
+//! [`PinholeRadtan::distortion_jacobian`]. The `δω` row keeps a gyro-bias error
+//! (0.01 rad/s ≈ 0.7 % of a 1.5 rad/s rate) from being read as readout time. With FEJ the
+//! positions inside the `dθ` columns are the clones' first estimates
+//! (`p̂ ≈ p_j,fej + Δ v_j,fej`, `p̂_a = p_a,fej`), so that a global yaw moves no residual
+//! (the filter's consistency, §3 "Observability").
 
 use nalgebra::{Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 
