@@ -18,6 +18,15 @@
 //! QR compression and EKF update (§3 "Update"); `rows` one feature's projected rows;
 //! [`filter`] the [`CalibFilter`] that wires them.
 //!
+//! **Status** (synthetic tests in `tests.rs`, seed Fig. 4.4-like scenario, one run per
+//! seed): after 60 s every issue target is met on the three seeds tried, ≥ 99.4 % of
+//! (entry, epoch) pairs lie within ±3σ, mean NEES of the 40 calibration entries 41-52.
+//! Known limits: `t_r` is overconfident in the first ~10 s (biased positive by ~0.5-1 ms
+//! at 5 s, 3-5σ, also with a true `t_r = 0`; caused by noise on the *row* coordinate only,
+//! cause not found yet: reproduce with the `diagnostic_run` test and `CALIB_NOISE_AXIS=v`);
+//! clones are capped by dropping the oldest only; `R_cb` must be given; starting errors far
+//! beyond the prior (e.g. `t_d` 100 ms) are untested.
+//!
 //! ```no_run
 //! use slam_core::calib::{CalibFilter, CalibParams, CalibPriors, CalibState, ImuSample};
 //! # fn run(state: CalibState, imu: Vec<ImuSample>) -> Result<(), slam_core::calib::CalibError> {

@@ -236,6 +236,7 @@ fn diagnostic_run() {
         sc.pixel_sigma = 0.0;
     }
     sc.pixel_sigma = env("CALIB_PIX", sc.pixel_sigma);
+    sc.truth.t_r = env("CALIB_TRUE_TR", sc.truth.t_r);
     let params = CalibParams {
         pixel_sigma: sc.pixel_sigma.max(0.1),
         fej: env("CALIB_FEJ", 1.0) > 0.5,
