@@ -1,6 +1,6 @@
 //! Camera models: pinhole with radial-tangential (Brown) distortion, seed eq. 2.57-2.60.
 
-use nalgebra::{Matrix2, Matrix2x3, Matrix2x6, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix2x3, Matrix2x4, Matrix2x6, Vector2, Vector3};
 
 use crate::lie::skew;
 
@@ -120,6 +120,40 @@ impl PinholeRadtan {
         du_dp.row_mut(0).scale_mut(self.fx);
         du_dp.row_mut(1).scale_mut(self.fy);
         Some((uv, du_dp))
+    }
+
+    /// Jacobian (2x4) of the pixel of a camera-frame point `p_c` with respect to the pinhole
+    /// coefficients `(fx, fy, cx, cy)` (`VI_NOTES.md` §2): `[x_d, 0, 1, 0; 0, y_d, 0, 1]`.
+    /// `None` when the point is not in front of the camera.
+    pub fn pinhole_jacobian(&self, p_c: &Vector3<f64>) -> Option<Matrix2x4<f64>> {
+        if p_c.z <= 1e-9 {
+            return None;
+        }
+        let xd = self.distort(&Vector2::new(p_c.x / p_c.z, p_c.y / p_c.z));
+        Some(Matrix2x4::new(xd.x, 0.0, 1.0, 0.0, 0.0, xd.y, 0.0, 1.0))
+    }
+
+    /// Jacobian (2x4) of the pixel of a camera-frame point `p_c` with respect to the
+    /// distortion coefficients `(k1, k2, p1, p2)` (`VI_NOTES.md` §2, k3 held fixed): columns
+    /// `k_i: r^(2i) (fx x_n, fy y_n)`, `p1: (2 fx x_n y_n, fy (r² + 2 y_n²))`,
+    /// `p2: (fx (r² + 2 x_n²), 2 fy x_n y_n)`. `None` when the point is not in front.
+    pub fn distortion_jacobian(&self, p_c: &Vector3<f64>) -> Option<Matrix2x4<f64>> {
+        if p_c.z <= 1e-9 {
+            return None;
+        }
+        let (x, y) = (p_c.x / p_c.z, p_c.y / p_c.z);
+        let r2 = x * x + y * y;
+        let (fx, fy) = (self.fx, self.fy);
+        Some(Matrix2x4::new(
+            fx * x * r2,
+            fx * x * r2 * r2,
+            2.0 * fx * x * y,
+            fx * (r2 + 2.0 * x * x),
+            fy * y * r2,
+            fy * y * r2 * r2,
+            fy * (r2 + 2.0 * y * y),
+            2.0 * fy * x * y,
+        ))
     }
 
     /// Applies the radial-tangential distortion to normalised coordinates `x_n = (x/z, y/z)`
@@ -376,6 +410,36 @@ mod tests {
         assert!(euroc()
             .project_with_jacobian(&Vector3::new(0.0, 0.0, -1.0))
             .is_none());
+    }
+
+    #[test]
+    fn coefficient_jacobians_match_finite_differences() {
+        let cam = euroc();
+        let p = Vector3::new(0.5, -0.35, 2.0);
+        let jp = cam.pinhole_jacobian(&p).expect("in front");
+        let jd = cam.distortion_jacobian(&p).expect("in front");
+        let h = 1e-7;
+        let perturb = |c: usize, d: f64| {
+            let mut k = cam;
+            match c {
+                0 => k.fx += d,
+                1 => k.fy += d,
+                2 => k.cx += d,
+                3 => k.cy += d,
+                4 => k.k1 += d,
+                5 => k.k2 += d,
+                6 => k.p1 += d,
+                _ => k.p2 += d,
+            }
+            k.project(&p).unwrap()
+        };
+        for c in 0..8 {
+            let num = (perturb(c, h) - perturb(c, -h)) / (2.0 * h);
+            let ana = if c < 4 { jp.column(c) } else { jd.column(c - 4) };
+            assert!((num - ana).norm() < 1e-5 * (1.0 + num.norm()), "coefficient {c}");
+        }
+        assert!(cam.pinhole_jacobian(&Vector3::new(0.0, 0.0, -1.0)).is_none());
+        assert!(cam.distortion_jacobian(&Vector3::new(0.0, 0.0, -1.0)).is_none());
     }
 
     #[test]

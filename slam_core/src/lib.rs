@@ -1,6 +1,7 @@
 //! Pure SLAM algorithms: no IPC, no threads. Every function here can be tested on plain data.
 #![deny(missing_docs)]
 
+pub mod calib;
 pub mod camera;
 pub mod error;
 pub mod features;

@@ -1,0 +1,396 @@
+//! Filter-level tests on the synthetic scenario of [`super::sim`] (`VI_NOTES.md` §3
+//! "Simulation", the targets after 60 s).
+
+use std::time::Instant;
+
+use nalgebra::{DVector, Vector3};
+
+use super::params::{CalibParams, CalibPriors};
+use super::sim::{Motion, Rng, Scenario};
+use super::state::CalibState;
+use super::{CalibFilter, IDX_DIST, IDX_INTR, IDX_PCB, IDX_TA, IDX_TD, IDX_TG, IDX_TR, IDX_TS};
+
+/// First and last calibration entries checked (`T_g .. t_r`, biases excluded: they walk).
+const CAL0: usize = IDX_TG;
+const CAL1: usize = IDX_TR + 1;
+
+/// The filter's start: the truth moved by the starting errors (t_d 10 ms, t_r 5 ms,
+/// pinhole 5 px, p_cb 2 cm per axis, T nominal, i.e. 5e-3 / 1e-3 off; distortion half its
+/// prior σ off) and the body state drawn from its prior.
+fn start_state(sc: &Scenario, priors: &CalibPriors, rng: &mut Rng) -> CalibState {
+    let scale = std::env::var("CALIB_INIT_SCALE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1.0);
+    let mut s = start_state_scaled(sc, priors, rng);
+    if std::env::var("CALIB_TRUE_BIAS").is_ok() {
+        s.biases = sc.truth.biases;
+    }
+    let (t, e) = (sc.truth.calib_vector(), s.calib_vector());
+    let mut dx = (t.clone() - e) * (1.0 - scale);
+    dx.rows_mut(0, super::IDX_TG).fill(0.0);
+    // Diagnostic: CALIB_INIT_KEEP=a-b,c-d keeps the full starting error on those entries.
+    if let Ok(keep) = std::env::var("CALIB_INIT_KEEP") {
+        for r in keep.split(',') {
+            let (a, b) = r.split_once('-').unwrap_or((r, r));
+            let (a, b): (usize, usize) = (a.parse().unwrap(), b.parse().unwrap());
+            dx.rows_mut(a, b + 1 - a).fill(0.0);
+        }
+    }
+    s.retract(&dx);
+    s
+}
+
+fn start_state_scaled(sc: &Scenario, priors: &CalibPriors, rng: &mut Rng) -> CalibState {
+    let mut s = sc.truth;
+    s.nav = sc.motion.at(0.0).nav;
+    let mut dx = DVector::zeros(super::CORE_DIM);
+    for k in 0..3 {
+        dx[k] = rng.normal() * priors.theta;
+        dx[3 + k] = rng.normal() * priors.position;
+        dx[6 + k] = rng.normal() * priors.velocity;
+    }
+    s.retract(&dx);
+    s.biases = Default::default();
+    s.imu = Default::default();
+    s.p_cb += Vector3::new(rng.sign(), rng.sign(), rng.sign()) * priors.p_cb;
+    let c = &mut s.camera;
+    c.fx += 5.0 * rng.sign();
+    c.fy += 5.0 * rng.sign();
+    c.cx += 5.0 * rng.sign();
+    c.cy += 5.0 * rng.sign();
+    c.k1 += 0.5 * priors.radial * rng.sign();
+    c.k2 += 0.5 * priors.radial * rng.sign();
+    c.p1 += 0.5 * priors.tangential * rng.sign();
+    c.p2 += 0.5 * priors.tangential * rng.sign();
+    s.t_d += 0.010 * rng.sign();
+    s.t_r += 0.005 * rng.sign();
+    s
+}
+
+/// What a run measured.
+struct Trace {
+    /// Final calibration error (estimate - truth), error-state order.
+    err: DVector<f64>,
+    /// Final 1σ.
+    sigma: DVector<f64>,
+    /// Per calibration entry, the fraction of frames with |error| ≤ 3σ.
+    inside3: Vec<f64>,
+    /// Mean NEES of the calibration block (40 dof) over the frames.
+    mean_nees: f64,
+    /// Per-frame `add_frame` wall time, ms, sorted.
+    ms: Vec<f64>,
+    frames: usize,
+    used: usize,
+    gated: usize,
+    failed: usize,
+    positive: bool,
+}
+
+/// Runs the filter over `seconds` of the scenario.
+fn simulate(
+    sc: &Scenario,
+    params: CalibParams,
+    priors: CalibPriors,
+    seconds: f64,
+    seed: u64,
+) -> Trace {
+    let mut rng = Rng::new(seed);
+    let init = start_state(sc, &priors, &mut rng);
+    let mut f = CalibFilter::new(params, priors, init);
+    let truth = sc.truth.calib_vector();
+    let n = CAL1 - CAL0;
+    let mut inside = vec![0usize; n];
+    let mut biases = sc.truth.biases;
+    let (mut k_imu, mut nees_sum) = (0i64, 0.0);
+    let mut tr = Trace {
+        err: DVector::zeros(0),
+        sigma: DVector::zeros(0),
+        inside3: vec![],
+        mean_nees: 0.0,
+        ms: vec![],
+        frames: 0,
+        used: 0,
+        gated: 0,
+        failed: 0,
+        positive: true,
+    };
+    let frames = (seconds * 1e9 / sc.frame_period_ns as f64) as i64;
+    for k in 1..=frames {
+        let t_mid = k * sc.frame_period_ns;
+        while k_imu * sc.imu_period_ns <= t_mid + 100_000_000 {
+            f.push_imu(sc.imu_sample(k_imu, &mut biases, &mut rng));
+            k_imu += 1;
+        }
+        let obs = sc.frame(t_mid, &mut rng);
+        let t0 = Instant::now();
+        let rep = f.add_frame(t_mid, &obs).expect("frame");
+        tr.ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        (tr.used, tr.gated, tr.failed) = (
+            tr.used + rep.used,
+            tr.gated + rep.gated,
+            tr.failed + rep.failed,
+        );
+        let err = f.state().calib_vector() - &truth;
+        let p = f.covariance();
+        for i in 0..n {
+            if err[CAL0 + i].abs() <= 3.0 * p[(CAL0 + i, CAL0 + i)].sqrt() {
+                inside[i] += 1;
+            }
+        }
+        let e = err.rows(CAL0, n).into_owned();
+        let block = p.view((CAL0, CAL0), (n, n)).into_owned();
+        nees_sum += block
+            .cholesky()
+            .map_or(f64::INFINITY, |c| e.dot(&c.solve(&e)));
+        if std::env::var("CALIB_TRACE").is_ok() && k <= 40 {
+            let d = |i: usize| format!("{:+.3e}±{:.1e}", err[i], p[(i, i)].sqrt());
+            eprintln!(
+                "k {k} used {} gated {} failed {} rows {} fx {} cx {} k1 {} k2 {} p1 {} p2 {} td {}",
+                rep.used, rep.gated, rep.failed, rep.rows, d(IDX_INTR), d(IDX_INTR + 2),
+                d(IDX_DIST), d(IDX_DIST + 1), d(IDX_DIST + 2), d(IDX_DIST + 3), d(IDX_TD)
+            );
+        }
+        if k % 150 == 0 {
+            tr.positive &= f.covariance_is_positive();
+            let d = |i: usize| (err[i], p[(i, i)].sqrt());
+            eprintln!(
+                "t={:5.1}s td {:+.2e}±{:.1e} tr {:+.2e}±{:.1e} fx {:+.2}±{:.2} cx {:+.2}±{:.2} k1 {:+.1e}±{:.0e} pcb {:+.1e}±{:.0e} Tg {:+.1e}±{:.0e} Ts {:+.1e}±{:.0e} Ta {:+.1e}±{:.0e}",
+                k as f64 * sc.frame_period_ns as f64 * 1e-9,
+                d(IDX_TD).0, d(IDX_TD).1, d(IDX_TR).0, d(IDX_TR).1,
+                d(IDX_INTR).0, d(IDX_INTR).1, d(IDX_INTR + 2).0, d(IDX_INTR + 2).1,
+                d(IDX_DIST).0, d(IDX_DIST).1, d(IDX_PCB).0, d(IDX_PCB).1,
+                d(IDX_TG).0, d(IDX_TG).1, d(IDX_TS).0, d(IDX_TS).1, d(IDX_TA).0, d(IDX_TA).1,
+            );
+        }
+    }
+    tr.frames = frames as usize;
+    tr.err = f.state().calib_vector() - &truth;
+    tr.sigma = DVector::from_fn(super::CORE_DIM, |i, _| f.covariance()[(i, i)].sqrt());
+    tr.inside3 = inside.iter().map(|&c| c as f64 / frames as f64).collect();
+    tr.mean_nees = nees_sum / frames as f64;
+    tr.ms.sort_by(f64::total_cmp);
+    tr.positive &= f.covariance_is_positive();
+    tr
+}
+
+/// Largest |error| over `n` entries from `at`.
+fn worst(tr: &Trace, at: usize, n: usize) -> f64 {
+    (at..at + n).map(|i| tr.err[i].abs()).fold(0.0, f64::max)
+}
+
+fn summary(tr: &Trace) {
+    let p50 = tr.ms[tr.ms.len() / 2];
+    let p99 = tr.ms[tr.ms.len() * 99 / 100];
+    let min3 = tr.inside3.iter().copied().fold(1.0, f64::min);
+    let all3 = tr.inside3.iter().sum::<f64>() / tr.inside3.len() as f64;
+    eprintln!(
+        "frames {} features used {} gated {} failed {}; add_frame p50 {:.2} ms p99 {:.2} ms",
+        tr.frames, tr.used, tr.gated, tr.failed, p50, p99
+    );
+    eprintln!(
+        "final |err|: t_d {:.3} ms t_r {:.3} ms fx {:.3} fy {:.3} cx {:.3} cy {:.3} px k1 {:.2e} k2 {:.2e} p_cb {:.2} mm T_g {:.2e} T_s {:.2e} T_a {:.2e}",
+        tr.err[IDX_TD].abs() * 1e3, tr.err[IDX_TR].abs() * 1e3,
+        tr.err[IDX_INTR].abs(), tr.err[IDX_INTR + 1].abs(), tr.err[IDX_INTR + 2].abs(), tr.err[IDX_INTR + 3].abs(),
+        tr.err[IDX_DIST].abs(), tr.err[IDX_DIST + 1].abs(), worst(tr, IDX_PCB, 3) * 1e3,
+        worst(tr, IDX_TG, 9), worst(tr, IDX_TS, 9), worst(tr, IDX_TA, 9),
+    );
+    let bad: Vec<String> = tr
+        .inside3
+        .iter()
+        .enumerate()
+        .filter(|(_, &f)| f < 0.95)
+        .map(|(i, f)| format!("{}:{:.2}", CAL0 + i, f))
+        .collect();
+    eprintln!(
+        "entries below 95 % within 3σ (index:fraction): {}",
+        bad.join(" ")
+    );
+    eprintln!(
+        "within 3σ: all entries {:.3}, worst entry {:.3}; mean NEES (40 dof) {:.1}; P positive {}",
+        all3, min3, tr.mean_nees, tr.positive
+    );
+}
+
+/// Diagnostic run, parameters from the environment (`CALIB_FEJ=0`, `CALIB_SECONDS`).
+#[test]
+#[ignore = "diagnostic; run by hand"]
+fn diagnostic_run() {
+    let env = |k: &str, d: f64| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
+    let seed = env("CALIB_SEED", 7.0) as u64;
+    let mut rng = Rng::new(seed);
+    let mut sc = Scenario::calib(Motion::calib(), &mut rng);
+    if std::env::var("CALIB_NOISE_FREE").is_ok() {
+        sc.noise = crate::imu::ImuNoise::zero();
+        sc.pixel_sigma = 0.0;
+    }
+    if std::env::var("CALIB_IMU_FREE").is_ok() {
+        sc.noise = crate::imu::ImuNoise::zero();
+    }
+    if std::env::var("CALIB_PIXEL_FREE").is_ok() {
+        sc.pixel_sigma = 0.0;
+    }
+    sc.pixel_sigma = env("CALIB_PIX", sc.pixel_sigma);
+    sc.truth.t_r = env("CALIB_TRUE_TR", sc.truth.t_r);
+    let params = CalibParams {
+        pixel_sigma: sc.pixel_sigma.max(0.1),
+        fej: env("CALIB_FEJ", 1.0) > 0.5,
+        max_clones: env("CALIB_CLONES", 12.0) as usize,
+        min_parallax: env("CALIB_PARALLAX", 0.02),
+        min_track_len: env("CALIB_MINLEN", 5.0) as usize,
+        max_iterations: env("CALIB_ITERS", 4.0) as usize,
+        ..Default::default()
+    };
+    let tr = simulate(
+        &sc,
+        params,
+        CalibPriors::default(),
+        env("CALIB_SECONDS", 10.0),
+        seed + 4,
+    );
+    summary(&tr);
+}
+
+#[test]
+fn short_run_is_consistent_and_shrinks_sigmas() {
+    let mut rng = Rng::new(7);
+    let sc = Scenario::calib(Motion::calib(), &mut rng);
+    let priors = CalibPriors::default();
+    let tr = simulate(
+        &sc,
+        CalibParams {
+            pixel_sigma: sc.pixel_sigma,
+            ..Default::default()
+        },
+        priors,
+        10.0,
+        11,
+    );
+    summary(&tr);
+    assert!(tr.positive);
+    assert!(tr.used > 100);
+    assert!(tr.sigma[IDX_TD] < 0.2 * priors.t_d && tr.sigma[IDX_TR] < 0.5 * priors.t_r);
+    assert!(tr.sigma[IDX_INTR] < 0.5 * priors.focal);
+}
+
+/// End-to-end check of the measurement model: a filter at the true state with noise-free
+/// IMU and pixels and no updates predicts every observation at its row time to a small
+/// fraction of a pixel (clone, row-time integration, rolling shutter, lens, lever arm).
+#[test]
+fn prediction_at_the_truth_matches_the_simulated_pixels() {
+    let mut rng = Rng::new(5);
+    let mut sc = Scenario::calib(Motion::calib(), &mut rng);
+    sc.noise = crate::imu::ImuNoise::zero();
+    sc.pixel_sigma = 0.0;
+    let mut init = sc.truth;
+    init.nav = sc.motion.at(0.0).nav;
+    let params = CalibParams {
+        min_track_len: 1000,
+        max_clones: 40,
+        ..Default::default()
+    };
+    let mut f = CalibFilter::new(params, CalibPriors::default(), init);
+    let mut biases = sc.truth.biases;
+    let mut k_imu = 0;
+    let mut frames = Vec::new();
+    for k in 1..=30 {
+        let t_mid = k * sc.frame_period_ns;
+        while k_imu * sc.imu_period_ns <= t_mid + 100_000_000 {
+            f.push_imu(sc.imu_sample(k_imu, &mut biases, &mut rng));
+            k_imu += 1;
+        }
+        let obs = sc.frame(t_mid, &mut rng);
+        f.add_frame(t_mid, &obs).expect("frame");
+        frames.push(obs);
+    }
+    let (mut worst, mut n): (f64, usize) = (0.0, 0);
+    for (c, obs) in f.clones().iter().zip(&frames) {
+        for o in obs {
+            let row = f.row_pose(c, o.uv.y).expect("row pose");
+            let x = sc.landmarks[o.track.0 as usize];
+            let pc = super::measure::world_to_camera(f.state(), &row.nav, &x);
+            let z = f.state().camera.project(&pc).expect("in front");
+            worst = worst.max((z - o.uv).norm());
+            n += 1;
+        }
+    }
+    eprintln!("{n} observations, worst prediction error {worst:.2e} px");
+    assert!(n > 1000);
+    assert!(worst < 0.01, "worst {worst} px");
+}
+
+/// The simulation targets after 60 s from the VI_NOTES §3 starting errors, and the
+/// consistency (errors within ±3σ), on one run. About 15-30 s in release mode.
+#[test]
+fn sixty_seconds_reach_the_targets() {
+    let mut rng = Rng::new(7);
+    let sc = Scenario::calib(Motion::calib(), &mut rng);
+    let params = CalibParams {
+        pixel_sigma: sc.pixel_sigma,
+        ..Default::default()
+    };
+    let tr = simulate(&sc, params, CalibPriors::default(), 60.0, 11);
+    summary(&tr);
+    assert!(
+        tr.positive,
+        "covariance symmetric and positive semi-definite"
+    );
+    let targets = [
+        ("t_d", IDX_TD, 1, 0.5e-3),
+        ("t_r", IDX_TR, 1, 0.5e-3),
+        ("fx fy", IDX_INTR, 2, 1.0),
+        ("cx cy", IDX_INTR + 2, 2, 1.5),
+        ("k1 k2", IDX_DIST, 2, 0.005),
+        ("p_cb", IDX_PCB, 3, 0.005),
+        ("T_g", IDX_TG, 9, 1e-3),
+        ("T_s", IDX_TS, 9, 5e-4),
+        ("T_a", IDX_TA, 9, 1e-3),
+    ];
+    for (name, at, n, target) in targets {
+        let w = worst(&tr, at, n);
+        assert!(
+            w <= target,
+            "{name}: final error {w:.3e} > target {target:.1e}"
+        );
+    }
+    let all3 = tr.inside3.iter().sum::<f64>() / tr.inside3.len() as f64;
+    assert!(
+        all3 >= 0.95,
+        "only {all3:.3} of (entry, frame) pairs within 3σ"
+    );
+}
+
+/// Without motion `t_d` has no Jacobian (`VI_NOTES.md` §3 "Observability") and its σ must
+/// not shrink; the filter stays finite and its covariance positive. "Not shrink" is checked
+/// as staying above 95 % of the prior: the estimated rate and velocity are not exactly zero
+/// (bias and velocity errors), and a few noisy features pass the parallax test, so the
+/// filter takes a sliver of information (measured: 10 ms → 9.8 ms).
+#[test]
+fn static_body_leaves_the_time_offset_unobserved() {
+    let mut rng = Rng::new(9);
+    let sc = Scenario::calib(Motion::still(), &mut rng);
+    let params = CalibParams {
+        pixel_sigma: sc.pixel_sigma,
+        ..Default::default()
+    };
+    let priors = CalibPriors::default();
+    let tr = simulate(&sc, params, priors, 10.0, 3);
+    summary(&tr);
+    assert!(tr.positive);
+    assert!(tr.err.iter().all(|e| e.is_finite()));
+    assert!(
+        tr.sigma[IDX_TD] > 0.95 * priors.t_d,
+        "t_d σ {:.2e}",
+        tr.sigma[IDX_TD]
+    );
+    assert!(
+        tr.sigma[IDX_TR] > 0.95 * priors.t_r,
+        "t_r σ {:.2e}",
+        tr.sigma[IDX_TR]
+    );
+}

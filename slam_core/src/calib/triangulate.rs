@@ -1,0 +1,207 @@
+//! Anchored inverse-depth triangulation by Gauss-Newton (`VI_NOTES.md` §3 "Features",
+//! Fig. 4.1-4.2 of the seed; Mourikis & Roumeliotis 2007 use the same parameterisation).
+//!
+//! Each observation comes with its camera pose at its own row time. The start is the
+//! mid-point of the bearings (linear least squares on `Σ (I - b bᵀ)(X - c)`); Gauss-Newton
+//! on `(α, β, ρ)` then minimises the pixel errors through the full camera model.
+
+use nalgebra::{Matrix3, Rotation3, Vector2, Vector3};
+
+use super::measure::InvDepth;
+use crate::camera::PinholeRadtan;
+
+/// A camera pose `(R_gc, p_gc)`: camera-to-global.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraPose {
+    /// Camera orientation in the global frame.
+    pub r_gc: Rotation3<f64>,
+    /// Camera centre in the global frame, m.
+    pub p_gc: Vector3<f64>,
+}
+
+/// A triangulated feature.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Triangulated {
+    /// The feature in the anchor camera.
+    pub f: InvDepth,
+    /// Reprojection RMS over the observations, px.
+    pub rms: f64,
+}
+
+/// Gauss-Newton iterations at most.
+const MAX_ITERS: usize = 10;
+/// Smallest depth (m) accepted in every camera.
+const MIN_DEPTH: f64 = 0.05;
+/// Smallest ratio of the bearing system's eigenvalues (parallax) accepted.
+const MIN_PARALLAX: f64 = 1e-5;
+
+/// Triangulates a feature seen at `obs` (camera pose at the row time, pixel), anchored in
+/// the camera `anchor`. `None` without parallax (largest baseline over the anchor depth
+/// below `min_parallax`, rad), behind a camera or when Gauss-Newton fails. Short-baseline
+/// features are refused because their depth absorbs model errors (wrong intrinsics or
+/// distortion at the start), and the linearised null-space rows are then inconsistent.
+pub fn triangulate(
+    cam: &PinholeRadtan,
+    anchor: &CameraPose,
+    obs: &[(CameraPose, Vector2<f64>)],
+    min_parallax: f64,
+) -> Option<Triangulated> {
+    let x = midpoint(cam, obs)?;
+    let p_a = anchor.r_gc.inverse() * (x - anchor.p_gc);
+    if p_a.z < MIN_DEPTH {
+        return None;
+    }
+    let mut f = InvDepth {
+        alpha: p_a.x / p_a.z,
+        beta: p_a.y / p_a.z,
+        rho: 1.0 / p_a.z,
+    };
+    let mut cost = cost_ok(cam, anchor, obs, &f)?;
+    for _ in 0..MAX_ITERS {
+        let (jtj, jtr) = normal_equations(cam, anchor, obs, &f)?;
+        let step = (jtj + Matrix3::identity() * 1e-9 * jtj.trace())
+            .lu()
+            .solve(&jtr)?;
+        let cand = InvDepth {
+            alpha: f.alpha + step.x,
+            beta: f.beta + step.y,
+            rho: f.rho + step.z,
+        };
+        match cost_ok(cam, anchor, obs, &cand) {
+            Some(c) if c <= cost => {
+                let done = cost - c < 1e-10 * cost.max(1e-12) || step.norm() < 1e-12;
+                (f, cost) = (cand, c);
+                if done {
+                    break;
+                }
+            }
+            _ => break,
+        }
+    }
+    if f.rho <= 0.0 || baseline(obs) * f.rho < min_parallax {
+        return None;
+    }
+    Some(Triangulated {
+        f,
+        rms: (cost / obs.len() as f64).sqrt(),
+    })
+}
+
+/// Largest distance between two of the camera centres, m.
+fn baseline(obs: &[(CameraPose, Vector2<f64>)]) -> f64 {
+    let mut b: f64 = 0.0;
+    for (i, a) in obs.iter().enumerate() {
+        for c in &obs[i + 1..] {
+            b = b.max((a.0.p_gc - c.0.p_gc).norm());
+        }
+    }
+    b
+}
+
+/// Least-squares point closest to every bearing ray; `None` without parallax.
+fn midpoint(cam: &PinholeRadtan, obs: &[(CameraPose, Vector2<f64>)]) -> Option<Vector3<f64>> {
+    let (mut a, mut b) = (Matrix3::zeros(), Vector3::zeros());
+    for (pose, uv) in obs {
+        let d = pose.r_gc * cam.unproject(uv);
+        let m = Matrix3::identity() - d * d.transpose();
+        a += m;
+        b += m * pose.p_gc;
+    }
+    let eig = a.symmetric_eigenvalues();
+    if eig.min() < MIN_PARALLAX * eig.max() {
+        return None;
+    }
+    a.cholesky().map(|c| c.solve(&b))
+}
+
+/// The feature in camera `pose`: `p^c = R_gcᵀ (p_Ca + R_gCa (α,β,1)/ρ - p_gc)`.
+fn in_camera(anchor: &CameraPose, pose: &CameraPose, f: &InvDepth) -> Vector3<f64> {
+    let p_ca = Vector3::new(f.alpha, f.beta, 1.0) / f.rho;
+    pose.r_gc.inverse() * (anchor.p_gc + anchor.r_gc * p_ca - pose.p_gc)
+}
+
+/// Sum of squared pixel errors; `None` if a depth is below [`MIN_DEPTH`].
+fn cost_ok(
+    cam: &PinholeRadtan,
+    anchor: &CameraPose,
+    obs: &[(CameraPose, Vector2<f64>)],
+    f: &InvDepth,
+) -> Option<f64> {
+    if f.rho <= 0.0 {
+        return None;
+    }
+    let mut c = 0.0;
+    for (pose, uv) in obs {
+        let p = in_camera(anchor, pose, f);
+        if p.z < MIN_DEPTH {
+            return None;
+        }
+        c += (uv - cam.project(&p)?).norm_squared();
+    }
+    Some(c)
+}
+
+/// `(JᵀJ, Jᵀr)` of the pixel errors in `(α, β, ρ)`, `r = z - π`.
+fn normal_equations(
+    cam: &PinholeRadtan,
+    anchor: &CameraPose,
+    obs: &[(CameraPose, Vector2<f64>)],
+    f: &InvDepth,
+) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+    let ir = 1.0 / f.rho;
+    let d_pca = Matrix3::from_columns(&[
+        Vector3::new(ir, 0.0, 0.0),
+        Vector3::new(0.0, ir, 0.0),
+        -Vector3::new(f.alpha, f.beta, 1.0) * (ir * ir),
+    ]);
+    let (mut jtj, mut jtr) = (Matrix3::zeros(), Vector3::zeros());
+    for (pose, uv) in obs {
+        let (z, j_pi) = cam.project_with_jacobian(&in_camera(anchor, pose, f))?;
+        let j = j_pi * (pose.r_gc.inverse() * anchor.r_gc).matrix() * d_pca;
+        jtj += j.transpose() * j;
+        jtr += j.transpose() * (uv - z);
+    }
+    Some((jtj, jtr))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recovers_a_point_from_three_views() {
+        let cam = PinholeRadtan::from_coefficients(
+            640,
+            480,
+            [450.0, 452.0, 320.0, 240.0],
+            [-0.25, 0.07, 1e-3, -5e-4, 0.0],
+        );
+        let x = Vector3::new(0.3, -0.4, 3.0);
+        let poses: Vec<CameraPose> = (0..3)
+            .map(|k| CameraPose {
+                r_gc: Rotation3::from_scaled_axis(Vector3::new(0.02 * k as f64, -0.03, 0.01)),
+                p_gc: Vector3::new(0.1 * k as f64, 0.02 * k as f64, 0.0),
+            })
+            .collect();
+        let obs: Vec<(CameraPose, Vector2<f64>)> = poses
+            .iter()
+            .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
+            .collect();
+        let t = triangulate(&cam, &poses[2], &obs, 0.01).expect("triangulates");
+        let back = in_camera(
+            &poses[2],
+            &CameraPose {
+                r_gc: Rotation3::identity(),
+                p_gc: Vector3::zeros(),
+            },
+            &t.f,
+        );
+        assert!((back - x).norm() < 1e-8, "{back} vs {x}");
+        assert!(t.rms < 1e-8);
+        let same = vec![obs[0]; 3];
+        assert!(
+            triangulate(&cam, &poses[0], &same, 0.0).is_none(),
+            "no parallax"
+        );
+    }
+}
