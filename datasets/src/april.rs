@@ -17,9 +17,7 @@ use slam_core::imu::ImuNoise;
 use crate::text::{data_lines, fields, issue, parse_f64s, parse_i64, read_text};
 use crate::{DatasetError, ImuSample, InputIssue, IssueKind, PinholeRadtan};
 
-/// Identity of a feature track across frames.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub struct TrackId(pub u32);
+pub use slam_core::ids::TrackId;
 
 /// One detected corner in one frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -182,7 +180,7 @@ fn read_frame(
                 let v = parse_f64s(&f[5..10])?;
                 let id = f[10].parse::<u32>().ok()?;
                 let corner = f[11].parse::<u32>().ok().filter(|&c| c < 4)?;
-                Some((t, v, id.checked_mul(4)? + corner))
+                Some((t, v, u64::from(id) * 4 + u64::from(corner)))
             })
             .flatten()
             .filter(|(_, v, _)| v.iter().all(|x| x.is_finite()));

@@ -435,11 +435,22 @@ mod tests {
         };
         for c in 0..8 {
             let num = (perturb(c, h) - perturb(c, -h)) / (2.0 * h);
-            let ana = if c < 4 { jp.column(c) } else { jd.column(c - 4) };
-            assert!((num - ana).norm() < 1e-5 * (1.0 + num.norm()), "coefficient {c}");
+            let ana = if c < 4 {
+                jp.column(c)
+            } else {
+                jd.column(c - 4)
+            };
+            assert!(
+                (num - ana).norm() < 1e-5 * (1.0 + num.norm()),
+                "coefficient {c}"
+            );
         }
-        assert!(cam.pinhole_jacobian(&Vector3::new(0.0, 0.0, -1.0)).is_none());
-        assert!(cam.distortion_jacobian(&Vector3::new(0.0, 0.0, -1.0)).is_none());
+        assert!(cam
+            .pinhole_jacobian(&Vector3::new(0.0, 0.0, -1.0))
+            .is_none());
+        assert!(cam
+            .distortion_jacobian(&Vector3::new(0.0, 0.0, -1.0))
+            .is_none());
     }
 
     #[test]

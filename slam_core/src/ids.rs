@@ -335,6 +335,12 @@ impl fmt::LowerHex for MapId {
 
 raw_conversions!(MapId, u64);
 
+/// A feature track's id: the image front end's ([`crate::features::tracks`]) or a
+/// calibration target corner's (`tag · 4 + corner`), as the calibration filter
+/// ([`crate::calib`]) receives its observations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct TrackId(pub u64);
+
 #[cfg(test)]
 mod tests {
     use super::*;

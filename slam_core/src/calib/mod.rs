@@ -40,7 +40,7 @@
 //! # Ok(()) }
 //! ```
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::Vector2;
 
 pub mod filter;
 pub mod integrate;
@@ -94,9 +94,7 @@ pub const CLONE_DIM: usize = 9;
 /// The camera block `p_cb .. t_r` (13 contiguous entries) the measurement touches.
 pub const CAM_BLOCK: usize = 13;
 
-/// A feature track's id, as the front end (or the AprilGrid corner id) numbers it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct TrackId(pub u64);
+pub use crate::ids::TrackId;
 
 /// One feature observation in a frame: `uv = (column, row)` in pixels, pixel centres at
 /// integer coordinates ([`crate::camera::PinholeRadtan`]).
@@ -108,13 +106,6 @@ pub struct Observation {
     pub uv: Vector2<f64>,
 }
 
-/// One raw IMU sample on the IMU clock: `a_m`, `ω_m` of seed eq. 2.55-2.56.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ImuSample {
-    /// Time, ns, IMU clock.
-    pub t_ns: i64,
-    /// Measured angular rate `ω_m`, rad/s.
-    pub gyro: Vector3<f64>,
-    /// Measured specific force `a_m`, m/s².
-    pub accel: Vector3<f64>,
-}
+/// One raw IMU sample on the IMU clock (`a_m`, `ω_m` of seed eq. 2.55-2.56): the
+/// preintegration's type.
+pub use crate::imu::ImuMeasurement as ImuSample;

@@ -15,9 +15,7 @@ use super::{
 };
 use crate::CoreError;
 
-/// Identity of a feature track across frames.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub struct TrackId(pub u64);
+pub use crate::ids::TrackId;
 
 /// One feature of a frame with its track.
 #[derive(Debug, Clone, Copy, PartialEq)]
