@@ -30,8 +30,9 @@ pub enum DatasetError {
         #[source]
         source: std::io::Error,
     },
-    /// A line of a text file could not be parsed. Line numbers are 1-based.
-    #[error("{path}:{line}: {detail}")]
+    /// A line of a text file could not be parsed. Line numbers are 1-based (0: the file as
+    /// a whole, shown without a line).
+    #[error("{}{}: {detail}", path.display(), at_line(*line))]
     Parse {
         /// The file.
         path: PathBuf,
@@ -54,4 +55,13 @@ pub enum DatasetError {
         /// What is wrong.
         detail: String,
     },
+}
+
+/// `:line` for a 1-based line, nothing for 0 (not tied to a line).
+fn at_line(line: usize) -> String {
+    if line == 0 {
+        String::new()
+    } else {
+        format!(":{line}")
+    }
 }
