@@ -114,6 +114,60 @@ pub fn read(root: &Path) -> Result<TrackDataset, DatasetError> {
     })
 }
 
+/// Opens the recording as a [`crate::Dataset`] of kind
+/// [`crate::DatasetKind::AprilTracks`] for the pipeline: one [`crate::FrameRecord`] per
+/// detections file (read again by the camera ingest, [`read_frame`]), the IMU samples, the
+/// starting camera model of `config.yaml`, no camera-IMU extrinsics (`T_BS` unknown:
+/// `shoal calibrate --init` gives them) and a global shutter.
+pub fn open(root: &Path) -> Result<crate::Dataset, DatasetError> {
+    let (model, _, _) = read_config(&root.join("config.yaml"))?;
+    let mut issues = Vec::new();
+    let imu = crate::euroc::read_imu_csv(&root.join("imu0.csv"), &mut issues)?;
+    let mut files = frame_files(&root.join("cam0"))?;
+    files.sort();
+    let frames: Vec<crate::FrameRecord> = files
+        .into_iter()
+        .map(|(t_ns, path)| crate::FrameRecord {
+            t_ns,
+            path,
+            exposure_ns: 0,
+            readout_ns: 0,
+        })
+        .collect();
+    let camera = crate::CameraCalib {
+        model,
+        t_bs: nalgebra::Isometry3::identity(),
+        t_bs_given: false,
+        readout_ns: 0,
+        time_offset_ns: 0,
+        rate_hz: median_rate_hz(&frames),
+    };
+    Ok(crate::Dataset {
+        kind: crate::DatasetKind::AprilTracks,
+        root: root.to_path_buf(),
+        camera,
+        frames,
+        imu,
+        ground_truth: None,
+        issues,
+    })
+}
+
+/// The IMU noise of the recording's `config.yaml`.
+pub fn read_noise(root: &Path) -> Result<ImuNoise, DatasetError> {
+    Ok(read_config(&root.join("config.yaml"))?.1)
+}
+
+/// The frame rate from the median spacing of the stamps (0 with fewer than two frames).
+fn median_rate_hz(frames: &[crate::FrameRecord]) -> f64 {
+    let mut dt: Vec<i64> = frames.windows(2).map(|w| w[1].t_ns - w[0].t_ns).collect();
+    dt.sort_unstable();
+    match dt.get(dt.len() / 2) {
+        Some(&d) if d > 0 => 1e9 / d as f64,
+        _ => 0.0,
+    }
+}
+
 fn read_config(path: &Path) -> Result<(PinholeRadtan, ImuNoise, f64), DatasetError> {
     let bad = |detail: String| DatasetError::Parse {
         path: path.to_path_buf(),
@@ -165,7 +219,9 @@ fn frame_files(dir: &Path) -> Result<Vec<(i64, PathBuf)>, DatasetError> {
 
 /// One frame's corners: `ts, tag_rows, tag_cols, tag_size, tag_spacing, kp_x, kp_y, p_x,
 /// p_y, p_z, tag_id, corner_idx`. A line whose stamp is not the file's is malformed.
-fn read_frame(
+/// The corners of the frame stamped `t_ns` in its detections file `path`; malformed lines
+/// are skipped and recorded in `issues` (file and line).
+pub fn read_frame(
     path: &Path,
     t_ns: i64,
     issues: &mut Vec<InputIssue>,
@@ -260,5 +316,23 @@ mod tests {
             .issues
             .iter()
             .all(|i| i.kind == IssueKind::MalformedLine && i.line >= 4));
+    }
+
+    /// `datasets::open` finds the layout and gives the pipeline one frame per detections
+    /// file, with the starting camera and no extrinsics.
+    #[test]
+    fn the_layout_opens_as_a_dataset_of_feature_frames() {
+        let dir = tempfile::tempdir().expect("tmp");
+        write_sample(dir.path());
+        let ds = crate::open(dir.path()).expect("open");
+        assert_eq!(ds.kind, crate::DatasetKind::AprilTracks);
+        assert_eq!(ds.frames.len(), 2);
+        assert!(ds.frames[1].path.ends_with("cam0/200.csv"));
+        assert!(!ds.camera.t_bs_given);
+        assert!((ds.camera.rate_hz - 1e9 / 50.0).abs() < 1e-3);
+        assert_eq!(ds.camera.model.width, 752);
+        let mut issues = vec![];
+        let f = read_frame(&ds.frames[1].path, 200, &mut issues).expect("frame");
+        assert_eq!((f.observations.len(), issues.len()), (2, 2));
     }
 }

@@ -3,11 +3,12 @@
 //! - `mav0/` (or the folder is itself a `mav0` with `cam0/` or `imu0/`) → EuRoC ASL;
 //! - `image_0/` + `times.txt` → KITTI odometry;
 //! - `movie_metadata.csv` → phone logger;
-//! - `frame_timestamps.csv` + `gyro.csv` + `accl.csv` + `frames/` → GoPro clip.
+//! - `frame_timestamps.csv` + `gyro.csv` + `accl.csv` + `frames/` → GoPro clip;
+//! - `cam0/` + `imu0.csv` + `config.yaml` → AprilGrid detections (feature tracks).
 
 use std::path::Path;
 
-use crate::{euroc, gopro, kitti, phone, Dataset, DatasetError, DatasetKind};
+use crate::{april, euroc, gopro, kitti, phone, Dataset, DatasetError, DatasetKind};
 
 /// The kind of dataset in `path`, without reading it. `NotFound` for a missing folder,
 /// `UnknownFormat` when no layout matches.
@@ -24,7 +25,10 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
             detail: "not a folder; a dataset is a folder (EuRoC, KITTI or phone logger)".into(),
         });
     }
-    if euroc::mav0_dir(path).is_some() {
+    // Before EuRoC: its `cam0/` would pass for a bare `mav0`.
+    if april::is_april_layout(path) {
+        Ok(DatasetKind::AprilTracks)
+    } else if euroc::mav0_dir(path).is_some() {
         Ok(DatasetKind::Euroc)
     } else if kitti::is_kitti(path) {
         Ok(DatasetKind::Kitti)
@@ -37,7 +41,8 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
             path: path.into(),
             detail: "expected `mav0/` (EuRoC), `image_0/` + `times.txt` (KITTI), \
                      `movie_metadata.csv` (phone logger) or `frame_timestamps.csv` + \
-                     `gyro.csv` + `accl.csv` (GoPro)"
+                     `gyro.csv` + `accl.csv` (GoPro) or `cam0/` + `imu0.csv` + `config.yaml` \
+                     (AprilGrid detections)"
                 .into(),
         })
     }
@@ -50,6 +55,7 @@ pub fn open(path: &Path) -> Result<Dataset, DatasetError> {
         DatasetKind::Kitti => kitti::read(path),
         DatasetKind::Phone => phone::read(path),
         DatasetKind::GoPro => gopro::read(path),
+        DatasetKind::AprilTracks => april::open(path),
     }
 }
 

@@ -40,6 +40,10 @@ pub enum DatasetKind {
     /// A GoPro clip with its GPMF streams (`frames/*.jpg`, `frame_timestamps.csv`,
     /// `gyro.csv`, `accl.csv`).
     GoPro,
+    /// Feature tracks instead of images: AprilGrid detections (`cam0/<t_ns>.csv`,
+    /// `imu0.csv`, `config.yaml`; [`april`]). Each frame's [`FrameRecord::path`] is its
+    /// detections file, which the camera ingest sends as a feature frame.
+    AprilTracks,
 }
 
 /// Camera calibration and timing of a dataset's camera.

@@ -145,6 +145,62 @@ impl Pose {
 pub enum PixelFormat {
     /// 8-bit gray, one byte per pixel.
     Gray8 = 1,
+    /// No pixels: feature observations of a frame whose features were found upstream
+    /// (e.g. AprilGrid corners), [`FeatureRecord::BYTES`] bytes each, as many as the
+    /// payload holds; `width` and `height` are still the image's.
+    Features = 2,
+}
+
+impl PixelFormat {
+    /// The format of a header's `pixel_format`, if known.
+    pub fn from_u32(v: u32) -> Option<Self> {
+        match v {
+            1 => Some(Self::Gray8),
+            2 => Some(Self::Features),
+            _ => None,
+        }
+    }
+}
+
+/// One feature observation of a [`PixelFormat::Features`] frame: its track and pixel
+/// (column, row; pixel centres at integer coordinates), little-endian `u64, f32, f32`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FeatureRecord {
+    /// Track id: the same feature in every frame it is seen in.
+    pub track: u64,
+    /// Column, px.
+    pub u: f32,
+    /// Row, px.
+    pub v: f32,
+}
+
+impl FeatureRecord {
+    /// Bytes per record in the payload.
+    pub const BYTES: usize = 16;
+
+    /// Writes the record to `out` (`BYTES` long).
+    pub fn write(&self, out: &mut [u8]) {
+        out[..8].copy_from_slice(&self.track.to_le_bytes());
+        out[8..12].copy_from_slice(&self.u.to_le_bytes());
+        out[12..16].copy_from_slice(&self.v.to_le_bytes());
+    }
+
+    /// Reads the record at the start of `b` (`BYTES` long).
+    pub fn read(b: &[u8]) -> Self {
+        let word = |r: std::ops::Range<usize>| -> [u8; 4] { b[r].try_into().unwrap_or([0; 4]) };
+        Self {
+            track: u64::from_le_bytes(b[..8].try_into().unwrap_or([0; 8])),
+            u: f32::from_le_bytes(word(8..12)),
+            v: f32::from_le_bytes(word(12..16)),
+        }
+    }
+
+    /// The records of a feature payload; `None` when its length is not a whole number of
+    /// records.
+    pub fn all(payload: &[u8]) -> Option<impl Iterator<Item = Self> + '_> {
+        (payload.len() % Self::BYTES == 0)
+            .then(|| payload.chunks_exact(Self::BYTES).map(Self::read))
+    }
 }
 
 /// Camera intrinsics and radial-tangential distortion (seed eq. 2.57-2.60).
@@ -197,8 +253,12 @@ impl FrameHeader {
         crate::time::row_time_ns(self.t_mid_ns, self.readout_ns, row, self.height)
     }
 
-    /// Number of pixel bytes the slice must hold.
+    /// Number of pixel bytes the slice must hold (a [`PixelFormat::Features`] frame: 0, its
+    /// payload is as long as its records).
     pub fn payload_len(&self) -> usize {
+        if self.pixel_format == PixelFormat::Features as u32 {
+            return 0;
+        }
         self.stride as usize * self.height as usize
     }
 }
@@ -733,6 +793,32 @@ mod tests {
         assert!(err.to_string().contains("schema version"), "{err}");
         m.magic = 0;
         assert!(matches!(m.check(), Err(MetaError::BadMagic(0))));
+    }
+
+    /// Feature records survive the payload bytes; a payload cut inside a record is refused.
+    #[test]
+    fn feature_records_round_trip() {
+        let recs = [
+            FeatureRecord {
+                track: 7,
+                u: 1.25,
+                v: 479.5,
+            },
+            FeatureRecord {
+                track: u64::MAX,
+                u: -0.5,
+                v: 0.0,
+            },
+        ];
+        let mut buf = vec![0u8; 2 * FeatureRecord::BYTES];
+        for (r, b) in recs.iter().zip(buf.chunks_exact_mut(FeatureRecord::BYTES)) {
+            r.write(b);
+        }
+        let back: Vec<_> = FeatureRecord::all(&buf).expect("whole").collect();
+        assert_eq!(back, recs);
+        assert!(FeatureRecord::all(&buf[..20]).is_none());
+        assert_eq!(PixelFormat::from_u32(2), Some(PixelFormat::Features));
+        assert_eq!(PixelFormat::from_u32(9), None);
     }
 
     /// The type name of `T` as iceoryx2 matches it between processes.

@@ -35,7 +35,7 @@ use anyhow::Context;
 use iceoryx2::prelude::*;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
-use shm_schema::{FrameAck, FrameHeader, PixelFormat};
+use shm_schema::{FeatureRecord, FrameAck, FrameHeader, PixelFormat};
 use shoal_runtime::{ReplayArgs, ReplayClock, Status};
 
 /// How often the status file is written during the replay.
@@ -85,6 +85,8 @@ struct Ports {
     node: Node<Ipc>,
     publisher: iceoryx2::port::publisher::Publisher<Ipc, [u8], FrameHeader>,
     acks: iceoryx2::port::subscriber::Subscriber<Ipc, FrameAck, ()>,
+    /// Malformed lines of the feature frames sent since the loop last took them.
+    issues: std::cell::RefCell<Vec<datasets::InputIssue>>,
 }
 
 impl Ports {
@@ -97,6 +99,7 @@ impl Ports {
             node,
             publisher,
             acks,
+            issues: Default::default(),
         })
     }
 
@@ -117,6 +120,9 @@ impl Ports {
         frame_bytes: usize,
         mut header: FrameHeader,
     ) -> anyhow::Result<Result<(), String>> {
+        if header.pixel_format == PixelFormat::Features as u32 {
+            return self.send_features(path, frame_bytes, header);
+        }
         let mut sample = self
             .publisher
             .loan_slice(frame_bytes)
@@ -128,6 +134,53 @@ impl Ports {
         header.meta.publish_mono_ns = monotonic_ns();
         *sample.user_header_mut() = header;
         sample.send().context("send frame")?;
+        Ok(Ok(()))
+    }
+
+    /// Publishes the detections file `path` (AprilGrid corners) as a feature frame with
+    /// `header` (`PixelFormat::Features`). A file that cannot be read is an error to
+    /// count; malformed lines in it are skipped and kept in `issues` for the status (file and
+    /// line; the tracker gets the corners that were read).
+    fn send_features(
+        &self,
+        path: &std::path::Path,
+        frame_bytes: usize,
+        mut header: FrameHeader,
+    ) -> anyhow::Result<Result<(), String>> {
+        let t_ns = header.t_mid_ns - header.time_offset_ns;
+        let mut issues = Vec::new();
+        let frame = match datasets::april::read_frame(path, t_ns, &mut issues) {
+            Ok(f) => f,
+            Err(e) => return Ok(Err(e.to_string())),
+        };
+        self.issues.borrow_mut().extend(issues);
+        let n = frame.observations.len();
+        if n * FeatureRecord::BYTES > frame_bytes {
+            return Ok(Err(format!(
+                "{}: {n} detections, more than a frame sample holds",
+                path.display()
+            )));
+        }
+        let mut sample = self
+            .publisher
+            .loan_slice(n * FeatureRecord::BYTES)
+            .context("loan feature sample")?;
+        let payload = sample.payload_mut();
+        for (o, out) in frame
+            .observations
+            .iter()
+            .zip(payload.chunks_exact_mut(FeatureRecord::BYTES))
+        {
+            let rec = FeatureRecord {
+                track: o.track.0,
+                u: o.uv[0] as f32,
+                v: o.uv[1] as f32,
+            };
+            rec.write(out);
+        }
+        header.meta.publish_mono_ns = monotonic_ns();
+        *sample.user_header_mut() = header;
+        sample.send().context("send feature frame")?;
         Ok(Ok(()))
     }
 
@@ -150,11 +203,20 @@ fn plan<'a>(
     let cam = &dataset.camera;
     let n_frames = (params.replay.max_frames.unwrap_or(usize::MAX)).min(dataset.frames.len());
     let (width, height) = (cam.model.width, cam.model.height);
+    let features = dataset.kind == datasets::DatasetKind::AprilTracks;
     let template = FrameHeader {
         width,
         height,
-        stride: width,
-        pixel_format: PixelFormat::Gray8 as u32,
+        stride: if features {
+            FeatureRecord::BYTES as u32
+        } else {
+            width
+        },
+        pixel_format: if features {
+            PixelFormat::Features as u32
+        } else {
+            PixelFormat::Gray8 as u32
+        },
         time_offset_ns: cam.time_offset_ns,
         intrinsics: shoal_runtime::wire::intrinsics_from_camera(&cam.model).0,
         t_bs: shoal_runtime::wire::wire_from_iso(&cam.t_bs),
@@ -209,6 +271,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 match ports.send(path, frame_bytes, header)? {
                     Ok(()) => core.on_sent(monotonic_ns()),
                     Err(e) => core.on_corrupt(e).map_err(anyhow::Error::msg)?,
+                }
+                for i in ports.issues.take() {
+                    let detail = format!("{}:{}: {}", i.path.display(), i.line, i.detail);
+                    core.status_mut().error(i.kind.into(), detail);
                 }
             }
             CameraStep::PublishEndOfStream { header } => {

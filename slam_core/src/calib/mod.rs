@@ -45,6 +45,7 @@ use nalgebra::Vector2;
 pub mod filter;
 pub mod integrate;
 pub mod measure;
+pub mod online;
 pub mod params;
 pub mod propagate;
 mod rows;
