@@ -228,9 +228,9 @@ impl RunConfig {
             Kind::Tracker => {
                 let mut t = self.tracker.clone();
                 let c = desc.client.unwrap_or(0).to_string();
-                t.frame_log = t
-                    .frame_log
-                    .map(|p| PathBuf::from(p.to_string_lossy().replace("{c}", &c)));
+                let per_client = |p: PathBuf| PathBuf::from(p.to_string_lossy().replace("{c}", &c));
+                t.frame_log = t.frame_log.map(per_client);
+                t.calib.log = t.calib.log.map(per_client);
                 to_toml(&t)
             }
             Kind::Mapper => to_toml(&self.mapper),

@@ -1,4 +1,4 @@
-//! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `config`, `sim`, `eval`,
+//! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `calibrate`, `config`, `sim`, `eval`,
 //! `pgo`, `vocab`, `bench`;
 //! `service` (hidden) is how the launcher starts each service as its own process.
 use std::path::PathBuf;
@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod calibrate_cmd;
 mod config;
 mod demo;
 mod eval;
@@ -32,6 +33,9 @@ enum Command {
     Run(RunArgs),
     /// The run configuration: `config --print` shows every key with its default.
     Config(ConfigArgs),
+    /// Online camera-IMU calibration of a dataset (t_d, t_r, intrinsics, lever arm, IMU
+    /// errors): writes the project's calibration file and Kalibr's YAML.
+    Calibrate(calibrate_cmd::CalibrateArgs),
     /// Generate a synthetic sequence (EuRoC ASL layout + ground truth).
     Sim(sim_cmd::SimArgs),
     /// Trajectory error (ATE, RPE) of an estimate against ground truth, as evo computes it.
@@ -238,6 +242,7 @@ fn main() -> ExitCode {
             let result = match command {
                 Command::Demo(a) => demo::run(a),
                 Command::Run(a) => run_cmd(a),
+                Command::Calibrate(a) => calibrate_cmd::run(&a),
                 Command::Config(a) => config_cmd(&a),
                 Command::Sim(a) => sim_cmd::run(&a),
                 Command::Eval(a) => eval::run(&a).map(|r| eval::print(&r, a.json)),

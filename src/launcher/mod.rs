@@ -26,6 +26,7 @@ use iceoryx2::prelude::*;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shoal_runtime::{ErrorKind, ErrorRecord, ReplayMode};
+use tracker::ClientMode;
 
 use child::{describe_exit, Phase, Supervised};
 use recorder::Recorder;
@@ -83,6 +84,10 @@ const MAPPER_STOP_TIMEOUT: Duration = Duration::from_secs(60);
 /// Folder of the services' configuration files, in the output folder.
 pub const CONFIG_DIR: &str = "config";
 
+/// The IMU ingest's lock-step look-ahead for a client in the calibration mode, ms: the filter
+/// waits for the samples past a frame's last row at its current t_d.
+const CALIB_IMU_LOOKAHEAD_MS: u64 = 400;
+
 /// The configuration file of service `desc` in `out` (`tracker_c0.toml`, `mapper.toml`, ...;
 /// the ingests of all clients share one).
 pub fn service_config_path(out: &Path, desc: &topology::ServiceDesc) -> PathBuf {
@@ -117,6 +122,16 @@ fn write_configs(
                 let mut one = cfg.clone();
                 one.tracker.mode = s.mode;
                 one.tracker.imu = s.imu.clone();
+                if s.mode == ClientMode::Calib && one.tracker.calib.log.is_none() {
+                    one.tracker.calib.log = Some(cfg.out.join("calib_c{c}.csv"));
+                }
+                one.service_toml(desc)?
+            }
+            (topology::Kind::ImuIngest, Some(s)) if s.mode == ClientMode::Calib => {
+                // The calibration filter needs the IMU past a frame's last row at its t_d.
+                let mut one = cfg.clone();
+                let l = &mut one.imu_ingest.lookahead_ms;
+                *l = (*l).max(CALIB_IMU_LOOKAHEAD_MS);
                 one.service_toml(desc)?
             }
             _ => cfg.service_toml(desc)?,
@@ -280,10 +295,14 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     for (cl, s) in rep.clients.iter_mut().zip(&setups) {
         cl.client_mode = s.mode.name().to_string();
         cl.client_mode_reason = s.reason.clone();
-        if s.mode == tracker::ClientMode::Vio {
+        if matches!(s.mode, ClientMode::Vio | ClientMode::Calib) {
             cl.imu_calibration = Some(s.imu.source.clone());
-        } else {
+        }
+        if s.mode != ClientMode::Vio {
             cl.vio = None;
+        }
+        if s.mode != ClientMode::Calib {
+            cl.calib = None;
         }
     }
     rep.faults_summary = faults::FaultsSummary::of(&watch.injector.events);

@@ -29,6 +29,29 @@ fn imu_sensor_yaml(root: &Path) -> Option<PathBuf> {
     .find(|p| p.is_file())
 }
 
+/// The dataset's own IMU calibration and the file it is in: the noise of an AprilGrid
+/// recording's `config.yaml`, else its `imu0/sensor.yaml`; `None` when it has neither.
+pub fn dataset_imu(
+    ds: &datasets::Dataset,
+) -> Option<Result<(datasets::euroc::ImuSensorCalib, PathBuf), datasets::DatasetError>> {
+    if ds.kind == datasets::DatasetKind::AprilTracks {
+        let noise = datasets::april::read_noise(&ds.root);
+        return Some(noise.map(|noise| {
+            let y = datasets::euroc::ImuSensorCalib {
+                rate_hz: 0.0,
+                noise,
+                intrinsics: None,
+                initial_biases: None,
+                time_offset_ns: None,
+                readout_ns: None,
+            };
+            (y, ds.root.join("config.yaml"))
+        }));
+    }
+    let path = imu_sensor_yaml(&ds.root)?;
+    Some(datasets::euroc::read_imu_sensor_yaml(&path).map(|y| (y, path)))
+}
+
 /// The IMU calibration of `ds`: the calibration file `calib` when given (the launcher
 /// has read it already), else its `imu0/sensor.yaml` when it has one (noise, and the IMU
 /// intrinsics when given), else EuRoC's defaults; `extrinsics_given` from its camera.
@@ -46,12 +69,10 @@ fn imu_calibration(
             Err(e) => return (c, Some(e.to_string())),
         }
     } else {
-        let Some(path) = imu_sensor_yaml(&ds.root) else {
-            return (c, None);
-        };
-        match datasets::euroc::read_imu_sensor_yaml(&path) {
-            Ok(y) => (y, path),
-            Err(e) => return (c, Some(e.to_string())),
+        match dataset_imu(ds) {
+            None => return (c, None),
+            Some(Ok(y)) => y,
+            Some(Err(e)) => return (c, Some(e.to_string())),
         }
     };
     c.gyroscope_noise_density = y.noise.gyro_noise_density;
@@ -87,6 +108,13 @@ pub fn client_setup(
         (true, true) => None,
     };
     let (mode, reason) = match (requested, missing) {
+        (ClientMode::Calib, _) if !has_imu => (
+            ClientMode::Calib,
+            "asked (--mode calib), but the dataset has no IMU stream: nothing to calibrate \
+             against"
+                .to_string(),
+        ),
+        (ClientMode::Calib, _) => (ClientMode::Calib, "asked (--mode calib)".to_string()),
         (ClientMode::Mono, _) => (ClientMode::Mono, "asked (--mode mono)".to_string()),
         (ClientMode::Vio, None) => (ClientMode::Vio, "asked (--mode vio)".to_string()),
         (ClientMode::Vio, Some(why)) => (

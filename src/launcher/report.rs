@@ -37,6 +37,9 @@ pub struct ClientReport {
     /// The visual-inertial client's state: inertial initialisation (when, scale, biases) or
     /// why it did not initialise (`vio` only).
     pub vio: Option<tracker::VioReport>,
+    /// The calibration mode's estimate with 1σ, its figures, and the parameters that did
+    /// not converge (`calib` only).
+    pub calib: Option<tracker::core::CalibReport>,
     /// Posed frames (as tracked, backfilled ones not included) by where the pose came from:
     /// `visual` (monocular, up to scale), `visual_inertial`, `inertial` (IMU alone through
     /// a visual dropout).
@@ -608,6 +611,7 @@ fn client_report(
     ClientReport {
         dataset: ds.root.display().to_string(),
         vio: st.details_of::<tracker::VioReport>(&trk),
+        calib: st.details_of::<tracker::core::CalibReport>(&trk),
         frames_by_source: frames_by_source(rec),
         frames_orientation_only: rec.orientations.len() as u64,
         world_moves: rec.world_moves,

@@ -7,6 +7,7 @@
 //! most (x-y for EuRoC / synthetic z-up worlds, x-z for KITTI's camera frame), with equal
 //! scale on both, a grid with tick labels in metres, a 1-2-5 scale bar and a legend.
 pub mod canvas;
+pub mod convergence;
 pub mod events;
 pub mod font;
 pub mod latency;

@@ -57,6 +57,8 @@ error_kinds! {
     AckTimeout = "ack_timeout",
     /// The tracker's visual odometry failed on a frame.
     Vo = "vo",
+    /// The calibration filter refused a frame (tracker, `calib` mode).
+    Calib = "calib",
     /// IMU samples missing over a stretch longer than the visual-inertial client bridges
     /// (tracker): it tracks monocularly over it.
     ImuGap = "imu_gap",

@@ -31,6 +31,10 @@ pub enum ClientMode {
     /// Visual-inertial (seed ch. 5): inertial initialisation, IMU-predicted tracking,
     /// metric and gravity-aligned poses.
     Vio,
+    /// Online camera-IMU calibration (seed ch. 4): the rolling-shutter MSCKF of
+    /// `slam_core::calib` estimates the camera model, t_d, t_r, the lever arm and the IMU's
+    /// errors, and poses every frame; no keyframes go to the server.
+    Calib,
 }
 
 impl ClientMode {
@@ -40,6 +44,7 @@ impl ClientMode {
             Self::Auto => "auto",
             Self::Mono => "mono",
             Self::Vio => "vio",
+            Self::Calib => "calib",
         }
     }
 }
@@ -95,6 +100,16 @@ impl ImuCalibConfig {
     /// Checks the values (finite, densities ≥ 0, `T_g` and `T_a` invertible) and builds the
     /// preintegration settings; the error names the key.
     pub fn preintegration(&self) -> Result<slam_core::imu::PreintegrationParams, String> {
+        let (noise, intrinsics) = self.noise_and_intrinsics()?;
+        slam_core::imu::PreintegrationParams::new(&noise, &intrinsics)
+            .map_err(|e| format!("tracker.imu: {e}"))
+    }
+
+    /// The noise densities and the IMU intrinsics, checked (finite, densities ≥ 0); the
+    /// error names the key.
+    pub fn noise_and_intrinsics(
+        &self,
+    ) -> Result<(slam_core::imu::ImuNoise, slam_core::imu::ImuIntrinsics), String> {
         use nalgebra::Matrix3;
         let densities = [
             ("gyroscope_noise_density", self.gyroscope_noise_density),
@@ -129,8 +144,95 @@ impl ImuCalibConfig {
             t_s: mat(&self.t_s, "t_s")?,
             t_a: mat(&self.t_a, "t_a")?,
         };
-        slam_core::imu::PreintegrationParams::new(&noise, &intrinsics)
-            .map_err(|e| format!("tracker.imu: {e}"))
+        Ok((noise, intrinsics))
+    }
+}
+
+/// The calibration mode's settings (`[tracker.calib]`): the prior 1σ of the starting
+/// calibration (`VI_NOTES.md` §3 "Priors") and the filter's pixel noise.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CalibModeConfig {
+    /// Pixel noise σ per coordinate, px.
+    pub pixel_sigma: f64,
+    /// `fx, fy`, px.
+    pub focal_sigma_px: f64,
+    /// `cx, cy`, px.
+    pub principal_point_sigma_px: f64,
+    /// `k1, k2`.
+    pub radial_sigma: f64,
+    /// `p1, p2`.
+    pub tangential_sigma: f64,
+    /// `t_d`, ms.
+    pub t_d_sigma_ms: f64,
+    /// `t_r`, ms.
+    pub t_r_sigma_ms: f64,
+    /// Each coordinate of the lever arm `p_cb`, m.
+    pub p_cb_sigma_m: f64,
+    /// Each element of `T_g` and `T_a`.
+    pub t_ga_sigma: f64,
+    /// Each element of `T_s`, rad/s per m/s².
+    pub t_s_sigma: f64,
+    /// Per-frame estimates and σ written here as CSV (the launcher sets
+    /// `OUT/calib_c{c}.csv`); `{c}` is the client index.
+    pub log: Option<PathBuf>,
+}
+
+impl Default for CalibModeConfig {
+    fn default() -> Self {
+        let p = slam_core::calib::CalibPriors::default();
+        Self {
+            pixel_sigma: 1.0,
+            focal_sigma_px: p.focal,
+            principal_point_sigma_px: p.principal_point,
+            radial_sigma: p.radial,
+            tangential_sigma: p.tangential,
+            t_d_sigma_ms: p.t_d * 1e3,
+            t_r_sigma_ms: p.t_r * 1e3,
+            p_cb_sigma_m: p.p_cb,
+            t_ga_sigma: p.t_g,
+            t_s_sigma: p.t_s,
+            log: None,
+        }
+    }
+}
+
+impl CalibModeConfig {
+    /// The filter's priors: these σ over the defaults (attitude, velocity, biases).
+    pub fn priors(&self) -> slam_core::calib::CalibPriors {
+        slam_core::calib::CalibPriors {
+            focal: self.focal_sigma_px,
+            principal_point: self.principal_point_sigma_px,
+            radial: self.radial_sigma,
+            tangential: self.tangential_sigma,
+            t_d: self.t_d_sigma_ms * 1e-3,
+            t_r: self.t_r_sigma_ms * 1e-3,
+            p_cb: self.p_cb_sigma_m,
+            t_g: self.t_ga_sigma,
+            t_a: self.t_ga_sigma,
+            t_s: self.t_s_sigma,
+            ..slam_core::calib::CalibPriors::default()
+        }
+    }
+
+    /// Checks that every σ is positive and finite; the error names the key.
+    pub fn validate(&self) -> Result<(), String> {
+        let keys = [
+            ("pixel_sigma", self.pixel_sigma),
+            ("focal_sigma_px", self.focal_sigma_px),
+            ("principal_point_sigma_px", self.principal_point_sigma_px),
+            ("radial_sigma", self.radial_sigma),
+            ("tangential_sigma", self.tangential_sigma),
+            ("t_d_sigma_ms", self.t_d_sigma_ms),
+            ("t_r_sigma_ms", self.t_r_sigma_ms),
+            ("p_cb_sigma_m", self.p_cb_sigma_m),
+            ("t_ga_sigma", self.t_ga_sigma),
+            ("t_s_sigma", self.t_s_sigma),
+        ];
+        match keys.iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
+            Some((k, v)) => Err(format!("tracker.calib.{k} = {v}: must be finite and > 0")),
+            None => Ok(()),
+        }
     }
 }
 
@@ -143,6 +245,8 @@ pub struct TrackerConfig {
     pub mode: ClientMode,
     /// The IMU calibration of the visual-inertial mode.
     pub imu: ImuCalibConfig,
+    /// The calibration mode's priors and log.
+    pub calib: CalibModeConfig,
     /// Most keyframes in the client map (seed: N = 100); older ones go to the server.
     pub window: usize,
     /// ORB features per frame.
@@ -172,6 +276,7 @@ impl Default for TrackerConfig {
         Self {
             mode: ClientMode::Auto,
             imu: ImuCalibConfig::default(),
+            calib: CalibModeConfig::default(),
             window: 100,
             features: 1000,
             rolling_shutter: true,

@@ -39,6 +39,8 @@ struct Ports {
     poses: Publisher<Ipc, TrackedPose, ()>,
     keyframes: KeyframePub,
     log: Option<std::io::BufWriter<std::fs::File>>,
+    /// The calibration mode's log (`tracker.calib.log`).
+    calib_log: Option<std::io::BufWriter<std::fs::File>>,
     spool: Option<spool::Spool>,
     file: StatusFile,
     /// Keyframe traffic in the status file last written.
@@ -54,16 +56,26 @@ impl Ports {
     ) -> anyhow::Result<Self> {
         let c = params.client;
         let frames = topics::frame_subscriber(&topics::frames_service(&node, c)?, c)?;
-        let log = match &cfg.frame_log {
-            Some(p) => Some(std::io::BufWriter::new(
+        let append = |p: &std::path::Path, what: &str| -> anyhow::Result<_> {
+            Ok(std::io::BufWriter::new(
                 std::fs::OpenOptions::new()
                     .create(true)
                     .append(true)
                     .open(p)
-                    .with_context(|| format!("open frame log {}", p.display()))?,
-            )),
-            None => None,
+                    .with_context(|| format!("open {what} {}", p.display()))?,
+            ))
         };
+        let log = cfg
+            .frame_log
+            .as_deref()
+            .map(|p| append(p, "frame log"))
+            .transpose()?;
+        let calib_log = cfg
+            .calib
+            .log
+            .as_deref()
+            .map(|p| append(p, "calibration log"))
+            .transpose()?;
         Ok(Self {
             imu: topics::subscriber(&topics::imu_service(&node, c)?)?,
             feedback: topics::subscriber(&topics::feedback_service(&node, c)?)?,
@@ -73,6 +85,7 @@ impl Ports {
             frames,
             node,
             log,
+            calib_log,
             spool: None,
             file,
             written: (0, 0, 0),
@@ -91,6 +104,11 @@ impl Ports {
                 }
                 Out::Keyframe(m) => publish_keyframe(&self.keyframes, &m)?,
                 Out::SpoolWrite(e) => self.spool_write(&e, status),
+                Out::CalibLog(line) => {
+                    if let Some(l) = self.calib_log.as_mut() {
+                        writeln!(l, "{line}").context("write calibration log")?;
+                    }
+                }
                 Out::SpoolSent((session, id)) => {
                     if let Some(sp) = self.spool.as_mut() {
                         sp.sent(session, id);
@@ -362,6 +380,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         }
     }
     if let Some(l) = ports.log.as_mut() {
+        l.flush()?;
+    }
+    if let Some(l) = ports.calib_log.as_mut() {
         l.flush()?;
     }
     let status = core.finish();

@@ -49,19 +49,19 @@ pub struct Tracked {
     pub await_handled: Option<KeyframeKey>,
     header: FrameHeader,
     recv_ns: i64,
-    state: TrackState,
+    pub(super) state: TrackState,
     /// World-to-camera pose `T_cw` of a tracked frame.
-    t_cw: Option<Isometry3<f64>>,
-    tracked: u32,
+    pub(super) t_cw: Option<Isometry3<f64>>,
+    pub(super) tracked: u32,
     is_keyframe: bool,
     vo_session: u32,
     stage_ms: [f32; stage::COUNT],
     /// Poses of frames seen while initialising, `(t_ns, T_cw)`.
     backfill: Vec<(i64, Isometry3<f64>)>,
     /// Where the pose came from.
-    source: PoseSource,
+    pub(super) source: PoseSource,
     /// The pose is in a metric, gravity-aligned world.
-    metric: bool,
+    pub(super) metric: bool,
     /// Camera orientation `R_wc` of a frame with no pose (gyro-propagated).
     r_wc: Option<nalgebra::UnitQuaternion<f64>>,
     /// The VO session's world moved with this frame: `(s, R)`, published before its poses.
@@ -87,6 +87,11 @@ impl Tracked {
             r_wc: None,
             world_move: None,
         }
+    }
+
+    /// A pose of an earlier frame (`t_ns`) found with this one, published before it.
+    pub(super) fn add_backfill(&mut self, t_ns: i64, t_cw: Isometry3<f64>) {
+        self.backfill.push((t_ns, t_cw));
     }
 
     /// The client's result for the frame (not its keyframes): a pose from vision, or the
@@ -134,6 +139,13 @@ impl TrackerCore {
         let admitted = h.meta.check().is_ok()
             && !h.meta.is_end_of_stream()
             && self.resume.last_frame_seq.is_none_or(|l| h.meta.seq > l);
+        if self.cfg.mode == crate::ClientMode::Calib {
+            // The calibration filter updates a frame once the IMU covers its last row.
+            let need = self.calib.as_ref().map_or(h.t_mid_ns + h.readout_ns / 2, |c| {
+                c.calibrator().imu_needed_ns(h.t_mid_ns)
+            });
+            return (admitted && !self.cfg.no_vo).then_some(need);
+        }
         let rs = !self.cfg.no_rs && h.readout_ns != 0;
         // The visual-inertial client predicts every frame with the IMU.
         let vio = self.cfg.mode == crate::ClientMode::Vio;
@@ -168,13 +180,16 @@ impl TrackerCore {
         if let Some(step) = self.admit(&h, f.now_ns) {
             return Ok(step);
         }
-        if f.pixels.len() != h.payload_len() {
+        let features = h.pixel_format == shm_schema::PixelFormat::Features as u32;
+        if !features && f.pixels.len() != h.payload_len() {
             let (seq, n, want) = (h.meta.seq, f.pixels.len(), h.payload_len());
             let detail = format!("frame {seq}: {n} bytes, header says {want}");
             self.status.error(ErrorKind::BadFrame, detail);
         }
         let mut t = Tracked::untracked(h, f.recv_ns, self.session_id());
-        if self.trackable(&h, f.pixels.len()) {
+        if self.cfg.mode == crate::ClientMode::Calib && !self.cfg.no_vo {
+            self.run_calib(&f, &mut t);
+        } else if self.trackable(&h, f.pixels.len()) {
             self.run_vo(&f, &mut t)?;
         }
         self.imu_wait_waived = false;
@@ -326,6 +341,11 @@ impl TrackerCore {
             self.spool_new_keyframes(t.vo_session, &mut out);
         }
         let (c, h) = (self.cfg.client, &t.header);
+        let source = if t.source == PoseSource::VisualInertial {
+            PoseSource::VisualInertial
+        } else {
+            PoseSource::Visual
+        };
         for (t_ns, t_cw) in &t.backfill {
             let mut meta = MsgMeta::new(c, t.vo_session, h.meta.seq, now_ns);
             meta.flags = FLAG_BACKFILL;
@@ -334,7 +354,7 @@ impl TrackerCore {
                 t_ns: *t_ns,
                 pose: wire_pose(t_cw),
                 state: TrackState::Tracking as u32,
-                source: PoseSource::Visual as u32,
+                source: source as u32,
                 metric: t.metric as u32,
                 ..TrackedPose::default()
             }));
@@ -345,6 +365,29 @@ impl TrackerCore {
         self.count_frame(&t);
         self.note_resumed_frame(now_ns);
         out
+    }
+
+    /// A backfilled, metric visual-inertial pose `t_cw` of the frame at `t_ns`, sent with
+    /// the end of stream `h` (the calibration mode's last frames).
+    pub(super) fn backfill_pose(
+        &mut self,
+        h: &FrameHeader,
+        t_ns: i64,
+        t_cw: &Isometry3<f64>,
+        now_ns: i64,
+    ) -> TrackedPose {
+        let mut meta = MsgMeta::new(self.cfg.client, self.session_id(), h.meta.seq, now_ns);
+        meta.flags = FLAG_BACKFILL;
+        self.counters.frames_backfilled += 1;
+        TrackedPose {
+            meta,
+            t_ns,
+            pose: wire_pose(t_cw),
+            state: TrackState::Tracking as u32,
+            source: PoseSource::VisualInertial as u32,
+            metric: 1,
+            ..TrackedPose::default()
+        }
     }
 
     /// The message that moves the world of the frame's VO session by `x' = s R x`

@@ -16,12 +16,14 @@ use shoal_runtime::Status;
 use slam_core::ids::{ClientKeyframeId, SessionId};
 use slam_core::vo::{VoDiagnostic, VoParams, VoTracker};
 
+pub use calib::{CalibClient, CalibReport, CalibValues, Estimate, LOG_NAMES};
 pub use client::{Client, ClientOutput};
 
 use crate::imu::ImuInput;
 use crate::mapping_thread::LocalMappingThread;
 use crate::outbox::{keyframe_message, KeyframeMsg, Outbox};
 
+mod calib;
 mod client;
 mod counters;
 mod frame;
@@ -83,6 +85,10 @@ impl StartIds {
 /// IMU samples kept from before the first frame for the visual-inertial client, ns.
 const PENDING_IMU_NS: i64 = 2_000_000_000;
 
+/// IMU samples kept from before the first frame for the calibration mode, ns (its start
+/// window, [`slam_core::calib::online::OnlineParams::start_window_ns`], and a margin).
+const PENDING_IMU_CALIB_NS: i64 = 3_000_000_000;
+
 /// Why a visual-inertial client without camera-IMU extrinsics does not initialise, and what
 /// it does instead.
 pub const NO_EXTRINSICS: &str = "no camera-IMU extrinsics (T_BS) given: no inertial \
@@ -102,6 +108,8 @@ pub enum Out {
     Pose(TrackedPose),
     /// Publish a keyframe message to the mapper (first send or re-send).
     Keyframe(KeyframeMsg),
+    /// Append a line to the calibration log (`tracker.calib.log`; the first is its header).
+    CalibLog(String),
     /// Write a keyframe of the VO map and its points' positions to the spool (it survives
     /// a SIGKILL there).
     SpoolWrite(crate::spool::SpoolEntry),
@@ -132,6 +140,10 @@ pub struct CoreConfig {
     pub mode: crate::ClientMode,
     /// The IMU calibration of the visual-inertial mode.
     pub imu: crate::ImuCalibConfig,
+    /// The calibration mode's priors.
+    pub calib: crate::CalibModeConfig,
+    /// The calibration mode writes a log (the ports have one open).
+    pub calib_log: bool,
 }
 
 impl CoreConfig {
@@ -148,6 +160,8 @@ impl CoreConfig {
             spool: p.spool.is_some(),
             mode: cfg.mode,
             imu: cfg.imu.clone(),
+            calib: cfg.calib.clone(),
+            calib_log: cfg.calib.log.is_some(),
         }
     }
 }
@@ -163,6 +177,10 @@ pub struct TrackerCore {
     /// The ids this start gives out.
     ids: StartIds,
     client: Option<Client>,
+    /// The calibration mode's client (created with the first frame).
+    calib: Option<Box<CalibClient>>,
+    /// The calibration mode cannot run, and why.
+    calib_disabled: Option<String>,
     /// The visual-inertial mode cannot run, and why (no extrinsics, bad calibration).
     vio_disabled: Option<String>,
     /// IMU time of the first frame tracked (the report's time to initialise).
@@ -209,6 +227,8 @@ impl TrackerCore {
         Self {
             ids: StartIds::new(status.starts),
             client: None,
+            calib: None,
+            calib_disabled: None,
             vio_disabled: None,
             first_frame_ns: None,
             last_biases: None,
@@ -241,6 +261,9 @@ impl TrackerCore {
         self.status.put_counters(&self.counters);
         self.status.set_resume(RESUME_VERSION, &self.resume);
         if let Some(r) = self.vio_report() {
+            self.status.set_details(&r);
+        }
+        if let Some(r) = self.calib_report() {
             self.status.set_details(&r);
         }
         &self.status
@@ -343,16 +366,23 @@ impl TrackerCore {
             gyro: m.gyro.into(),
             accel: m.accel.into(),
         };
+        if let Some(c) = self.calib.as_deref_mut() {
+            c.push_imu(sample);
+            return;
+        }
         if self.client.is_none() {
-            if self.cfg.mode == crate::ClientMode::Vio {
-                self.pending_imu.push_back(sample);
-                while self
-                    .pending_imu
-                    .front()
-                    .is_some_and(|f| f.t_ns < m.t_ns - PENDING_IMU_NS)
-                {
-                    self.pending_imu.pop_front();
-                }
+            let keep_ns = match self.cfg.mode {
+                crate::ClientMode::Vio => PENDING_IMU_NS,
+                crate::ClientMode::Calib => PENDING_IMU_CALIB_NS,
+                _ => return,
+            };
+            self.pending_imu.push_back(sample);
+            while self
+                .pending_imu
+                .front()
+                .is_some_and(|f| f.t_ns < m.t_ns - keep_ns)
+            {
+                self.pending_imu.pop_front();
             }
             return;
         }
@@ -448,6 +478,7 @@ impl TrackerCore {
     /// The frames' end of stream `h` (after [`TrackerCore::take_window`]): acknowledged, and
     /// passed on to the recorder as an end-of-stream pose.
     pub fn end_of_stream(&mut self, h: &FrameHeader, now_ns: i64) -> Vec<Out> {
+        let mut out = self.flush_calib(h, now_ns);
         self.ended = true;
         let c = self.cfg.client;
         let ack = FrameAck {
@@ -463,7 +494,8 @@ impl TrackerCore {
             meta,
             ..TrackedPose::default()
         };
-        vec![Out::Ack(ack), Out::Pose(eos)]
+        out.extend([Out::Ack(ack), Out::Pose(eos)]);
+        out
     }
 
     /// The final status (counters put in, `finished` when the stream ended).
