@@ -81,7 +81,10 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
         anyhow::bail!(
             "the calibration filter never started ({} frames before it): {}",
             calib.frames_before_start,
-            calib.last_refusal.as_deref().unwrap_or("not enough IMU before the frames")
+            calib
+                .last_refusal
+                .as_deref()
+                .unwrap_or("not enough IMU before the frames")
         );
     };
     let result = result_file(&start, est, &calib, &args.dataset);
@@ -283,12 +286,13 @@ fn print_table(
     for (k, ((name, start_v), (_, est))) in s.iter().zip(&r).enumerate() {
         let base = name.split(' ').next().unwrap_or(name);
         let base = base.trim_end_matches(".xx").trim_end_matches(".yy");
-        let nc = rep.not_converged.iter().any(|n| n == base.trim_end_matches(".zz"));
-        let (rv, diff) = refv
-            .as_ref()
-            .map_or((String::new(), String::new()), |v| {
-                (format!("{:.4}", v[k].1), format!("{:+.4}", est - v[k].1))
-            });
+        let nc = rep
+            .not_converged
+            .iter()
+            .any(|n| n == base.trim_end_matches(".zz"));
+        let (rv, diff) = refv.as_ref().map_or((String::new(), String::new()), |v| {
+            (format!("{:.4}", v[k].1), format!("{:+.4}", est - v[k].1))
+        });
         println!(
             "{name:<12} {start_v:>13.4} {est:>13.4} {:>10.4} {rv:>13} {diff:>10}{}",
             sig.get(k).copied().unwrap_or(f64::NAN),
@@ -322,7 +326,8 @@ fn convergence_plot(
     dataset: &Path,
     reference: Option<&CalibrationFile>,
 ) -> anyhow::Result<ConvergencePlot> {
-    let text = std::fs::read_to_string(log).with_context(|| format!("reading {}", log.display()))?;
+    let text =
+        std::fs::read_to_string(log).with_context(|| format!("reading {}", log.display()))?;
     let mut lines = text.lines();
     let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
     let n = (header.len() - 1) / 2;
@@ -332,7 +337,10 @@ fn convergence_plot(
             ..Series::default()
         })
         .collect();
-    let t0 = lines.clone().next().and_then(|l| l.split(',').next()?.parse::<f64>().ok());
+    let t0 = lines
+        .clone()
+        .next()
+        .and_then(|l| l.split(',').next()?.parse::<f64>().ok());
     for line in lines {
         let cells: Vec<f64> = line.split(',').filter_map(|c| c.parse().ok()).collect();
         if cells.len() != 1 + 2 * n {

@@ -198,7 +198,9 @@ impl FeatureRecord {
     /// The records of a feature payload; `None` when its length is not a whole number of
     /// records.
     pub fn all(payload: &[u8]) -> Option<impl Iterator<Item = Self> + '_> {
-        (payload.len() % Self::BYTES == 0)
+        payload
+            .len()
+            .is_multiple_of(Self::BYTES)
             .then(|| payload.chunks_exact(Self::BYTES).map(Self::read))
     }
 }

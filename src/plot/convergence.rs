@@ -74,7 +74,13 @@ fn draw_panel(c: &mut Canvas, s: &Series, x0: i64, y0: i64) {
         let y = py(v);
         c.line((l as f64, y), (r as f64, y), GRID, 1);
         let label = tick_label(v, step);
-        c.text(l - 4 - text_width(&label, 1), y as i64 - 3, &label, 1, BLACK);
+        c.text(
+            l - 4 - text_width(&label, 1),
+            y as i64 - 3,
+            &label,
+            1,
+            BLACK,
+        );
         v += step;
     }
     for &(t_s, v, sd) in &s.points {
@@ -85,7 +91,12 @@ fn draw_panel(c: &mut Canvas, s: &Series, x0: i64, y0: i64) {
         c.line((l as f64, py(rv)), (r as f64, py(rv)), REFERENCE, 2);
     }
     for w in s.points.windows(2) {
-        c.line((px(w[0].0), py(w[0].1)), (px(w[1].0), py(w[1].1)), EST_COLOUR, 1);
+        c.line(
+            (px(w[0].0), py(w[0].1)),
+            (px(w[1].0), py(w[1].1)),
+            EST_COLOUR,
+            1,
+        );
     }
     c.frame(l, t, r, b, BLACK);
     let end = format!("{:.0} s", t1 - t0);

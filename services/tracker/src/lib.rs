@@ -93,7 +93,9 @@ pub mod spool;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
 
-pub use config::{CalibModeConfig, ClientMode, ImuCalibConfig, LocalMapping, TrackerConfig, TrackerFlags};
+pub use config::{
+    CalibModeConfig, ClientMode, ImuCalibConfig, LocalMapping, TrackerConfig, TrackerFlags,
+};
 pub use core::VioReport;
 pub use ports::run;
 

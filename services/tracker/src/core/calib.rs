@@ -174,8 +174,9 @@ impl CalibClient {
         let h = &f.header;
         let tag = h.meta.seq;
         if h.pixel_format == PixelFormat::Features as u32 {
-            let obs = feature_observations(f.pixels)
-                .ok_or_else(|| format!("frame {tag}: {} bytes of feature records", f.pixels.len()))?;
+            let obs = feature_observations(f.pixels).ok_or_else(|| {
+                format!("frame {tag}: {} bytes of feature records", f.pixels.len())
+            })?;
             return Ok(self.cal.add_observations(tag, h.t_mid_ns, obs));
         }
         let (w, ht, stride) = (h.width as usize, h.height as usize, h.stride as usize);
@@ -219,7 +220,9 @@ impl CalibClient {
             features_used_per_frame: self.used as f64 / n,
             update_ms: percentiles(&self.update_ms),
             last_refusal: self.last_refusal.clone(),
-            not_converged: est.as_ref().map_or_else(Vec::new, |e| self.not_converged(e)),
+            not_converged: est
+                .as_ref()
+                .map_or_else(Vec::new, |e| self.not_converged(e)),
             estimate: est.map(|e| self.values(&e)),
         }
     }

@@ -141,9 +141,12 @@ impl TrackerCore {
             && self.resume.last_frame_seq.is_none_or(|l| h.meta.seq > l);
         if self.cfg.mode == crate::ClientMode::Calib {
             // The calibration filter updates a frame once the IMU covers its last row.
-            let need = self.calib.as_ref().map_or(h.t_mid_ns + h.readout_ns / 2, |c| {
-                c.calibrator().imu_needed_ns(h.t_mid_ns)
-            });
+            let need = self
+                .calib
+                .as_ref()
+                .map_or(h.t_mid_ns + h.readout_ns / 2, |c| {
+                    c.calibrator().imu_needed_ns(h.t_mid_ns)
+                });
             return (admitted && !self.cfg.no_vo).then_some(need);
         }
         let rs = !self.cfg.no_rs && h.readout_ns != 0;
