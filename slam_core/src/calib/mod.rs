@@ -43,6 +43,7 @@
 use nalgebra::Vector2;
 
 pub mod filter;
+pub mod init;
 pub mod integrate;
 pub mod measure;
 pub mod params;
