@@ -91,8 +91,10 @@ pub struct TimeOffsetQuality {
     pub second_peak_s: f64,
     /// Visual rotations that entered the correlation.
     pub pairs: usize,
-    /// RMS rotation residual at the final `t_d` with the final `R_cb`, rad.
+    /// RMS rotation residual at the rotation-fit `t_d` with its `R_cb`, rad.
     pub fine_rms_rad: f64,
+    /// `t_d` of the rotation fit (step 3), before the epipolar refinement, s.
+    pub visual_s: f64,
 }
 
 /// The pairs whose shifted intervals stay inside the gyro track for every `|s| ≤ max`.
@@ -177,6 +179,7 @@ pub fn coarse_time_offset(
             second_peak_s,
             pairs: rots.len(),
             fine_rms_rad: f64::NAN,
+            visual_s: f64::NAN,
         },
     ))
 }
@@ -209,6 +212,40 @@ fn residuals(
         .collect()
 }
 
+/// `Σ |φ_v,k − D φ_g,k(s)|²` in the camera frame: the visual rotation vectors
+/// `φ_v = Log R_c` against the gyro's `φ_g = R_cb Log ΔR_b(s)`, with the per-axis scale `D`
+/// fitted in closed form at each `s`. `D` absorbs the starting camera's focal-length error
+/// (a focal length off by ε scales the rotations about the camera's x and y axes by
+/// ~1 + ε) and most of a rolling shutter's stretch, which would otherwise pull `t_d` (on the
+/// simulation: 2.6 ms with a camera 5 px off, 0.7 ms with the true camera).
+fn scaled_cost(
+    rots: &[&VisualRotation],
+    gyro: &GyroTrack,
+    r_bc: &Rotation3<f64>,
+    s: f64,
+) -> Option<f64> {
+    let r_cb = r_bc.inverse();
+    let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = rots
+        .iter()
+        .map(|r| {
+            let d = gyro.delta(r.t0_ns as f64 + s * 1e9, r.t1_ns as f64 + s * 1e9)?;
+            Some((so3_log(&r.r_c), r_cb * so3_log(&d)))
+        })
+        .collect::<Option<_>>()?;
+    let mut cost = 0.0;
+    for a in 0..3 {
+        let (vg, gg) = pairs.iter().fold((0.0, 0.0), |(x, y), (v, g)| {
+            (x + v[a] * g[a], y + g[a] * g[a])
+        });
+        let d = if gg > 0.0 { vg / gg } else { 1.0 };
+        cost += pairs
+            .iter()
+            .map(|(v, g)| (v[a] - d * g[a]).powi(2))
+            .sum::<f64>();
+    }
+    Some(cost)
+}
+
 /// Fine `t_d` around `t_d0` (module docs): `(t_d s, RMS residual rad)`. `gyro` must be
 /// bias-corrected.
 pub fn fine_time_offset(
@@ -225,15 +262,13 @@ pub fn fine_time_offset(
         9.0 * sorted[sorted.len() / 2]
     };
     let keep: Vec<bool> = at0.iter().map(|&e| e <= keep_below).collect();
-    let cost = |s: f64| -> f64 {
-        residuals(rots, gyro, r_bc, s).map_or(f64::INFINITY, |e| {
-            e.iter()
-                .zip(&keep)
-                .filter(|(_, &k)| k)
-                .map(|(v, _)| v)
-                .sum()
-        })
-    };
+    let kept: Vec<&VisualRotation> = rots
+        .iter()
+        .zip(&keep)
+        .filter(|(_, &k)| k)
+        .map(|(r, _)| *r)
+        .collect();
+    let cost = |s: f64| scaled_cost(&kept, gyro, r_bc, s).unwrap_or(f64::INFINITY);
     let step = params.fine_step_s;
     let n = (params.fine_half_width_s / step).round() as i64;
     let shifts: Vec<f64> = (-n..=n).map(|k| t_d0 + k as f64 * step).collect();
