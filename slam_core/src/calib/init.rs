@@ -258,7 +258,7 @@ pub fn initialize(
             peak: f64::NAN,
             second: f64::NAN,
         })?;
-    if !(quality.peak >= params.min_peak) {
+    if quality.peak.is_nan() || quality.peak < params.min_peak {
         return Err(InitError::NoTimeOffset {
             peak: quality.peak,
             second: quality.second_peak,

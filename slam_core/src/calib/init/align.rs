@@ -29,6 +29,8 @@ use crate::lie::skew;
 type Rot = nalgebra::Rotation3<f64>;
 type Vec12 = SVector<f64, 12>;
 type Mat12 = SMatrix<f64, 12, 12>;
+/// Matched bearings of one frame pair.
+type Matched = Vec<(Vector3<f64>, Vector3<f64>)>;
 
 /// What the alignment found.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -76,9 +78,6 @@ pub fn align(input: &AlignInput, params: &InitParams) -> Option<Alignment> {
     for _ in 0..params.align_iterations.max(1) {
         let sys = System::build(input, &biases, params)?;
         let (x, cov) = sys.solve(params)?;
-        if std::env::var("INIT_DEBUG").is_ok() {
-            eprintln!("align x {:.4?}", x.as_slice());
-        }
         biases.gyro += x.fixed_rows::<3>(6);
         biases.accel += x.fixed_rows::<3>(9);
         last = Some((x, cov, sys.pairs));
@@ -348,11 +347,10 @@ pub fn epipolar_time_offset(input: &AlignInput, t_d0: f64, params: &InitParams) 
         .map(|f| frame_bearings(f, input.camera, &derot))
         .collect();
     let gap = params.pair_gap.max(1);
-    let pairs: Vec<(usize, Vec<(Vector3<f64>, Vector3<f64>)>)> =
-        (0..input.frames.len().saturating_sub(gap))
-            .map(|i| (i, merge(&bearings[i], &bearings[i + gap])))
-            .filter(|(_, m)| m.len() >= params.min_matches)
-            .collect();
+    let pairs: Vec<(usize, Matched)> = (0..input.frames.len().saturating_sub(gap))
+        .map(|i| (i, merge(&bearings[i], &bearings[i + gap])))
+        .filter(|(_, m)| m.len() >= params.min_matches)
+        .collect();
     let cost = |s: f64| -> f64 {
         pairs
             .iter()

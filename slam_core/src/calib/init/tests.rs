@@ -286,8 +286,7 @@ fn diagnostic_visual_rotations() {
             let at = |t: i64| sc.motion.at(t as f64 * 1e-9 + sc.truth.t_d).nav.r_gb;
             let truth =
                 sc.truth.r_cb * at(r.t0_ns).inverse() * at(r.t1_ns) * sc.truth.r_cb.inverse();
-            let e = crate::lie::so3_log(&(r.r_c.inverse() * truth)).norm() * 1e3;
-            e
+            crate::lie::so3_log(&(r.r_c.inverse() * truth)).norm() * 1e3
         })
         .collect();
     errs.sort_by(f64::total_cmp);
