@@ -148,6 +148,18 @@ impl ImuCalibConfig {
     }
 }
 
+/// When the calibration filter starts from its initialisation (`tracker.calib.init`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CalibInit {
+    /// When the camera-IMU extrinsics are not given (a new device).
+    Auto,
+    /// Always (e.g. stamps whose offset to the IMU is unknown, up to ±200 ms).
+    Always,
+    /// Never: gravity from the mean specific force, the given `R_cb` and `t_d`.
+    Never,
+}
+
 /// The calibration mode's settings (`[tracker.calib]`): the prior 1σ of the starting
 /// calibration (`VI_NOTES.md` §3 "Priors") and the filter's pixel noise.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -173,6 +185,13 @@ pub struct CalibModeConfig {
     pub t_ga_sigma: f64,
     /// Each element of `T_s`, rad/s per m/s².
     pub t_s_sigma: f64,
+    /// When the filter starts from `slam_core::calib::init` (t_d searched over ±200 ms,
+    /// `R_cb` estimated from gyro vs visual rotations when not given, gravity and velocity
+    /// from the motion) over the first `init_seconds`: `"auto"` (when the dataset gives no
+    /// camera-IMU extrinsics), `"always"` or `"never"` (gravity from the mean specific force).
+    pub init: CalibInit,
+    /// Seconds of frames the initialisation uses.
+    pub init_seconds: f64,
     /// Per-frame estimates and σ written here as CSV (the launcher sets
     /// `OUT/calib_c{c}.csv`); `{c}` is the client index.
     pub log: Option<PathBuf>,
@@ -192,6 +211,8 @@ impl Default for CalibModeConfig {
             p_cb_sigma_m: p.p_cb,
             t_ga_sigma: p.t_g,
             t_s_sigma: p.t_s,
+            init: CalibInit::Auto,
+            init_seconds: 8.0,
             log: None,
         }
     }
@@ -228,6 +249,7 @@ impl CalibModeConfig {
             ("p_cb_sigma_m", self.p_cb_sigma_m),
             ("t_ga_sigma", self.t_ga_sigma),
             ("t_s_sigma", self.t_s_sigma),
+            ("init_seconds", self.init_seconds),
         ];
         match keys.iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
             Some((k, v)) => Err(format!("tracker.calib.{k} = {v}: must be finite and > 0")),

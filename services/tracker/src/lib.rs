@@ -94,7 +94,7 @@ pub mod spool;
 pub mod testing;
 
 pub use config::{
-    CalibModeConfig, ClientMode, ImuCalibConfig, LocalMapping, TrackerConfig, TrackerFlags,
+    CalibInit, CalibModeConfig, ClientMode, ImuCalibConfig, LocalMapping, TrackerConfig, TrackerFlags,
 };
 pub use core::VioReport;
 pub use ports::run;

@@ -60,6 +60,12 @@ pub struct OnlineParams {
     pub imu_margin_ns: i64,
     /// Most frames waiting for their IMU; past it the oldest is dropped (counted).
     pub max_queued: usize,
+    /// Start with [`super::init`] over the first seconds of frames and IMU (t_d searched
+    /// over ±`max_shift_s`, `R_cb` estimated unless given, gravity, velocity and gyro bias)
+    /// instead of the mean specific force: `Some(seconds of data)`.
+    pub init_seconds: Option<f64>,
+    /// The initialisation's settings.
+    pub init: super::init::InitParams,
 }
 
 impl Default for OnlineParams {
@@ -75,7 +81,9 @@ impl Default for OnlineParams {
             moving_theta_sigma: 0.1,
             moving_velocity_sigma: 1.0,
             imu_margin_ns: 5_000_000,
-            max_queued: 300,
+            max_queued: 600,
+            init_seconds: None,
+            init: super::init::InitParams::default(),
         }
     }
 }
@@ -93,6 +101,8 @@ pub struct OnlineStart {
     pub imu: ImuIntrinsics,
     /// IMU biases.
     pub biases: ImuBiases,
+    /// `T_bs`'s rotation is known (else [`OnlineParams::init_seconds`] estimates `R_cb`).
+    pub r_cb_given: bool,
 }
 
 /// How the filter started.
@@ -102,6 +112,8 @@ pub enum StartKind {
     Static,
     /// Moving: roll and pitch from the mean specific force, with wide σ.
     Moving,
+    /// From [`super::init`]: t_d, `R_cb` (unless given), gravity, velocity, gyro bias.
+    Initialised,
 }
 
 impl StartKind {
@@ -110,6 +122,7 @@ impl StartKind {
         match self {
             Self::Static => "static",
             Self::Moving => "moving",
+            Self::Initialised => "initialised",
         }
     }
 }
@@ -164,6 +177,11 @@ pub struct OnlineCalibrator {
     pub dropped: u64,
     /// Frames before the start (no IMU window before them yet).
     pub before_start: u64,
+    /// The initialisation's frames and IMU while it collects (`init_seconds`).
+    init_frames: Vec<super::init::InitFrame>,
+    init_imu: Vec<ImuSample>,
+    /// What the initialisation found, or why it failed (then the simple start was used).
+    pub init_result: Option<Result<super::init::InitResult, super::init::InitError>>,
 }
 
 /// Recent IMU kept, ns.
@@ -182,7 +200,15 @@ impl OnlineCalibrator {
             queue: VecDeque::new(),
             dropped: 0,
             before_start: 0,
+            init_frames: Vec::new(),
+            init_imu: Vec::new(),
+            init_result: None,
         }
+    }
+
+    /// The initialisation collects data (it runs once, before the filter starts).
+    fn initialising(&self) -> bool {
+        self.params.init_seconds.is_some() && self.init_result.is_none()
     }
 
     /// The filter, once started.
@@ -211,6 +237,9 @@ impl OnlineCalibrator {
             return;
         }
         self.recent.push_back(s);
+        if self.initialising() {
+            self.init_imu.push(s);
+        }
         while self
             .recent
             .front()
@@ -243,6 +272,9 @@ impl OnlineCalibrator {
         t_mid_ns: i64,
         obs: Vec<Observation>,
     ) -> Vec<FrameResult> {
+        if self.initialising() {
+            return self.collect_for_init(tag, t_mid_ns, obs);
+        }
         if self.filter.is_none() && !self.try_start(t_mid_ns) {
             self.before_start += 1;
             return vec![];
@@ -255,9 +287,91 @@ impl OnlineCalibrator {
         self.drain(false)
     }
 
-    /// At the end of the stream: the waiting frames, with the IMU there is.
+    /// At the end of the stream: the waiting frames, with the IMU there is (an
+    /// initialisation still collecting runs on what it has).
     pub fn flush(&mut self) -> Vec<FrameResult> {
+        if self.initialising() {
+            self.run_init();
+        }
         self.drain(true)
+    }
+
+    /// Keeps the frame for the initialisation (and in the queue); runs it once its frames
+    /// span `init_seconds` and the IMU covers them.
+    fn collect_for_init(&mut self, tag: u64, t_mid_ns: i64, obs: Vec<Observation>) -> Vec<FrameResult> {
+        if self.queue.len() >= self.params.max_queued {
+            self.queue.pop_front();
+            self.dropped += 1;
+        }
+        self.init_frames.push(super::init::InitFrame {
+            t_mid_ns,
+            observations: obs.clone(),
+        });
+        self.queue.push_back(Pending { tag, t_mid_ns, obs });
+        let first = self.init_frames[0].t_mid_ns;
+        let span_s = (t_mid_ns - first) as f64 * 1e-9;
+        let imu_to = self.init_imu.last().map_or(i64::MIN, |s| s.t_ns);
+        let margin = (self.params.init.max_shift_s * 1e9) as i64;
+        if span_s < self.params.init_seconds.unwrap_or(0.0) || imu_to < t_mid_ns + margin {
+            return vec![];
+        }
+        self.run_init();
+        self.drain(false)
+    }
+
+    /// Runs the initialisation on what it collected and starts the filter from it; on
+    /// failure, from the mean specific force (the failure is kept in `init_result`).
+    fn run_init(&mut self) {
+        let s = &self.start;
+        let r_bs = s.t_bs.rotation.to_rotation_matrix();
+        let guess = super::init::InitGuess {
+            camera: s.camera,
+            t_r: s.t_r_s,
+            r_cb: s.r_cb_given.then(|| r_bs.inverse()),
+            p_cb: -(r_bs.inverse() * s.t_bs.translation.vector),
+        };
+        let mut params = self.params.init;
+        params.imu_noise = self.params.filter.imu_noise;
+        let frames = std::mem::take(&mut self.init_frames);
+        let imu = std::mem::take(&mut self.init_imu);
+        let result = super::init::initialize(&imu, &frames, &guess, &params);
+        if let Ok(init) = &result {
+            let mut guess_state = self.start_state(init.t_start_ns, init.r_gb);
+            guess_state.r_cb = init.r_cb;
+            guess_state.p_cb = guess.p_cb;
+            let (state, priors) = super::init::filter_start(
+                init,
+                &guess_state,
+                &self.params.priors,
+                &super::init::StartPriors::default(),
+            );
+            let mut f = CalibFilter::new(self.params.filter, priors, state);
+            for s in imu.iter().filter(|s| s.t_ns >= init.t_start_ns - 10_000_000) {
+                f.push_imu(*s);
+            }
+            for s in self.recent.iter().filter(|s| s.t_ns > imu.last().map_or(i64::MIN, |l| l.t_ns)) {
+                f.push_imu(*s);
+            }
+            self.filter = Some(f);
+            self.start_kind = Some(StartKind::Initialised);
+            // Frames before the start cannot be updated.
+            let t_start = init.t_start_ns - (init.t_d_s * 1e9) as i64;
+            while self.queue.front().is_some_and(|p| p.t_mid_ns <= t_start) {
+                self.queue.pop_front();
+                self.before_start += 1;
+            }
+        }
+        self.init_result = Some(result);
+        if self.filter.is_none() {
+            // The simple start at the first queued frame the recent IMU window reaches.
+            while let Some(t_mid) = self.queue.front().map(|p| p.t_mid_ns) {
+                if self.try_start(t_mid) {
+                    break;
+                }
+                self.queue.pop_front();
+                self.before_start += 1;
+            }
+        }
     }
 
     /// IMU time a frame at `t_mid_ns` needs before its update (its last row at the current
@@ -524,6 +638,7 @@ mod tests {
             t_r_s: truth.t_r + 0.002,
             imu: ImuIntrinsics::default(),
             biases: ImuBiases::default(),
+            r_cb_given: true,
         };
         let params = OnlineParams {
             filter: CalibParams {
@@ -587,5 +702,63 @@ mod tests {
             results.windows(2).all(|w| w[0].tag < w[1].tag),
             "order kept"
         );
+    }
+
+    /// A new device: the stamps 100 ms off the IMU and `R_cb` unknown (identity given).
+    /// The initialisation over the first 8 s finds t_d and `R_cb`, the filter started from
+    /// it converges (t_d within 1 ms, fx within 1 px after 25 s), the frames of those 8 s are
+    /// updated after it.
+    #[test]
+    fn a_new_device_is_initialised_then_calibrated() {
+        let mut rng = Rng::new(5);
+        let sc = Scenario::calib(Motion::calib(), &mut rng);
+        let truth = sc.truth;
+        let r_bs = truth.r_cb.inverse();
+        let start = OnlineStart {
+            camera: truth.camera,
+            t_bs: Isometry3::from_parts(
+                Translation3::from(-(r_bs * truth.p_cb)),
+                UnitQuaternion::identity(),
+            ),
+            t_r_s: truth.t_r,
+            imu: ImuIntrinsics::default(),
+            biases: ImuBiases::default(),
+            r_cb_given: false,
+        };
+        let params = OnlineParams {
+            filter: CalibParams {
+                imu_noise: sc.noise,
+                pixel_sigma: sc.pixel_sigma,
+                ..CalibParams::default()
+            },
+            init_seconds: Some(8.0),
+            ..OnlineParams::default()
+        };
+        let mut cal = OnlineCalibrator::new(params, start);
+        let mut biases = truth.biases;
+        let (mut k_imu, mut updated) = (0i64, 0usize);
+        let offset_ns = ((truth.t_d - 0.100) * 1e9) as i64;
+        for k in 1..=(25_000_000_000 / sc.frame_period_ns) {
+            let t_mid = k * sc.frame_period_ns;
+            while k_imu * sc.imu_period_ns <= t_mid + 300_000_000 {
+                cal.push_imu(sc.imu_sample(k_imu, &mut biases, &mut rng));
+                k_imu += 1;
+            }
+            let obs = sc.frame(t_mid, &mut rng);
+            updated += cal.add_observations(k as u64, t_mid + offset_ns, obs).len();
+        }
+        updated += cal.flush().len();
+        let init = cal.init_result.clone().expect("ran").expect("initialised");
+        eprintln!(
+            "init t_d {:.2} ms (0.100 s expected), R_cb {:.2}° off; {updated} frames updated",
+            init.t_d_s * 1e3,
+            (init.r_cb.inverse() * truth.r_cb).angle().to_degrees()
+        );
+        assert_eq!(cal.start_kind(), Some(StartKind::Initialised));
+        assert!((init.r_cb.inverse() * truth.r_cb).angle() < 0.03, "R_cb");
+        let e = cal.filter().expect("started").estimate();
+        assert!((e.t_d.value - 0.100).abs() < 1e-3, "t_d {}", e.t_d.value);
+        assert!((e.pinhole[0].value - truth.camera.fx).abs() < 1.0, "fx {}", e.pinhole[0].value);
+        assert!(updated > 650, "{updated} updated");
     }
 }

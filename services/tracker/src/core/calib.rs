@@ -59,6 +59,26 @@ pub struct CalibValues {
     pub accel_bias: [Estimate; 3],
 }
 
+/// What the calibration filter's initialisation found (`slam_core::calib::init`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct InitReport {
+    /// Why it failed (the filter then started from the mean specific force).
+    pub error: Option<String>,
+    /// Its t_d correction of the stamps, ms, and the correlation peak it came from.
+    pub t_d_ms: Option<f64>,
+    /// See `t_d_ms`.
+    pub t_d_peak: Option<f64>,
+    /// `R_cb` was estimated (not given), its 1σ and residual, degrees.
+    pub r_cb_estimated: bool,
+    /// See `r_cb_estimated`.
+    pub r_cb_sigma_deg: Option<f64>,
+    /// See `r_cb_estimated`.
+    pub r_cb_residual_deg: Option<f64>,
+    /// Visual rotations found and used.
+    pub rotations: [usize; 2],
+}
+
 /// The calibration mode's report (the status's details; `report.json` `clients[i].calib`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -85,6 +105,8 @@ pub struct CalibReport {
     pub update_ms: [f64; 3],
     /// Why the last refused frame was refused.
     pub last_refusal: Option<String>,
+    /// The initialisation (`tracker.calib.init`): what it found, or why it failed.
+    pub init: Option<InitReport>,
     /// The estimate now, with 1σ.
     pub estimate: Option<CalibValues>,
     /// Parameters whose σ did not shrink below half their prior σ: not determined by this
@@ -121,6 +143,7 @@ impl CalibClient {
         noise: slam_core::imu::ImuNoise,
         imu: slam_core::imu::ImuIntrinsics,
         features: usize,
+        extrinsics_given: bool,
     ) -> Result<Self, String> {
         cfg.validate()?;
         let t_bs = shoal_runtime::wire::iso_from_wire(&h.t_bs)
@@ -132,6 +155,12 @@ impl CalibClient {
             t_r_s: h.readout_ns as f64 * 1e-9,
             imu,
             biases: Default::default(),
+            r_cb_given: extrinsics_given,
+        };
+        let init = match cfg.init {
+            crate::CalibInit::Always => true,
+            crate::CalibInit::Auto => !extrinsics_given,
+            crate::CalibInit::Never => false,
         };
         let priors = cfg.priors();
         let params = OnlineParams {
@@ -142,6 +171,7 @@ impl CalibClient {
             },
             priors,
             orb_features: features,
+            init_seconds: init.then_some(cfg.init_seconds),
             ..OnlineParams::default()
         };
         Ok(Self {
@@ -220,6 +250,7 @@ impl CalibClient {
             features_used_per_frame: self.used as f64 / n,
             update_ms: percentiles(&self.update_ms),
             last_refusal: self.last_refusal.clone(),
+            init: self.cal.init_result.as_ref().map(init_report),
             not_converged: est
                 .as_ref()
                 .map_or_else(Vec::new, |e| self.not_converged(e)),
@@ -329,6 +360,27 @@ impl CalibClient {
     }
 }
 
+/// The report of an initialisation's result.
+fn init_report(
+    r: &Result<slam_core::calib::init::InitResult, slam_core::calib::init::InitError>,
+) -> InitReport {
+    match r {
+        Err(e) => InitReport {
+            error: Some(e.to_string()),
+            ..InitReport::default()
+        },
+        Ok(i) => InitReport {
+            error: None,
+            t_d_ms: Some(i.t_d_s * 1e3),
+            t_d_peak: Some(i.t_d_quality.peak),
+            r_cb_estimated: !i.r_cb_given,
+            r_cb_sigma_deg: Some(i.r_cb_sigma_rad.to_degrees()),
+            r_cb_residual_deg: Some(i.r_cb_residual_rad.to_degrees()),
+            rotations: [i.rotations_found, i.rotations_used],
+        },
+    }
+}
+
 /// The log's columns, in the order of [`log_values`].
 pub const LOG_NAMES: [&str; 19] = [
     "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "t_d_ms", "t_r_ms", "p_cb_x", "p_cb_y",
@@ -384,7 +436,8 @@ impl TrackerCore {
         if self.calib.is_none() && self.calib_disabled.is_none() {
             let imu = self.cfg.imu.noise_and_intrinsics();
             let made = imu.and_then(|(noise, intr)| {
-                CalibClient::new(h, &self.cfg.calib, noise, intr, self.cfg.features)
+                let given = self.cfg.imu.extrinsics_given;
+                CalibClient::new(h, &self.cfg.calib, noise, intr, self.cfg.features, given)
             });
             match made {
                 Ok(mut c) => {

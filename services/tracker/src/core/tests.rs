@@ -26,6 +26,8 @@ fn config(no_vo: bool) -> CoreConfig {
         spool: false,
         mode: crate::ClientMode::Mono,
         imu: Default::default(),
+        calib: Default::default(),
+        calib_log: false,
     }
 }
 
@@ -204,7 +206,7 @@ impl Run {
                 Out::Pose(p) => self.poses.push(p),
                 Out::SpoolWrite(e) => assert!(self.spooled.insert(e.msg.key())),
                 Out::SpoolSent(k) => assert!(self.spooled.remove(&k), "{k:?} was spooled"),
-                Out::Ack(_) => {}
+                Out::Ack(_) | Out::CalibLog(_) => {}
             }
         }
     }

@@ -35,6 +35,8 @@ fn config() -> CoreConfig {
             extrinsics_given: true,
             ..Default::default()
         },
+        calib: Default::default(),
+        calib_log: false,
     }
 }
 
@@ -60,7 +62,7 @@ impl Ports {
                 Out::Keyframe(m) => self.sent.push(m.key()),
                 Out::Pose(p) if p.meta.flags & FLAG_WORLD_MOVE != 0 => self.world_moves += 1,
                 Out::Pose(p) if p.meta.flags == 0 => self.poses.push(p),
-                Out::Pose(_) | Out::Ack(_) => {}
+                Out::Pose(_) | Out::Ack(_) | Out::CalibLog(_) => {}
             }
         }
     }
