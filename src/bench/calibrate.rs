@@ -35,6 +35,10 @@ pub struct CalibrateArgs {
     /// Spacing of the recorded epochs, s.
     #[arg(long, default_value_t = 0.5)]
     pub epoch_s: f64,
+    /// Print (and write) the summary of the runs finished so far every this many runs
+    /// (0: only at the end).
+    #[arg(long, default_value_t = 0)]
+    pub interim: usize,
     /// Folder for `calibrate_<scenario>.json` (summary) and `calibrate_<scenario>.csv`
     /// (RMSE, NEES over time).
     #[arg(long)]
@@ -220,6 +224,10 @@ struct Summary {
     seed: u64,
     threads: usize,
     wall_s: f64,
+    /// Time of the epoch used as "60 s" (the last one in shorter runs), s.
+    t_60s_s: f64,
+    /// Time of the last epoch, s.
+    t_end_s: f64,
     /// Dimension of the NEES block (`T_g .. t_r`).
     nees_dim: usize,
     nees_band_lo: f64,
@@ -247,31 +255,40 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
         "need runs > 0 and seconds > 0"
     );
     let t0 = Instant::now();
-    let (traces, failed) = run_all(args);
-    let wall_s = t0.elapsed().as_secs_f64();
+    let (traces, failed) = run_all(args, t0);
     anyhow::ensure!(!traces.is_empty(), "every run failed");
+    report(args, &traces, failed, t0.elapsed().as_secs_f64())
+}
+
+/// Prints the summary of `traces` and writes the files of `--out`.
+fn report(
+    args: &CalibrateArgs,
+    traces: &[TrialTrace],
+    failed: usize,
+    wall_s: f64,
+) -> anyhow::Result<()> {
     let n_epochs = traces.iter().map(|t| t.epochs.len()).min().unwrap_or(0);
     anyhow::ensure!(n_epochs > 0, "no epoch recorded: --seconds below --epoch-s");
-    let summary = summarise(args, &traces, failed, n_epochs, wall_s);
-    print_text(&summary, &traces, n_epochs);
+    let summary = summarise(args, traces, failed, n_epochs, wall_s);
+    print_text(&summary, traces, n_epochs);
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir)?;
         let stem = format!("calibrate_{}", args.scenario.name());
         let json = dir.join(format!("{stem}.json"));
         std::fs::write(&json, serde_json::to_string_pretty(&summary)?)?;
         let csv = dir.join(format!("{stem}.csv"));
-        std::fs::write(&csv, time_series_csv(&traces, n_epochs))?;
+        std::fs::write(&csv, time_series_csv(traces, n_epochs))?;
         println!("wrote {} and {}", json.display(), csv.display());
     }
     Ok(())
 }
 
 /// The runs on `--threads` workers; the traces in run order and the number that failed.
-fn run_all(args: &CalibrateArgs) -> (Vec<TrialTrace>, usize) {
+/// Every `--interim` finished runs, the summary of those so far is printed (and written).
+fn run_all(args: &CalibrateArgs, start: Instant) -> (Vec<TrialTrace>, usize) {
     let next = AtomicUsize::new(0);
     let slots: Mutex<Vec<Option<TrialTrace>>> = Mutex::new(vec![None; args.runs]);
-    let failed = AtomicUsize::new(0);
-    let start = Instant::now();
+    let (failed, finished) = (AtomicUsize::new(0), AtomicUsize::new(0));
     std::thread::scope(|s| {
         for _ in 0..args.threads.max(1) {
             s.spawn(|| loop {
@@ -293,7 +310,22 @@ fn run_all(args: &CalibrateArgs) -> (Vec<TrialTrace>, usize) {
                         eprintln!("run {i}: {e}");
                     }
                 }
+                let done = finished.fetch_add(1, Ordering::Relaxed) + 1;
                 eprintln!("run {i} done ({:.0} s)", start.elapsed().as_secs_f64());
+                if args.interim > 0 && done % args.interim == 0 && done < args.runs {
+                    let so_far: Vec<TrialTrace> = slots
+                        .lock()
+                        .expect("slots")
+                        .iter()
+                        .flatten()
+                        .cloned()
+                        .collect();
+                    println!("--- interim: {done} of {} runs finished", args.runs);
+                    let wall_s = start.elapsed().as_secs_f64();
+                    if let Err(e) = report(args, &so_far, failed.load(Ordering::Relaxed), wall_s) {
+                        eprintln!("interim report: {e}");
+                    }
+                }
             });
         }
     });
@@ -412,6 +444,8 @@ fn summarise(
         seed: args.seed,
         threads: args.threads,
         wall_s,
+        t_60s_s: traces[0].epochs[e60].t_s,
+        t_end_s: traces[0].epochs[n_epochs - 1].t_s,
         nees_dim: CALIB_DIM,
         nees_band_lo: lo,
         nees_band_hi: hi,
@@ -438,11 +472,11 @@ fn print_text(s: &Summary, traces: &[TrialTrace], n_epochs: usize) {
         "{:<6} {:>9} | {:>10} {:>10} {:>10} {:>6} | {:>10} {:>10} | {:>6} {:>7}",
         "group",
         "target",
-        "RMSE@60s",
+        format!("RMSE@{:.0}s", s.t_60s_s),
         "pooled",
         "σ rms",
         "pass",
-        "RMSE@end",
+        format!("RMSE@{:.0}s", s.t_end_s),
         "σ rms",
         "NEES/1",
         "in 3σ"
