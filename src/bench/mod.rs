@@ -1,4 +1,5 @@
 //! `shoal bench ...`: benchmarks whose figures go to BENCHMARKS.md (never asserted in tests).
+pub mod calibrate;
 pub mod ipc;
 pub mod tracking;
 
@@ -11,6 +12,9 @@ pub enum BenchCommand {
     /// Latency of the tracking core on a dataset: per stage inside the tracker, and frame
     /// publish → pose publish through the pipeline.
     Tracking(tracking::TrackingArgs),
+    /// Monte-Carlo runs of the online camera-IMU calibration (issue 18) on a synthetic
+    /// scenario: RMSE vs the issue's targets, NEES vs its 95 % band, ±3σ coverage.
+    Calibrate(calibrate::CalibrateArgs),
     /// The subscriber side of `bench ipc` (started by it as a child process).
     #[command(hide = true)]
     IpcPeer(ipc::PeerArgs),
@@ -19,6 +23,7 @@ pub enum BenchCommand {
 /// Runs a benchmark.
 pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
+        BenchCommand::Calibrate(a) => calibrate::run(&a),
         BenchCommand::Ipc(a) => ipc::run(&a),
         BenchCommand::IpcPeer(a) => ipc::peer(&a),
         BenchCommand::Tracking(a) => tracking::run(&a),

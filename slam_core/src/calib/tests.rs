@@ -6,13 +6,12 @@ use std::time::Instant;
 use nalgebra::{DVector, Vector3};
 
 use super::params::{CalibParams, CalibPriors};
-use super::sim::{Motion, Rng, Scenario};
+use super::sim::{body_start, Motion, Rng, Scenario, Trial, CALIB_DIM};
 use super::state::CalibState;
 use super::{CalibFilter, IDX_DIST, IDX_INTR, IDX_PCB, IDX_TA, IDX_TD, IDX_TG, IDX_TR, IDX_TS};
 
 /// First and last calibration entries checked (`T_g .. t_r`, biases excluded: they walk).
 const CAL0: usize = IDX_TG;
-const CAL1: usize = IDX_TR + 1;
 
 /// The filter's start: the truth moved by the starting errors (t_d 10 ms, t_r 5 ms,
 /// pinhole 5 px, p_cb 2 cm per axis, T nominal, i.e. 5e-3 / 1e-3 off; distortion half its
@@ -42,16 +41,7 @@ fn start_state(sc: &Scenario, priors: &CalibPriors, rng: &mut Rng) -> CalibState
 }
 
 fn start_state_scaled(sc: &Scenario, priors: &CalibPriors, rng: &mut Rng) -> CalibState {
-    let mut s = sc.truth;
-    s.nav = sc.motion.at(0.0).nav;
-    let mut dx = DVector::zeros(super::CORE_DIM);
-    for k in 0..3 {
-        dx[k] = rng.normal() * priors.theta;
-        dx[3 + k] = rng.normal() * priors.position;
-        dx[6 + k] = rng.normal() * priors.velocity;
-    }
-    s.retract(&dx);
-    s.biases = Default::default();
+    let mut s = body_start(sc, priors, rng);
     s.imu = Default::default();
     s.p_cb += Vector3::new(rng.sign(), rng.sign(), rng.sign()) * priors.p_cb;
     let c = &mut s.camera;
@@ -97,12 +87,11 @@ fn simulate(
 ) -> Trace {
     let mut rng = Rng::new(seed);
     let init = start_state(sc, &priors, &mut rng);
-    let mut f = CalibFilter::new(params, priors, init);
-    let truth = sc.truth.calib_vector();
-    let n = CAL1 - CAL0;
-    let mut inside = vec![0usize; n];
-    let mut biases = sc.truth.biases;
-    let (mut k_imu, mut nees_sum) = (0i64, 0.0);
+    let mut trial = Trial::new(sc, params, priors, init, rng);
+    let clock = Instant::now();
+    let mut now_ns = || clock.elapsed().as_nanos() as u64;
+    let mut inside = vec![0usize; CALIB_DIM];
+    let mut nees_sum = 0.0;
     let mut tr = Trace {
         err: DVector::zeros(0),
         sigma: DVector::zeros(0),
@@ -116,33 +105,22 @@ fn simulate(
         positive: true,
     };
     let frames = (seconds * 1e9 / sc.frame_period_ns as f64) as i64;
-    for k in 1..=frames {
-        let t_mid = k * sc.frame_period_ns;
-        while k_imu * sc.imu_period_ns <= t_mid + 100_000_000 {
-            f.push_imu(sc.imu_sample(k_imu, &mut biases, &mut rng));
-            k_imu += 1;
-        }
-        let obs = sc.frame(t_mid, &mut rng);
-        let t0 = Instant::now();
-        let rep = f.add_frame(t_mid, &obs).expect("frame");
-        tr.ms.push(t0.elapsed().as_secs_f64() * 1e3);
+    for _ in 0..frames {
+        let step = trial.step(&mut now_ns).expect("frame");
+        let (k, rep) = (step.k, step.report);
+        tr.ms.push(step.update_ms);
         (tr.used, tr.gated, tr.failed) = (
             tr.used + rep.used,
             tr.gated + rep.gated,
             tr.failed + rep.failed,
         );
-        let err = f.state().calib_vector() - &truth;
-        let p = f.covariance();
-        for i in 0..n {
-            if err[CAL0 + i].abs() <= 3.0 * p[(CAL0 + i, CAL0 + i)].sqrt() {
-                inside[i] += 1;
-            }
+        let epoch = trial.epoch(step.t_s);
+        for (i, c) in inside.iter_mut().enumerate() {
+            *c += usize::from(epoch.err[i].abs() <= 3.0 * epoch.sigma[i]);
         }
-        let e = err.rows(CAL0, n).into_owned();
-        let block = p.view((CAL0, CAL0), (n, n)).into_owned();
-        nees_sum += block
-            .cholesky()
-            .map_or(f64::INFINITY, |c| e.dot(&c.solve(&e)));
+        nees_sum += epoch.nees;
+        let err = trial.error();
+        let p = trial.filter().covariance();
         if std::env::var("CALIB_TRACE").is_ok() && k <= 40 {
             let d = |i: usize| format!("{:+.3e}±{:.1e}", err[i], p[(i, i)].sqrt());
             eprintln!(
@@ -152,11 +130,11 @@ fn simulate(
             );
         }
         if k % 150 == 0 {
-            tr.positive &= f.covariance_is_positive();
+            tr.positive &= trial.filter().covariance_is_positive();
             let d = |i: usize| (err[i], p[(i, i)].sqrt());
             eprintln!(
                 "t={:5.1}s td {:+.2e}±{:.1e} tr {:+.2e}±{:.1e} fx {:+.2}±{:.2} cx {:+.2}±{:.2} k1 {:+.1e}±{:.0e} pcb {:+.1e}±{:.0e} Tg {:+.1e}±{:.0e} Ts {:+.1e}±{:.0e} Ta {:+.1e}±{:.0e}",
-                k as f64 * sc.frame_period_ns as f64 * 1e-9,
+                step.t_s,
                 d(IDX_TD).0, d(IDX_TD).1, d(IDX_TR).0, d(IDX_TR).1,
                 d(IDX_INTR).0, d(IDX_INTR).1, d(IDX_INTR + 2).0, d(IDX_INTR + 2).1,
                 d(IDX_DIST).0, d(IDX_DIST).1, d(IDX_PCB).0, d(IDX_PCB).1,
@@ -164,13 +142,14 @@ fn simulate(
             );
         }
     }
+    let p = trial.filter().covariance();
     tr.frames = frames as usize;
-    tr.err = f.state().calib_vector() - &truth;
-    tr.sigma = DVector::from_fn(super::CORE_DIM, |i, _| f.covariance()[(i, i)].sqrt());
+    tr.err = trial.error();
+    tr.sigma = DVector::from_fn(super::CORE_DIM, |i, _| p[(i, i)].sqrt());
     tr.inside3 = inside.iter().map(|&c| c as f64 / frames as f64).collect();
     tr.mean_nees = nees_sum / frames as f64;
     tr.ms.sort_by(f64::total_cmp);
-    tr.positive &= f.covariance_is_positive();
+    tr.positive &= trial.filter().covariance_is_positive();
     tr
 }
 
@@ -224,7 +203,11 @@ fn diagnostic_run() {
     };
     let seed = env("CALIB_SEED", 7.0) as u64;
     let mut rng = Rng::new(seed);
-    let mut sc = Scenario::calib(Motion::calib(), &mut rng);
+    // CALIB_MOTION=phone: the walking motion, truth drawn around nominal.
+    let mut sc = match std::env::var("CALIB_MOTION").as_deref() {
+        Ok("phone") => Scenario::monte_carlo(Motion::phone(), &CalibPriors::default(), &mut rng),
+        _ => Scenario::calib(Motion::calib(), &mut rng),
+    };
     if std::env::var("CALIB_NOISE_FREE").is_ok() {
         sc.noise = crate::imu::ImuNoise::zero();
         sc.pixel_sigma = 0.0;
@@ -236,6 +219,10 @@ fn diagnostic_run() {
         sc.pixel_sigma = 0.0;
     }
     sc.pixel_sigma = env("CALIB_PIX", sc.pixel_sigma);
+    // CALIB_NOISE_AXIS=v: pixel noise on the row only (u: on the column only).
+    if let Ok(axis) = std::env::var("CALIB_NOISE_AXIS") {
+        sc.zero_noise_axis = Some(if axis == "u" { 1 } else { 0 });
+    }
     sc.truth.t_r = env("CALIB_TRUE_TR", sc.truth.t_r);
     let params = CalibParams {
         pixel_sigma: sc.pixel_sigma.max(0.1),
@@ -393,4 +380,42 @@ fn static_body_leaves_the_time_offset_unobserved() {
         "t_r σ {:.2e}",
         tr.sigma[IDX_TR]
     );
+}
+
+/// A short Monte-Carlo trial of each motion (truth drawn around nominal, filter started at
+/// nominal): finite errors, every σ at or below its prior, the time and lens σ clearly down.
+#[test]
+fn short_monte_carlo_trials_are_finite_and_shrink_sigmas() {
+    use super::sim::{prior_sigma, run_trial, MotionKind, TrialConfig};
+    for (kind, seconds) in [(MotionKind::Calib, 10.0), (MotionKind::Phone, 5.0)] {
+        let cfg = TrialConfig::new(kind, seconds, 3);
+        let tr = run_trial(&cfg, || 0).expect("trial");
+        let prior = prior_sigma(&cfg.priors);
+        let last = tr.epochs.last().expect("epochs");
+        eprintln!(
+            "{kind:?}: {} epochs, used {} gated {}, NEES {:.1}, σ t_d {:.2e} t_r {:.2e} fx {:.2}",
+            tr.epochs.len(),
+            tr.used,
+            tr.gated,
+            last.nees,
+            last.sigma[IDX_TD - CAL0],
+            last.sigma[IDX_TR - CAL0],
+            last.sigma[IDX_INTR - CAL0]
+        );
+        assert_eq!(
+            tr.epochs.len(),
+            (seconds / cfg.epoch_period_s).round() as usize
+        );
+        assert!(tr.positive && tr.used > 50);
+        assert!(tr
+            .epochs
+            .iter()
+            .all(|e| e.err.iter().all(|x| x.is_finite())));
+        assert!(last.nees.is_finite());
+        for (s, p) in last.sigma.iter().zip(&prior) {
+            assert!(*s <= p * 1.0001, "σ {s} above its prior {p}");
+        }
+        assert!(last.sigma[IDX_TD - CAL0] < 0.5 * prior[IDX_TD - CAL0]);
+        assert!(last.sigma[IDX_INTR - CAL0] < 0.5 * prior[IDX_INTR - CAL0]);
+    }
 }
