@@ -38,6 +38,8 @@ fn keyframes_of_the_tracker(mut answer: impl FnMut(&KeyframeMsg) -> Vec<Feedback
         spool: false,
         mode: tracker::ClientMode::Mono,
         imu: Default::default(),
+        calib: Default::default(),
+        calib_log: false,
     };
     let mut core = TrackerCore::new(cfg, Status::new("tracker:0"));
     let mut sent = 0;

@@ -94,7 +94,8 @@ pub mod spool;
 pub mod testing;
 
 pub use config::{
-    CalibInit, CalibModeConfig, ClientMode, ImuCalibConfig, LocalMapping, TrackerConfig, TrackerFlags,
+    CalibInit, CalibModeConfig, ClientMode, ImuCalibConfig, LocalMapping, TrackerConfig,
+    TrackerFlags,
 };
 pub use core::VioReport;
 pub use ports::run;

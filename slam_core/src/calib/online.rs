@@ -298,7 +298,12 @@ impl OnlineCalibrator {
 
     /// Keeps the frame for the initialisation (and in the queue); runs it once its frames
     /// span `init_seconds` and the IMU covers them.
-    fn collect_for_init(&mut self, tag: u64, t_mid_ns: i64, obs: Vec<Observation>) -> Vec<FrameResult> {
+    fn collect_for_init(
+        &mut self,
+        tag: u64,
+        t_mid_ns: i64,
+        obs: Vec<Observation>,
+    ) -> Vec<FrameResult> {
         if self.queue.len() >= self.params.max_queued {
             self.queue.pop_front();
             self.dropped += 1;
@@ -346,10 +351,17 @@ impl OnlineCalibrator {
                 &super::init::StartPriors::default(),
             );
             let mut f = CalibFilter::new(self.params.filter, priors, state);
-            for s in imu.iter().filter(|s| s.t_ns >= init.t_start_ns - 10_000_000) {
+            for s in imu
+                .iter()
+                .filter(|s| s.t_ns >= init.t_start_ns - 10_000_000)
+            {
                 f.push_imu(*s);
             }
-            for s in self.recent.iter().filter(|s| s.t_ns > imu.last().map_or(i64::MIN, |l| l.t_ns)) {
+            for s in self
+                .recent
+                .iter()
+                .filter(|s| s.t_ns > imu.last().map_or(i64::MIN, |l| l.t_ns))
+            {
                 f.push_imu(*s);
             }
             self.filter = Some(f);
@@ -758,7 +770,11 @@ mod tests {
         assert!((init.r_cb.inverse() * truth.r_cb).angle() < 0.03, "R_cb");
         let e = cal.filter().expect("started").estimate();
         assert!((e.t_d.value - 0.100).abs() < 1e-3, "t_d {}", e.t_d.value);
-        assert!((e.pinhole[0].value - truth.camera.fx).abs() < 1.0, "fx {}", e.pinhole[0].value);
+        assert!(
+            (e.pinhole[0].value - truth.camera.fx).abs() < 1.0,
+            "fx {}",
+            e.pinhole[0].value
+        );
         assert!(updated > 650, "{updated} updated");
     }
 }
