@@ -70,7 +70,10 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
         .as_deref()
         .map(|p| read_any(&ds, p))
         .transpose()?;
-    let cfg = run_config(args, &init_path)?;
+    // A dataset without camera-IMU extrinsics and no --init: the tracker starts from the
+    // dataset itself, so that it knows R_cb is not given and estimates it (`calib::init`).
+    let new_device = args.init.is_none() && !ds.camera.t_bs_given;
+    let cfg = run_config(args, (!new_device).then_some(init_path.as_path()))?;
     let rep = launcher::run(&cfg)?;
     let calib = rep
         .clients
@@ -102,11 +105,12 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The run: the dataset in the calibration mode, starting from `init`.
-fn run_config(args: &CalibrateArgs, init: &Path) -> anyhow::Result<RunConfig> {
+/// The run: the dataset in the calibration mode, starting from `init` (none: the dataset's
+/// own values, extrinsics not given).
+fn run_config(args: &CalibrateArgs, init: Option<&Path>) -> anyhow::Result<RunConfig> {
     let mut cfg = RunConfig::resolve(args.config.as_deref(), &args.sets)?;
     cfg.datasets = vec![args.dataset.clone()];
-    cfg.calib = vec![init.to_path_buf()];
+    cfg.calib = init.map(Path::to_path_buf).into_iter().collect();
     cfg.tracker.mode = tracker::ClientMode::Calib;
     cfg.out = args.out.clone();
     cfg.mode = shoal_runtime::ReplayMode::Lockstep;

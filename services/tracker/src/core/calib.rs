@@ -129,6 +129,9 @@ pub struct CalibClient {
     log_header_sent: bool,
 }
 
+/// Prior 1σ of each lever-arm coordinate when no extrinsics are given, m.
+const NEW_DEVICE_P_CB_SIGMA_M: f64 = 0.1;
+
 /// Update times kept for the percentiles.
 const MAX_TIMES: usize = 200_000;
 
@@ -162,7 +165,11 @@ impl CalibClient {
             crate::CalibInit::Auto => !extrinsics_given,
             crate::CalibInit::Never => false,
         };
-        let priors = cfg.priors();
+        let mut priors = cfg.priors();
+        if !extrinsics_given {
+            // A new device: the lever arm is not known to centimetres either.
+            priors.p_cb = priors.p_cb.max(NEW_DEVICE_P_CB_SIGMA_M);
+        }
         let params = OnlineParams {
             filter: CalibParams {
                 imu_noise: noise,
