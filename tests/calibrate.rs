@@ -277,7 +277,7 @@ fn calibrate_the_euroc_apriltag_recording() {
 /// The same recording as a new device: no `--init`, no `T_BS` at all. The tracker's
 /// initialisation (`tracker.calib.init = auto`) estimates `R_cb` from gyro vs visual
 /// rotations and t_d; the lever arm starts at 0 with a 10 cm prior. Measured (session 14):
-/// R_cb 1σ 0.62°, t_d 0.05 ms, p_cb 10.6 mm from `T_BS` (from 68 mm), fx/fy +2.2/+3.8 px,
+/// R_cb 1.26° from `T_BS` (1σ 0.62°), t_d 0.05 ms, p_cb 10.6 mm (from 68 mm), fx/fy +2.2/+3.8 px,
 /// t_r 0.00 ms.
 #[cfg_attr(
     not(shoal_data),
