@@ -209,6 +209,24 @@ fn services_for(
         .collect()
 }
 
+/// Each client's mode and why, its IMU calibration's source, and only the mode's own report
+/// (`vio` or `calib`; the other is a status detail of the wrong shape).
+fn put_client_modes(rep: &mut report::RunReport, setups: &[modes::ClientSetup]) {
+    for (cl, s) in rep.clients.iter_mut().zip(setups) {
+        cl.client_mode = s.mode.name().to_string();
+        cl.client_mode_reason = s.reason.clone();
+        if matches!(s.mode, ClientMode::Vio | ClientMode::Calib) {
+            cl.imu_calibration = Some(s.imu.source.clone());
+        }
+        if s.mode != ClientMode::Vio {
+            cl.vio = None;
+        }
+        if s.mode != ClientMode::Calib {
+            cl.calib = None;
+        }
+    }
+}
+
 /// Runs the pipeline; returns the report (also written to `OUT/report.json`).
 pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
@@ -292,19 +310,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         end == RunEnd::Interrupted,
         end == RunEnd::TimedOut,
     )?;
-    for (cl, s) in rep.clients.iter_mut().zip(&setups) {
-        cl.client_mode = s.mode.name().to_string();
-        cl.client_mode_reason = s.reason.clone();
-        if matches!(s.mode, ClientMode::Vio | ClientMode::Calib) {
-            cl.imu_calibration = Some(s.imu.source.clone());
-        }
-        if s.mode != ClientMode::Vio {
-            cl.vio = None;
-        }
-        if s.mode != ClientMode::Calib {
-            cl.calib = None;
-        }
-    }
+    put_client_modes(&mut rep, &setups);
     rep.faults_summary = faults::FaultsSummary::of(&watch.injector.events);
     rep.faults_summary.unfired = unfired.len();
     rep.faults = watch.injector.events;

@@ -619,11 +619,11 @@ impl OnlineCalibrator {
             ),
         };
         let mut r_b = UnitQuaternion::identity(); // R_{b_{k-1} b_k}
-        for w in self.recent.iter().collect::<Vec<_>>().windows(2) {
-            let (a, b) = (w[0].t_ns.max(t_prev), w[1].t_ns.min(t_ns));
+        for (s0, s1) in self.recent.iter().zip(self.recent.iter().skip(1)) {
+            let (a, b) = (s0.t_ns.max(t_prev), s1.t_ns.min(t_ns));
             if b > a {
                 let dt = (b - a) as f64 * 1e-9;
-                r_b *= UnitQuaternion::from_scaled_axis((w[0].gyro - bias) * dt);
+                r_b *= UnitQuaternion::from_scaled_axis((s0.gyro - bias) * dt);
             }
         }
         let r_cb = UnitQuaternion::from_rotation_matrix(&r_cb);
