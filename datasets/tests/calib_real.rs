@@ -73,9 +73,14 @@ fn euroc_april_calibration_from_a_wrong_start() {
     let params = CalibParams {
         imu_noise: ds.noise,
         pixel_sigma: env("PIX", 1.0),
+        max_clones: env("CLONES", 12.0) as usize,
+        max_features_per_update: env("FEATS", 60.0) as usize,
+        min_track_len: env("MINLEN", 5.0) as usize,
+        max_triangulation_rms: env("TRIRMS", 10.0),
         ..CalibParams::default()
     };
     let priors = CalibPriors {
+        t_g: env("TG", 5e-3),
         focal: 15.0,
         principal_point: 15.0,
         radial: env("RADIAL", 0.3),
@@ -87,6 +92,7 @@ fn euroc_april_calibration_from_a_wrong_start() {
     let mut imu = ds.imu.iter().peekable();
     let seconds = env("SECS", 72.0);
     let (mut times, mut refused) = (Vec::new(), 0);
+    let mut counts = [0usize; 3];
     for f in &ds.frames {
         if (f.t_ns - t0) as f64 * 1e-9 > seconds {
             break;
@@ -108,7 +114,12 @@ fn euroc_april_calibration_from_a_wrong_start() {
             .collect();
         let t = std::time::Instant::now();
         match filter.add_frame(f.t_ns, &obs) {
-            Ok(_) => times.push(t.elapsed().as_secs_f64() * 1e3),
+            Ok(r) => {
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                counts[0] += r.used;
+                counts[1] += r.gated;
+                counts[2] += r.failed;
+            }
             Err(e) => {
                 refused += 1;
                 if refused < 5 {
@@ -119,6 +130,8 @@ fn euroc_april_calibration_from_a_wrong_start() {
         let el = (f.t_ns - t0) as f64 * 1e-9;
         if (el % 10.0) < 0.05 {
             let e = filter.estimate();
+            eprintln!("features used/gated/failed {counts:?}");
+            counts = [0; 3];
             eprintln!(
                 "{el:5.1} s fx {:.2}±{:.2} fy {:.2} cx {:.2} cy {:.2} k1 {:.4} k2 {:.4} t_d {:.2}±{:.2} ms t_r {:.2}±{:.2} ms p_cb err {:.1} mm",
                 e.pinhole[0].value, e.pinhole[0].sigma, e.pinhole[1].value, e.pinhole[2].value, e.pinhole[3].value,
@@ -130,6 +143,16 @@ fn euroc_april_calibration_from_a_wrong_start() {
     }
     let e = filter.estimate();
     times.sort_by(f64::total_cmp);
+    eprintln!(
+        "T_g diag {:.5} {:.5} {:.5} (σ {:.5}); T_a diag {:.5} {:.5} {:.5}",
+        e.t_g[0].value,
+        e.t_g[4].value,
+        e.t_g[8].value,
+        e.t_g[0].sigma,
+        e.t_a[0].value,
+        e.t_a[4].value,
+        e.t_a[8].value
+    );
     eprintln!(
         "reference fx {:.2} fy {:.2} cx {:.2} cy {:.2} k1 {:.4} k2 {:.4} p1 {:.5} p2 {:.6}",
         reference.fx,

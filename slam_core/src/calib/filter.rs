@@ -17,13 +17,19 @@
 
 use std::collections::{BTreeMap, VecDeque};
 
-use nalgebra::{DMatrix, Vector2};
+use nalgebra::{DMatrix, DVector, Vector2};
+
+/// Most halvings of a large iterated-EKF step before the update is refused.
+pub const LINE_SEARCH_HALVINGS: usize = 3;
 
 use super::integrate::segments;
 use super::params::{CalibEstimate, CalibParams, CalibPriors};
 use super::propagate::{propagate_step, FirstEstimates, Transition};
 use super::state::{clone_offset, CalibState, CloneState};
-use super::update::{chi2_95, compress, joseph_in_place, kalman_gain, mahalanobis, stack};
+use super::update::{
+    chi2_95, compress, joseph_in_place, kalman_gain, mahalanobis, residual_cost, stack,
+    PriorMetric, Projected,
+};
 use super::{ImuSample, Observation, TrackId, CLONE_DIM, CORE_DIM, IDX_TD};
 
 /// Errors of [`CalibFilter`].
@@ -58,6 +64,9 @@ pub struct FrameReport {
     pub failed: usize,
     /// Rows of the update after compression.
     pub rows: usize,
+    /// The iterated update could not lower its cost from the prior: nothing was applied
+    /// (the features were used up all the same).
+    pub refused: bool,
 }
 
 /// The rolling-shutter MSCKF with online calibration.
@@ -231,15 +240,75 @@ impl CalibFilter {
     }
 
     /// Uses the selected features: gate (at the prior), stack, compress, update, retract.
-    /// Iterated EKF: while the correction is large ([`CalibParams::iterate_above_sigma`]),
-    /// the features are re-triangulated and the rows relinearised at the new iterate
-    /// `x_i`, and `x_{i+1} = x_0 ⊞ K_i (r_i + H_i (x_i ⊟ x_0))` with `K_i` from the prior
-    /// `P_0`; the covariance takes the last gain (Joseph form).
+    /// Iterated EKF (Gauss-Newton on `‖x ⊟ x_0‖²_{P_0⁻¹} + Σ‖r(x)‖²/σ²`): while the
+    /// correction is large ([`CalibParams::iterate_above_sigma`]), the features are
+    /// re-triangulated and the rows relinearised at the iterate `x_i`, and
+    /// `x_{i+1} = x_0 ⊞ K_i (r_i + H_i (x_i ⊟ x_0))` with `K_i` from the prior `P_0`. A large
+    /// step is taken only if it lowers that cost with every feature still triangulated, else
+    /// it is halved (up to [`LINE_SEARCH_HALVINGS`] times); when even the first step cannot
+    /// lower it, the linearisation is not trusted and the update is refused (state and `P`
+    /// untouched, [`FrameReport::refused`]). The covariance takes the gain of the last
+    /// linearisation (Joseph form).
     fn update(&mut self, features: &[Vec<(u64, Vector2<f64>)>]) -> FrameReport {
         let sigma2 = self.params.pixel_sigma.powi(2);
+        let (mut lin, kept, mut report) = self.gate(features, sigma2);
+        if lin.is_empty() {
+            return report;
+        }
+        let (x0, clones0) = (self.state, self.clones.clone());
+        let sigma0: Vec<f64> = (0..CORE_DIM).map(|i| self.p[(i, i)].sqrt()).collect();
+        let moved = |v: &DVector<f64>| {
+            (0..CORE_DIM)
+                .map(|i| v[i].abs() / sigma0[i].max(1e-300))
+                .fold(0.0, f64::max)
+        };
+        let mut cost = residual_cost(&lin, sigma2);
+        let mut at = DVector::zeros(self.p.nrows());
+        let mut metric = None;
+        let mut last = None;
+        for _ in 0..self.params.max_iterations.max(1) {
+            let m = compress(stack(&lin, self.p.nrows()));
+            report.rows = m.r.len();
+            let Some(k) = kalman_gain(&self.p, &m.h, sigma2) else {
+                break;
+            };
+            let step = &k * (&m.r + &m.h * &at) - &at;
+            let small = moved(&step) < self.params.iterate_above_sigma;
+            if small || self.params.max_iterations <= 1 {
+                at += step;
+                last = Some((k, m.h));
+                break;
+            }
+            let metric = match &metric {
+                Some(m) => m,
+                None => match PriorMetric::new(&self.p) {
+                    Some(m) => metric.insert(m),
+                    None => break,
+                },
+            };
+            match self.line_search(&x0, &clones0, &kept, metric, &at, &step, cost) {
+                Some((next, c, rows)) => (at, cost, lin) = (next, c, rows),
+                None => break,
+            }
+            last = Some((k, m.h));
+        }
+        self.set_iterate(&x0, &clones0, &at);
+        match last {
+            Some((k, h)) => joseph_in_place(&mut self.p, &k, &h, sigma2),
+            None => report.refused = true,
+        }
+        report
+    }
+
+    /// The χ² gate (at the prior): the projected rows of the features that pass, the
+    /// features themselves, and the counts.
+    fn gate(
+        &self,
+        features: &[Vec<(u64, Vector2<f64>)>],
+        sigma2: f64,
+    ) -> (Vec<Projected>, Vec<Vec<(u64, Vector2<f64>)>>, FrameReport) {
         let mut report = FrameReport::default();
-        let mut kept = Vec::new();
-        let mut parts = Vec::new();
+        let (mut parts, mut kept) = (Vec::new(), Vec::new());
         for f in features {
             let Some(proj) = self.feature_rows(f) else {
                 report.failed += 1;
@@ -254,64 +323,45 @@ impl CalibFilter {
             }
         }
         report.used = parts.len();
-        if parts.is_empty() {
-            return report;
-        }
-        let (x0, clones0) = (self.state, self.clones.clone());
-        let sigma0: Vec<f64> = (0..CORE_DIM).map(|i| self.p[(i, i)].sqrt()).collect();
-        let mut last: Option<(DMatrix<f64>, DMatrix<f64>)> = None;
-        let mut y_prev: Option<nalgebra::DVector<f64>> = None;
-        for it in 0..self.params.max_iterations.max(1) {
-            if it > 0 {
-                parts = kept.iter().filter_map(|f| self.feature_rows(f)).collect();
-                if parts.is_empty() {
-                    break;
-                }
-            }
-            let m = compress(stack(&parts, self.p.nrows()));
-            report.rows = m.r.len();
-            let Some(k) = kalman_gain(&self.p, &m.h, sigma2) else {
-                break;
-            };
-            let r_eff = &m.r + &m.h * self.error_from(&x0, &clones0);
-            let y = &k * r_eff;
-            self.state = x0;
-            self.clones = clones0.clone();
-            self.retract_all(&y);
-            last = Some((k, m.h));
-            let moved = |v: &nalgebra::DVector<f64>| {
-                (0..CORE_DIM)
-                    .map(|i| v[i].abs() / sigma0[i].max(1e-300))
-                    .fold(0.0, f64::max)
-            };
-            let change = match &y_prev {
-                None => moved(&y),
-                Some(prev) => moved(&(&y - prev)),
-            };
-            y_prev = Some(y);
-            if change < self.params.iterate_above_sigma {
-                break;
-            }
-        }
-        if let Some((k, h)) = last {
-            joseph_in_place(&mut self.p, &k, &h, sigma2);
-        }
-        report
+        (parts, kept, report)
     }
 
-    /// The error taking `(x0, clones0)` to the current state, full error-state order.
-    fn error_from(
-        &self,
+    /// Backtracking along `step` from the iterate `x_0 ⊞ at`: the first `at + α step`
+    /// (α = 1, ½, ¼, …) whose cost is below `cost` with every feature re-triangulated, with
+    /// its cost and rows.
+    #[allow(clippy::too_many_arguments)]
+    fn line_search(
+        &mut self,
         x0: &CalibState,
         clones0: &VecDeque<CloneState>,
-    ) -> nalgebra::DVector<f64> {
-        let mut e = nalgebra::DVector::zeros(self.p.nrows());
-        e.rows_mut(0, CORE_DIM).copy_from(&self.state.boxminus(x0));
-        for (i, (c, c0)) in self.clones.iter().zip(clones0).enumerate() {
-            e.fixed_rows_mut::<CLONE_DIM>(clone_offset(i))
-                .copy_from(&c.nav.boxminus(&c0.nav));
+        kept: &[Vec<(u64, Vector2<f64>)>],
+        metric: &PriorMetric,
+        at: &DVector<f64>,
+        step: &DVector<f64>,
+        cost: f64,
+    ) -> Option<(DVector<f64>, f64, Vec<Projected>)> {
+        let sigma2 = self.params.pixel_sigma.powi(2);
+        let mut alpha = 1.0;
+        for _ in 0..=LINE_SEARCH_HALVINGS {
+            let next = at + step * alpha;
+            self.set_iterate(x0, clones0, &next);
+            let rows: Option<Vec<Projected>> = kept.iter().map(|f| self.feature_rows(f)).collect();
+            if let Some(rows) = rows {
+                let c = metric.cost(&next) + residual_cost(&rows, sigma2);
+                if c < cost {
+                    return Some((next, c, rows));
+                }
+            }
+            alpha *= 0.5;
         }
-        e
+        None
+    }
+
+    /// Sets state and clones to `x_0 ⊞ e` (full error-state order).
+    fn set_iterate(&mut self, x0: &CalibState, clones0: &VecDeque<CloneState>, e: &DVector<f64>) {
+        self.state = *x0;
+        self.clones.clone_from(clones0);
+        self.retract_all(e);
     }
 
     /// Retracts the state and every clone by a full error-state vector.

@@ -202,3 +202,49 @@ mod tests {
         assert!(pb.clone().cholesky().is_some());
     }
 }
+
+/// The prior term `eᵀ P₀⁻¹ e` of the iterated update's cost, for the line search of
+/// [`super::CalibFilter`]. `P₀` is singular right after a clone (the newest clone duplicates
+/// the IMU state), so it is factored as `D^{-1/2} P₀ D^{-1/2} + εI` (`D` its diagonal, ε
+/// 1e-10): every correction `K r` lies in the range of `P₀`, where the regularisation does not
+/// change the value to working precision.
+#[derive(Debug, Clone)]
+pub struct PriorMetric {
+    inv_sqrt_diag: DVector<f64>,
+    chol: nalgebra::Cholesky<f64, nalgebra::Dyn>,
+}
+
+impl PriorMetric {
+    /// Factors `P₀`; `None` when a diagonal entry is not positive.
+    pub fn new(p0: &DMatrix<f64>) -> Option<Self> {
+        let d = p0.diagonal();
+        if d.iter().any(|v| !(*v > 0.0)) {
+            return None;
+        }
+        let inv_sqrt_diag = d.map(|v| 1.0 / v.sqrt());
+        let mut scaled = p0.clone();
+        for (i, mut col) in scaled.column_iter_mut().enumerate() {
+            col.component_mul_assign(&inv_sqrt_diag);
+            col *= inv_sqrt_diag[i];
+        }
+        for i in 0..scaled.nrows() {
+            scaled[(i, i)] += 1e-10;
+        }
+        Some(Self {
+            inv_sqrt_diag,
+            chol: scaled.cholesky()?,
+        })
+    }
+
+    /// `eᵀ P₀⁻¹ e`.
+    pub fn cost(&self, e: &DVector<f64>) -> f64 {
+        let scaled = e.component_mul(&self.inv_sqrt_diag);
+        scaled.dot(&self.chol.solve(&scaled))
+    }
+}
+
+/// `Σ ‖r‖² / σ²` over projected features (the null-space projection is orthonormal, so this
+/// is the reprojection cost at the features' best positions).
+pub fn residual_cost(parts: &[Projected], sigma2: f64) -> f64 {
+    parts.iter().map(|p| p.r.norm_squared()).sum::<f64>() / sigma2
+}

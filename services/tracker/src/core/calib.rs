@@ -101,6 +101,10 @@ pub struct CalibReport {
     pub features_per_frame: f64,
     /// See `features_per_frame`.
     pub features_used_per_frame: f64,
+    /// Updates whose iterated step could not lower the cost from the prior, so nothing was
+    /// applied (the linearisation was not trusted; `FrameReport::refused`).
+    #[serde(default)]
+    pub updates_refused: u64,
     /// The filter's update time per frame, ms (p50, p99, max).
     pub update_ms: [f64; 3],
     /// Why the last refused frame was refused.
@@ -124,6 +128,7 @@ pub struct CalibClient {
     refused: u64,
     features: u64,
     used: u64,
+    updates_refused: u64,
     update_ms: Vec<f32>,
     last_refusal: Option<String>,
     log_header_sent: bool,
@@ -190,6 +195,7 @@ impl CalibClient {
             refused: 0,
             features: 0,
             used: 0,
+            updates_refused: 0,
             update_ms: Vec::new(),
             last_refusal: None,
             log_header_sent: false,
@@ -234,6 +240,7 @@ impl CalibClient {
             self.updated += 1;
             self.features += r.features as u64;
             self.used += rep.used as u64;
+            self.updates_refused += u64::from(rep.refused);
             if self.update_ms.len() < MAX_TIMES {
                 self.update_ms.push(r.update_ms);
             }
@@ -255,6 +262,7 @@ impl CalibClient {
             frames_dropped: self.cal.dropped,
             features_per_frame: self.features as f64 / n,
             features_used_per_frame: self.used as f64 / n,
+            updates_refused: self.updates_refused,
             update_ms: percentiles(&self.update_ms),
             last_refusal: self.last_refusal.clone(),
             init: self.cal.init_result.as_ref().map(init_report),
