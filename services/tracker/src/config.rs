@@ -167,6 +167,18 @@ pub enum CalibInit {
 pub struct CalibModeConfig {
     /// Pixel noise σ per coordinate, px.
     pub pixel_sigma: f64,
+    /// Smallest parallax of a used feature (largest baseline over depth, rad; 0.02 by
+    /// default). Features below it are not used: their depth absorbs model errors at a poor
+    /// start. A clip with almost no translation (a hand-held phone) needs a smaller one.
+    pub min_parallax_rad: f64,
+    /// Largest reprojection RMS of a triangulated feature of the image front end, px: ORB
+    /// tracks can hold mismatches, which a loose bound lets in (10 px put p_cb 10 mm off on
+    /// the rendered `calib` scene in 20 s, 4 px 3 mm).
+    pub max_triangulation_rms_px: f64,
+    /// The same for given feature tracks (AprilGrid detections: no mismatches), px. A tight
+    /// bound locks out a filter started from a poor camera: every feature fails and nothing
+    /// corrects the camera (EuRoC AprilGrid from the start at 4 px).
+    pub max_triangulation_rms_given_px: f64,
     /// `fx, fy`, px.
     pub focal_sigma_px: f64,
     /// `cx, cy`, px.
@@ -192,6 +204,10 @@ pub struct CalibModeConfig {
     pub init: CalibInit,
     /// Seconds of frames the initialisation uses.
     pub init_seconds: f64,
+    /// Seconds of IMU before the first updated frame from which the filter takes its
+    /// starting roll and pitch (the mean specific force, gyro-rotated): 2 s by default; a
+    /// clip whose IMU starts with its frames (the 0.8 s phone clip) needs a shorter one.
+    pub start_seconds: f64,
     /// Per-frame estimates and σ written here as CSV (the launcher sets
     /// `OUT/calib_c{c}.csv`); `{c}` is the client index.
     pub log: Option<PathBuf>,
@@ -202,6 +218,10 @@ impl Default for CalibModeConfig {
         let p = slam_core::calib::CalibPriors::default();
         Self {
             pixel_sigma: 1.0,
+            min_parallax_rad: slam_core::calib::CalibParams::default().min_parallax,
+            max_triangulation_rms_px: slam_core::calib::CalibParams::default()
+                .max_triangulation_rms,
+            max_triangulation_rms_given_px: 10.0,
             focal_sigma_px: p.focal,
             principal_point_sigma_px: p.principal_point,
             radial_sigma: p.radial,
@@ -213,6 +233,7 @@ impl Default for CalibModeConfig {
             t_s_sigma: p.t_s,
             init: CalibInit::Auto,
             init_seconds: 8.0,
+            start_seconds: 2.0,
             log: None,
         }
     }
@@ -240,6 +261,12 @@ impl CalibModeConfig {
     pub fn validate(&self) -> Result<(), String> {
         let keys = [
             ("pixel_sigma", self.pixel_sigma),
+            ("min_parallax_rad", self.min_parallax_rad),
+            ("max_triangulation_rms_px", self.max_triangulation_rms_px),
+            (
+                "max_triangulation_rms_given_px",
+                self.max_triangulation_rms_given_px,
+            ),
             ("focal_sigma_px", self.focal_sigma_px),
             ("principal_point_sigma_px", self.principal_point_sigma_px),
             ("radial_sigma", self.radial_sigma),
@@ -250,6 +277,7 @@ impl CalibModeConfig {
             ("t_ga_sigma", self.t_ga_sigma),
             ("t_s_sigma", self.t_s_sigma),
             ("init_seconds", self.init_seconds),
+            ("start_seconds", self.start_seconds),
         ];
         match keys.iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
             Some((k, v)) => Err(format!("tracker.calib.{k} = {v}: must be finite and > 0")),

@@ -19,6 +19,9 @@ use std::collections::{BTreeMap, VecDeque};
 
 use nalgebra::{DMatrix, DVector, Vector2};
 
+/// One feature's observations: (clone id, pixel).
+type Track = Vec<(u64, Vector2<f64>)>;
+
 /// Most halvings of a large iterated-EKF step before the update is refused.
 pub const LINE_SEARCH_HALVINGS: usize = 3;
 
@@ -306,7 +309,7 @@ impl CalibFilter {
         &self,
         features: &[Vec<(u64, Vector2<f64>)>],
         sigma2: f64,
-    ) -> (Vec<Projected>, Vec<Vec<(u64, Vector2<f64>)>>, FrameReport) {
+    ) -> (Vec<Projected>, Vec<Track>, FrameReport) {
         let mut report = FrameReport::default();
         let (mut parts, mut kept) = (Vec::new(), Vec::new());
         for f in features {

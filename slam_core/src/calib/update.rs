@@ -218,7 +218,7 @@ impl PriorMetric {
     /// Factors `P₀`; `None` when a diagonal entry is not positive.
     pub fn new(p0: &DMatrix<f64>) -> Option<Self> {
         let d = p0.diagonal();
-        if d.iter().any(|v| !(*v > 0.0)) {
+        if d.iter().any(|v| v.is_nan() || *v <= 0.0) {
             return None;
         }
         let inv_sqrt_diag = d.map(|v| 1.0 / v.sqrt());

@@ -101,6 +101,13 @@ pub struct CalibReport {
     pub features_per_frame: f64,
     /// See `features_per_frame`.
     pub features_used_per_frame: f64,
+    /// Features the χ² gate refused, and features that could not be triangulated (too little
+    /// parallax, reprojection RMS over the gross-outlier bound, behind a camera), in total.
+    #[serde(default)]
+    pub features_gated: u64,
+    /// See `features_gated`.
+    #[serde(default)]
+    pub features_failed: u64,
     /// Updates whose iterated step could not lower the cost from the prior, so nothing was
     /// applied (the linearisation was not trusted; `FrameReport::refused`).
     #[serde(default)]
@@ -129,6 +136,8 @@ pub struct CalibClient {
     features: u64,
     used: u64,
     updates_refused: u64,
+    gated: u64,
+    failed: u64,
     update_ms: Vec<f32>,
     last_refusal: Option<String>,
     log_header_sent: bool,
@@ -179,11 +188,18 @@ impl CalibClient {
             filter: CalibParams {
                 imu_noise: noise,
                 pixel_sigma: cfg.pixel_sigma,
+                min_parallax: cfg.min_parallax_rad,
+                max_triangulation_rms: if h.pixel_format == PixelFormat::Features as u32 {
+                    cfg.max_triangulation_rms_given_px
+                } else {
+                    cfg.max_triangulation_rms_px
+                },
                 ..CalibParams::default()
             },
             priors,
             orb_features: features,
             init_seconds: init.then_some(cfg.init_seconds),
+            start_window_ns: (cfg.start_seconds * 1e9) as i64,
             ..OnlineParams::default()
         };
         Ok(Self {
@@ -196,6 +212,8 @@ impl CalibClient {
             features: 0,
             used: 0,
             updates_refused: 0,
+            gated: 0,
+            failed: 0,
             update_ms: Vec::new(),
             last_refusal: None,
             log_header_sent: false,
@@ -241,6 +259,8 @@ impl CalibClient {
             self.features += r.features as u64;
             self.used += rep.used as u64;
             self.updates_refused += u64::from(rep.refused);
+            self.gated += rep.gated as u64;
+            self.failed += rep.failed as u64;
             if self.update_ms.len() < MAX_TIMES {
                 self.update_ms.push(r.update_ms);
             }
@@ -263,6 +283,8 @@ impl CalibClient {
             features_per_frame: self.features as f64 / n,
             features_used_per_frame: self.used as f64 / n,
             updates_refused: self.updates_refused,
+            features_gated: self.gated,
+            features_failed: self.failed,
             update_ms: percentiles(&self.update_ms),
             last_refusal: self.last_refusal.clone(),
             init: self.cal.init_result.as_ref().map(init_report),

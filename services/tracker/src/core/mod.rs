@@ -85,8 +85,9 @@ impl StartIds {
 /// IMU samples kept from before the first frame for the visual-inertial client, ns.
 const PENDING_IMU_NS: i64 = 2_000_000_000;
 
-/// IMU samples kept from before the first frame for the calibration mode, ns (its start
-/// window, [`slam_core::calib::online::OnlineParams::start_window_ns`], and a margin).
+/// IMU samples kept from before the first frame for the calibration mode, ns (its default
+/// start window, [`slam_core::calib::online::OnlineParams::start_window_ns`], and a margin;
+/// a longer `tracker.calib.start_seconds` keeps that plus 1 s).
 const PENDING_IMU_CALIB_NS: i64 = 3_000_000_000;
 
 /// Why a visual-inertial client without camera-IMU extrinsics does not initialise, and what
@@ -373,7 +374,8 @@ impl TrackerCore {
         if self.client.is_none() {
             let keep_ns = match self.cfg.mode {
                 crate::ClientMode::Vio => PENDING_IMU_NS,
-                crate::ClientMode::Calib => PENDING_IMU_CALIB_NS,
+                crate::ClientMode::Calib => PENDING_IMU_CALIB_NS
+                    .max((self.cfg.calib.start_seconds * 1e9) as i64 + 1_000_000_000),
                 _ => return,
             };
             self.pending_imu.push_back(sample);
