@@ -226,7 +226,7 @@ fn result_file(
 /// The lever arm `p_cb` (body origin in the camera) of a file's `T_BS`.
 fn p_cb(f: &CalibrationFile) -> [f64; 3] {
     match datasets::calibration::isometry(&f.camera.t_bs) {
-        Ok(t) => (-(t.rotation.inverse() * t.translation.vector)).into(),
+        Ok(t) => slam_core::calib::lever_arm_of_t_bs(&t).into(),
         Err(_) => [f64::NAN; 3],
     }
 }

@@ -76,7 +76,7 @@ fn calibrate(
 /// The lever arm `p_cb` of a file.
 fn p_cb(f: &CalibrationFile) -> nalgebra::Vector3<f64> {
     let t = datasets::calibration::isometry(&f.camera.t_bs).expect("T_BS");
-    -(t.rotation.inverse() * t.translation.vector)
+    slam_core::calib::lever_arm_of_t_bs(&t)
 }
 
 /// 20 s of the `calib` scenario from the starting errors: every calibrated value
@@ -270,7 +270,7 @@ fn calibrate_the_euroc_apriltag_recording() {
         "t_r {} ns of a global shutter",
         est.camera.readout_ns
     );
-    let p_true = -(cam.t_bs.rotation.inverse() * cam.t_bs.translation.vector);
+    let p_true = slam_core::calib::lever_arm_of_t_bs(&cam.t_bs);
     let p_err = (p_cb(&est) - p_true).norm();
     assert!(p_err < 0.02, "p_cb {p_err} m off");
     let c = &report(&out)["clients"][0]["calib"];
@@ -331,7 +331,7 @@ fn calibrate_the_euroc_apriltag_recording_as_a_new_device() {
     let r_err = (t.rotation.inverse() * cam.t_bs.rotation)
         .angle()
         .to_degrees();
-    let p_true = -(cam.t_bs.rotation.inverse() * cam.t_bs.translation.vector);
+    let p_true = slam_core::calib::lever_arm_of_t_bs(&cam.t_bs);
     let p_err = (p_cb(&est) - p_true).norm();
     eprintln!("R_cb {r_err:.2}° from T_BS, p_cb {:.1} mm", p_err * 1e3);
     assert!(r_err < 2.0, "R_cb {r_err}° off");

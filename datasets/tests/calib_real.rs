@@ -37,7 +37,7 @@ fn euroc_april_calibration_from_a_wrong_start() {
             .expect("T_BS");
     let r_bs = cam.t_bs.rotation.to_rotation_matrix();
     let r_cb = r_bs.inverse();
-    let p_cb_true = -(r_cb * cam.t_bs.translation.vector);
+    let p_cb_true = slam_core::calib::lever_arm_of_t_bs(&cam.t_bs);
     let reference = ds.camera;
     let mut start_cam = reference;
     start_cam.fx += 10.0;

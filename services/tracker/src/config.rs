@@ -219,9 +219,9 @@ impl Default for CalibModeConfig {
         Self {
             pixel_sigma: 1.0,
             min_parallax_rad: slam_core::calib::CalibParams::default().min_parallax,
-            max_triangulation_rms_px: slam_core::calib::CalibParams::default()
+            max_triangulation_rms_px: 4.0,
+            max_triangulation_rms_given_px: slam_core::calib::CalibParams::default()
                 .max_triangulation_rms,
-            max_triangulation_rms_given_px: 10.0,
             focal_sigma_px: p.focal,
             principal_point_sigma_px: p.principal_point,
             radial_sigma: p.radial,

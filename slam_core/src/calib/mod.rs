@@ -119,3 +119,10 @@ pub struct Observation {
 /// One raw IMU sample on the IMU clock (`a_m`, `ω_m` of seed eq. 2.55-2.56): the
 /// preintegration's type.
 pub use crate::imu::ImuMeasurement as ImuSample;
+
+/// The lever arm `p_cb` (the body origin in the camera frame, m; the seed's Table 4.1) of a
+/// camera-to-body transform `T_BS` (EuRoC's `sensor.yaml`, Kalibr's `T_cam_imu`⁻¹):
+/// `p_cb = −R_cb p_bc` with `R_cb = R_bcᵀ`.
+pub fn lever_arm_of_t_bs(t_bs: &nalgebra::Isometry3<f64>) -> nalgebra::Vector3<f64> {
+    -(t_bs.rotation.inverse() * t_bs.translation.vector)
+}

@@ -546,7 +546,7 @@ impl OnlineCalibrator {
             biases: s.biases,
             imu: s.imu,
             r_cb,
-            p_cb: -(r_cb * s.t_bs.translation.vector),
+            p_cb: super::lever_arm_of_t_bs(&s.t_bs),
             camera: s.camera,
             t_d: 0.0,
             t_r: s.t_r_s,

@@ -26,10 +26,11 @@ pub struct CalibParams {
     pub t_d_random_walk: f64,
     /// Smallest parallax of a used feature: largest camera baseline over its depth, rad.
     pub min_parallax: f64,
-    /// Largest Gauss-Newton reprojection RMS (px) for a triangulated feature to be used. 4 px
-    /// suits image tracks (mismatches stay out); given tracks without mismatches from a poor
-    /// start need more (10 px on EuRoC AprilGrid: at 4 px every feature failed, and nothing
-    /// corrected the camera; `tracker.calib.max_triangulation_rms_given_px`).
+    /// Largest Gauss-Newton reprojection RMS (px) for a triangulated feature to be used. The
+    /// default, 10 px, is for tracks without mismatches (simulated, AprilGrid detections):
+    /// at 4 px a filter started from a poor camera is locked out (every feature fails, and
+    /// nothing corrects the camera: EuRoC AprilGrid from the start). Image tracks
+    /// can hold mismatches and want 4 px (`tracker.calib.max_triangulation_rms_px`).
     pub max_triangulation_rms: f64,
     /// Use first-estimate Jacobians (FEJ) for p and v (propagation and measurement).
     pub fej: bool,
@@ -49,7 +50,7 @@ impl Default for CalibParams {
             min_track_len: 5,
             max_features_per_update: 60,
             t_d_random_walk: 0.0,
-            max_triangulation_rms: 4.0,
+            max_triangulation_rms: 10.0,
             min_parallax: 0.02,
             fej: true,
             max_iterations: 4,
