@@ -423,13 +423,16 @@ pub fn initialize(
     })
 }
 
+/// `(fit σ, angle to the permutation)` of a snapped `R_cb`, rad.
+type Snap = Option<(f64, f64)>;
+
 /// The estimated `R_cb` when its 1σ is within `strict` rad; else the nearest axis
-/// permutation under `snap` ([`AxisSnap`]) with `(fit σ, angle)`; else not observable.
+/// permutation under `snap` ([`AxisSnap`]) with its [`Snap`]; else not observable.
 fn snapped(
     fit: &ExtrinsicRotation,
     strict: f64,
     snap: Option<AxisSnap>,
-) -> Result<(Rotation3<f64>, Option<(f64, f64)>), InitError> {
+) -> Result<(Rotation3<f64>, Snap), InitError> {
     let r_cb = fit.r_bc.inverse();
     if fit.sigma_rad <= strict {
         return Ok((r_cb, None));

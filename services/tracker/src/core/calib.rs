@@ -358,6 +358,12 @@ impl CalibClient {
         if ratio(&e.t_s, p.t_s) > CONVERGED_FRACTION {
             out.push("T_s".into());
         }
+        let init_failed = matches!(self.cal.init_result, Some(Err(_)));
+        if init_failed && !self.cal.start().r_cb_given {
+            // A new device whose initialisation failed: `R_cb` is the starting guess, held
+            // fixed, and nothing estimated with it is to be taken.
+            out.push("R_cb".into());
+        }
         out
     }
 
