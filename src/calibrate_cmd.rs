@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use datasets::calibration::{CalibrationFile, SigmaSection};
-use tracker::core::{CalibReport, CalibValues, Estimate};
+use tracker::core::{CalibReport, CalibValues, Estimate, InitReport};
 
 use crate::config::RunConfig;
 use crate::launcher;
@@ -213,6 +213,7 @@ fn result_file(
         accel_bias: Some(sigmas(&e.accel_bias)),
         not_converged: rep.not_converged.clone(),
     });
+    keep_starting_values(&mut f, start, rep);
     f.comment = Some(format!(
         "shoal calibrate on {}: {} frames updated ({} start), {:.0} features per frame",
         dataset.display(),
@@ -221,6 +222,52 @@ fn result_file(
         rep.features_per_frame
     ));
     f
+}
+
+/// The parameters that did not converge get their starting values back (the file's
+/// contract, `SigmaSection::not_converged`: a value the run did not determine is no
+/// estimate). The start of `t_d` is the initialisation's when it ran; `R_cb` stays the
+/// run's (from the initialisation, held fixed by the filter).
+fn keep_starting_values(f: &mut CalibrationFile, start: &CalibrationFile, rep: &CalibReport) {
+    let nc = |n: &str| rep.not_converged.iter().any(|x| x == n);
+    for (k, n) in ["fx", "fy", "cx", "cy"].iter().enumerate() {
+        if nc(n) {
+            f.camera.intrinsics[k] = start.camera.intrinsics[k];
+        }
+    }
+    for (k, n) in ["k1", "k2", "p1", "p2"].iter().enumerate() {
+        if nc(n) {
+            f.camera.distortion[k] = start.camera.distortion[k];
+        }
+    }
+    if nc("t_d") {
+        let init_ms = rep.init.as_ref().and_then(|i| i.t_d_ms).unwrap_or(0.0);
+        f.camera.time_offset_ns = start.camera.time_offset_ns + init_ms * 1e6;
+    }
+    if nc("t_r") {
+        f.camera.readout_ns = start.camera.readout_ns;
+    }
+    let (p0, mut p) = (p_cb(start), p_cb(f));
+    for (k, n) in ["p_cb.x", "p_cb.y", "p_cb.z"].iter().enumerate() {
+        if nc(n) {
+            p[k] = p0[k];
+        }
+    }
+    if let Ok(t) = datasets::calibration::isometry(&f.camera.t_bs) {
+        let t_bs = -(t.rotation * nalgebra::Vector3::from(p));
+        for (r, row) in f.camera.t_bs.iter_mut().enumerate().take(3) {
+            row[3] = t_bs[r];
+        }
+    }
+    for (n, m, m0) in [
+        ("T_g", &mut f.imu.t_g, start.imu.t_g),
+        ("T_s", &mut f.imu.t_s, start.imu.t_s),
+        ("T_a", &mut f.imu.t_a, start.imu.t_a),
+    ] {
+        if nc(n) {
+            *m = m0;
+        }
+    }
 }
 
 /// The lever arm `p_cb` (body origin in the camera) of a file's `T_BS`.
@@ -321,10 +368,43 @@ fn print_table(
     if !rep.not_converged.is_empty() {
         println!(
             "not converged (σ did not shrink below half the prior's: this run's motion does not \
-             determine them, the values above are not estimates): {}",
+             determine them, the values above are the starting ones): {}",
             rep.not_converged.join(", ")
         );
     }
+    if let Some(i) = &rep.init {
+        print_init(i);
+    }
+}
+
+/// The initialisation's line: `t_d` and `R_cb`, and how `R_cb` was found.
+fn print_init(i: &InitReport) {
+    if let Some(e) = &i.error {
+        println!(
+            "initialisation failed after {} tries: {e}; R_cb is the starting one (t_d, t_r, p_cb \
+             are estimated with it)",
+            i.tries
+        );
+        return;
+    }
+    let how = match (i.r_cb_estimated, i.r_cb_snapped_deg) {
+        (false, _) => "given".to_string(),
+        (true, Some([s, a])) => format!(
+            "not observable (fit 1σ {s:.1}°): snapped to the nearest axis permutation, {a:.1}° \
+             from the fit"
+        ),
+        (true, None) => format!("estimated, 1σ {:.2}°", i.r_cb_sigma_deg.unwrap_or(f64::NAN)),
+    };
+    println!(
+        "initialisation ({} tries, {} / {} visual rotations): t_d {:+.2} ms (correlation peak \
+         {:.3}); R_cb {how}: {:.3?}",
+        i.tries,
+        i.rotations[1],
+        i.rotations[0],
+        i.t_d_ms.unwrap_or(f64::NAN),
+        i.t_d_peak.unwrap_or(f64::NAN),
+        i.r_cb.unwrap_or_default()
+    );
 }
 
 /// The convergence plot from the per-frame log `log` (columns of

@@ -76,6 +76,7 @@ pub struct FrameReport {
 #[derive(Debug, Clone)]
 pub struct CalibFilter {
     pub(super) params: CalibParams,
+    priors: CalibPriors,
     pub(super) state: CalibState,
     fej: FirstEstimates,
     pub(super) p: DMatrix<f64>,
@@ -91,6 +92,7 @@ impl CalibFilter {
     pub fn new(params: CalibParams, priors: CalibPriors, initial: CalibState) -> Self {
         Self {
             params,
+            priors,
             fej: FirstEstimates::of(&initial.nav),
             state: initial,
             p: priors.covariance(),
@@ -108,6 +110,12 @@ impl CalibFilter {
         if self.imu.last().is_none_or(|l| sample.t_ns > l.t_ns) {
             self.imu.push(sample);
         }
+    }
+
+    /// The prior σ it started with (e.g. after an initialisation, tighter than the
+    /// configured ones: whether a σ shrank is judged against these).
+    pub fn priors(&self) -> &CalibPriors {
+        &self.priors
     }
 
     /// The current nominal state.

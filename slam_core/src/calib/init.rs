@@ -14,6 +14,9 @@
 //!    ([`crate::imu::extrinsic_rotation`], refused without rotation about ≥ 2 axes); then
 //!    [`timing::fine_time_offset`] refines `t_d` on the full rotation residual, and `R_cb`
 //!    is estimated once more at the refined `t_d`.
+//!    A camera that turned about one axis only fixes `R_cb` about that axis alone; with
+//!    [`InitParams::axis_snap`] the estimate is then replaced by the nearest signed axis
+//!    permutation ([`AxisSnap`]: a square mount assumed, reported as such).
 //! 4. [`gravity_from_motion`]: the starting orientation `R_gb` (roll and pitch) from the
 //!    mean specific force over the window rotated into the first body frame by the gyro
 //!    (`R_gb(t) a_s(t) = a_g(t) - g`, and a hand-held device's mean acceleration over
@@ -125,6 +128,65 @@ pub struct InitParams {
     /// Least `σ_θ` / σ_v reported by the alignment, rad and m/s: its covariance ignores the
     /// `T`-model errors, which give ~1.3° and ~0.15 m/s on the simulation.
     pub align_min_sigma: (f64, f64),
+    /// The square-mount prior of [`AxisSnap`] (`None`: an `R_cb` whose 1σ exceeds
+    /// [`ExtrinsicRotationParams::max_sigma_rad`] fails the initialisation).
+    pub axis_snap: Option<AxisSnap>,
+}
+
+/// A device whose camera and IMU axes are mounted square to each other (phones, action
+/// cameras): when the camera turned about fewer than two axes, `R_cb` is determined only
+/// about the turn's axis (its 1σ exceeds [`ExtrinsicRotationParams::max_sigma_rad`]); it is
+/// then replaced by the nearest signed axis permutation ([`nearest_axis_permutation`]) when
+/// the estimate lies within [`Self::max_angle_rad`] of it and its 1σ is below
+/// [`Self::max_fit_sigma_rad`]. Otherwise the initialisation fails as before.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxisSnap {
+    /// Largest angle from the estimate to the permutation, rad.
+    pub max_angle_rad: f64,
+    /// Largest 1σ of the estimate itself, rad.
+    pub max_fit_sigma_rad: f64,
+    /// 1σ of a snapped `R_cb` used downstream (the assumed accuracy of a square mount;
+    /// widens the `T_g`, `T_a` priors in [`filter_start`]), rad.
+    pub sigma_rad: f64,
+}
+
+impl Default for AxisSnap {
+    fn default() -> Self {
+        Self {
+            max_angle_rad: 20f64.to_radians(),
+            max_fit_sigma_rad: 45f64.to_radians(),
+            sigma_rad: 2f64.to_radians(),
+        }
+    }
+}
+
+/// The proper signed axis permutation nearest `r` (of the 24) and the angle between them.
+pub fn nearest_axis_permutation(r: &Rotation3<f64>) -> (Rotation3<f64>, f64) {
+    let mut best = (Rotation3::identity(), f64::INFINITY);
+    for perm in [
+        [0, 1, 2],
+        [0, 2, 1],
+        [1, 0, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [2, 1, 0],
+    ] {
+        for signs in 0..8u32 {
+            let mut m = nalgebra::Matrix3::zeros();
+            for (row, &col) in perm.iter().enumerate() {
+                m[(row, col)] = if signs & (1 << row) == 0 { 1.0 } else { -1.0 };
+            }
+            if m.determinant() < 0.0 {
+                continue;
+            }
+            let p = Rotation3::from_matrix_unchecked(m);
+            let angle = (p.inverse() * r).angle();
+            if angle < best.1 {
+                best = (p, angle);
+            }
+        }
+    }
+    best
 }
 
 impl Default for InitParams {
@@ -158,6 +220,7 @@ impl Default for InitParams {
             align_gyro_bias_prior: 1e-3,
             align_accel_bias_prior: 0.3,
             align_min_sigma: (0.03, 0.3),
+            axis_snap: None,
         }
     }
 }
@@ -175,8 +238,12 @@ pub struct InitResult {
     pub r_cb_given: bool,
     /// RMS hand-eye residual angle of the `R_cb` fit, rad.
     pub r_cb_residual_rad: f64,
-    /// 1σ of `R_cb` about its worst axis, rad (0 when given).
+    /// 1σ of `R_cb` about its worst axis, rad (0 when given; when snapped,
+    /// [`AxisSnap::sigma_rad`]).
     pub r_cb_sigma_rad: f64,
+    /// When `R_cb` was snapped to an axis permutation ([`AxisSnap`]): the fit's own 1σ and
+    /// its angle to the permutation, rad.
+    pub r_cb_snap: Option<(f64, f64)>,
     /// Pairs the `R_cb` fit rejected.
     pub r_cb_outliers: usize,
     /// Gyro bias of the `R_cb` fit, rad/s (zero when that fit was refused with a given
@@ -259,6 +326,12 @@ pub fn initialize(
     params: &InitParams,
 ) -> Result<InitResult, InitError> {
     let first = imu.first().ok_or(InitError::NoImu)?;
+    let strict_sigma = params.extrinsic.max_sigma_rad;
+    let mut relaxed = *params;
+    if let (Some(snap), None) = (params.axis_snap, guess.r_cb) {
+        relaxed.extrinsic.max_sigma_rad = strict_sigma.max(snap.max_fit_sigma_rad);
+    }
+    let params = &relaxed;
     let raw = GyroTrack::new(imu, &Vector3::zeros());
     let rots = visual::visual_rotations(frames, &guess.camera, None, params);
     let used = timing::covered(&rots, &raw, params.max_shift_s);
@@ -319,7 +392,10 @@ pub fn initialize(
     }
     quality.fine_rms_rad = fine_rms;
     let given = r_cb.is_some();
-    let r_cb = r_cb.unwrap_or_else(|| fit.r_bc.inverse());
+    let (r_cb, snap) = match r_cb {
+        Some(r) => (r, None),
+        None => snapped(&fit, strict_sigma, params.axis_snap)?,
+    };
     let start = start_state(imu, frames, guess, r_cb, t_d, &fit, params);
     Ok(InitResult {
         t_d_s: t_d,
@@ -327,7 +403,12 @@ pub fn initialize(
         r_cb,
         r_cb_given: given,
         r_cb_residual_rad: fit.rms_rad,
-        r_cb_sigma_rad: if given { 0.0 } else { fit.sigma_rad },
+        r_cb_sigma_rad: match (given, snap) {
+            (true, _) => 0.0,
+            (false, Some(_)) => params.axis_snap.map_or(fit.sigma_rad, |a| a.sigma_rad),
+            (false, None) => fit.sigma_rad,
+        },
+        r_cb_snap: snap,
         r_cb_outliers: fit.outliers,
         hand_eye_gyro_bias: fit.gyro_bias,
         biases: start.biases,
@@ -340,6 +421,32 @@ pub fn initialize(
         rotations_found: counts.0,
         rotations_used: counts.1,
     })
+}
+
+/// `(fit σ, angle to the permutation)` of a snapped `R_cb`, rad.
+type Snap = Option<(f64, f64)>;
+
+/// The estimated `R_cb` when its 1σ is within `strict` rad; else the nearest axis
+/// permutation under `snap` ([`AxisSnap`]) with its [`Snap`]; else not observable.
+fn snapped(
+    fit: &ExtrinsicRotation,
+    strict: f64,
+    snap: Option<AxisSnap>,
+) -> Result<(Rotation3<f64>, Snap), InitError> {
+    let r_cb = fit.r_bc.inverse();
+    if fit.sigma_rad <= strict {
+        return Ok((r_cb, None));
+    }
+    let (perm, angle) = nearest_axis_permutation(&r_cb);
+    match snap {
+        Some(s) if angle <= s.max_angle_rad && fit.sigma_rad <= s.max_fit_sigma_rad => {
+            Ok((perm, Some((fit.sigma_rad, angle))))
+        }
+        _ => Err(ExtrinsicRotationError::NotObservable {
+            sigma_deg: fit.sigma_rad.to_degrees(),
+        }
+        .into()),
+    }
 }
 
 /// Step 4: [`align::align`], or when it fails [`gravity_from_motion`] with `v = 0`.

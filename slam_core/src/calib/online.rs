@@ -62,8 +62,16 @@ pub struct OnlineParams {
     pub max_queued: usize,
     /// Start with [`super::init`] over the first seconds of frames and IMU (t_d searched
     /// over ±`max_shift_s`, `R_cb` estimated unless given, gravity, velocity and gyro bias)
-    /// instead of the mean specific force: `Some(seconds of data)`.
+    /// instead of the mean specific force: `Some(seconds of data)` before the first try.
+    /// A try that fails (too little rotation so far: no time offset, `R_cb` not observable)
+    /// is repeated on all the data every [`Self::init_retry_seconds`] more, until
+    /// [`Self::init_max_seconds`], a full queue, or the end of the stream (`flush`), whose
+    /// try is the last.
     pub init_seconds: Option<f64>,
+    /// See [`Self::init_seconds`], s.
+    pub init_retry_seconds: f64,
+    /// See [`Self::init_seconds`], s.
+    pub init_max_seconds: f64,
     /// The initialisation's settings.
     pub init: super::init::InitParams,
 }
@@ -83,7 +91,12 @@ impl Default for OnlineParams {
             imu_margin_ns: 5_000_000,
             max_queued: 600,
             init_seconds: None,
-            init: super::init::InitParams::default(),
+            init_retry_seconds: 2.0,
+            init_max_seconds: 20.0,
+            init: super::init::InitParams {
+                axis_snap: Some(super::init::AxisSnap::default()),
+                ..super::init::InitParams::default()
+            },
         }
     }
 }
@@ -182,6 +195,12 @@ pub struct OnlineCalibrator {
     init_imu: Vec<ImuSample>,
     /// What the initialisation found, or why it failed (then the simple start was used).
     pub init_result: Option<Result<super::init::InitResult, super::init::InitError>>,
+    /// Tries of the initialisation so far, and why the last failed.
+    pub init_tries: u32,
+    /// See [`Self::init_tries`].
+    pub init_last_error: Option<super::init::InitError>,
+    /// Seconds of frames at which the initialisation is tried next.
+    init_next_try_s: f64,
 }
 
 /// Largest error of the initialisation's gravity magnitude for its attitude and velocity to
@@ -207,6 +226,9 @@ impl OnlineCalibrator {
             init_frames: Vec::new(),
             init_imu: Vec::new(),
             init_result: None,
+            init_tries: 0,
+            init_last_error: None,
+            init_next_try_s: params.init_seconds.unwrap_or(0.0),
         }
     }
 
@@ -295,7 +317,7 @@ impl OnlineCalibrator {
     /// initialisation still collecting runs on what it has).
     pub fn flush(&mut self) -> Vec<FrameResult> {
         if self.initialising() {
-            self.run_init();
+            self.run_init(true);
         }
         self.drain(true)
     }
@@ -321,81 +343,35 @@ impl OnlineCalibrator {
         let span_s = (t_mid_ns - first) as f64 * 1e-9;
         let imu_to = self.init_imu.last().map_or(i64::MIN, |s| s.t_ns);
         let margin = (self.params.init.max_shift_s * 1e9) as i64;
-        if span_s < self.params.init_seconds.unwrap_or(0.0) || imu_to < t_mid_ns + margin {
+        if span_s < self.init_next_try_s || imu_to < t_mid_ns + margin {
             return vec![];
         }
-        self.run_init();
+        let last =
+            span_s >= self.params.init_max_seconds || self.queue.len() >= self.params.max_queued;
+        self.run_init(last);
+        if self.initialising() {
+            // A failed try: the frames stay queued for the next.
+            return vec![];
+        }
         self.drain(false)
     }
 
-    /// Runs the initialisation on what it collected and starts the filter from it; on
-    /// failure, from the mean specific force (the failure is kept in `init_result`).
-    fn run_init(&mut self) {
-        let s = &self.start;
-        let r_bs = s.t_bs.rotation.to_rotation_matrix();
-        let guess = super::init::InitGuess {
-            camera: s.camera,
-            t_r: s.t_r_s,
-            r_cb: s.r_cb_given.then(|| r_bs.inverse()),
-            p_cb: -(r_bs.inverse() * s.t_bs.translation.vector),
-        };
-        let mut params = self.params.init;
-        params.imu_noise = self.params.filter.imu_noise;
-        let frames = std::mem::take(&mut self.init_frames);
+    /// Tries the initialisation on what it collected and starts the filter from it. A
+    /// failure before the `last` try waits for more data ([`OnlineParams::init_seconds`]);
+    /// at the last, the filter starts from the mean specific force (the failure is kept in
+    /// `init_result`).
+    fn run_init(&mut self, last: bool) {
+        let result = self.try_init();
+        self.init_tries += 1;
+        if let (Err(e), false) = (&result, last) {
+            self.init_last_error = Some(e.clone());
+            self.init_next_try_s += self.params.init_retry_seconds.max(0.1);
+            return;
+        }
         let imu = std::mem::take(&mut self.init_imu);
-        let result = super::init::initialize(&imu, &frames, &guess, &params);
+        self.init_frames.clear();
         if let Ok(init) = &result {
-            let mut guess_state = self.start_state(init.t_start_ns, init.r_gb);
-            guess_state.r_cb = init.r_cb;
-            guess_state.p_cb = guess.p_cb;
-            let (mut state, mut priors) = super::init::filter_start(
-                init,
-                &guess_state,
-                &self.params.priors,
-                &super::init::StartPriors::default(),
-            );
-            // The accelerometer bias of the alignment is not trusted (a planar target or a
-            // far scene leaves it unobservable: 2.8 m/s² on the EuRoC AprilGrid recording);
-            // and when its gravity is off 9.81 the alignment is not used at all.
-            state.biases.accel = self.start.biases.accel;
-            if (init.gravity_norm - crate::imu::GRAVITY).abs() > MAX_GRAVITY_ERROR {
-                let window: Vec<ImuSample> = imu
-                    .iter()
-                    .filter(|s| {
-                        s.t_ns <= init.t_start_ns
-                            && s.t_ns > init.t_start_ns - self.params.start_window_ns
-                    })
-                    .copied()
-                    .collect();
-                if !window.is_empty() {
-                    (state.nav.r_gb, _) = self.start_attitude(&window);
-                }
-                state.nav.v_gb = Vector3::zeros();
-                priors.theta = priors.theta.max(self.params.moving_theta_sigma);
-                priors.velocity = priors.velocity.max(self.params.moving_velocity_sigma);
-            }
-            let mut f = CalibFilter::new(self.params.filter, priors, state);
-            for s in imu
-                .iter()
-                .filter(|s| s.t_ns >= init.t_start_ns - 10_000_000)
-            {
-                f.push_imu(*s);
-            }
-            for s in self
-                .recent
-                .iter()
-                .filter(|s| s.t_ns > imu.last().map_or(i64::MIN, |l| l.t_ns))
-            {
-                f.push_imu(*s);
-            }
-            self.filter = Some(f);
-            self.start_kind = Some(StartKind::Initialised);
-            // Frames before the start cannot be updated.
-            let t_start = init.t_start_ns - (init.t_d_s * 1e9) as i64;
-            while self.queue.front().is_some_and(|p| p.t_mid_ns <= t_start) {
-                self.queue.pop_front();
-                self.before_start += 1;
-            }
+            self.start_from_init(init, &imu);
         }
         self.init_result = Some(result);
         if self.filter.is_none() {
@@ -408,6 +384,82 @@ impl OnlineCalibrator {
                 self.before_start += 1;
             }
         }
+    }
+
+    /// [`super::init::initialize`] on the collected frames and IMU.
+    fn try_init(&self) -> Result<super::init::InitResult, super::init::InitError> {
+        let s = &self.start;
+        let r_bs = s.t_bs.rotation.to_rotation_matrix();
+        let guess = super::init::InitGuess {
+            camera: s.camera,
+            t_r: s.t_r_s,
+            r_cb: s.r_cb_given.then(|| r_bs.inverse()),
+            p_cb: -(r_bs.inverse() * s.t_bs.translation.vector),
+        };
+        let mut params = self.params.init;
+        params.imu_noise = self.params.filter.imu_noise;
+        super::init::initialize(&self.init_imu, &self.init_frames, &guess, &params)
+    }
+
+    /// Starts the filter from the initialisation `init` over the samples `imu`.
+    fn start_from_init(&mut self, init: &super::init::InitResult, imu: &[ImuSample]) {
+        let r_bs = self.start.t_bs.rotation.to_rotation_matrix();
+        let mut guess_state = self.start_state(init.t_start_ns, init.r_gb);
+        guess_state.r_cb = init.r_cb;
+        guess_state.p_cb = -(r_bs.inverse() * self.start.t_bs.translation.vector);
+        let (mut state, mut priors) = super::init::filter_start(
+            init,
+            &guess_state,
+            &self.params.priors,
+            &super::init::StartPriors::default(),
+        );
+        // The accelerometer bias of the alignment is not trusted (a planar target or a far
+        // scene leaves it unobservable: 2.8 m/s² on the EuRoC AprilGrid recording); and when
+        // its gravity is off 9.81 the alignment is not used at all.
+        state.biases.accel = self.start.biases.accel;
+        if (init.gravity_norm - crate::imu::GRAVITY).abs() > MAX_GRAVITY_ERROR {
+            self.moving_start(init.t_start_ns, imu, &mut state, &mut priors);
+        }
+        let mut f = CalibFilter::new(self.params.filter, priors, state);
+        let last = imu.last().map_or(i64::MIN, |l| l.t_ns);
+        let from = init.t_start_ns - 10_000_000;
+        for s in imu.iter().filter(|s| s.t_ns >= from) {
+            f.push_imu(*s);
+        }
+        for s in self.recent.iter().filter(|s| s.t_ns > last) {
+            f.push_imu(*s);
+        }
+        self.filter = Some(f);
+        self.start_kind = Some(StartKind::Initialised);
+        // Frames before the start cannot be updated.
+        let t_start = init.t_start_ns - (init.t_d_s * 1e9) as i64;
+        while self.queue.front().is_some_and(|p| p.t_mid_ns <= t_start) {
+            self.queue.pop_front();
+            self.before_start += 1;
+        }
+    }
+
+    /// The moving start's attitude (from the samples of `imu` in the start window up to
+    /// `t_ns`), zero velocity and wide σ, in place of the alignment's.
+    fn moving_start(
+        &self,
+        t_ns: i64,
+        imu: &[ImuSample],
+        state: &mut CalibState,
+        priors: &mut CalibPriors,
+    ) {
+        let from = t_ns - self.params.start_window_ns;
+        let window: Vec<ImuSample> = imu
+            .iter()
+            .filter(|s| s.t_ns <= t_ns && s.t_ns > from)
+            .copied()
+            .collect();
+        if !window.is_empty() {
+            (state.nav.r_gb, _) = self.start_attitude(&window);
+        }
+        state.nav.v_gb = Vector3::zeros();
+        priors.theta = priors.theta.max(self.params.moving_theta_sigma);
+        priors.velocity = priors.velocity.max(self.params.moving_velocity_sigma);
     }
 
     /// IMU time a frame at `t_mid_ns` needs before its update (its last row at the current

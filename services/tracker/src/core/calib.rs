@@ -77,6 +77,14 @@ pub struct InitReport {
     pub r_cb_residual_deg: Option<f64>,
     /// Visual rotations found and used.
     pub rotations: [usize; 2],
+    /// `R_cb` was not observable (the camera turned about fewer than two axes) and was
+    /// snapped to the nearest axis permutation (`slam_core::calib::init::AxisSnap`): the
+    /// fit's own 1σ and its angle to the permutation, degrees.
+    pub r_cb_snapped_deg: Option<[f64; 2]>,
+    /// `R_cb` (camera from body), rows.
+    pub r_cb: Option<[[f64; 3]; 3]>,
+    /// Tries of the initialisation (it waits for more rotation after a failed one).
+    pub tries: u32,
 }
 
 /// The calibration mode's report (the status's details; `report.json` `clients[i].calib`).
@@ -287,7 +295,10 @@ impl CalibClient {
             features_failed: self.failed,
             update_ms: percentiles(&self.update_ms),
             last_refusal: self.last_refusal.clone(),
-            init: self.cal.init_result.as_ref().map(init_report),
+            init: self.cal.init_result.as_ref().map(|r| InitReport {
+                tries: self.cal.init_tries,
+                ..init_report(r)
+            }),
             not_converged: est
                 .as_ref()
                 .map_or_else(Vec::new, |e| self.not_converged(e)),
@@ -295,9 +306,14 @@ impl CalibClient {
         }
     }
 
+    /// The prior σ the filter started with (the configured ones before it started).
+    fn start_priors(&self) -> CalibPriors {
+        self.cal.filter().map_or(self.priors, |f| *f.priors())
+    }
+
     /// The estimate as report values.
     fn values(&self, e: &CalibEstimate) -> CalibValues {
-        let p = &self.priors;
+        let p = &self.start_priors();
         let v = |x: &ParamEstimate, prior: f64| Estimate {
             value: x.value,
             sigma: x.sigma,
@@ -343,7 +359,7 @@ impl CalibClient {
     /// The parameters (groups for the matrices) whose σ stayed above
     /// [`CONVERGED_FRACTION`] of the prior's.
     fn not_converged(&self, e: &CalibEstimate) -> Vec<String> {
-        let p = &self.priors;
+        let p = &self.start_priors();
         let ratio = |xs: &[ParamEstimate], prior: f64| {
             xs.iter().map(|x| x.sigma / prior).sum::<f64>() / xs.len() as f64
         };
@@ -371,6 +387,12 @@ impl CalibClient {
             .collect();
         if ratio(&e.t_s, p.t_s) > CONVERGED_FRACTION {
             out.push("T_s".into());
+        }
+        let init_failed = matches!(self.cal.init_result, Some(Err(_)));
+        if init_failed && !self.cal.start().r_cb_given {
+            // A new device whose initialisation failed: `R_cb` is the starting guess, held
+            // fixed, and nothing estimated with it is to be taken.
+            out.push("R_cb".into());
         }
         out
     }
@@ -414,6 +436,11 @@ fn init_report(
             r_cb_sigma_deg: Some(i.r_cb_sigma_rad.to_degrees()),
             r_cb_residual_deg: Some(i.r_cb_residual_rad.to_degrees()),
             rotations: [i.rotations_found, i.rotations_used],
+            r_cb_snapped_deg: i.r_cb_snap.map(|(s, a)| [s.to_degrees(), a.to_degrees()]),
+            r_cb: Some(std::array::from_fn(|r| {
+                std::array::from_fn(|c| i.r_cb[(r, c)])
+            })),
+            tries: 0,
         },
     }
 }

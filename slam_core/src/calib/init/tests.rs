@@ -368,3 +368,33 @@ fn diagnostic_alignment() {
         a.sigma_velocity
     );
 }
+
+/// The nearest of the 24 proper signed axis permutations, and the angle to it; and the
+/// snap of an `R_cb` fit that is not observable: taken within 20° of a permutation
+/// (reported with the fit's σ and the angle), refused beyond.
+#[test]
+fn an_unobservable_r_cb_is_snapped_to_the_nearest_axis_permutation() {
+    use super::{nearest_axis_permutation, snapped, AxisSnap};
+    use crate::imu::extrinsic_rotation::ExtrinsicRotation;
+    let perm = Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(
+        -1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, -1.0, 0.0,
+    ));
+    let off = Rotation3::from_axis_angle(&Vector3::y_axis(), 12f64.to_radians());
+    let (p, angle) = nearest_axis_permutation(&(perm * off));
+    assert!((p.matrix() - perm.matrix()).abs().max() < 1e-12);
+    assert!((angle.to_degrees() - 12.0).abs() < 1e-9);
+    let fit = |r_cb: Rotation3<f64>| ExtrinsicRotation {
+        r_bc: r_cb.inverse(),
+        gyro_bias: Vector3::zeros(),
+        sigma_rad: 30f64.to_radians(),
+        rms_rad: 0.0,
+        outliers: 0,
+    };
+    let strict = 1f64.to_radians();
+    let (r, snap) = snapped(&fit(perm * off), strict, Some(AxisSnap::default())).expect("snap");
+    assert_eq!(r, p);
+    assert!((snap.expect("snapped").1 - angle).abs() < 1e-12);
+    let far = Rotation3::from_axis_angle(&Vector3::y_axis(), 35f64.to_radians());
+    assert!(snapped(&fit(perm * far), strict, Some(AxisSnap::default())).is_err());
+    assert!(snapped(&fit(perm * off), strict, None).is_err());
+}
