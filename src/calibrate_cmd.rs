@@ -365,6 +365,14 @@ fn print_table(
         rep.features_failed,
         rep.updates_refused
     );
+    if !rep.implausible.is_empty() {
+        println!(
+            "implausible (moved more than {} prior σ from the start: the start, the prior or \
+             the estimate is wrong, whatever its σ): {}",
+            tracker::core::IMPLAUSIBLE_PRIOR_SIGMAS,
+            rep.implausible.join(", ")
+        );
+    }
     if !rep.not_converged.is_empty() {
         println!(
             "not converged (σ did not shrink below half the prior's: this run's motion does not \

@@ -147,6 +147,8 @@ fn calibrate_recovers_a_wrong_start_on_the_calib_scene() {
     let cal = &c["calib"];
     assert!(cal["frames_updated"].as_u64().unwrap_or(0) > 500, "{cal}");
     assert_eq!(cal["frames_refused"], 0, "{cal}");
+    // Every start lies within 2 prior σ of the truth: nothing is implausible.
+    assert_eq!(cal["implausible"], serde_json::json!([]), "{cal}");
     assert_eq!(
         c["keyframes_sent"], 0,
         "no keyframe leaves a calibrating client"
@@ -275,6 +277,9 @@ fn calibrate_the_euroc_apriltag_recording() {
     assert!(p_err < 0.02, "p_cb {p_err} m off");
     let c = &report(&out)["clients"][0]["calib"];
     assert!(c["frames_updated"].as_u64().unwrap_or(0) > 1350, "{c}");
+    // The zero-distortion start is 5.7 prior σ (0.05) from this lens's k1 = −0.283:
+    // flagged, and nothing else.
+    assert_eq!(c["implausible"], serde_json::json!(["k1"]), "{c}");
     // The t_d basin: started ±20 ms off, the init (forced) and the filter settle within
     // 1 ms of the zero start's value.
     for shift in [-0.02, 0.02] {

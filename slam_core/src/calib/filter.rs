@@ -77,6 +77,7 @@ pub struct FrameReport {
 pub struct CalibFilter {
     pub(super) params: CalibParams,
     priors: CalibPriors,
+    start: CalibState,
     pub(super) state: CalibState,
     fej: FirstEstimates,
     pub(super) p: DMatrix<f64>,
@@ -94,6 +95,7 @@ impl CalibFilter {
             params,
             priors,
             fej: FirstEstimates::of(&initial.nav),
+            start: initial,
             state: initial,
             p: priors.covariance(),
             clones: VecDeque::new(),
@@ -116,6 +118,12 @@ impl CalibFilter {
     /// configured ones: whether a σ shrank is judged against these).
     pub fn priors(&self) -> &CalibPriors {
         &self.priors
+    }
+
+    /// The state the filter started from, and its prior as an estimate (value, 1σ).
+    pub fn start(&self) -> (&CalibState, CalibEstimate) {
+        let p0 = self.priors.covariance();
+        (&self.start, CalibEstimate::from_state(&self.start, &p0))
     }
 
     /// The current nominal state.

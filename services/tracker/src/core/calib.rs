@@ -131,6 +131,11 @@ pub struct CalibReport {
     /// Parameters whose σ did not shrink below half their prior σ: not determined by this
     /// run's motion, so not to be taken as estimates.
     pub not_converged: Vec<String>,
+    /// Entries that moved more than [`IMPLAUSIBLE_PRIOR_SIGMAS`] prior σ from where the
+    /// filter started (`T_a.yy`, `fx`, ...): a small σ does not make them right; the start,
+    /// the prior or the estimate is wrong (GoPro: T_a.yy 1.25 ± 0.03 from 1 ± 0.05).
+    #[serde(default)]
+    pub implausible: Vec<String>,
 }
 
 /// The calibration client of a tracker in `calib` mode.
@@ -156,6 +161,23 @@ const NEW_DEVICE_P_CB_SIGMA_M: f64 = 0.1;
 
 /// Update times kept for the percentiles.
 const MAX_TIMES: usize = 200_000;
+
+/// An estimate this many prior σ from its start is implausible.
+pub const IMPLAUSIBLE_PRIOR_SIGMAS: f64 = 4.0;
+
+/// The names of the entries more than [`IMPLAUSIBLE_PRIOR_SIGMAS`] start σ from their start.
+fn moved_far<S: AsRef<str>>(
+    names: &[S],
+    xs: &[ParamEstimate],
+    starts: &[ParamEstimate],
+) -> Vec<String> {
+    names
+        .iter()
+        .zip(xs.iter().zip(starts))
+        .filter(|(_, (x, x0))| (x.value - x0.value).abs() > IMPLAUSIBLE_PRIOR_SIGMAS * x0.sigma)
+        .map(|(n, _)| n.as_ref().to_string())
+        .collect()
+}
 
 /// σ above this fraction of the prior σ: not converged.
 const CONVERGED_FRACTION: f64 = 0.5;
@@ -299,6 +321,7 @@ impl CalibClient {
                 tries: self.cal.init_tries,
                 ..init_report(r)
             }),
+            implausible: self.implausible(),
             not_converged: est
                 .as_ref()
                 .map_or_else(Vec::new, |e| self.not_converged(e)),
@@ -358,6 +381,25 @@ impl CalibClient {
 
     /// The parameters (groups for the matrices) whose σ stayed above
     /// [`CONVERGED_FRACTION`] of the prior's.
+    fn implausible(&self) -> Vec<String> {
+        let Some(f) = self.cal.filter() else {
+            return Vec::new();
+        };
+        let (e, (_, s0)) = (f.estimate(), f.start());
+        const M: [&str; 9] = ["xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"];
+        let mat = |g: &str| M.map(|m| format!("{g}.{m}"));
+        [
+            moved_far(&["fx", "fy", "cx", "cy"], &e.pinhole, &s0.pinhole),
+            moved_far(&["k1", "k2", "p1", "p2"], &e.distortion, &s0.distortion),
+            moved_far(&["t_d", "t_r"], &[e.t_d, e.t_r], &[s0.t_d, s0.t_r]),
+            moved_far(&["p_cb.x", "p_cb.y", "p_cb.z"], &e.p_cb, &s0.p_cb),
+            moved_far(&mat("T_g"), &e.t_g, &s0.t_g),
+            moved_far(&mat("T_s"), &e.t_s, &s0.t_s),
+            moved_far(&mat("T_a"), &e.t_a, &s0.t_a),
+        ]
+        .concat()
+    }
+
     fn not_converged(&self, e: &CalibEstimate) -> Vec<String> {
         let p = &self.start_priors();
         let ratio = |xs: &[ParamEstimate], prior: f64| {

@@ -16,7 +16,10 @@ use shoal_runtime::Status;
 use slam_core::ids::{ClientKeyframeId, SessionId};
 use slam_core::vo::{VoDiagnostic, VoParams, VoTracker};
 
-pub use calib::{CalibClient, CalibReport, CalibValues, Estimate, InitReport, LOG_NAMES};
+pub use calib::{
+    CalibClient, CalibReport, CalibValues, Estimate, InitReport, IMPLAUSIBLE_PRIOR_SIGMAS,
+    LOG_NAMES,
+};
 pub use client::{Client, ClientOutput};
 
 use crate::imu::ImuInput;
