@@ -155,6 +155,35 @@ mod tests {
     use super::*;
 
     #[test]
+    fn prior_metric_is_the_mahalanobis_norm_also_on_a_singular_prior() {
+        let mut rng = crate::calib::sim::Rng::new(5);
+        let a = DMatrix::from_fn(6, 6, |_, _| rng.normal());
+        let scale = DVector::from_vec(vec![1e-4, 1.0, 25.0, 1e-6, 0.01, 4.0]);
+        let p =
+            DMatrix::from_diagonal(&scale) * (&a * a.transpose()) * DMatrix::from_diagonal(&scale);
+        let e = DVector::from_fn(6, |_, _| rng.normal()).component_mul(&scale);
+        let exact = e.dot(&p.clone().cholesky().unwrap().solve(&e));
+        let got = PriorMetric::new(&p).unwrap().cost(&e);
+        assert!((got - exact).abs() < 1e-6 * exact, "{got} vs {exact}");
+        // A duplicated state (the newest clone): P singular, e in its range (equal rows).
+        let mut big = DMatrix::zeros(7, 7);
+        big.view_mut((0, 0), (6, 6)).copy_from(&p);
+        big.view_mut((6, 0), (1, 6)).copy_from(&p.row(0));
+        big.view_mut((0, 6), (6, 1)).copy_from(&p.column(0));
+        big[(6, 6)] = p[(0, 0)];
+        let y = &big * DVector::from_fn(7, |_, _| rng.normal());
+        let z = y.rows(0, 6).into_owned();
+        let exact = z.dot(&p.clone().cholesky().unwrap().solve(&z));
+        let got = PriorMetric::new(&big).unwrap().cost(&y);
+        assert!((got - exact).abs() < 1e-6 * exact, "{got} vs {exact}");
+        // A correction off the range is penalised hard, never taken as free.
+        let mut off = y.clone();
+        off[6] += 1e-3 * p[(0, 0)].sqrt();
+        let jump = PriorMetric::new(&big).unwrap().cost(&off) - got;
+        assert!(jump > 1e3, "off the range costs only {jump} more");
+    }
+
+    #[test]
     fn null_space_removes_the_feature_and_keeps_the_noise_white() {
         let mut rng = crate::calib::sim::Rng::new(3);
         let h_f = DMatrix::from_fn(8, 3, |_, _| rng.normal());
