@@ -19,12 +19,6 @@ use std::collections::{BTreeMap, VecDeque};
 
 use nalgebra::{DMatrix, DVector, Vector2};
 
-/// One feature's observations: (clone id, pixel).
-type Track = Vec<(u64, Vector2<f64>)>;
-
-/// Most halvings of a large iterated-EKF step before the update is refused.
-pub const LINE_SEARCH_HALVINGS: usize = 3;
-
 use super::integrate::segments;
 use super::params::{CalibEstimate, CalibParams, CalibPriors};
 use super::propagate::{propagate_step, FirstEstimates, Transition};
@@ -34,6 +28,12 @@ use super::update::{
     PriorMetric, Projected,
 };
 use super::{ImuSample, Observation, TrackId, CLONE_DIM, CORE_DIM, IDX_TD};
+
+/// One feature's observations: (clone id, pixel).
+type Track = Vec<(u64, Vector2<f64>)>;
+
+/// Most halvings of a large iterated-EKF step before the update is refused.
+pub const LINE_SEARCH_HALVINGS: usize = 3;
 
 /// Errors of [`CalibFilter`].
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -82,7 +82,7 @@ pub struct CalibFilter {
     fej: FirstEstimates,
     pub(super) p: DMatrix<f64>,
     pub(super) clones: VecDeque<CloneState>,
-    tracks: BTreeMap<TrackId, Vec<(u64, Vector2<f64>)>>,
+    tracks: BTreeMap<TrackId, Track>,
     pub(super) imu: Vec<ImuSample>,
     next_clone: u64,
 }
@@ -233,7 +233,7 @@ impl CalibFilter {
     /// Takes the tracks to use now out of the track table: ended ones (not seen by clone
     /// `current`) and, when the window is full, those seen by the oldest clone. Longest
     /// first, at most [`CalibParams::max_features_per_update`].
-    fn select_features(&mut self, current: u64) -> Vec<Vec<(u64, Vector2<f64>)>> {
+    fn select_features(&mut self, current: u64) -> Vec<Track> {
         let oldest = (self.clones.len() > self.params.max_clones)
             .then(|| self.clones.front().map(|c| c.id))
             .flatten();
@@ -246,7 +246,7 @@ impl CalibFilter {
             })
             .map(|(t, _)| *t)
             .collect();
-        let mut out: Vec<Vec<(u64, Vector2<f64>)>> = take
+        let mut out: Vec<Track> = take
             .iter()
             .filter_map(|t| self.tracks.remove(t))
             .filter(|o| o.len() >= self.params.min_track_len.max(2))
@@ -268,7 +268,7 @@ impl CalibFilter {
     /// lower it, the linearisation is not trusted and the update is refused (state and `P`
     /// untouched, [`FrameReport::refused`]). The covariance takes the gain of the last
     /// linearisation (Joseph form).
-    fn update(&mut self, features: &[Vec<(u64, Vector2<f64>)>]) -> FrameReport {
+    fn update(&mut self, features: &[Track]) -> FrameReport {
         let sigma2 = self.params.pixel_sigma.powi(2);
         let (mut lin, kept, mut report) = self.gate(features, sigma2);
         if lin.is_empty() {
@@ -321,11 +321,7 @@ impl CalibFilter {
 
     /// The χ² gate (at the prior): the projected rows of the features that pass, the
     /// features themselves, and the counts.
-    fn gate(
-        &self,
-        features: &[Vec<(u64, Vector2<f64>)>],
-        sigma2: f64,
-    ) -> (Vec<Projected>, Vec<Track>, FrameReport) {
+    fn gate(&self, features: &[Track], sigma2: f64) -> (Vec<Projected>, Vec<Track>, FrameReport) {
         let mut report = FrameReport::default();
         let (mut parts, mut kept) = (Vec::new(), Vec::new());
         for f in features {
@@ -353,7 +349,7 @@ impl CalibFilter {
         &mut self,
         x0: &CalibState,
         clones0: &VecDeque<CloneState>,
-        kept: &[Vec<(u64, Vector2<f64>)>],
+        kept: &[Track],
         metric: &PriorMetric,
         at: &DVector<f64>,
         step: &DVector<f64>,
