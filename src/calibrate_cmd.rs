@@ -353,8 +353,9 @@ fn print_table(
     let [p50, p99, max] = rep.update_ms;
     println!(
         "{} frames updated, {} refused, {} before the start ({}); {:.0} features per frame, \
-         {:.0} used ({} gated, {} not triangulated in all), {} updates not applied (no step \
-         lowered the cost); update p50 {p50:.1} ms, p99 {p99:.1} ms, max {max:.1} ms",
+         {:.0} used ({} gated, {} not triangulated, {} used with the depth prior in all), {} \
+         updates not applied (no step lowered the cost); update p50 {p50:.1} ms, p99 \
+         {p99:.1} ms, max {max:.1} ms",
         rep.frames_updated,
         rep.frames_refused,
         rep.frames_before_start,
@@ -363,6 +364,7 @@ fn print_table(
         rep.features_used_per_frame,
         rep.features_gated,
         rep.features_failed,
+        rep.features_low_parallax,
         rep.updates_refused
     );
     if !rep.implausible.is_empty() {

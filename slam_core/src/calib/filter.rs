@@ -65,6 +65,9 @@ pub struct FrameReport {
     pub gated: usize,
     /// Features that failed triangulation or prediction.
     pub failed: usize,
+    /// Of the used features, those fitted with the depth prior (too little parallax;
+    /// [`CalibParams::depth_prior`]).
+    pub low_parallax: usize,
     /// Rows of the update after compression.
     pub rows: usize,
     /// The iterated update could not lower its cost from the prior: nothing was applied
@@ -325,7 +328,7 @@ impl CalibFilter {
         let mut report = FrameReport::default();
         let (mut parts, mut kept) = (Vec::new(), Vec::new());
         for f in features {
-            let Some(proj) = self.feature_rows(f) else {
+            let Some((proj, low_parallax)) = self.feature_rows(f) else {
                 report.failed += 1;
                 continue;
             };
@@ -333,6 +336,7 @@ impl CalibFilter {
                 Some(d) if d <= chi2_95(proj.r.len()) => {
                     parts.push(proj);
                     kept.push(f.clone());
+                    report.low_parallax += usize::from(low_parallax);
                 }
                 _ => report.gated += 1,
             }
@@ -360,7 +364,10 @@ impl CalibFilter {
         for _ in 0..=LINE_SEARCH_HALVINGS {
             let next = at + step * alpha;
             self.set_iterate(x0, clones0, &next);
-            let rows: Option<Vec<Projected>> = kept.iter().map(|f| self.feature_rows(f)).collect();
+            let rows: Option<Vec<Projected>> = kept
+                .iter()
+                .map(|f| self.feature_rows(f).map(|r| r.0))
+                .collect();
             if let Some(rows) = rows {
                 let c = metric.cost(&next) + residual_cost(&rows, sigma2);
                 if c < cost {

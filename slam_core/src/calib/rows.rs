@@ -47,8 +47,9 @@ impl CalibFilter {
         }
     }
 
-    /// One feature's projected rows, or `None` when it cannot be used.
-    pub(super) fn feature_rows(&self, track: &[(u64, Vector2<f64>)]) -> Option<Projected> {
+    /// One feature's projected rows and whether it was fitted with the depth prior
+    /// ([`super::triangulate::Triangulated::low_parallax`]), or `None` when it cannot be used.
+    pub(super) fn feature_rows(&self, track: &[(u64, Vector2<f64>)]) -> Option<(Projected, bool)> {
         let first = self.clones.front()?.id;
         let idx: Vec<usize> = track.iter().map(|o| (o.0 - first) as usize).collect();
         let a = *idx.iter().max()?;
@@ -69,6 +70,7 @@ impl CalibFilter {
             &anchor_cam,
             &views,
             self.params.min_parallax,
+            self.params.depth_prior.as_ref(),
         )?;
         if tri.rms > self.params.max_triangulation_rms {
             return None;
@@ -102,6 +104,6 @@ impl CalibFilter {
             let mut hc = h_x.view_mut((at, 0), (2, CORE_DIM));
             hc += j.h_omega * jw;
         }
-        project_null_space(h_x, h_f, r)
+        Some((project_null_space(h_x, h_f, r)?, tri.low_parallax))
     }
 }

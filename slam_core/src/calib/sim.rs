@@ -164,6 +164,24 @@ impl Motion {
         }
     }
 
+    /// A phone held still in the hand (the real 0.8 s clip of `data/phone_honorv10`): tremor
+    /// and drift of 0.02-0.04 rad at 0.4-0.9 Hz (peaks ~0.05-0.2 rad/s) and 3-6 mm of
+    /// translation: almost no parallax on a scene 2-4 m away.
+    pub fn handheld() -> Self {
+        Self {
+            rot_offset: Vector3::new(0.2, -0.3, 0.1),
+            rot_amp: Vector3::new(0.03, 0.04, 0.02),
+            rot_freq: Vector3::new(0.6, 0.4, 0.9),
+            rot_phase: Vector3::new(0.0, 1.0, 2.0),
+            pos_amp: Vector3::new(0.005, 0.006, 0.003),
+            pos_freq: Vector3::new(0.7, 0.5, 0.9),
+            pos_phase: Vector3::new(0.5, 1.5, 2.5),
+            heading_rate: 0.0,
+            walk_speed: 0.0,
+            base: Rotation3::identity(),
+        }
+    }
+
     /// The true body state at `t` (s).
     pub fn at(&self, t: f64) -> BodyTruth {
         let (mut phi, mut phi_d) = (self.rot_offset, Vector3::zeros());

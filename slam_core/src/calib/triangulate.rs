@@ -26,6 +26,23 @@ pub struct Triangulated {
     pub f: InvDepth,
     /// Reprojection RMS over the observations, px.
     pub rms: f64,
+    /// Fitted with the [`DepthPrior`]: the views did not have the parallax to fix its depth.
+    pub low_parallax: bool,
+}
+
+/// A prior `ρ ~ N(rho, sigma²)` (1/m) on the inverse depth of a feature whose views lack
+/// the parallax to triangulate it (a hand-held phone over 0.4 s, a distant scene). The prior
+/// only keeps the Gauss-Newton fit of `(α, β, ρ)` well posed: the rows are projected on the
+/// left null space of all three columns of `H_f` like any feature's, so the depth itself is
+/// still treated as unknown, and what is left constrains the rotations, the camera and the
+/// timing (`t_r` through the rotation during readout). The prior counts as one residual of
+/// 1 px.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthPrior {
+    /// Prior inverse depth, 1/m.
+    pub rho: f64,
+    /// Its 1σ, 1/m.
+    pub sigma: f64,
 }
 
 /// Gauss-Newton iterations at most.
@@ -36,11 +53,33 @@ const MIN_DEPTH: f64 = 0.05;
 const MIN_PARALLAX: f64 = 1e-5;
 
 /// Triangulates a feature seen at `obs` (camera pose at the row time, pixel), anchored in
-/// the camera `anchor`. `None` without parallax (largest baseline over the anchor depth
-/// below `min_parallax`, rad), behind a camera or when Gauss-Newton fails. Short-baseline
-/// features are refused because their depth absorbs model errors (wrong intrinsics or
-/// distortion at the start), and the linearised null-space rows are then inconsistent.
+/// the camera `anchor`. Without parallax (largest baseline over the anchor depth below
+/// `min_parallax`, rad), behind a camera or when Gauss-Newton fails: `None`, or, given a
+/// `prior`, the fit with that depth prior ([`Triangulated::low_parallax`]). Short-baseline
+/// features are not triangulated freely because their depth absorbs model errors (wrong
+/// intrinsics or distortion at the start), and the linearised null-space rows are then
+/// inconsistent.
 pub fn triangulate(
+    cam: &PinholeRadtan,
+    anchor: &CameraPose,
+    obs: &[(CameraPose, Vector2<f64>)],
+    min_parallax: f64,
+    prior: Option<&DepthPrior>,
+) -> Option<Triangulated> {
+    free_fit(cam, anchor, obs, min_parallax).or_else(|| {
+        let prior = prior?;
+        let start = mean_bearing(cam, anchor, obs, prior.rho)?;
+        let (f, cost) = refine(cam, anchor, obs, start, Some(prior))?;
+        Some(Triangulated {
+            f,
+            rms: (cost / obs.len() as f64).sqrt(),
+            low_parallax: true,
+        })
+    })
+}
+
+/// The fit without a depth prior, from the rays' mid-point; `None` without parallax.
+fn free_fit(
     cam: &PinholeRadtan,
     anchor: &CameraPose,
     obs: &[(CameraPose, Vector2<f64>)],
@@ -51,14 +90,59 @@ pub fn triangulate(
     if p_a.z < MIN_DEPTH {
         return None;
     }
-    let mut f = InvDepth {
+    let start = InvDepth {
         alpha: p_a.x / p_a.z,
         beta: p_a.y / p_a.z,
         rho: 1.0 / p_a.z,
     };
-    let mut cost = cost_ok(cam, anchor, obs, &f)?;
+    let (f, cost) = refine(cam, anchor, obs, start, None)?;
+    if baseline(obs) * f.rho < min_parallax {
+        return None;
+    }
+    Some(Triangulated {
+        f,
+        rms: (cost / obs.len() as f64).sqrt(),
+        low_parallax: false,
+    })
+}
+
+/// The bearings' mean direction in the anchor camera, at inverse depth `rho`.
+fn mean_bearing(
+    cam: &PinholeRadtan,
+    anchor: &CameraPose,
+    obs: &[(CameraPose, Vector2<f64>)],
+    rho: f64,
+) -> Option<InvDepth> {
+    let d: Vector3<f64> = obs
+        .iter()
+        .map(|(pose, uv)| (anchor.r_gc.inverse() * pose.r_gc * cam.unproject(uv)).normalize())
+        .sum();
+    (d.z > 0.0).then(|| InvDepth {
+        alpha: d.x / d.z,
+        beta: d.y / d.z,
+        rho,
+    })
+}
+
+/// Gauss-Newton on `(α, β, ρ)` from `f`, with the depth prior if any: the fit and its sum
+/// of squared pixel errors (the prior's term left out). `None` when the start is behind a
+/// camera or the fit leaves `ρ ≤ 0`.
+fn refine(
+    cam: &PinholeRadtan,
+    anchor: &CameraPose,
+    obs: &[(CameraPose, Vector2<f64>)],
+    mut f: InvDepth,
+    prior: Option<&DepthPrior>,
+) -> Option<(InvDepth, f64)> {
+    let prior_cost = |f: &InvDepth| prior.map_or(0.0, |p| ((f.rho - p.rho) / p.sigma).powi(2));
+    let mut cost = cost_ok(cam, anchor, obs, &f)? + prior_cost(&f);
     for _ in 0..MAX_ITERS {
-        let (jtj, jtr) = normal_equations(cam, anchor, obs, &f)?;
+        let (mut jtj, mut jtr) = normal_equations(cam, anchor, obs, &f)?;
+        if let Some(p) = prior {
+            let w = p.sigma.powi(-2);
+            jtj[(2, 2)] += w;
+            jtr.z += w * (p.rho - f.rho);
+        }
         let step = (jtj + Matrix3::identity() * 1e-9 * jtj.trace())
             .lu()
             .solve(&jtr)?;
@@ -67,7 +151,7 @@ pub fn triangulate(
             beta: f.beta + step.y,
             rho: f.rho + step.z,
         };
-        match cost_ok(cam, anchor, obs, &cand) {
+        match cost_ok(cam, anchor, obs, &cand).map(|c| c + prior_cost(&cand)) {
             Some(c) if c <= cost => {
                 let done = cost - c < 1e-10 * cost.max(1e-12) || step.norm() < 1e-12;
                 (f, cost) = (cand, c);
@@ -78,13 +162,7 @@ pub fn triangulate(
             _ => break,
         }
     }
-    if f.rho <= 0.0 || baseline(obs) * f.rho < min_parallax {
-        return None;
-    }
-    Some(Triangulated {
-        f,
-        rms: (cost / obs.len() as f64).sqrt(),
-    })
+    (f.rho > 0.0).then(|| (f, cost - prior_cost(&f)))
 }
 
 /// Largest distance between two of the camera centres, m.
@@ -187,7 +265,7 @@ mod tests {
             .iter()
             .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
             .collect();
-        let t = triangulate(&cam, &poses[2], &obs, 0.01).expect("triangulates");
+        let t = triangulate(&cam, &poses[2], &obs, 0.01, None).expect("triangulates");
         let back = in_camera(
             &poses[2],
             &CameraPose {
@@ -200,8 +278,46 @@ mod tests {
         assert!(t.rms < 1e-8);
         let same = vec![obs[0]; 3];
         assert!(
-            triangulate(&cam, &poses[0], &same, 0.0).is_none(),
+            triangulate(&cam, &poses[0], &same, 0.0, None).is_none(),
             "no parallax"
         );
+    }
+
+    /// Views from one centre (pure rotation): no free fit, but the depth prior gives the
+    /// bearing exactly, at the prior depth, flagged as low parallax.
+    #[test]
+    fn a_pure_rotation_is_fitted_with_the_depth_prior() {
+        let cam = PinholeRadtan::from_coefficients(
+            640,
+            480,
+            [450.0, 452.0, 320.0, 240.0],
+            [-0.25, 0.07, 1e-3, -5e-4, 0.0],
+        );
+        let x = Vector3::new(0.3, -0.4, 3.0);
+        let poses: Vec<CameraPose> = (0..4)
+            .map(|k| CameraPose {
+                r_gc: Rotation3::from_scaled_axis(Vector3::new(0.01 * k as f64, -0.02, 0.005)),
+                p_gc: Vector3::zeros(),
+            })
+            .collect();
+        let obs: Vec<(CameraPose, Vector2<f64>)> = poses
+            .iter()
+            .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
+            .collect();
+        assert!(triangulate(&cam, &poses[3], &obs, 0.02, None).is_none());
+        let prior = DepthPrior {
+            rho: 0.5,
+            sigma: 0.5,
+        };
+        let t = triangulate(&cam, &poses[3], &obs, 0.02, Some(&prior)).expect("fitted");
+        assert!(t.low_parallax && t.rms < 1e-6, "rms {}", t.rms);
+        assert!(
+            (t.f.rho - 0.5).abs() < 1e-9,
+            "ρ {} kept at the prior",
+            t.f.rho
+        );
+        let bearing = poses[3].r_gc.inverse() * x;
+        assert!((t.f.alpha - bearing.x / bearing.z).abs() < 1e-9);
+        assert!((t.f.beta - bearing.y / bearing.z).abs() < 1e-9);
     }
 }

@@ -15,9 +15,10 @@ pub struct Projected {
     pub r: DVector<f64>,
 }
 
-/// Multiplies `(H_x, r)` by `Aᵀ`, `A` the left null space of `H_f` (m x 3, full column
-/// rank): the QR of `H_f` gives `Qᵀ`, whose last `m - 3` rows are `Aᵀ`. `None` when `H_f`
-/// is rank-deficient or `m <= 3`.
+/// Multiplies `(H_x, r)` by `Aᵀ`, `A` the left null space of `H_f` (m x 3): the QR of `H_f`
+/// gives `Qᵀ`, whose last `m - 3` rows are `Aᵀ`. When only the depth column (the last)
+/// vanishes, as for views from one centre (pure rotation), it is left out and `m - 2` rows
+/// are kept. `None` when the bearing columns are rank-deficient or `m <= 3`.
 pub fn project_null_space(
     h_x: DMatrix<f64>,
     h_f: DMatrix<f64>,
@@ -30,15 +31,16 @@ pub fn project_null_space(
     let qr = h_f.qr();
     let diag = qr.r().diagonal();
     let scale = diag.amax();
-    if scale <= 0.0 || diag.iter().any(|d| d.abs() < 1e-9 * scale) {
+    if scale <= 0.0 || diag.rows(0, 2).iter().any(|d| d.abs() < 1e-9 * scale) {
         return None;
     }
+    let k = if diag[2].abs() < 1e-9 * scale { 2 } else { 3 };
     let (mut h, mut r) = (h_x, r);
     qr.q_tr_mul(&mut h);
     qr.q_tr_mul(&mut r);
     Some(Projected {
-        h: h.rows(3, m - 3).into_owned(),
-        r: r.rows(3, m - 3).into_owned(),
+        h: h.rows(k, m - k).into_owned(),
+        r: r.rows(k, m - k).into_owned(),
     })
 }
 
@@ -201,6 +203,22 @@ mod tests {
         assert!((&a_t * a_t.transpose() - DMatrix::identity(5, 5)).norm() < 1e-12);
         assert!((&a_t * &h_f).norm() < 1e-12);
         assert!(project_null_space(h_x, DMatrix::zeros(8, 3), DVector::zeros(8)).is_none());
+    }
+
+    /// A depth column of zeros (views from one centre) is left out: `m - 2` rows; a
+    /// vanishing bearing column is refused.
+    #[test]
+    fn a_vanishing_depth_column_keeps_m_minus_two_rows() {
+        let m = 8;
+        let mut h_f = DMatrix::from_fn(m, 3, |i, j| ((i * 3 + j) as f64 * 0.7).sin());
+        h_f.column_mut(2).fill(0.0);
+        let h_x = DMatrix::from_fn(m, 5, |i, j| ((i + 2 * j) as f64 * 0.3).cos());
+        let r = DVector::from_fn(m, |i, _| i as f64 * 0.1);
+        let p = project_null_space(h_x, h_f.clone(), r).expect("bearing columns full rank");
+        assert_eq!(p.r.len(), m - 2);
+        h_f.column_mut(1).fill(0.0);
+        let none = project_null_space(DMatrix::zeros(m, 5), h_f, DVector::zeros(m));
+        assert!(none.is_none(), "a vanishing bearing column is refused");
     }
 
     #[test]

@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 use shm_schema::{FeatureRecord, FrameHeader, PixelFormat, PoseSource, TrackState};
 use shoal_runtime::ErrorKind;
 use slam_core::calib::online::{FrameResult, OnlineCalibrator, OnlineParams, OnlineStart};
-use slam_core::calib::{CalibEstimate, CalibParams, CalibPriors, Observation, ParamEstimate};
+use slam_core::calib::{
+    CalibEstimate, CalibParams, CalibPriors, DepthPrior, Observation, ParamEstimate,
+};
 use slam_core::features::GrayImage;
 use slam_core::ids::TrackId;
 
@@ -116,6 +118,10 @@ pub struct CalibReport {
     /// See `features_gated`.
     #[serde(default)]
     pub features_failed: u64,
+    /// Of the used features, those with too little parallax, fitted with the depth prior
+    /// (`tracker.calib.low_parallax_depth_m`), in total.
+    #[serde(default)]
+    pub features_low_parallax: u64,
     /// Updates whose iterated step could not lower the cost from the prior, so nothing was
     /// applied (the linearisation was not trusted; `FrameReport::refused`).
     #[serde(default)]
@@ -151,6 +157,7 @@ pub struct CalibClient {
     updates_refused: u64,
     gated: u64,
     failed: u64,
+    low_parallax: u64,
     update_ms: Vec<f32>,
     last_refusal: Option<String>,
     log_header_sent: bool,
@@ -219,6 +226,10 @@ impl CalibClient {
                 imu_noise: noise,
                 pixel_sigma: cfg.pixel_sigma,
                 min_parallax: cfg.min_parallax_rad,
+                depth_prior: cfg.low_parallax_depth_m.map(|d| DepthPrior {
+                    rho: 1.0 / d,
+                    sigma: 1.0 / d,
+                }),
                 max_triangulation_rms: if h.pixel_format == PixelFormat::Features as u32 {
                     cfg.max_triangulation_rms_given_px
                 } else {
@@ -244,6 +255,7 @@ impl CalibClient {
             updates_refused: 0,
             gated: 0,
             failed: 0,
+            low_parallax: 0,
             update_ms: Vec::new(),
             last_refusal: None,
             log_header_sent: false,
@@ -291,6 +303,7 @@ impl CalibClient {
             self.updates_refused += u64::from(rep.refused);
             self.gated += rep.gated as u64;
             self.failed += rep.failed as u64;
+            self.low_parallax += rep.low_parallax as u64;
             if self.update_ms.len() < MAX_TIMES {
                 self.update_ms.push(r.update_ms);
             }
@@ -315,6 +328,7 @@ impl CalibClient {
             updates_refused: self.updates_refused,
             features_gated: self.gated,
             features_failed: self.failed,
+            features_low_parallax: self.low_parallax,
             update_ms: percentiles(&self.update_ms),
             last_refusal: self.last_refusal.clone(),
             init: self.cal.init_result.as_ref().map(|r| InitReport {
