@@ -18,12 +18,14 @@ scratch, its lsmr trust-region steps had not converged after 100-200 evaluations
 1-sigma from (J^T W J)^-1 * s^2, s^2 = 2*cost/(m-n).
 
 Runs:
-  1. target-based: known target points, poses + 8 intrinsics free;
+  1. target-based: known target points, poses + 8 intrinsics free (also from the poor
+     start, and re-fit with observations whose 2-D error > 1 px removed);
   2. self-calibration BA: 144 corner points free (init = target coords, or perturbed by
      1 cm), poses free, 8 intrinsics free; gauge = first pose fixed + distance between
      two far-apart corners held by a stiff prior;
   3. the same BA from the poor start [468, 447, 377, 240], zero distortion;
-  4. focal profile: fx, fy both shifted by d = -4..+4 px from the BA optimum, rest free;
+  4. focal profile: fx, fy both shifted by d = -7..+4 px from the BA optimum, rest free
+     (self-cal BA, and the target-based fit at the same fx, fy for contrast);
   5. intrinsics fixed at config.yaml / at our filter's values: poses (+ points) only.
   Extras: all frames, and first / second half of the recording.
 
@@ -295,10 +297,6 @@ class BA:
         blocks[Hbb.row[on] // 6, Hbb.row[on] % 6, Hbb.col[on] % 6] = Hbb.data[on]
         return Haa, Hab, blocks
 
-    def _bdiag(self, blocks):
-        nb = len(blocks)
-        return sp.bsr_matrix((blocks, np.arange(nb), np.arange(nb + 1)), shape=(6 * nb, 6 * nb)).tocsr()
-
     def _schur(self, Haa, Hab, blocks):
         """Return S = Haa - Hab Hbb^-1 Hba and a function applying Hbb^-1 (blocks 6x6)."""
         inv = np.linalg.inv(blocks)
@@ -487,7 +485,7 @@ def report(label, ba, ref, tgt=None, sigma=True):
         g = point_geometry(ba.st[1], tgt, ba.seen)
         log(f"    pts : vs target after similarity: rms {g['rms_mm']:.2f} mm, max {g['max_mm']:.2f} mm;"
             f" off best plane rms {g['plane_rms_mm']:.2f} max {g['plane_max_mm']:.2f} mm;"
-            f" dome (centre-corner) {g['dome_mm']:+.2f} mm; in-plane scale x {g['sx']:.4f} y {g['sy']:.4f}")
+            f" bow z(corner)-z(centre) {g['dome_mm']:+.2f} mm; in-plane scale x {g['sx']:.4f} y {g['sy']:.4f}")
     return out
 
 
