@@ -171,13 +171,12 @@ pub struct CalibModeConfig {
     /// default). Features below it are not used: their depth absorbs model errors at a poor
     /// start. A clip with almost no translation (a hand-held phone) needs a smaller one.
     pub min_parallax_rad: f64,
-    /// Features below `min_parallax_rad` are used with a prior on their depth, this many
-    /// metres with a 1σ of the inverse depth equal to its own value (from half this depth to
-    /// infinity), when set (off by default). Their depth is still projected out of the rows,
-    /// so they constrain rotation, the camera and the timing, not the lever arm or scale: a
-    /// clip without translation (the 0.8 s phone clip) or a distant scene (the GoPro) needs
-    /// them for `t_r`.
-    pub low_parallax_depth_m: Option<f64>,
+    /// Use the features below `min_parallax_rad`, fitted with a prior on their inverse depth
+    /// (within what low parallax allows over their baseline). Their depth is still
+    /// projected out of the rows, so they constrain rotation, the camera and the timing,
+    /// not the lever arm or scale: a clip without translation (a hand-held phone) needs
+    /// them.
+    pub low_parallax: bool,
     /// Largest reprojection RMS of a triangulated feature of the image front end, px: ORB
     /// tracks can hold mismatches, which a loose bound lets in (10 px put p_cb 10 mm off on
     /// the rendered `calib` scene in 20 s, 4 px 3 mm).
@@ -226,7 +225,7 @@ impl Default for CalibModeConfig {
         Self {
             pixel_sigma: 1.0,
             min_parallax_rad: slam_core::calib::CalibParams::default().min_parallax,
-            low_parallax_depth_m: None,
+            low_parallax: false,
             max_triangulation_rms_px: 4.0,
             max_triangulation_rms_given_px: slam_core::calib::CalibParams::default()
                 .max_triangulation_rms,
@@ -287,11 +286,7 @@ impl CalibModeConfig {
             ("init_seconds", self.init_seconds),
             ("start_seconds", self.start_seconds),
         ];
-        let optional = [("low_parallax_depth_m", self.low_parallax_depth_m)];
-        let mut keys = keys
-            .into_iter()
-            .chain(optional.into_iter().filter_map(|(k, v)| Some((k, v?))));
-        match keys.find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
+        match keys.iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
             Some((k, v)) => Err(format!("tracker.calib.{k} = {v}: must be finite and > 0")),
             None => Ok(()),
         }

@@ -70,7 +70,6 @@ mod tests;
 pub use filter::{CalibError, CalibFilter, FrameReport};
 pub use params::{CalibEstimate, CalibParams, CalibPriors, ParamEstimate};
 pub use state::{CalibState, CloneState, NavState};
-pub use triangulate::DepthPrior;
 
 /// Error-state index of `dθ` (rotation of `R_gb`, global frame).
 pub const IDX_THETA: usize = 0;

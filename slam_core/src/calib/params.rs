@@ -3,7 +3,6 @@
 use nalgebra::{DMatrix, DVector};
 
 use super::state::CalibState;
-use super::triangulate::DepthPrior;
 use super::{
     CORE_DIM, IDX_BA, IDX_BG, IDX_DIST, IDX_INTR, IDX_P, IDX_PCB, IDX_TA, IDX_TD, IDX_TG,
     IDX_THETA, IDX_TR, IDX_TS, IDX_V,
@@ -33,10 +32,10 @@ pub struct CalibParams {
     /// nothing corrects the camera: EuRoC AprilGrid from the start). Image tracks
     /// can hold mismatches and want 4 px (`tracker.calib.max_triangulation_rms_px`).
     pub max_triangulation_rms: f64,
-    /// Depth prior for features below `min_parallax` ([`super::triangulate::DepthPrior`]):
-    /// with it they are used (their rows constrain the rotations, the camera and the
-    /// timing); without it (the default) they are not.
-    pub depth_prior: Option<DepthPrior>,
+    /// Use features below `min_parallax`, fitted with a prior on their depth
+    /// ([`super::triangulate::triangulate`]): their rows constrain the rotations, the camera
+    /// and the timing. Off: they are not used.
+    pub low_parallax: bool,
     /// Use first-estimate Jacobians (FEJ) for p and v (propagation and measurement).
     pub fej: bool,
     /// Most relinearisations of one update (iterated EKF); 1 = plain EKF.
@@ -57,7 +56,7 @@ impl Default for CalibParams {
             t_d_random_walk: 0.0,
             max_triangulation_rms: 10.0,
             min_parallax: 0.02,
-            depth_prior: None,
+            low_parallax: false,
             fej: true,
             max_iterations: 4,
             iterate_above_sigma: 0.3,

@@ -70,7 +70,7 @@ impl CalibFilter {
             &anchor_cam,
             &views,
             self.params.min_parallax,
-            self.params.depth_prior.as_ref(),
+            self.params.low_parallax,
         )?;
         if tri.rms > self.params.max_triangulation_rms {
             return None;

