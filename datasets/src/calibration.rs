@@ -7,6 +7,9 @@
 //! - `camera.time_offset_ns`: `t_d` for **middle-row** stamps (`t_imu = t_mid + t_d`);
 //!   `camera.readout_ns`: `t_r`, the whole frame's readout (0 = global shutter). Kalibr's
 //!   layout stamps the first row instead ([`crate::kalibr`]).
+//! - `camera.readout_direction` (optional): the order the rolling shutter reads the lines,
+//!   `"top-to-bottom"` (the default), `"bottom-to-top"`, `"left-to-right"` or
+//!   `"right-to-left"` (a phone's portrait frames are read along x; `VI_NOTES.md` §1).
 //! - `imu`: the Kalibr noise densities and the seed's IMU model (eq. 2.53-2.56)
 //!   `a_m = T_a a_s + b_a`, `ω_m = T_g ω + T_s a_s + b_g`, matrices row-major.
 //! - `sigma` (optional): the estimate's 1σ, and the parameters a calibration run could not
@@ -16,6 +19,7 @@ use std::path::Path;
 use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use slam_core::imu::{ImuBiases, ImuIntrinsics, ImuNoise};
+use slam_core::rolling_shutter::ReadoutDirection;
 
 use crate::euroc::ImuSensorCalib;
 use crate::{CameraCalib, DatasetError, PinholeRadtan};
@@ -62,6 +66,10 @@ pub struct CameraSection {
     pub rate_hz: f64,
     /// Rolling-shutter readout time of a whole frame, ns (0 = global shutter).
     pub readout_ns: f64,
+    /// The order the lines are read ([`slam_core::rolling_shutter::ReadoutDirection`]
+    /// names); absent: top to bottom.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub readout_direction: Option<String>,
     /// Camera-IMU time offset t_d of middle-row stamps, ns (`t_imu = t_mid + t_d`).
     pub time_offset_ns: f64,
     /// Camera pose in the body (IMU) frame, `T_BS`, rows.
@@ -201,6 +209,8 @@ impl CalibrationFile {
                 distortion: [m.k1, m.k2, m.p1, m.p2],
                 rate_hz: camera.rate_hz,
                 readout_ns: camera.readout_ns as f64,
+                readout_direction: (m.readout != ReadoutDirection::TopToBottom)
+                    .then(|| m.readout.name().to_string()),
                 time_offset_ns: camera.time_offset_ns as f64,
                 t_bs: rows4(&camera.t_bs),
             },
@@ -272,8 +282,10 @@ impl CalibrationFile {
         let c = &self.camera;
         let [w, h] = c.resolution;
         let [k1, k2, p1, p2] = c.distortion;
+        let mut model = PinholeRadtan::from_coefficients(w, h, c.intrinsics, [k1, k2, p1, p2, 0.0]);
+        model.readout = c.readout_direction().unwrap_or_default();
         CameraCalib {
-            model: PinholeRadtan::from_coefficients(w, h, c.intrinsics, [k1, k2, p1, p2, 0.0]),
+            model,
             t_bs: isometry(&c.t_bs).unwrap_or_else(|_| Isometry3::identity()),
             t_bs_given: true,
             readout_ns: c.readout_ns.round() as i64,
@@ -358,6 +370,21 @@ fn check_readout(readout_ns: f64, rate_hz: f64) -> Result<(), String> {
 }
 
 impl CameraSection {
+    /// The readout direction, top to bottom when absent; an unknown name is an error that
+    /// lists the known ones.
+    pub fn readout_direction(&self) -> Result<ReadoutDirection, String> {
+        let Some(name) = &self.readout_direction else {
+            return Ok(ReadoutDirection::TopToBottom);
+        };
+        ReadoutDirection::from_name(name).ok_or_else(|| {
+            let known: Vec<&str> = ReadoutDirection::ALL.iter().map(|d| d.name()).collect();
+            format!(
+                "camera.readout_direction \"{name}\": expected one of {}",
+                known.join(", ")
+            )
+        })
+    }
+
     fn validate(&self) -> Result<(), String> {
         let [w, h] = self.resolution;
         let [fx, fy, cx, cy] = self.intrinsics;
@@ -388,6 +415,7 @@ impl CameraSection {
             return Err(format!("camera.rate_hz {} must be ≥ 0", self.rate_hz));
         }
         check_readout(self.readout_ns, self.rate_hz)?;
+        self.readout_direction()?;
         if !(self.time_offset_ns.is_finite() && self.time_offset_ns.abs() <= 1e9) {
             return Err(format!(
                 "camera.time_offset_ns {} beyond ±1 s",

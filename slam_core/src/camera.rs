@@ -3,6 +3,7 @@
 use nalgebra::{Matrix2, Matrix2x3, Matrix2x4, Matrix2x6, Vector2, Vector3};
 
 use crate::lie::skew;
+use crate::rolling_shutter::ReadoutDirection;
 
 /// Pinhole camera with radial-tangential distortion (seed eq. 2.57-2.60).
 ///
@@ -34,6 +35,8 @@ pub struct PinholeRadtan {
     pub p2: f64,
     /// Radial coefficient r⁶.
     pub k3: f64,
+    /// The rolling shutter's line order (rows top to bottom unless said).
+    pub readout: ReadoutDirection,
 }
 
 impl PinholeRadtan {
@@ -64,7 +67,23 @@ impl PinholeRadtan {
             p1,
             p2,
             k3,
+            readout: ReadoutDirection::TopToBottom,
         }
+    }
+
+    /// The line coordinate of pixel `uv` in the rolling shutter's readout order and the
+    /// number of lines ([`ReadoutDirection::line`]; `(v, height)` for rows top to bottom).
+    #[inline]
+    pub fn readout_line(&self, uv: &Vector2<f64>) -> (f64, u32) {
+        self.readout.line(uv.x, uv.y, self.width, self.height)
+    }
+
+    /// Where pixel `uv` lies in the readout, from `-½` (first line) to `½` (last): its
+    /// capture time is `t_mid + readout_fraction · t_r`.
+    #[inline]
+    pub fn readout_fraction(&self, uv: &Vector2<f64>) -> f64 {
+        let (line, n) = self.readout_line(uv);
+        line / f64::from(n.max(1)) - 0.5
     }
 
     /// True when all distortion coefficients are zero.
@@ -293,6 +312,7 @@ impl PinholeRadtan {
             p1: 0.00019359,
             p2: 1.76187114e-05,
             k3: 0.0,
+            readout: ReadoutDirection::TopToBottom,
         }
     }
 }

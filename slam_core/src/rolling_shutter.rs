@@ -19,6 +19,63 @@
 use nalgebra::{Vector2, Vector3};
 
 use crate::camera::PinholeRadtan;
+
+/// The order in which a rolling shutter reads the image's lines. Sensors read along their
+/// long side (`VI_NOTES.md` §1, seed 2.5): a landscape frame top to bottom, but a phone's
+/// portrait frame (720x1280 from a 1280x720 sensor turned by 90°) along image x. The row
+/// formulas of this module then apply to the line coordinate of
+/// [`ReadoutDirection::line`] (and [`PinholeRadtan::readout_line`]) instead of `v`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ReadoutDirection {
+    /// Rows, first row (`v = 0`) first: the default.
+    #[default]
+    TopToBottom,
+    /// Rows, last row first.
+    BottomToTop,
+    /// Columns, first column (`u = 0`) first.
+    LeftToRight,
+    /// Columns, last column first.
+    RightToLeft,
+}
+
+impl ReadoutDirection {
+    /// Every direction.
+    pub const ALL: [Self; 4] = [
+        Self::TopToBottom,
+        Self::BottomToTop,
+        Self::LeftToRight,
+        Self::RightToLeft,
+    ];
+
+    /// The name in calibration and configuration files (`"top-to-bottom"`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::TopToBottom => "top-to-bottom",
+            Self::BottomToTop => "bottom-to-top",
+            Self::LeftToRight => "left-to-right",
+            Self::RightToLeft => "right-to-left",
+        }
+    }
+
+    /// The direction of a [`ReadoutDirection::name`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|d| d.name() == name)
+    }
+
+    /// The line coordinate of pixel `(u, v)` in readout order and the number of lines, in a
+    /// `width x height` image: `(v, height)` top to bottom, `(height - 1 - v, height)`
+    /// bottom to top, `(u, width)` left to right, `(width - 1 - u, width)` right to left.
+    /// Line `l` is read at `t_mid + (l - N/2) t_r / N` ([`row_offset_s`]).
+    #[inline]
+    pub fn line(self, u: f64, v: f64, width: u32, height: u32) -> (f64, u32) {
+        match self {
+            Self::TopToBottom => (v, height),
+            Self::BottomToTop => (f64::from(height) - 1.0 - v, height),
+            Self::LeftToRight => (u, width),
+            Self::RightToLeft => (f64::from(width) - 1.0 - u, width),
+        }
+    }
+}
 use crate::features::KeyPoint;
 use crate::lie::so3_exp;
 
@@ -125,9 +182,9 @@ pub fn derotate_keypoints(
     if readout_ns == 0 || camera.height == 0 || omega.norm_squared() == 0.0 {
         return;
     }
-    let rows = camera.height;
     for k in keypoints {
-        let dt = row_offset_s(readout_ns, k.y as f64, rows);
+        let (line, n) = camera.readout_line(&Vector2::new(k.x as f64, k.y as f64));
+        let dt = row_offset_s(readout_ns, line, n);
         let r = so3_exp(&(omega * dt));
         let b = r * camera.unproject(&Vector2::new(k.x as f64, k.y as f64));
         if let Some(p) = camera.project(&b) {
@@ -154,6 +211,35 @@ mod tests {
         assert_eq!(row_time_ns(t, 0, 17.0, n), t);
         assert_eq!(row_time_ns(t, tr, 17.0, 0), t);
         assert!((row_offset_s(tr, 0.0, n) + 0.015).abs() < 1e-15);
+    }
+
+    #[test]
+    fn readout_lines_follow_the_direction() {
+        let (w, h) = (720, 1280);
+        let lines: Vec<(f64, u32)> = ReadoutDirection::ALL
+            .iter()
+            .map(|d| d.line(10.0, 100.0, w, h))
+            .collect();
+        assert_eq!(
+            lines,
+            vec![(100.0, 1280), (1179.0, 1280), (10.0, 720), (709.0, 720)]
+        );
+        for d in ReadoutDirection::ALL {
+            assert_eq!(ReadoutDirection::from_name(d.name()), Some(d));
+            // The first line read is at -t_r/2, the middle one at t_mid, either way.
+            let first = match d {
+                ReadoutDirection::TopToBottom => (5.0, 0.0),
+                ReadoutDirection::BottomToTop => (5.0, 1279.0),
+                ReadoutDirection::LeftToRight => (0.0, 5.0),
+                ReadoutDirection::RightToLeft => (719.0, 5.0),
+            };
+            let (l, n) = d.line(first.0, first.1, w, h);
+            assert!(
+                (row_offset_s(20_000_000, l, n) + 0.010).abs() < 1e-12,
+                "{d:?}"
+            );
+        }
+        assert_eq!(ReadoutDirection::from_name("sideways"), None);
     }
 
     #[test]

@@ -122,6 +122,7 @@ fn write_configs(
                 let mut one = cfg.clone();
                 one.tracker.mode = s.mode;
                 one.tracker.imu = s.imu.clone();
+                one.tracker.readout_direction = s.readout;
                 if s.mode == ClientMode::Calib && one.tracker.calib.log.is_none() {
                     one.tracker.calib.log = Some(cfg.out.join("calib_c{c}.csv"));
                 }

@@ -17,6 +17,8 @@ pub struct ClientSetup {
     pub imu: ImuCalibConfig,
     /// A calibration file that was there and could not be read (`file: why`).
     pub calibration_error: Option<String>,
+    /// The camera's rolling-shutter line order (the dataset's, or the calibration file's).
+    pub readout: slam_core::rolling_shutter::ReadoutDirection,
 }
 
 /// The `imu0/sensor.yaml` of a EuRoC-layout dataset at `root` (or its `mav0`), if any.
@@ -139,6 +141,7 @@ pub fn client_setup(
         reason,
         imu,
         calibration_error,
+        readout: ds.camera.model.readout,
     }
 }
 

@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
+use slam_core::rolling_shutter::ReadoutDirection;
 
 /// Where the client VO's local mapping runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -310,6 +311,12 @@ pub struct TrackerConfig {
     pub features: usize,
     /// Rolling-shutter compensation (`false`: off, for comparison).
     pub rolling_shutter: bool,
+    /// The order the camera's rolling shutter reads the lines: `"top-to-bottom"` (the
+    /// default), `"bottom-to-top"`, `"left-to-right"` or `"right-to-left"`
+    /// (`slam_core::rolling_shutter::ReadoutDirection`; the launcher writes the dataset's or
+    /// the calibration file's `camera.readout_direction`).
+    #[serde(with = "readout_name")]
+    pub readout_direction: ReadoutDirection,
     /// Run the VO (`false`: transport only, for replay and IPC tests).
     pub vo: bool,
     /// Where local mapping runs: `"thread"` or `"inline"`.
@@ -337,6 +344,7 @@ impl Default for TrackerConfig {
             window: 100,
             features: 1000,
             rolling_shutter: true,
+            readout_direction: ReadoutDirection::TopToBottom,
             vo: true,
             local_mapping: LocalMapping::Thread,
             imu_wait_ms: 40,
@@ -345,6 +353,27 @@ impl Default for TrackerConfig {
             work_ms: 0,
             debug_init: false,
         }
+    }
+}
+
+/// [`ReadoutDirection`] by its name in configuration files.
+mod readout_name {
+    use serde::{Deserialize, Deserializer, Serializer};
+    use slam_core::rolling_shutter::ReadoutDirection;
+
+    pub fn serialize<S: Serializer>(d: &ReadoutDirection, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(d.name())
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<ReadoutDirection, D::Error> {
+        let name = String::deserialize(d)?;
+        ReadoutDirection::from_name(&name).ok_or_else(|| {
+            let known: Vec<&str> = ReadoutDirection::ALL.iter().map(|d| d.name()).collect();
+            serde::de::Error::custom(format!(
+                "readout_direction \"{name}\": expected one of {}",
+                known.join(", ")
+            ))
+        })
     }
 }
 

@@ -56,7 +56,8 @@ pub struct RowPose {
     pub accel_b: Vector3<f64>,
     /// `Δ`, s.
     pub delta: f64,
-    /// `v/N - ½` of the observed row.
+    /// Where the observed pixel lies in the readout, `-½ .. ½` (`v/N - ½` for rows top to
+    /// bottom; [`PinholeRadtan::readout_fraction`]).
     pub shutter: f64,
     /// Linearisation point of the position in the `dθ_j` column (FEJ or `nav.p_gb`).
     pub p_lin: Vector3<f64>,

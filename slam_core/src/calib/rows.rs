@@ -15,10 +15,10 @@ use super::update::{project_null_space, Projected};
 use super::{CAM_BLOCK, CLONE_DIM, CORE_DIM, IDX_PCB};
 
 impl CalibFilter {
-    /// The row pose of an observation at pixel row `v` in clone `c`.
-    pub(crate) fn row_pose(&self, c: &CloneState, v: f64) -> Option<RowPose> {
-        let n_rows = f64::from(self.state.camera.height.max(1));
-        let shutter = v / n_rows - 0.5;
+    /// The row pose of an observation at pixel `uv` in clone `c`: the body state when the
+    /// rolling shutter read `uv`'s line ([`crate::camera::PinholeRadtan::readout_fraction`]).
+    pub(crate) fn row_pose(&self, c: &CloneState, uv: &Vector2<f64>) -> Option<RowPose> {
+        let shutter = self.state.camera.readout_fraction(uv);
         let delta = (self.state.t_d - c.t_d_at_clone) + shutter * self.state.t_r;
         let t0 = c.tau_ns as f64;
         let (nav, omega_b, accel_b) =
@@ -57,7 +57,7 @@ impl CalibFilter {
         let rows: Vec<RowPose> = track
             .iter()
             .zip(&idx)
-            .map(|(o, &i)| self.row_pose(self.clones.get(i)?, o.1.y))
+            .map(|(o, &i)| self.row_pose(self.clones.get(i)?, &o.1))
             .collect::<Option<_>>()?;
         let views: Vec<(CameraPose, Vector2<f64>)> = rows
             .iter()

@@ -386,7 +386,6 @@ impl Scenario {
     /// inside the image (before noise) and where the lens is one-to-one, with pixel noise.
     pub fn frame(&self, t_mid_ns: i64, rng: &mut Rng) -> Vec<Observation> {
         let tr = &self.truth;
-        let n_rows = f64::from(tr.camera.height);
         let t_mid = t_mid_ns as f64 * 1e-9 + tr.t_d;
         let mid = self.motion.at(t_mid).nav;
         let mut out = Vec::new();
@@ -398,7 +397,7 @@ impl Scenario {
             if !radially_monotone(&tr.camera, (pc.x / pc.z).hypot(pc.y / pc.z)) {
                 continue;
             }
-            let Some(uv) = self.rolling_pixel(x, t_mid, n_rows) else {
+            let Some(uv) = self.rolling_pixel(x, t_mid) else {
                 continue;
             };
             // Kept by the true pixel: cutting by the noisy one would bias the noise of the
@@ -416,20 +415,25 @@ impl Scenario {
         out
     }
 
-    fn rolling_pixel(&self, x: &Vector3<f64>, t_mid: f64, n_rows: f64) -> Option<Vector2<f64>> {
+    /// The pixel of `x` read at its own line time: the fixed point of
+    /// `l = line(π(pose(t_mid + (l/N - ½) t_r)))` ([`PinholeRadtan::readout_line`]), from the
+    /// middle line.
+    fn rolling_pixel(&self, x: &Vector3<f64>, t_mid: f64) -> Option<Vector2<f64>> {
         let tr = &self.truth;
-        let mut v = 0.5 * n_rows;
+        let n = f64::from(tr.camera.readout_line(&Vector2::zeros()).1);
+        let mut line = 0.5 * n;
         for _ in 0..10 {
-            let nav = self.motion.at(t_mid + (v / n_rows - 0.5) * tr.t_r).nav;
+            let nav = self.motion.at(t_mid + (line / n - 0.5) * tr.t_r).nav;
             let pc = tr.r_cb * (nav.r_gb.inverse() * (x - nav.p_gb)) + tr.p_cb;
             if pc.z < 0.2 {
                 return None;
             }
             let uv = tr.camera.project(&pc)?;
-            if (uv.y - v).abs() < 1e-7 {
+            let next = tr.camera.readout_line(&uv).0;
+            if (next - line).abs() < 1e-7 {
                 return tr.camera.contains(&uv).then_some(uv);
             }
-            v = uv.y;
+            line = next;
         }
         None
     }

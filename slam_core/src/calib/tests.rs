@@ -338,7 +338,7 @@ fn prediction_at_the_truth_matches_the_simulated_pixels() {
     let (mut worst, mut n): (f64, usize) = (0.0, 0);
     for (c, obs) in f.clones().iter().zip(&frames) {
         for o in obs {
-            let row = f.row_pose(c, o.uv.y).expect("row pose");
+            let row = f.row_pose(c, &o.uv).expect("row pose");
             let x = sc.landmarks[o.track.0 as usize];
             let pc = super::measure::world_to_camera(f.state(), &row.nav, &x);
             let z = f.state().camera.project(&pc).expect("in front");

@@ -165,7 +165,7 @@ impl Refiner {
             &map.map,
             &kf.features,
             frame_points,
-            (0, kf.camera.height),
+            (0, &kf.camera),
             &mut self.obs,
             &mut self.obs_kp,
         );

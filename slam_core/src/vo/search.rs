@@ -288,12 +288,13 @@ impl LocalMapMatcher {
 
 /// The pose-only optimiser's observations of the matched keypoints: `obs` gets one per
 /// keypoint `k` of `feats` with a point of `map` in `frame_points[k]`, `obs_kp` its `k`.
-/// Rows are read out over `readout_ns` (0: global shutter) of a `rows`-row image.
+/// The lines of `camera`'s image ([`PinholeRadtan::readout_line`]) are read out over
+/// `readout_ns` (0: global shutter).
 pub fn pose_observations(
     map: &ClientMap,
     feats: &OrbFeatures,
     frame_points: &[Option<PointId>],
-    (readout_ns, rows): (i64, u32),
+    (readout_ns, camera): (i64, &PinholeRadtan),
     obs: &mut Vec<PoseObservation>,
     obs_kp: &mut Vec<usize>,
 ) {
@@ -306,15 +307,18 @@ pub fn pose_observations(
         let Some(kp) = feats.keypoints.get(k) else {
             continue;
         };
+        let pixel = Vector2::new(kp.x as f64, kp.y as f64);
+        let dt = if readout_ns == 0 {
+            0.0
+        } else {
+            let (line, n) = camera.readout_line(&pixel);
+            crate::rolling_shutter::row_offset_s(readout_ns, line, n)
+        };
         obs.push(PoseObservation {
             point_w: mp.p_w,
-            pixel: Vector2::new(kp.x as f64, kp.y as f64),
+            pixel,
             inv_sigma2: feats.scale.inv_sigma2(kp.octave),
-            dt: if readout_ns == 0 {
-                0.0
-            } else {
-                crate::rolling_shutter::row_offset_s(readout_ns, kp.y as f64, rows)
-            },
+            dt,
         });
         obs_kp.push(k);
     }
@@ -405,7 +409,7 @@ mod tests {
             m.gather_local_map(&map, &fp);
             assert!(m.candidates().is_empty());
             let (mut obs, mut obs_kp) = (Vec::new(), Vec::new());
-            pose_observations(&map, &frame, &fp, (0, 480), &mut obs, &mut obs_kp);
+            pose_observations(&map, &frame, &fp, (0, &cam), &mut obs, &mut obs_kp);
             assert_eq!(obs.len(), n);
             assert!(obs.iter().all(|o| o.dt == 0.0 && o.inv_sigma2 == 1.0));
             assert_eq!(obs_kp[1], 1);

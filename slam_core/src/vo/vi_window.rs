@@ -346,12 +346,14 @@ fn window_observations(map: &ClientMap, job: &mut ViWindowJob, w: &mut ViWindow)
                 continue;
             };
             let kp = kf.features.keypoints[i];
+            let uv = Vector2::new(f64::from(kp.x), f64::from(kp.y));
+            let (line, n) = kf.camera.readout_line(&uv);
             w.observations.push(ViObservation {
                 kf: c as u32,
                 point,
-                uv: Vector2::new(f64::from(kp.x), f64::from(kp.y)),
+                uv,
                 sigma_px: kf.features.scale.sigma2(kp.octave).sqrt(),
-                dt_s: row_offset_s(kf.readout_ns, f64::from(kp.y), kf.camera.height),
+                dt_s: row_offset_s(kf.readout_ns, line, n),
             });
             job.obs_keys
                 .push((job.pt_ids[point as usize], *id, i as u32));

@@ -196,11 +196,14 @@ impl CalibClient {
         imu: slam_core::imu::ImuIntrinsics,
         features: usize,
         extrinsics_given: bool,
+        readout: slam_core::rolling_shutter::ReadoutDirection,
     ) -> Result<Self, String> {
         cfg.validate()?;
         let t_bs = shoal_runtime::wire::iso_from_wire(&h.t_bs)
             .ok_or("the frames' T_BS is not a rigid transform")?;
-        let camera = shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+        let mut camera =
+            shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+        camera.readout = readout;
         let start = OnlineStart {
             camera,
             t_bs,
@@ -552,7 +555,15 @@ impl TrackerCore {
             let imu = self.cfg.imu.noise_and_intrinsics();
             let made = imu.and_then(|(noise, intr)| {
                 let given = self.cfg.imu.extrinsics_given;
-                CalibClient::new(h, &self.cfg.calib, noise, intr, self.cfg.features, given)
+                CalibClient::new(
+                    h,
+                    &self.cfg.calib,
+                    noise,
+                    intr,
+                    self.cfg.features,
+                    given,
+                    self.cfg.readout,
+                )
             });
             match made {
                 Ok(mut c) => {

@@ -148,6 +148,8 @@ pub struct CoreConfig {
     pub calib: crate::CalibModeConfig,
     /// The calibration mode writes a log (the ports have one open).
     pub calib_log: bool,
+    /// The camera's rolling-shutter line order.
+    pub readout: slam_core::rolling_shutter::ReadoutDirection,
 }
 
 impl CoreConfig {
@@ -166,6 +168,7 @@ impl CoreConfig {
             imu: cfg.imu.clone(),
             calib: cfg.calib.clone(),
             calib_log: cfg.calib.log.is_some(),
+            readout: cfg.readout_direction,
         }
     }
 }
@@ -569,7 +572,9 @@ impl TrackerCore {
     /// names keyframes by them, so they stay unique per client across restarts), its local
     /// mapping on this service's thread ([`crate::mapping_thread`]) unless inline.
     fn new_vo(&mut self, h: &FrameHeader) -> anyhow::Result<VoTracker> {
-        let camera = shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+        let mut camera =
+            shoal_runtime::wire::camera_from_intrinsics(&h.intrinsics, h.width, h.height);
+        camera.readout = self.cfg.readout;
         let mut vp = VoParams {
             rolling_shutter: !self.cfg.no_rs,
             window: self.cfg.window.max(2),

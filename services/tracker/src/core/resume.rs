@@ -137,7 +137,7 @@ impl TrackerCore {
     ) -> Result<VioTracker, String> {
         let held = &self.spool_resume.held;
         let session = held.first().map_or(0, |k| k.header.meta.session_id);
-        let (keyframes, points) = stored_session(held, h)?;
+        let (keyframes, points) = stored_session(held, h, self.cfg.readout)?;
         let first_point = ClientPointId::first_of_start(self.ids.start()).raw();
         let restored = slam_core::vo::restore_map(1, keyframes, &points, first_point)
             .map_err(|e| e.to_string())?;
@@ -228,6 +228,7 @@ fn facts_of(r: &RestoredMap) -> ResumeFacts {
 fn stored_session(
     held: &[Recovered],
     h: &FrameHeader,
+    readout: slam_core::rolling_shutter::ReadoutDirection,
 ) -> Result<(Vec<Keyframe>, Vec<StoredPoint>), String> {
     let mut keyframes = Vec::with_capacity(held.len());
     let mut points = Vec::new();
@@ -245,7 +246,9 @@ fn stored_session(
                 kh.keyframe_id, kh.t_ns, h.t_mid_ns
             ));
         }
-        keyframes.push(stored_keyframe(k, h.readout_ns)?);
+        let mut kf = stored_keyframe(k, h.readout_ns)?;
+        kf.camera.readout = readout;
+        keyframes.push(kf);
         let spooled = k.points.iter().flatten();
         points.extend(spooled.map(|p| StoredPoint {
             id: p.id,

@@ -28,6 +28,7 @@ fn config(no_vo: bool) -> CoreConfig {
         imu: Default::default(),
         calib: Default::default(),
         calib_log: false,
+        readout: Default::default(),
     }
 }
 

@@ -198,13 +198,13 @@ fn frame_bearings(
     camera: &PinholeRadtan,
     derot: &Derotation,
 ) -> Vec<(TrackId, Vector3<f64>)> {
-    let rows = f64::from(camera.height);
     let mut v: Vec<_> = f
         .observations
         .iter()
         .map(|o| {
             let b = camera.unproject(&o.uv);
-            (o.track, derot.apply(f.t_mid_ns, o.uv.y, rows, &b))
+            let fraction = camera.readout_fraction(&o.uv);
+            (o.track, derot.apply(f.t_mid_ns, fraction, &b))
         })
         .collect();
     v.sort_by_key(|p| p.0);

@@ -60,11 +60,12 @@ pub struct Derotation<'a> {
 }
 
 impl Derotation<'_> {
-    /// The bearing `b` seen at pixel row `v` of the frame stamped `t_mid_ns`, in the middle
-    /// row's camera frame (unchanged where the gyro does not reach).
-    pub fn apply(&self, t_mid_ns: i64, v: f64, rows: f64, b: &Vector3<f64>) -> Vector3<f64> {
+    /// The bearing `b` seen `fraction` of the readout from the middle line
+    /// ([`PinholeRadtan::readout_fraction`]) of the frame stamped `t_mid_ns`, in the middle
+    /// line's camera frame (unchanged where the gyro does not reach).
+    pub fn apply(&self, t_mid_ns: i64, fraction: f64, b: &Vector3<f64>) -> Vector3<f64> {
         let t0 = t_mid_ns as f64 + self.t_d * 1e9;
-        let t1 = t0 + (v / rows - 0.5) * self.t_r * 1e9;
+        let t1 = t0 + fraction * self.t_r * 1e9;
         self.gyro
             .delta(t0, t1)
             .map_or(*b, |d| self.r_cb * (d * (self.r_cb.inverse() * b)))
@@ -81,7 +82,6 @@ pub fn visual_rotations(
     params: &InitParams,
 ) -> Vec<VisualRotation> {
     let gap = params.pair_gap.max(1);
-    let rows = f64::from(camera.height);
     let bearings: Vec<HashMap<TrackId, Vector3<f64>>> = frames
         .iter()
         .map(|f| {
@@ -89,7 +89,9 @@ pub fn visual_rotations(
                 .iter()
                 .map(|o| {
                     let b = camera.unproject(&o.uv);
-                    let b = derotate.map_or(b, |d| d.apply(f.t_mid_ns, o.uv.y, rows, &b));
+                    let b = derotate.map_or(b, |d| {
+                        d.apply(f.t_mid_ns, camera.readout_fraction(&o.uv), &b)
+                    });
                     (o.track, b)
                 })
                 .collect()

@@ -429,7 +429,7 @@ impl VoTracker {
             &self.map,
             feats,
             &self.frame_points,
-            (readout_ns, self.camera.height),
+            (readout_ns, &self.camera),
             &mut self.obs,
             &mut self.obs_kp,
         );

@@ -37,6 +37,7 @@ fn config() -> CoreConfig {
         },
         calib: Default::default(),
         calib_log: false,
+        readout: Default::default(),
     }
 }
 
