@@ -122,3 +122,41 @@ fn bad_files_are_refused_with_the_reason() {
     let e = CalibrationFile::read(&dir.path().join("none.toml")).expect_err("missing");
     assert!(e.to_string().contains("not found"), "{e}");
 }
+
+/// `camera.readout_direction` reads back onto the camera model (top to bottom when
+/// absent, not written then); an unknown direction is refused, naming the known ones.
+#[test]
+fn the_readout_direction_is_kept_and_checked() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let ds = phone_dataset(&dir.path().join("ds"));
+    let mut file = phone_file(&ds);
+    assert_eq!(file.camera.readout_direction, None);
+    assert_eq!(
+        file.camera_calib().model.readout,
+        ReadoutDirection::TopToBottom
+    );
+    let path = dir.path().join("calib.toml");
+    file.write(&path).expect("write");
+    let text = std::fs::read_to_string(&path).expect("text");
+    assert!(!text.contains("readout_direction"), "{text}");
+    file.camera.readout_direction = Some("right-to-left".into());
+    file.write(&path).expect("write");
+    let back = CalibrationFile::read(&path).expect("read");
+    let cam = back.camera_calib();
+    assert_eq!(cam.model.readout, ReadoutDirection::RightToLeft);
+    assert_eq!(
+        CalibrationFile::from_dataset(&cam, None)
+            .camera
+            .readout_direction,
+        Some("right-to-left".into())
+    );
+    let bad = text.replace("readout_ns", "readout_direction = \"diagonal\"\nreadout_ns");
+    std::fs::write(&path, bad).expect("write");
+    let err = CalibrationFile::read(&path)
+        .expect_err("refused")
+        .to_string();
+    assert!(
+        err.contains("diagonal") && err.contains("right-to-left"),
+        "{err}"
+    );
+}
