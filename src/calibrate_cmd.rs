@@ -93,6 +93,17 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<()> {
     let result = result_file(&start, est, &calib, &args.dataset);
     result.write(&args.out.join("calibration.toml"))?;
     datasets::kalibr::write(&result, &args.out)?;
+    if datasets::kalibr::camera_of(&result).line_delay.is_none() && result.camera.readout_ns > 0.0 {
+        eprintln!(
+            "note: Kalibr's layout reads rows top to bottom only; camchain-imucam.yaml has this \
+             {} camera's middle-line t_d and no line_delay (calibration.toml has t_r)",
+            result
+                .camera
+                .readout_direction
+                .as_deref()
+                .unwrap_or("top-to-bottom")
+        );
+    }
     let log = cfg.out.join("calib_c0.csv");
     let plot = convergence_plot(&log, &args.dataset, reference.as_ref())?;
     write_convergence(&plot, &args.out.join("convergence.png"))?;

@@ -6,7 +6,10 @@
 //! project's file keeps the **middle-row** `t_d` and the whole readout `t_r` for the
 //! dataset's own stamps, so `timeshift_cam_imu = t_d − t_r/2` and `line_delay = t_r / rows`
 //! (and back: `t_r = line_delay · rows`, `t_d = timeshift_cam_imu + t_r/2`). A global-shutter
-//! camera (`t_r = 0`) has `timeshift_cam_imu = t_d` and no `line_delay` written.
+//! camera (`t_r = 0`) has `timeshift_cam_imu = t_d` and no `line_delay` written. Kalibr's
+//! model reads rows top to bottom only: a camera of another `readout_direction` is written
+//! like a global-shutter fit of a rolling-shutter camera, `timeshift_cam_imu = t_d` (the
+//! middle line's) and no `line_delay` ([`camera_of`]; `shoal calibrate` says so).
 //!
 //! **Pose.** `T_cam_imu` maps IMU-frame points into the camera (`T_c_i`): the inverse of
 //! EuRoC's `T_BS`, the camera's pose in the body frame that the project's file holds.
@@ -81,6 +84,9 @@ fn nested<const N: usize>(rows: &[[f64; N]; N]) -> Vec<Vec<f64>> {
 pub fn camera_of(c: &CalibrationFile) -> KalibrCamera {
     let cam = &c.camera;
     let rows = cam.resolution[1] as f64;
+    let rows_down = cam.readout_direction.is_none()
+        || cam.readout_direction() == Ok(slam_core::rolling_shutter::ReadoutDirection::TopToBottom);
+    let t_r = if rows_down { cam.readout_ns } else { 0.0 };
     let t_bs = isometry(&cam.t_bs).unwrap_or_else(|_| nalgebra::Isometry3::identity());
     KalibrCamera {
         camera_model: "pinhole".into(),
@@ -88,8 +94,8 @@ pub fn camera_of(c: &CalibrationFile) -> KalibrCamera {
         distortion_model: "radtan".into(),
         distortion_coeffs: cam.distortion.to_vec(),
         t_cam_imu: Some(nested(&rows4(&t_bs.inverse()))),
-        timeshift_cam_imu: (cam.time_offset_ns - cam.readout_ns / 2.0) * 1e-9,
-        line_delay: (cam.readout_ns > 0.0).then(|| cam.readout_ns * 1e-9 / rows),
+        timeshift_cam_imu: (cam.time_offset_ns - t_r / 2.0) * 1e-9,
+        line_delay: (t_r > 0.0).then(|| t_r * 1e-9 / rows),
         resolution: cam.resolution.to_vec(),
         rostopic: Some("/cam0/image_raw".into()),
     }
@@ -206,6 +212,11 @@ mod tests {
             imu.contains("imu0:") && imu.contains("gyroscope_noise_density"),
             "{imu}"
         );
+        // Read along x: Kalibr's rows cannot say it, so the middle line's t_d and no delay.
+        let mut cols = file.clone();
+        cols.camera.readout_direction = Some("right-to-left".into());
+        let k = camera_of(&cols);
+        assert!((k.timeshift_cam_imu - 0.040).abs() < 1e-12 && k.line_delay.is_none());
     }
 
     /// Kalibr's own example (the EuRoC camchain of its wiki, global shutter): read as is.

@@ -283,8 +283,11 @@ fn normal_equations(
 mod tests {
     use super::*;
 
-    #[test]
-    fn recovers_a_point_from_three_views() {
+    /// One observation: the camera's pose and the pixel.
+    type View = (CameraPose, Vector2<f64>);
+
+    /// A distorted camera and the point (0.3, -0.4, 3) seen from `poses`.
+    fn views(poses: &[CameraPose]) -> (PinholeRadtan, Vector3<f64>, Vec<View>) {
         let cam = PinholeRadtan::from_coefficients(
             640,
             480,
@@ -292,16 +295,22 @@ mod tests {
             [-0.25, 0.07, 1e-3, -5e-4, 0.0],
         );
         let x = Vector3::new(0.3, -0.4, 3.0);
+        let obs = poses
+            .iter()
+            .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
+            .collect();
+        (cam, x, obs)
+    }
+
+    #[test]
+    fn recovers_a_point_from_three_views() {
         let poses: Vec<CameraPose> = (0..3)
             .map(|k| CameraPose {
                 r_gc: Rotation3::from_scaled_axis(Vector3::new(0.02 * k as f64, -0.03, 0.01)),
                 p_gc: Vector3::new(0.1 * k as f64, 0.02 * k as f64, 0.0),
             })
             .collect();
-        let obs: Vec<(CameraPose, Vector2<f64>)> = poses
-            .iter()
-            .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
-            .collect();
+        let (cam, x, obs) = views(&poses);
         let t = triangulate(&cam, &poses[2], &obs, 0.01, false).expect("triangulates");
         let back = in_camera(
             &poses[2],
@@ -324,23 +333,13 @@ mod tests {
     /// bearing exactly, at the prior depth, flagged as low parallax.
     #[test]
     fn a_pure_rotation_is_fitted_with_the_depth_prior() {
-        let cam = PinholeRadtan::from_coefficients(
-            640,
-            480,
-            [450.0, 452.0, 320.0, 240.0],
-            [-0.25, 0.07, 1e-3, -5e-4, 0.0],
-        );
-        let x = Vector3::new(0.3, -0.4, 3.0);
         let poses: Vec<CameraPose> = (0..4)
             .map(|k| CameraPose {
                 r_gc: Rotation3::from_scaled_axis(Vector3::new(0.01 * k as f64, -0.02, 0.005)),
                 p_gc: Vector3::zeros(),
             })
             .collect();
-        let obs: Vec<(CameraPose, Vector2<f64>)> = poses
-            .iter()
-            .map(|p| (*p, cam.project(&(p.r_gc.inverse() * (x - p.p_gc))).unwrap()))
-            .collect();
+        let (cam, x, obs) = views(&poses);
         assert!(triangulate(&cam, &poses[3], &obs, 0.02, false).is_none());
         let t = triangulate(&cam, &poses[3], &obs, 0.02, true).expect("fitted");
         assert!(t.low_parallax && t.rms < 1e-6, "rms {}", t.rms);
