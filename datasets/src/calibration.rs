@@ -376,13 +376,7 @@ impl CameraSection {
         let Some(name) = &self.readout_direction else {
             return Ok(ReadoutDirection::TopToBottom);
         };
-        ReadoutDirection::from_name(name).ok_or_else(|| {
-            let known: Vec<&str> = ReadoutDirection::ALL.iter().map(|d| d.name()).collect();
-            format!(
-                "camera.readout_direction \"{name}\": expected one of {}",
-                known.join(", ")
-            )
-        })
+        ReadoutDirection::parse(name).map_err(|e| format!("camera.readout_direction {e}"))
     }
 
     fn validate(&self) -> Result<(), String> {

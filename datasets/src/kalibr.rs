@@ -84,8 +84,8 @@ fn nested<const N: usize>(rows: &[[f64; N]; N]) -> Vec<Vec<f64>> {
 pub fn camera_of(c: &CalibrationFile) -> KalibrCamera {
     let cam = &c.camera;
     let rows = cam.resolution[1] as f64;
-    let rows_down = cam.readout_direction.is_none()
-        || cam.readout_direction() == Ok(slam_core::rolling_shutter::ReadoutDirection::TopToBottom);
+    let rows_down =
+        cam.readout_direction() == Ok(slam_core::rolling_shutter::ReadoutDirection::TopToBottom);
     let t_r = if rows_down { cam.readout_ns } else { 0.0 };
     let t_bs = isometry(&cam.t_bs).unwrap_or_else(|_| nalgebra::Isometry3::identity());
     KalibrCamera {

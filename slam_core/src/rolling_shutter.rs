@@ -62,6 +62,14 @@ impl ReadoutDirection {
         Self::ALL.into_iter().find(|d| d.name() == name)
     }
 
+    /// [`ReadoutDirection::from_name`], or an error naming the known directions.
+    pub fn parse(name: &str) -> Result<Self, String> {
+        Self::from_name(name).ok_or_else(|| {
+            let known: Vec<&str> = Self::ALL.iter().map(|d| d.name()).collect();
+            format!("\"{name}\": expected one of {}", known.join(", "))
+        })
+    }
+
     /// The line coordinate of pixel `(u, v)` in readout order and the number of lines, in a
     /// `width x height` image: `(v, height)` top to bottom, `(height - 1 - v, height)`
     /// bottom to top, `(u, width)` left to right, `(width - 1 - u, width)` right to left.
@@ -107,6 +115,14 @@ pub fn row_offset_s(readout_ns: i64, row: f64, n_rows: u32) -> f64 {
     }
     let n = f64::from(n_rows);
     (row - 0.5 * n) * readout_ns as f64 * 1e-9 / n
+}
+
+/// The offset `t - t_mid` in seconds of pixel `uv` of `camera`, whose lines are read in its
+/// [`PinholeRadtan::readout_line`] order over `readout_ns` ([`row_offset_s`] of the line).
+#[inline]
+pub fn pixel_offset_s(camera: &PinholeRadtan, readout_ns: i64, uv: &Vector2<f64>) -> f64 {
+    let (line, n) = camera.readout_line(uv);
+    row_offset_s(readout_ns, line, n)
 }
 
 /// Inverse of [`row_time_ns`]: the (continuous) row coordinate captured at `t_ns`.
@@ -183,8 +199,7 @@ pub fn derotate_keypoints(
         return;
     }
     for k in keypoints {
-        let (line, n) = camera.readout_line(&Vector2::new(k.x as f64, k.y as f64));
-        let dt = row_offset_s(readout_ns, line, n);
+        let dt = pixel_offset_s(camera, readout_ns, &Vector2::new(k.x as f64, k.y as f64));
         let r = so3_exp(&(omega * dt));
         let b = r * camera.unproject(&Vector2::new(k.x as f64, k.y as f64));
         if let Some(p) = camera.project(&b) {

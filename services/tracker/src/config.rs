@@ -367,13 +367,8 @@ mod readout_name {
 
     pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<ReadoutDirection, D::Error> {
         let name = String::deserialize(d)?;
-        ReadoutDirection::from_name(&name).ok_or_else(|| {
-            let known: Vec<&str> = ReadoutDirection::ALL.iter().map(|d| d.name()).collect();
-            serde::de::Error::custom(format!(
-                "readout_direction \"{name}\": expected one of {}",
-                known.join(", ")
-            ))
-        })
+        ReadoutDirection::parse(&name)
+            .map_err(|e| serde::de::Error::custom(format!("readout_direction {e}")))
     }
 }
 

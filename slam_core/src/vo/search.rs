@@ -311,8 +311,7 @@ pub fn pose_observations(
         let dt = if readout_ns == 0 {
             0.0
         } else {
-            let (line, n) = camera.readout_line(&pixel);
-            crate::rolling_shutter::row_offset_s(readout_ns, line, n)
+            crate::rolling_shutter::pixel_offset_s(camera, readout_ns, &pixel)
         };
         obs.push(PoseObservation {
             point_w: mp.p_w,

@@ -52,7 +52,7 @@ use crate::imu::window::{
     gauge_prior, reprojection_jacobians, ViKeyframe, ViObservation, ViParams, ViWindow,
 };
 use crate::imu::{gravity_w, ImuBiases, NavState, Preintegrated};
-use crate::rolling_shutter::row_offset_s;
+use crate::rolling_shutter::pixel_offset_s;
 
 /// The 95 % gate of χ²(2).
 const CHI2_2DOF_95: f64 = 5.991;
@@ -347,13 +347,12 @@ fn window_observations(map: &ClientMap, job: &mut ViWindowJob, w: &mut ViWindow)
             };
             let kp = kf.features.keypoints[i];
             let uv = Vector2::new(f64::from(kp.x), f64::from(kp.y));
-            let (line, n) = kf.camera.readout_line(&uv);
             w.observations.push(ViObservation {
                 kf: c as u32,
                 point,
                 uv,
                 sigma_px: kf.features.scale.sigma2(kp.octave).sqrt(),
-                dt_s: row_offset_s(kf.readout_ns, line, n),
+                dt_s: pixel_offset_s(&kf.camera, kf.readout_ns, &uv),
             });
             job.obs_keys
                 .push((job.pt_ids[point as usize], *id, i as u32));

@@ -11,6 +11,7 @@ use crate::imu::window::tests::{rand3, t_bc, true_biases as biases};
 use crate::imu::window::ViSolver;
 use crate::imu::{ImuMeasurement, ImuNoise, PreintegrationParams};
 use crate::lie::so3_log;
+use crate::rolling_shutter::row_offset_s;
 use crate::twoview::synth::Rng;
 use crate::vo::keyframe_imu::{bracket, ImuCalibration, KeyframeImu};
 use crate::vo::map::Keyframe;
