@@ -69,6 +69,8 @@ pub fn server_keyframe(
         readout_ns: 0,
         features,
         client_points,
+        inertial: None,
+        imu: None,
     };
     kf.validate().map_err(|e| e.to_string())?;
     Ok(kf)

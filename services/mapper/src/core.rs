@@ -377,6 +377,8 @@ impl Mapper {
         n.keyframes_culled = f.stats.culled;
         n.revisit_global_ba = f.stats.revisit_global_ba;
         n.kept_at_session_end = f.stats.kept_at_session_end;
+        n.vi_windows = f.stats.vi_windows;
+        n.vi_windows_skipped = f.stats.vi_windows_skipped;
         n.maps = f.stats.maps;
         n.server_keyframes = f.keyframes as u64;
         if let Some(m) = f.map_id {

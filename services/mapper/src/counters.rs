@@ -102,6 +102,10 @@ pub struct MapperClientCounters {
     pub revisit_global_ba: u64,
     /// Gauge (handler): keyframes inserted at their session's end.
     pub kept_at_session_end: u64,
+    /// Gauge (handler): visual-inertial local BAs solved (metric, gravity-aligned maps).
+    pub vi_windows: u64,
+    /// Gauge (handler): visual-inertial local BAs not built or failed (a visual one ran).
+    pub vi_windows_skipped: u64,
     /// Gauge (handler): server maps created.
     pub maps: u64,
     /// Gauge: the client's keyframes in its current server map.

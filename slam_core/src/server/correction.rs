@@ -16,7 +16,7 @@ use nalgebra::Isometry3;
 use super::server_map::ServerMap;
 use super::types::MapId;
 use crate::lie::Sim3;
-use crate::vo::{ClientMap, KfId, PointId};
+use crate::vo::{ClientMap, Keyframe, KfId, PointId};
 use crate::CoreError;
 
 /// `S ∘ T` for a camera pose `T` (camera → map) with the scale dropped: the camera keeps its
@@ -29,6 +29,7 @@ pub fn transform_pose(s: &Sim3, t: &Isometry3<f64>) -> Isometry3<f64> {
 pub fn transform_map(map: &mut ClientMap, s: &Sim3) {
     for kf in map.keyframes.values_mut() {
         kf.t_cw = transform_pose(s, &kf.t_cw.inverse()).inverse();
+        transform_velocity(kf, s);
     }
     let ids: Vec<PointId> = map.points.keys().copied().collect();
     for mp in map.points.values_mut() {
@@ -36,6 +37,13 @@ pub fn transform_map(map: &mut ClientMap, s: &Sim3) {
     }
     for p in ids {
         map.update_point(p);
+    }
+}
+
+/// A keyframe's velocity (a visual-inertial map's) in the map moved by `s`: `v' = s R v`.
+fn transform_velocity(kf: &mut Keyframe, s: &Sim3) {
+    if let Some(i) = kf.inertial.as_mut() {
+        i.v_wb = s.r * i.v_wb * s.s;
     }
 }
 
@@ -159,6 +167,7 @@ pub fn apply_pose_corrections(
             }
         };
         kf.t_cw = transform_pose(d, &kf.t_cw.inverse()).inverse();
+        transform_velocity(kf, d);
     }
     let ids: Vec<PointId> = map.points.keys().copied().collect();
     for mp in map.points.values_mut() {
@@ -180,6 +189,7 @@ mod tests {
     use crate::camera::PinholeRadtan;
     use crate::features::{KeyPoint, OrbFeatures};
     use crate::ids::{ClientId, KeyframeId, MapPointId};
+    use crate::server::MapFrame;
     use crate::vo::Keyframe;
     use nalgebra::{UnitQuaternion, Vector3};
 
@@ -205,7 +215,7 @@ mod tests {
     /// Two keyframes observing three points, in a map of `client`'s id range.
     fn small_map(id: MapId, client: u32, kf_base: KfId) -> ServerMap {
         let first_point = MapPointId::first_of_client(ClientId::new(client)).raw();
-        let mut m = ServerMap::new(id, client, 1, first_point);
+        let mut m = ServerMap::new(id, client, 1, first_point, MapFrame::VISUAL);
         let a = kf_base;
         let b = kf_base + 1;
         m.map.insert_keyframe(kf(a, Isometry3::identity(), 3));

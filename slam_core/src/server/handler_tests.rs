@@ -62,6 +62,8 @@ fn keyframe(id: u64, session: u32, t_wk: &Isometry3<f64>, t_ck: &Isometry3<f64>)
         readout_ns: 0,
         features,
         client_points,
+        inertial: None,
+        imu: None,
     }
 }
 
@@ -211,7 +213,7 @@ fn unseen_client_points_are_forgotten() {
 
 #[test]
 fn forget_unseen_keeps_recently_referenced_points() {
-    let mut map = ServerMap::new(MapId::from_raw(1), CLIENT, 1, 0);
+    let mut map = ServerMap::new(MapId::from_raw(1), CLIENT, 1, 0, MapFrame::VISUAL);
     let (a, b) = ((CLIENT, 1), (CLIENT, 2));
     map.touch(a, 1, &[]);
     map.associate(a, 10, 100);
@@ -225,4 +227,70 @@ fn forget_unseen_keeps_recently_referenced_points() {
     assert_eq!(map.forget_unseen(5), 1);
     assert_eq!(map.association_count().0, 2);
     assert_eq!(map.forget_unseen(100), 0);
+}
+
+/// `kf` made a visual-inertial keyframe: a velocity and biases, and an IMU segment from the
+/// previous keyframe's time (no samples: the handler only links segments, it does not
+/// integrate them here).
+fn inertial(mut kf: ServerKeyframe, t_prev_ns: Option<i64>) -> ServerKeyframe {
+    use crate::imu::{ImuIntrinsics, ImuNoise, PreintegrationParams};
+    use crate::vo::keyframe_imu::{ImuCalibration, KeyframeImu};
+    let preint = PreintegrationParams::new(&ImuNoise::zero(), &ImuIntrinsics::default()).unwrap();
+    kf.inertial = Some(crate::vo::KeyframeInertial::default());
+    kf.imu = Some(KeyframeImu {
+        t_prev_ns,
+        t_ns: kf.t_ns,
+        samples: Vec::new(),
+        calib: ImuCalibration {
+            preint,
+            t_bc: Isometry3::identity(),
+            t_d_ns: 0,
+        },
+    });
+    kf
+}
+
+/// A visual-inertial client's keyframes build a metric, gravity-aligned map; when its world
+/// becomes metric after visual keyframes (its inertial initialisation), the session goes on
+/// in a new map; the segment of a discarded keyframe is joined into the next inserted one,
+/// so that consecutive server keyframes stay linked by the IMU.
+#[test]
+fn visual_inertial_keyframes_get_a_metric_map_and_linked_segments() {
+    let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
+    let kf = |k: usize| keyframe(k as u64, 1, &true_pose(k), &true_pose(k));
+    let t = |k: usize| k as i64 * 50_000_000;
+    h.handle(&mut maps, kf(0)).unwrap();
+    h.handle(&mut maps, kf(1)).unwrap();
+    let visual = h.current_map_id().unwrap();
+    assert_eq!(maps[&visual].frame, MapFrame::VISUAL);
+    // The client initialised: its keyframes are inertial from 2 on.
+    let r = h.handle(&mut maps, inertial(kf(2), Some(t(1)))).unwrap();
+    assert_eq!(r.status, KeyframeStatus::First, "a new map for the metric world");
+    let r = h.handle(&mut maps, inertial(kf(3), Some(t(2)))).unwrap();
+    assert_eq!(r.status, KeyframeStatus::MapCreated);
+    let metric = h.current_map_id().unwrap();
+    assert_ne!(metric, visual);
+    assert_eq!(maps[&metric].frame, MapFrame::INERTIAL);
+    assert_eq!(maps.len(), 2, "the visual map stays, for the loop closer to merge");
+    // Keyframes 4.. alternate a 1 cm step (discarded: nothing new in view) and a 1 m one
+    // (kept); each inserted one's segment starts at the previous inserted keyframe.
+    let mut inserted = 0;
+    for k in 4..12 {
+        let x = 0.75 + ((k - 3) / 2) as f64 + 0.01 * ((k - 3) % 2) as f64;
+        let near = Isometry3::translation(x, 0.06, 0.0);
+        let r = h
+            .handle(&mut maps, inertial(keyframe(k as u64, 1, &near, &near), Some(t(k - 1))))
+            .unwrap();
+        inserted += usize::from(r.status == KeyframeStatus::Kept);
+    }
+    h.idle_step(&mut maps);
+    let m = &maps[&metric].map;
+    let segs: Vec<_> = m.keyframes.values().map(|k| k.imu.clone().unwrap()).collect();
+    assert_eq!(segs.len(), 2 + inserted);
+    assert!(h.stats().discarded > 0 && inserted > 0, "{inserted} {:?}", h.stats());
+    for w in segs.windows(2) {
+        assert_eq!(w[1].t_prev_ns, Some(w[0].t_ns), "consecutive server keyframes linked");
+    }
+    assert!(m.keyframes.values().all(|k| k.inertial.is_some()));
 }

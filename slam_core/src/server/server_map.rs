@@ -6,12 +6,12 @@ use std::collections::BTreeMap;
 
 use nalgebra::{Isometry3, Vector2};
 
-use super::types::{KeptKeyframe, KeptPoint, MapId, ServerKeyframe};
+use super::types::{KeptKeyframe, KeptPoint, MapFrame, MapId, ServerKeyframe};
 use crate::ids::{ClientId, KeyframeId};
 use crate::twoview::triangulate::{
     check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
 };
-use crate::vo::{ClientMap, Keyframe, KfId, PointId};
+use crate::vo::{ClientMap, Keyframe, KeyframeInertial, KfId, PointId};
 
 /// Observations of one client point waiting for a second kept keyframe with parallax.
 const MAX_PENDING_PER_POINT: usize = 4;
@@ -27,6 +27,8 @@ pub struct ServerMap {
     pub session_id: u32,
     /// Keyframes, points, observations and covisibility.
     pub map: ClientMap,
+    /// Metric and gravity-aligned, or not.
+    pub frame: MapFrame,
     /// Per owner (client, VO session): client map-point id → server point id, and client
     /// map-point id → kept-keyframe observations not yet triangulated. A merged map holds
     /// the associations of every session that was merged into it.
@@ -60,13 +62,20 @@ struct Pending {
 }
 
 impl ServerMap {
-    /// An empty map; point ids start at `first_point_id`.
-    pub fn new(id: MapId, client_id: u32, session_id: u32, first_point_id: PointId) -> Self {
+    /// An empty map of frame `frame`; point ids start at `first_point_id`.
+    pub fn new(
+        id: MapId,
+        client_id: u32,
+        session_id: u32,
+        first_point_id: PointId,
+        frame: MapFrame,
+    ) -> Self {
         Self {
             id,
             client_id,
             session_id,
             map: ClientMap::new(session_id, first_point_id),
+            frame,
             assoc: BTreeMap::new(),
         }
     }
@@ -219,8 +228,18 @@ impl ServerMap {
             readout_ns: kf.readout_ns,
             features: kf.features.clone(),
             points: points.to_vec(),
-            inertial: None,
-            imu: None,
+            // A metric, gravity-aligned map keeps the client's velocity, biases and IMU
+            // segment (its local BA is visual-inertial); a monocular map has no use for them.
+            // Its velocity turns with the server pose (a map merged with another rotates the
+            // client's world about the vertical).
+            inertial: kf.inertial.filter(|_| self.frame.is_inertial()).map(|i| {
+                let r_sc = t_sk.rotation * kf.t_ck.rotation.inverse();
+                KeyframeInertial {
+                    v_wb: r_sc * i.v_wb,
+                    ..i
+                }
+            }),
+            imu: kf.imu.clone().filter(|_| self.frame.is_inertial()),
         });
         for p in points.iter().flatten() {
             self.map.update_point(*p);

@@ -6,7 +6,8 @@ use nalgebra::{Isometry3, Vector3};
 use crate::camera::PinholeRadtan;
 use crate::features::OrbFeatures;
 use crate::ids::ClientKeyframeId;
-use crate::vo::{Keyframe, KfId, PointId};
+use crate::vo::keyframe_imu::KeyframeImu;
+use crate::vo::{Keyframe, KeyframeInertial, KfId, PointId};
 use crate::CoreError;
 
 pub use crate::ids::MapId;
@@ -34,6 +35,13 @@ pub struct ServerKeyframe {
     pub features: OrbFeatures,
     /// Client map-point id seen by each keypoint, if any.
     pub client_points: Vec<Option<PointId>>,
+    /// Velocity and biases of a visual-inertial client's keyframe once its world is metric
+    /// and gravity-aligned (`VI_NOTES.md` §4 "Server"); `None` for a monocular client, or
+    /// before the client's inertial initialisation.
+    pub inertial: Option<KeyframeInertial>,
+    /// The IMU samples since the client's previous keyframe and the calibration to
+    /// preintegrate them (`VI_NOTES.md` §4, Fig. 5.4); `None` for a monocular client.
+    pub imu: Option<KeyframeImu>,
 }
 
 impl ServerKeyframe {
@@ -49,7 +57,16 @@ impl ServerKeyframe {
             readout_ns: kf.readout_ns,
             features: kf.features.clone(),
             client_points: kf.points.clone(),
+            inertial: kf.inertial,
+            imu: kf.imu.clone(),
         }
+    }
+
+    /// Whether the client says this keyframe's pose is metric and gravity-aligned (a
+    /// visual-inertial client after its inertial initialisation) and it carries the IMU
+    /// since its previous keyframe.
+    pub fn is_inertial(&self) -> bool {
+        self.inertial.is_some() && self.imu.is_some()
     }
 
     /// Checks what the handler relies on: one descriptor and one client point slot per
@@ -92,6 +109,37 @@ impl ServerKeyframe {
             )));
         }
         Ok(())
+    }
+}
+
+/// What a server map's frame is (`VI_NOTES.md` §4 "Server"): the map of a visual-inertial
+/// client is metric and gravity-aligned (its server frame is the client's world after the
+/// inertial initialisation), a monocular client's map is neither (arbitrary unit and
+/// orientation, seed ch. 3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct MapFrame {
+    /// Lengths are metres.
+    pub metric: bool,
+    /// The z axis is up (gravity is `(0, 0, -g)`).
+    pub gravity_aligned: bool,
+}
+
+impl MapFrame {
+    /// The frame of a map built from visual-inertial keyframes.
+    pub const INERTIAL: Self = Self {
+        metric: true,
+        gravity_aligned: true,
+    };
+    /// The frame of a monocular map.
+    pub const VISUAL: Self = Self {
+        metric: false,
+        gravity_aligned: false,
+    };
+
+    /// Metric and gravity-aligned: loops and merges with another such map have 4 degrees
+    /// of freedom (x, y, z, yaw), not 7.
+    pub fn is_inertial(&self) -> bool {
+        self.metric && self.gravity_aligned
     }
 }
 

@@ -87,6 +87,11 @@ pub struct ViMappingParams {
     /// Most older covisible keyframes added fixed, with their observations only (they
     /// anchor the points to the rest of the map, as in ORB-SLAM3's local inertial BA).
     pub fixed_covisible: usize,
+    /// Gauge the first windows of a map (module docs, "First windows"): right for the
+    /// client, whose initialisation's gravity and scale the first windows correct; the
+    /// server's maps of visual-inertial keyframes are already in the client's corrected
+    /// world, so there every window fixes its oldest keyframe.
+    pub gauge_first_windows: bool,
 }
 
 impl Default for ViMappingParams {
@@ -99,6 +104,7 @@ impl Default for ViMappingParams {
             gauge_sigma_rad: 1e-3,
             min_observations: 20,
             fixed_covisible: 10,
+            gauge_first_windows: true,
         }
     }
 }
@@ -191,10 +197,11 @@ pub fn prepare_vi_window(
     // Gauged: the session's first windows only, while no keyframe of the map is refined
     // (a resumed session's keyframes count as refined: its scale and gravity are not
     // corrected twice).
-    let gauged = !map
-        .keyframes
-        .values()
-        .any(|k| k.inertial.is_some_and(|i| i.refined > 0));
+    let gauged = params.gauge_first_windows
+        && !map
+            .keyframes
+            .values()
+            .any(|k| k.inertial.is_some_and(|i| i.refined > 0));
     collect_points(map, job, w, gauged);
     let n_visual = if gauged {
         0
