@@ -188,7 +188,11 @@ fn a_visual_inertial_client_gets_a_metric_gravity_aligned_server_map() {
         map_v.map.keyframes.len(),
         world.path_length_m(),
     );
-    assert!(map.frame.metric && map.frame.gravity_aligned, "{:?}", map.frame);
+    assert!(
+        map.frame.metric && map.frame.gravity_aligned,
+        "{:?}",
+        map.frame
+    );
     assert!(
         st.vi_windows * 2 >= st.kept,
         "the local BA of most kept keyframes is visual-inertial: {st:?}"

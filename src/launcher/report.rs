@@ -271,6 +271,9 @@ pub struct RunReport {
     pub loops: u64,
     /// Map merges the loop closer found (loops between two maps).
     pub merges: u64,
+    /// The server maps at the end: id, clients, keyframes, points, and whether each is
+    /// metric and gravity-aligned (a visual-inertial client's).
+    pub maps: Vec<mapper::MapSummary>,
     /// Corrections (merges and pose graph corrections) the mapper applied.
     pub corrections_applied: u64,
     /// CPU time of the launcher process itself (supervision, recorder), s.
@@ -786,6 +789,10 @@ impl RunReport {
         };
         self.loops = l.loops;
         self.merges = l.merges;
+        self.maps = st
+            .details_of::<mapper::MapperDetails>(mapper::SERVICE_NAME)
+            .map(|d| d.maps)
+            .unwrap_or_default();
         self.corrections_applied = m.corrections_applied();
     }
 
@@ -903,6 +910,16 @@ mod tests {
         m.clients.of(0).keyframes_received = 31;
         let mut ms = Status::new(mapper::SERVICE_NAME);
         ms.put_counters(&m);
+        ms.set_details(&mapper::MapperDetails {
+            maps: vec![mapper::MapSummary {
+                id: 1 << 32,
+                clients: vec![0, 1],
+                keyframes: 30,
+                points: 900,
+                metric: true,
+                gravity_aligned: true,
+            }],
+        });
         let l = LoopCloserCounters {
             loops: 2,
             merges: 1,
@@ -949,5 +966,12 @@ mod tests {
         );
         assert_eq!(services["mapper"]["outcome"], "done");
         assert_eq!(services["mapper"]["cpu_s"], 2.0);
+        let map = &json["maps"][0];
+        assert_eq!(map["clients"], serde_json::json!([0, 1]));
+        assert_eq!(
+            (map["keyframes"].as_u64(), map["metric"].as_bool()),
+            (Some(30), Some(true))
+        );
+        assert_eq!(map["gravity_aligned"], true);
     }
 }

@@ -21,7 +21,7 @@ use slam_core::ids::{KeyframeId, MapId};
 use slam_core::server::{HandlerParams, KeyframeStatus};
 
 use crate::convert::{self, Correction};
-use crate::counters::MapperCounters;
+use crate::counters::{MapSummary, MapperCounters, MapperDetails};
 use crate::worker::{
     CorrectionKind, CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker,
 };
@@ -361,8 +361,23 @@ impl Mapper {
 
     fn set_map_sizes(&mut self, maps: &[MapSize]) {
         for m in maps {
-            self.map_sizes.insert(m.id, *m);
+            self.map_sizes.insert(m.id, m.clone());
         }
+        let details = MapperDetails {
+            maps: self
+                .map_sizes
+                .values()
+                .map(|m| MapSummary {
+                    id: m.id.raw(),
+                    clients: m.clients.clone(),
+                    keyframes: m.keyframes as u64,
+                    points: m.points as u64,
+                    metric: m.frame.metric,
+                    gravity_aligned: m.frame.gravity_aligned,
+                })
+                .collect(),
+        };
+        self.status.set_details(&details);
         let (n, kfs, pts) = self.map_sizes.values().fold((0, 0, 0), |a, m| {
             (a.0 + 1, a.1 + m.keyframes as u64, a.2 + m.points as u64)
         });

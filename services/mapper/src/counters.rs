@@ -5,6 +5,31 @@
 use serde::{Deserialize, Serialize};
 use shoal_runtime::PerClient;
 
+/// One server map as the report lists it (`report.json` `maps`, issue 19).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MapSummary {
+    /// Map id ([`slam_core::ids::MapId`], raw).
+    pub id: u64,
+    /// Clients with keyframes in it.
+    pub clients: Vec<u32>,
+    /// Keyframes.
+    pub keyframes: u64,
+    /// Points.
+    pub points: u64,
+    /// Lengths are metres (a visual-inertial client's map, or one merged into it).
+    pub metric: bool,
+    /// The z axis is up.
+    pub gravity_aligned: bool,
+}
+
+/// The mapper's section of its status file beyond counters (`details`): its live maps.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct MapperDetails {
+    /// The live server maps (merged-away maps are gone), by id.
+    pub maps: Vec<MapSummary>,
+}
+
 /// Counters and gauges of the mapper (all clients).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]

@@ -39,7 +39,7 @@ use std::path::PathBuf;
 use shoal_runtime::ReplayMode;
 
 pub use config::{MapperConfig, MapperFlags};
-pub use counters::{MapperClientCounters, MapperCounters};
+pub use counters::{MapSummary, MapperClientCounters, MapperCounters, MapperDetails};
 pub use ports::run;
 
 /// The mapper service's command line: the launcher's wiring (clients, status, journal,

@@ -22,7 +22,7 @@ use nalgebra::Isometry3;
 use slam_core::ids::KeyframeId;
 use slam_core::server::{
     apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeptKeyframe,
-    KeyframeHandler, KeyframeStatus, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
+    KeyframeHandler, KeyframeStatus, MapFrame, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
 };
 
 use crate::convert::Correction;
@@ -71,8 +71,8 @@ pub enum Job {
     },
 }
 
-/// Size of one server map.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// Size and kind of one server map.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct MapSize {
     /// Map id.
     pub id: MapId,
@@ -80,6 +80,10 @@ pub struct MapSize {
     pub keyframes: usize,
     /// Points.
     pub points: usize,
+    /// Clients with keyframes in it, ascending.
+    pub clients: Vec<u32>,
+    /// Metric and gravity-aligned, or not.
+    pub frame: MapFrame,
 }
 
 /// Map figures of one client's handler.
@@ -243,6 +247,15 @@ impl Group {
                 id: m.id,
                 keyframes: m.map.keyframes.len(),
                 points: m.map.points.len(),
+                clients: m
+                    .map
+                    .keyframes
+                    .keys()
+                    .map(|k| KeyframeId::from_raw(*k).client().raw())
+                    .collect::<std::collections::BTreeSet<u32>>()
+                    .into_iter()
+                    .collect(),
+                frame: m.frame,
             })
             .collect()
     }

@@ -266,13 +266,21 @@ fn visual_inertial_keyframes_get_a_metric_map_and_linked_segments() {
     assert_eq!(maps[&visual].frame, MapFrame::VISUAL);
     // The client initialised: its keyframes are inertial from 2 on.
     let r = h.handle(&mut maps, inertial(kf(2), Some(t(1)))).unwrap();
-    assert_eq!(r.status, KeyframeStatus::First, "a new map for the metric world");
+    assert_eq!(
+        r.status,
+        KeyframeStatus::First,
+        "a new map for the metric world"
+    );
     let r = h.handle(&mut maps, inertial(kf(3), Some(t(2)))).unwrap();
     assert_eq!(r.status, KeyframeStatus::MapCreated);
     let metric = h.current_map_id().unwrap();
     assert_ne!(metric, visual);
     assert_eq!(maps[&metric].frame, MapFrame::INERTIAL);
-    assert_eq!(maps.len(), 2, "the visual map stays, for the loop closer to merge");
+    assert_eq!(
+        maps.len(),
+        2,
+        "the visual map stays, for the loop closer to merge"
+    );
     // Keyframes 4.. alternate a 1 cm step (discarded: nothing new in view) and a 1 m one
     // (kept); each inserted one's segment starts at the previous inserted keyframe.
     let mut inserted = 0;
@@ -280,17 +288,32 @@ fn visual_inertial_keyframes_get_a_metric_map_and_linked_segments() {
         let x = 0.75 + ((k - 3) / 2) as f64 + 0.01 * ((k - 3) % 2) as f64;
         let near = Isometry3::translation(x, 0.06, 0.0);
         let r = h
-            .handle(&mut maps, inertial(keyframe(k as u64, 1, &near, &near), Some(t(k - 1))))
+            .handle(
+                &mut maps,
+                inertial(keyframe(k as u64, 1, &near, &near), Some(t(k - 1))),
+            )
             .unwrap();
         inserted += usize::from(r.status == KeyframeStatus::Kept);
     }
     h.idle_step(&mut maps);
     let m = &maps[&metric].map;
-    let segs: Vec<_> = m.keyframes.values().map(|k| k.imu.clone().unwrap()).collect();
+    let segs: Vec<_> = m
+        .keyframes
+        .values()
+        .map(|k| k.imu.clone().unwrap())
+        .collect();
     assert_eq!(segs.len(), 2 + inserted);
-    assert!(h.stats().discarded > 0 && inserted > 0, "{inserted} {:?}", h.stats());
+    assert!(
+        h.stats().discarded > 0 && inserted > 0,
+        "{inserted} {:?}",
+        h.stats()
+    );
     for w in segs.windows(2) {
-        assert_eq!(w[1].t_prev_ns, Some(w[0].t_ns), "consecutive server keyframes linked");
+        assert_eq!(
+            w[1].t_prev_ns,
+            Some(w[0].t_ns),
+            "consecutive server keyframes linked"
+        );
     }
     assert!(m.keyframes.values().all(|k| k.inertial.is_some()));
 }
