@@ -8,6 +8,7 @@ use std::collections::{BTreeMap, HashMap};
 
 use nalgebra::Isometry3;
 
+use super::four_dof::{optimize_four_dof, FourDofEdge};
 use super::graph::{Edge, Sim3Graph, Vertex};
 use super::{optimize_sim3, PgoMethod, PgoParams, PgoReport};
 use crate::ids::KeyframeId;
@@ -85,6 +86,81 @@ pub fn correct_loop(
     fixed: KfId,
     params: &LoopGraphParams,
 ) -> Result<LoopCorrection, CoreError> {
+    let (mut g, edges) = loop_graph(keyframes, loops, fixed, params)?;
+    let old: Vec<Sim3> = g.poses();
+    let report = optimize_sim3(&mut g, params.method, &params.pgo)?;
+    let new: Vec<Sim3> = g.poses();
+    corrections(&g, &old, &new, edges, report)
+}
+
+/// [`correct_loop`] for a metric, gravity-aligned map (`VI_NOTES.md` §4 "Loops and
+/// merges"): the same graph, optimised over x, y, z and yaw only ([`optimize_four_dof`]),
+/// roll and pitch held (the IMU observes them), no scale (the IMU observes it); a loop
+/// constraint's scale is ignored. The corrections are rigid (`s = 1`).
+pub fn correct_loop_four_dof(
+    keyframes: &[GraphKeyframe],
+    loops: &[LoopConstraint],
+    fixed: KfId,
+    params: &LoopGraphParams,
+) -> Result<LoopCorrection, CoreError> {
+    let (g, edges) = loop_graph(keyframes, loops, fixed, params)?;
+    let old: Vec<Sim3> = g.poses();
+    let mut poses: Vec<Isometry3<f64>> = old.iter().map(|s| s.to_isometry()).collect();
+    let four: Vec<FourDofEdge> = g
+        .edges
+        .iter()
+        .map(|e| FourDofEdge {
+            i: e.i,
+            j: e.j,
+            measurement: Isometry3::from_parts(e.measurement.t.into(), e.measurement.r),
+            weight: e.info[(0, 0)],
+        })
+        .collect();
+    let mut fixed_mask = vec![false; poses.len()];
+    for f in &g.fixed {
+        fixed_mask[*f] = true;
+    }
+    let report = optimize_four_dof(&mut poses, &four, &fixed_mask, &params.pgo)?;
+    let new: Vec<Sim3> = poses.iter().map(|t| Sim3::from_isometry(t, 1.0)).collect();
+    corrections(&g, &old, &new, edges, report)
+}
+
+/// The per-keyframe corrections `Δ_k = S_k,new S_k,old⁻¹` and the new poses; errors when
+/// the optimisation diverged.
+fn corrections(
+    g: &Sim3Graph,
+    old: &[Sim3],
+    new: &[Sim3],
+    edges: (usize, usize),
+    report: PgoReport,
+) -> Result<LoopCorrection, CoreError> {
+    let mut deltas = BTreeMap::new();
+    let mut poses = BTreeMap::new();
+    for ((v, o), n) in g.vertices.iter().zip(old).zip(new) {
+        if !(n.s.is_finite() && n.s > 0.0 && n.t.iter().all(|x| x.is_finite())) {
+            return Err(CoreError::InvalidArgument(
+                "loop graph: optimisation diverged".into(),
+            ));
+        }
+        deltas.insert(v.id, n.compose(&o.inverse()));
+        poses.insert(v.id, *n);
+    }
+    Ok(LoopCorrection {
+        deltas,
+        poses,
+        edges,
+        report,
+    })
+}
+
+/// The graph of [`correct_loop`] at the keyframes' current poses, with its fixed vertex;
+/// `(structure edges, loop edges)`.
+fn loop_graph(
+    keyframes: &[GraphKeyframe],
+    loops: &[LoopConstraint],
+    fixed: KfId,
+    params: &LoopGraphParams,
+) -> Result<(Sim3Graph, (usize, usize)), CoreError> {
     let mut g = Sim3Graph::default();
     let mut index: HashMap<KfId, usize> = HashMap::with_capacity(keyframes.len());
     let mut order: Vec<&GraphKeyframe> = keyframes.iter().collect();
@@ -159,25 +235,7 @@ pub fn correct_loop(
         });
     }
     let n_loops = g.edges.len() - structure;
-    let old: Vec<Sim3> = g.poses();
-    let report = optimize_sim3(&mut g, params.method, &params.pgo)?;
-    let mut deltas = BTreeMap::new();
-    let mut poses = BTreeMap::new();
-    for (v, o) in g.vertices.iter().zip(&old) {
-        if !(v.pose.s.is_finite() && v.pose.s > 0.0 && v.pose.t.iter().all(|x| x.is_finite())) {
-            return Err(CoreError::InvalidArgument(
-                "loop graph: optimisation diverged".into(),
-            ));
-        }
-        deltas.insert(v.id, v.pose.compose(&o.inverse()));
-        poses.insert(v.id, v.pose);
-    }
-    Ok(LoopCorrection {
-        deltas,
-        poses,
-        edges: (structure, n_loops),
-        report,
-    })
+    Ok((g, (structure, n_loops)))
 }
 
 #[cfg(test)]

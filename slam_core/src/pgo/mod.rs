@@ -49,6 +49,7 @@
 //! ```
 
 mod chordal;
+mod four_dof;
 mod g2o;
 mod graph;
 mod information;
@@ -61,12 +62,14 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Matrix6, Vector3, Vector6};
 
 pub use chordal::{chordal_init, project_to_so3};
+pub use four_dof::{optimize_four_dof, yaw, FourDofEdge};
 pub use g2o::{parse_g2o, swap_rt_blocks, write_g2o_se3, write_g2o_sim3};
 pub use graph::{AnyGraph, Edge, GraphPose, PoseGraph, Se3Graph, Sim3Graph, Vertex};
 pub use information::gtsam_effective_information;
 pub use lm::{graph_cost, LiePose, LmParams, LmSummary, Prior};
 pub use loop_graph::{
-    correct_loop, GraphKeyframe, LoopConstraint, LoopCorrection, LoopGraphParams,
+    correct_loop, correct_loop_four_dof, GraphKeyframe, LoopConstraint, LoopCorrection,
+    LoopGraphParams,
 };
 pub use stepwise::{solve_scales, STEP2_ACTIVE};
 
