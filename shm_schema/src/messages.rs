@@ -26,6 +26,10 @@ pub const FLAG_HANDLED: u32 = 1 << 4;
 /// (`pose.t` is zero). A visual-inertial client sends it when its inertial initialisation
 /// (or a refinement) moves its monocular map into the metric, gravity-aligned world.
 pub const FLAG_WORLD_MOVE: u32 = 1 << 5;
+/// A [`LoopKeyframeHeader`] of a keyframe whose server map is metric and gravity-aligned (a
+/// visual-inertial client's, `VI_NOTES.md` §4 "Server"): loops and merges between such
+/// maps have 4 degrees of freedom (x, y, z, yaw).
+pub const FLAG_INERTIAL_MAP: u32 = 1 << 6;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]

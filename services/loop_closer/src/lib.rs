@@ -30,8 +30,8 @@ use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::{
     CorrectionHeader, CorrectionRecord, LoopKeyframeHeader, LoopKeypointRecord, MsgMeta,
-    CORRECTION_MERGE, CORRECTION_POSE_GRAPH, MAX_LOOP_COVISIBLE, RECORD_KEYFRAME_DELTA,
-    RECORD_POINT_PAIR,
+    CORRECTION_MERGE, CORRECTION_POSE_GRAPH, FLAG_INERTIAL_MAP, MAX_LOOP_COVISIBLE,
+    RECORD_KEYFRAME_DELTA, RECORD_POINT_PAIR,
 };
 use shoal_runtime::wire::{
     camera_from_intrinsics, iso_from_wire, valid_intrinsics, wire_from_sim3, wire_keypoint,
@@ -41,9 +41,12 @@ use slam_core::features::OrbFeatures;
 use slam_core::ids::KeyframeId;
 use slam_core::lie::Sim3;
 use slam_core::loop_closing::{LoopDetector, LoopDetectorParams, LoopMatch};
-use slam_core::pgo::{correct_loop, GraphKeyframe, LoopConstraint, LoopGraphParams, PgoMethod};
+use slam_core::pgo::{
+    correct_loop, correct_loop_four_dof, yaw, GraphKeyframe, LoopConstraint, LoopGraphParams,
+    PgoMethod,
+};
 use slam_core::place::Vocabulary;
-use slam_core::server::{KeptKeyframe, KeptPoint, MapId};
+use slam_core::server::{KeptKeyframe, KeptPoint, MapFrame, MapId};
 
 /// The vocabulary shipped with the project (`assets/orb_vocab.bin`), built in.
 static SHIPPED_VOCABULARY: &[u8] = include_bytes!("../../../assets/orb_vocab.bin");
@@ -192,6 +195,11 @@ pub fn keyframe_from_wire(
         features,
         points,
         covisible,
+        frame: if h.meta.flags & FLAG_INERTIAL_MAP != 0 {
+            MapFrame::INERTIAL
+        } else {
+            MapFrame::VISUAL
+        },
     })
 }
 
@@ -311,26 +319,50 @@ impl Closer {
         };
         let t_qq = Sim3::from_isometry(&q.t_sk, 1.0);
         let t_mm = Sim3::from_isometry(&mk.t_sk, 1.0);
+        let c_q = q.t_sk.translation.vector;
         let s_mq = t_mm.compose(&m.s_qm.inverse()).compose(&t_qq.inverse());
-        let mut header = self.header(client, CORRECTION_MERGE, m, &s_mq);
+        let (q_inertial, m_inertial) = (
+            self.map_is_inertial(m.query_map),
+            self.map_is_inertial(m.matched_map),
+        );
+        // `VI_NOTES.md` §4 "Loops and merges": two metric, gravity-aligned maps differ by
+        // x, y, z and yaw; a visual map joins an inertial one by a similarity, and it is the
+        // visual map that moves, so the merged map stays metric and gravity-aligned.
+        let (from, into, s, dof) = match (q_inertial, m_inertial) {
+            (true, true) => (m.query_map, m.matched_map, four_dof(&s_mq, &c_q), "4-DoF"),
+            (true, false) => (m.matched_map, m.query_map, s_mq.inverse(), "Sim(3)"),
+            _ => (m.query_map, m.matched_map, s_mq, "Sim(3)"),
+        };
+        let mut header = self.header(client, CORRECTION_MERGE, m, &s);
+        header.from_map = from.raw();
+        header.into_map = into.raw();
         let records = Self::pairs(m);
         header.n_records = records.len() as u32;
-        self.detector.rename_map(m.query_map, m.matched_map, &s_mq);
-        let mut moved = self.loops.remove(&m.query_map).unwrap_or_default();
+        self.detector.rename_map(from, into, &s);
+        let mut moved = self.loops.remove(&from).unwrap_or_default();
         moved.push(LoopConstraint {
             query: m.query,
             matched: m.matched,
             s_qm: m.s_qm,
         });
-        self.loops.entry(m.matched_map).or_default().extend(moved);
+        self.loops.entry(into).or_default().extend(moved);
         Ok(Outgoing {
             summary: format!(
-                "merge: keyframe {:#x} (map {:#x}) matches {:#x} (map {:#x}), {} inliers, scale {:.4}",
+                "merge ({dof}): keyframe {:#x} (map {:#x}) matches {:#x} (map {:#x}), {} inliers, \
+                 loop scale {:.4}; map {from:#x} into {into:#x}",
                 m.query, m.query_map, m.matched, m.matched_map, m.inliers, s_mq.s
             ),
             header,
             records,
         })
+    }
+
+    /// Whether map `map` is metric and gravity-aligned (one of its keyframes says so: a
+    /// visual map merged into an inertial one keeps its keyframes' old flags).
+    fn map_is_inertial(&self, map: MapId) -> bool {
+        self.detector
+            .keyframes_of_map(map)
+            .any(|k| k.frame.is_inertial())
     }
 
     /// A loop within one map: the pose graph of the map's keyframes (as this service knows
@@ -358,7 +390,13 @@ impl Closer {
             })
             .collect();
         let t0 = Instant::now();
-        let c = match correct_loop(&kfs, &loops, m.matched, &self.graph) {
+        let inertial = self.map_is_inertial(map);
+        let correct = if inertial {
+            correct_loop_four_dof
+        } else {
+            correct_loop
+        };
+        let c = match correct(&kfs, &loops, m.matched, &self.graph) {
             Ok(c) if c.report.final_cost <= c.report.initial_cost => c,
             Ok(c) => {
                 // The optimiser made the graph worse: the loop contradicts the map (or the
@@ -398,11 +436,12 @@ impl Closer {
         }
         Ok(Outgoing {
             summary: format!(
-                "loop: keyframe {:#x} matches {:#x} in map {map:#x}, {} inliers, scale {:.4}; pose graph of {} keyframes, {} + {} edges, cost {:.3e} -> {:.3e}, {} iterations, {ms:.1} ms",
+                "loop: keyframe {:#x} matches {:#x} in map {map:#x}, {} inliers, scale {:.4}; {} pose graph of {} keyframes, {} + {} edges, cost {:.3e} -> {:.3e}, {} iterations, {ms:.1} ms",
                 m.query,
                 m.matched,
                 m.inliers,
                 m.s_qm.s,
+                if inertial { "4-DoF" } else { "Sim(3)" },
                 kfs.len(),
                 c.edges.0,
                 c.edges.1,
@@ -414,6 +453,17 @@ impl Closer {
             records,
         })
     }
+}
+
+/// The 4-DoF part of a map-to-map similarity `s` between two metric, gravity-aligned maps
+/// (`VI_NOTES.md` §4): scale 1, its rotation's yaw only, and the translation that takes
+/// `c` (the query keyframe's centre) where `s` takes it.
+fn four_dof(s: &Sim3, c: &nalgebra::Vector3<f64>) -> Sim3 {
+    let r = nalgebra::UnitQuaternion::from_axis_angle(
+        &nalgebra::Vector3::z_axis(),
+        yaw(&s.r.to_rotation_matrix()),
+    );
+    Sim3::new(r, s.transform_point(c) - r * c, 1.0)
 }
 
 /// Keyframes asked of the mapper per resynchronisation batch (fewer than the loop
@@ -710,6 +760,40 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    /// Between two metric, gravity-aligned maps a merge keeps only yaw and translation of
+    /// the loop's similarity, and takes the query keyframe's centre where it took it.
+    #[test]
+    fn a_merge_of_inertial_maps_is_four_dof() {
+        let r = UnitQuaternion::from_euler_angles(0.02, -0.01, 0.7);
+        let s = Sim3::new(r, Vector3::new(1.0, -2.0, 0.5), 1.03);
+        let c = Vector3::new(3.0, 4.0, 1.5);
+        let f = four_dof(&s, &c);
+        assert_eq!(f.s, 1.0);
+        let axis = f.r.axis().map_or(Vector3::z(), |a| a.into_inner());
+        assert!((axis - Vector3::z()).norm() < 1e-12, "{axis}");
+        assert!((f.r.angle() - 0.7).abs() < 1e-3, "{}", f.r.angle());
+        assert!((f.transform_point(&c) - s.transform_point(&c)).norm() < 1e-12);
+    }
+
+    /// A loop keyframe message flagged `FLAG_INERTIAL_MAP` is of a metric, gravity-aligned
+    /// map; without the flag, of a visual one.
+    #[test]
+    fn the_map_frame_comes_from_the_loop_keyframe_flag() {
+        let mut h = LoopKeyframeHeader {
+            pose_sk: shoal_runtime::wire::wire_from_iso(&nalgebra::Isometry3::identity()),
+            width: 640,
+            height: 480,
+            ..LoopKeyframeHeader::default()
+        };
+        h.intrinsics.pinhole = [500.0, 500.0, 320.0, 240.0];
+        let visual = keyframe_from_wire(&h, &[]).expect("valid message");
+        assert_eq!(visual.frame, MapFrame::VISUAL);
+        h.meta.flags |= FLAG_INERTIAL_MAP;
+        let inertial = keyframe_from_wire(&h, &[]).expect("valid message");
+        assert_eq!(inertial.frame, MapFrame::INERTIAL);
+    }
 
     /// The counters keep the names report.json and its readers know (`loops`, `merges`,
     /// `c0.keyframes_received`, ...) and come back whole from the status file.

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use shm_schema::{
     CorrectionHeader, CorrectionRecord, Intrinsics, KeyframeHeader, KeypointRecord,
     LoopKeyframeHeader, LoopKeypointRecord, MsgMeta, CORRECTION_MERGE, CORRECTION_POSE_GRAPH,
-    MAX_LOOP_COVISIBLE, NO_MAP_POINT, RECORD_KEYFRAME_DELTA, RECORD_POINT_PAIR,
+    FLAG_INERTIAL_MAP, MAX_LOOP_COVISIBLE, NO_MAP_POINT, RECORD_KEYFRAME_DELTA, RECORD_POINT_PAIR,
 };
 use slam_core::camera::PinholeRadtan;
 use slam_core::features::OrbFeatures;
@@ -221,6 +221,9 @@ pub fn loop_keyframe(
         n_keypoints: records.len() as u32,
         ..LoopKeyframeHeader::default()
     };
+    if kept.frame.is_inertial() {
+        h.meta.flags |= FLAG_INERTIAL_MAP;
+    }
     for (i, (k, w)) in kept.covisible.iter().take(MAX_LOOP_COVISIBLE).enumerate() {
         h.covisible_ids[i] = *k;
         h.covisible_weights[i] = *w;

@@ -171,6 +171,7 @@ pub(super) fn make_keyframe(world: &World, spec: &KfSpec, rng: &mut Rng) -> Kept
         features,
         points,
         covisible: Vec::new(),
+        frame: crate::server::MapFrame::VISUAL,
     }
 }
 

@@ -380,6 +380,7 @@ impl ServerMap {
             features: kf.features.clone(),
             points,
             covisible,
+            frame: self.frame,
         })
     }
 }

@@ -191,6 +191,9 @@ pub struct KeptKeyframe {
     pub points: Vec<KeptPoint>,
     /// Covisible keyframes with their weights (shared points), best first.
     pub covisible: Vec<(KfId, u32)>,
+    /// The frame of its map (metric and gravity-aligned or not) when it was summarised:
+    /// loops and merges between metric, gravity-aligned maps have 4 degrees of freedom.
+    pub frame: MapFrame,
 }
 
 /// Result of handling one keyframe.
