@@ -29,6 +29,10 @@ pub struct RunConfig {
     /// Calibration files put in place of the datasets' own (`shoal run --calib`): none, one
     /// for every dataset, or one per dataset in the order of `datasets`.
     pub calib: Vec<PathBuf>,
+    /// Per-client modes (`shoal run --mode` given once per dataset, issue 19: mixed
+    /// monocular and visual-inertial clients), in the order of `datasets`; empty: every
+    /// client runs `tracker.mode`.
+    pub client_modes: Vec<tracker::ClientMode>,
     /// Replay mode: `"lockstep"` (nothing dropped, reproducible) or `"realtime"`.
     pub mode: ReplayMode,
     /// Speed factor in real time (1.0 = the dataset's clock).
@@ -70,6 +74,7 @@ impl Default for RunConfig {
         Self {
             datasets: Vec::new(),
             calib: Vec::new(),
+            client_modes: Vec::new(),
             mode: ReplayMode::Lockstep,
             rate: 1.0,
             out: PathBuf::from("out"),
@@ -204,7 +209,21 @@ impl RunConfig {
             self.calib.len(),
             self.datasets.len()
         );
+        anyhow::ensure!(
+            self.client_modes.is_empty() || self.client_modes.len() == self.datasets.len(),
+            "{} client modes for {} datasets: give --mode once for all or once per dataset",
+            self.client_modes.len(),
+            self.datasets.len()
+        );
         Ok(())
+    }
+
+    /// The mode client `client` runs: its own (`client_modes`), else `tracker.mode`.
+    pub fn mode_of(&self, client: usize) -> tracker::ClientMode {
+        self.client_modes
+            .get(client)
+            .copied()
+            .unwrap_or(self.tracker.mode)
     }
 
     /// The calibration file of client `client`, if any (`calib`).
@@ -397,6 +416,27 @@ mod tests {
         assert_eq!(back, d);
         let file = tmp("printed.toml", &text);
         assert_eq!(RunConfig::resolve(Some(&file), &[]).expect("file"), d);
+    }
+
+    #[test]
+    fn client_modes_are_one_per_dataset_or_none() {
+        use tracker::ClientMode;
+        let mut c = RunConfig {
+            datasets: vec!["a".into(), "b".into()],
+            ..RunConfig::default()
+        };
+        c.tracker.mode = ClientMode::Vio;
+        assert!(c.validate().is_ok());
+        assert_eq!(c.mode_of(1), ClientMode::Vio, "tracker.mode for all");
+        c.client_modes = vec![ClientMode::Mono, ClientMode::Vio];
+        assert!(c.validate().is_ok());
+        assert_eq!(
+            (c.mode_of(0), c.mode_of(1)),
+            (ClientMode::Mono, ClientMode::Vio)
+        );
+        c.client_modes.push(ClientMode::Mono);
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("3 client modes for 2 datasets"), "{e}");
     }
 
     #[test]

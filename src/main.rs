@@ -68,9 +68,11 @@ struct RunArgs {
     #[arg(long = "dataset")]
     datasets: Vec<PathBuf>,
     /// What each client runs: `auto` (visual-inertial when its dataset has an IMU stream
-    /// and camera-IMU extrinsics, else monocular), `mono` or `vio`. Sets `tracker.mode`.
+    /// and camera-IMU extrinsics, else monocular), `mono` or `vio`. Once: sets
+    /// `tracker.mode` for every client; once per `--dataset`, in the same order: each
+    /// client's own (mixed monocular and visual-inertial clients; `client_modes`).
     #[arg(long = "mode", value_enum)]
-    client_mode: Option<tracker::ClientMode>,
+    client_mode: Vec<tracker::ClientMode>,
     /// Calibration file (`shoal calibrate`'s output) put in place of the dataset's own
     /// camera model, camera-IMU pose, t_d, t_r and IMU model. Once for every dataset, or once
     /// per `--dataset` in the same order. Replaces the file's `calib`.
@@ -162,8 +164,10 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     if !args.datasets.is_empty() {
         cfg.datasets = args.datasets;
     }
-    if let Some(m) = args.client_mode {
-        cfg.tracker.mode = m;
+    match args.client_mode.as_slice() {
+        [] => {}
+        [m] => cfg.tracker.mode = *m,
+        many => cfg.client_modes = many.to_vec(),
     }
     if !args.calib.is_empty() {
         cfg.calib = args.calib;

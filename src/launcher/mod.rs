@@ -260,7 +260,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let setups: Vec<modes::ClientSetup> = datasets
         .iter()
         .enumerate()
-        .map(|(c, ds)| modes::client_setup(cfg.tracker.mode, ds, cfg.calib_of(c)))
+        .map(|(c, ds)| modes::client_setup(cfg.mode_of(c), ds, cfg.calib_of(c)))
         .collect();
     write_configs(cfg, &topology, &setups)?;
     let mut services = services_for(cfg, &topology, t0);
