@@ -20,6 +20,12 @@ pub enum Scenario {
     Loop,
     /// Two cameras on overlapping paths in the same world frame (one lap each).
     TwoAgents,
+    /// Four hand-held cameras with IMUs on overlapping paths in the same world frame (one
+    /// lap each; issue 19, visual-inertial clients on one server): the two `two-agents`
+    /// paths and two more ellipses of other sizes, heights and phases, each with the
+    /// `blackout` scenario's hand-held bounce and sways ([`add_hand_held_bounce`]), which
+    /// excite the accelerometer enough for an inertial initialisation within seconds.
+    FourAgents,
     /// One lap with fast yaw swings (up to ~2.8 rad/s) and shaking; rolling shutter 30 ms.
     FastRs,
     /// EuRoC-like drone flight (752x480 at 20 Hz, 200 Hz IMU with the ADIS16448 noise, global
@@ -64,9 +70,10 @@ pub const BLACKOUT_S: f64 = 2.0;
 
 impl Scenario {
     /// All scenarios.
-    pub const ALL: [Scenario; 7] = [
+    pub const ALL: [Scenario; 8] = [
         Scenario::Loop,
         Scenario::TwoAgents,
+        Scenario::FourAgents,
         Scenario::FastRs,
         Scenario::Drone,
         Scenario::Blackout,
@@ -80,6 +87,7 @@ impl Scenario {
         match self {
             Scenario::Loop => "loop",
             Scenario::TwoAgents => "two-agents",
+            Scenario::FourAgents => "four-agents",
             Scenario::FastRs => "fast-rs",
             Scenario::Drone => "drone",
             Scenario::Blackout => "blackout",
@@ -92,6 +100,7 @@ impl Scenario {
     pub fn n_agents(self) -> usize {
         match self {
             Scenario::TwoAgents => 2,
+            Scenario::FourAgents => 4,
             Scenario::Loop
             | Scenario::FastRs
             | Scenario::Drone
@@ -105,7 +114,7 @@ impl Scenario {
     pub fn default_duration_s(self) -> f64 {
         match self {
             Scenario::Loop | Scenario::Blackout => 2.0 * LAP_S,
-            Scenario::TwoAgents | Scenario::FastRs => LAP_S,
+            Scenario::TwoAgents | Scenario::FourAgents | Scenario::FastRs => LAP_S,
             Scenario::Drone => 2.0 * DRONE_LAP_S,
             Scenario::Phone => PHONE_LAP_S,
             Scenario::Calib => CALIB_S,
@@ -117,7 +126,11 @@ impl Scenario {
         match self {
             Scenario::FastRs => 30.0,
             Scenario::Phone | Scenario::Calib => 25.0,
-            Scenario::Loop | Scenario::TwoAgents | Scenario::Drone | Scenario::Blackout => 0.0,
+            Scenario::Loop
+            | Scenario::TwoAgents
+            | Scenario::FourAgents
+            | Scenario::Drone
+            | Scenario::Blackout => 0.0,
         }
     }
 
@@ -160,6 +173,32 @@ impl Scenario {
         let traj = match (self, agent) {
             (Scenario::Blackout, 0) => {
                 let mut t = Scenario::Loop.trajectory(0)?;
+                add_hand_held_bounce(&mut t);
+                t
+            }
+            (Scenario::FourAgents, 0 | 1) => {
+                let mut t = Scenario::TwoAgents.trajectory(agent)?;
+                add_hand_held_bounce(&mut t);
+                t
+            }
+            (Scenario::FourAgents, 2 | 3) => {
+                let (a, b, phase, z) = if agent == 2 {
+                    (5.7, 3.8, 0.5 * PI, 1.45)
+                } else {
+                    (5.0, 3.2, 1.5 * PI, 1.6)
+                };
+                let [x, y] = ellipse(a, b, phase);
+                let mut t = AnalyticTrajectory {
+                    pos: [
+                        x,
+                        y,
+                        Signal::new(z, 0.0, vec![Sine::with_period(0.12, 9.7, 0.3)]),
+                    ],
+                    yaw: Signal::new(phase, w, vec![Sine::with_period(0.15, 6.9, 0.2)]),
+                    pitch: Signal::new(0.06, 0.0, vec![Sine::with_period(0.04, 8.1, 0.1)]),
+                    roll: Signal::new(0.0, 0.0, vec![Sine::with_period(0.03, 5.9, 0.6)]),
+                    t_bs: euroc_t_bs(),
+                };
                 add_hand_held_bounce(&mut t);
                 t
             }
@@ -376,8 +415,8 @@ impl FromStr for Scenario {
             .find(|sc| sc.name().eq_ignore_ascii_case(s.trim()))
             .ok_or_else(|| {
                 format!(
-                    "unknown scenario `{s}` (expected one of: loop, two-agents, fast-rs, drone, \
-                     blackout, phone)"
+                    "unknown scenario `{s}` (expected one of: loop, two-agents, four-agents, \
+                     fast-rs, drone, blackout, phone, calib)"
                 )
             })
     }
