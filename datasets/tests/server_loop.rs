@@ -454,6 +454,8 @@ fn load(path: &std::path::Path, world: &SimWorld) -> Option<Vec<ServerKeyframe>>
             readout_ns,
             features,
             client_points,
+            inertial: None,
+            imu: None,
         });
     }
     Some(out)

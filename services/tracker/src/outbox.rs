@@ -7,18 +7,25 @@
 //! publishes them ([`KeyframeMsg`]); times are the caller's `now_ns`.
 use std::collections::BTreeMap;
 
-use shm_schema::topics::MAX_KEYPOINTS;
-use shm_schema::{KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT};
+use shm_schema::topics::{MAX_IMU_RECORDS, MAX_KEYPOINTS};
+use shm_schema::{ImuRecord, KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT};
+use slam_core::vo::keyframe_imu::KeyframeImu;
 use slam_core::vo::Keyframe;
 
-/// A keyframe message (header and keypoint records) as it goes on the wire.
+/// A keyframe message (header, keypoint records, IMU records) as it goes on the wire.
 #[derive(Debug, Clone)]
 pub struct KeyframeMsg {
-    /// Header: session, id, pose, intrinsics.
+    /// Header: session, id, pose, intrinsics, IMU segment borders and calibration.
     pub header: KeyframeHeader,
     /// One record per keypoint, shared by the outbox and the messages it hands out (a
     /// re-send copies the header only).
     pub records: std::sync::Arc<[KeypointRecord]>,
+    /// The IMU segment since the previous keyframe (`header.n_imu` samples, borders
+    /// interpolated, `VI_NOTES.md` §4 Fig. 5.4); empty for a monocular client.
+    pub imu: std::sync::Arc<[ImuRecord]>,
+    /// Samples of the segment left out because it was longer than [`MAX_IMU_RECORDS`]
+    /// (counted and logged by the sender; not on the wire).
+    pub imu_cut: usize,
 }
 
 impl KeyframeMsg {
@@ -94,11 +101,39 @@ pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg
         velocity_w: kf.inertial.map_or([0.0; 3], |i| i.v_wb.into()),
         gyro_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.gyro.into()),
         accel_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.accel.into()),
+        ..KeyframeHeader::default()
     };
+    let (header, imu, imu_cut) = with_imu_segment(header, kf.imu.as_ref());
     KeyframeMsg {
         header,
         records: records.into(),
+        imu: imu.into(),
+        imu_cut,
     }
+}
+
+/// `header` with the IMU fields of segment `seg` (issue 19; `None`: a monocular client,
+/// unchanged), its records (borders interpolated at exactly the previous keyframe's and
+/// this keyframe's IMU times, [`KeyframeImu::interpolated_samples`]; none for a session's
+/// first keyframe or an incomplete segment), and the samples cut beyond
+/// [`MAX_IMU_RECORDS`] (the segment then ends at its last record, before the keyframe).
+fn with_imu_segment(
+    mut header: KeyframeHeader,
+    seg: Option<&KeyframeImu>,
+) -> (KeyframeHeader, Vec<ImuRecord>, usize) {
+    let Some(seg) = seg else {
+        return (header, Vec::new(), 0);
+    };
+    header.has_imu = 1;
+    header.imu_t1_ns = seg.t_ns;
+    header.imu_calib = shoal_runtime::wire::wire_from_imu_calibration(&seg.calib);
+    let mut samples = seg.interpolated_samples().unwrap_or_default();
+    let cut = samples.len().saturating_sub(MAX_IMU_RECORDS);
+    samples.truncate(MAX_IMU_RECORDS);
+    let records: Vec<ImuRecord> = samples.iter().map(shoal_runtime::wire::imu_record).collect();
+    header.n_imu = records.len() as u32;
+    header.imu_t0_ns = records.first().map_or(0, |r| r.t_ns);
+    (header, records, cut)
 }
 
 impl Outbox {
@@ -224,6 +259,8 @@ mod tests {
         KeyframeMsg {
             header,
             records: vec![KeypointRecord::default(); 3].into(),
+            imu: Vec::new().into(),
+            imu_cut: 0,
         }
     }
 

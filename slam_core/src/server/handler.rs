@@ -26,6 +26,7 @@ use crate::ids::{ClientId, KeyframeId, MapPointId};
 use crate::lie::Sim3;
 use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
 use crate::optim::PoseOptParams;
+use crate::vo::keyframe_imu::{join_segments, KeyframeImu};
 use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
 use crate::vo::local_mapping::{
     create_points_with_neighbours, cull_recent_points, global_bundle_adjustment,
@@ -193,6 +194,11 @@ pub struct KeyframeHandler {
     /// Time (ns) of the keyframe that triggered the last revisit global BA.
     last_revisit_ba: Option<i64>,
     held: Option<Held>,
+    /// The IMU segment of the session's keyframes discarded since the last one inserted,
+    /// joined: it joins the next keyframe's, as a culled keyframe's does
+    /// ([`crate::vo::keyframe_imu::join_segments`], `VI_NOTES.md` §4 Fig. 5.4), so that the
+    /// keyframes of the server map stay linked.
+    imu_carry: Option<KeyframeImu>,
     /// Client keyframe id of the last [`ServerMap::forget_unseen`].
     last_forget: KfId,
     next_point_id: PointId,
@@ -221,6 +227,7 @@ impl KeyframeHandler {
             global_ba: false,
             last_revisit_ba: None,
             held: None,
+            imu_carry: None,
             last_forget: 0,
             next_point_id: MapPointId::first_of_client(ClientId::new(client_id)).raw(),
             stats: HandlerStats::default(),
@@ -324,6 +331,7 @@ impl KeyframeHandler {
             // New session: the old one's last keyframe joins its map if it was discarded;
             // a new server map once the new session has two keyframes.
             let closed = self.insert_held(maps);
+            self.imu_carry = None;
             self.session = Some(kf.session_id);
             self.current = None;
             self.last = None;
@@ -436,13 +444,16 @@ impl KeyframeHandler {
     fn track(
         &mut self,
         maps: &mut ServerMaps,
-        kf: ServerKeyframe,
+        mut kf: ServerKeyframe,
     ) -> Result<HandleReport, CoreError> {
         let (Some(map_id), Some(last)) = (self.current, self.last) else {
             return Err(CoreError::InvalidArgument(
                 "no server map to track in".into(),
             ));
         };
+        if let (Some(carried), Some(seg)) = (self.imu_carry.take(), kf.imu.as_mut()) {
+            join_segments(&carried, seg);
+        }
         let t_sj = self.last_server_pose(maps, &last);
         let owner = (kf.client_id, kf.session_id);
         let Some(map) = maps.get_mut(&map_id) else {
@@ -545,6 +556,7 @@ impl KeyframeHandler {
             }
         } else {
             self.stats.discarded += 1;
+            self.imu_carry = kf.imu.clone();
             if reference.is_some() {
                 self.reference = reference;
             }

@@ -62,6 +62,8 @@ fn keyframe(id: u64, session: u32, t_wk: &Isometry3<f64>, t_ck: &Isometry3<f64>)
         readout_ns: 0,
         features,
         client_points,
+        inertial: None,
+        imu: None,
     }
 }
 
@@ -225,4 +227,78 @@ fn forget_unseen_keeps_recently_referenced_points() {
     assert_eq!(map.forget_unseen(5), 1);
     assert_eq!(map.association_count().0, 2);
     assert_eq!(map.forget_unseen(100), 0);
+}
+
+/// A visual-inertial client's keyframe `id` (every 50 ms, IMU every 1 ms): its segment
+/// from the previous keyframe as the wire carries it (none for the session's first).
+fn with_imu(mut kf: ServerKeyframe) -> ServerKeyframe {
+    use crate::imu::{ImuMeasurement, PreintegrationParams};
+    use crate::vo::keyframe_imu::{ImuCalibration, KeyframeImu};
+    let t = kf.t_ns;
+    let t_prev = (kf.id > 0).then(|| t - 50_000_000);
+    let samples = t_prev.map_or_else(Vec::new, |t0| {
+        (t0..=t)
+            .step_by(1_000_000)
+            .map(|t_ns| ImuMeasurement {
+                t_ns,
+                gyro: Vector3::new(0.01, 0.0, 0.0),
+                accel: Vector3::new(0.0, 0.0, 9.81),
+            })
+            .collect()
+    });
+    let preint = PreintegrationParams::new(&Default::default(), &Default::default());
+    kf.imu = Some(KeyframeImu {
+        t_prev_ns: t_prev,
+        t_ns: t,
+        samples,
+        calib: ImuCalibration {
+            preint: preint.expect("params"),
+            t_bc: Isometry3::identity(),
+            t_d_ns: 0,
+        },
+    });
+    kf.inertial = Some(crate::vo::KeyframeInertial {
+        v_wb: Vector3::new(1.0, 0.0, 0.0),
+        ..Default::default()
+    });
+    kf
+}
+
+/// Issue 19: a visual-inertial client's keyframes reach the server map with their IMU
+/// segments and velocities; the segments of keyframes the handler discards join the next
+/// kept keyframe's, so that consecutive keyframes of the map are linked and their
+/// segments tile the time axis (one sample every ms, each once).
+#[test]
+fn discarded_keyframes_segments_join_the_next_kept() {
+    let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
+    let mut discarded = 0;
+    for k in 0..16 {
+        let t_wk = Isometry3::translation(0.04 * k as f64, 0.0, 0.0);
+        let r = h
+            .handle(&mut maps, with_imu(keyframe(k as u64, 1, &t_wk, &t_wk)))
+            .expect("handled");
+        discarded += usize::from(r.status == KeyframeStatus::Discarded);
+        h.idle_step(&mut maps);
+    }
+    assert!(discarded >= 2, "{discarded} discarded");
+    let map = h.current_map(&maps).expect("map");
+    let kfs: Vec<&crate::vo::Keyframe> = map.map.keyframes.values().collect();
+    assert!(kfs.len() >= 3, "{} kept", kfs.len());
+    for w in kfs.windows(2) {
+        let (a, b) = (w[0].imu.as_ref(), w[1].imu.as_ref());
+        let (a, b) = (a.expect("segment"), b.expect("segment"));
+        assert!(b.links(a), "{} -> {}", a.t_ns, b.t_ns);
+        let n = (b.t_ns - a.t_ns) / 1_000_000 + 1;
+        assert_eq!(b.samples.len() as i64, n, "every sample once");
+    }
+    let span = kfs[kfs.len() - 1].t_ns - kfs[0].t_ns;
+    let covered: i64 = kfs[1..]
+        .iter()
+        .filter_map(|k| k.imu.as_ref())
+        .map(|s| s.t_ns - s.t_prev_ns.expect("linked"))
+        .sum();
+    assert_eq!(covered, span);
+    let v = kfs[2].inertial.expect("inertial").v_wb;
+    assert!((v - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-9, "{v}");
 }

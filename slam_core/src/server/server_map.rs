@@ -11,7 +11,7 @@ use crate::ids::{ClientId, KeyframeId};
 use crate::twoview::triangulate::{
     check_point, projection_matrix, triangulate_dlt, CheckView, TriangulationCheck,
 };
-use crate::vo::{ClientMap, Keyframe, KfId, PointId};
+use crate::vo::{ClientMap, Keyframe, KeyframeInertial, KfId, PointId};
 
 /// Observations of one client point waiting for a second kept keyframe with parallax.
 const MAX_PENDING_PER_POINT: usize = 4;
@@ -203,7 +203,11 @@ impl ServerMap {
     }
 
     /// Inserts `kf` at server pose `t_sk` with the given server points per keypoint;
-    /// returns its server id.
+    /// returns its server id. A visual-inertial client's keyframe keeps its IMU segment and
+    /// its velocity and biases (issue 19), so the server map's keyframes are linked as the
+    /// VO's are ([`crate::vo::vi_window`]); the velocity is rotated from the client map into
+    /// the server frame by `R_sc = R_sk R_ck⁻¹` (not scaled: a visual-inertial map is
+    /// metric, `λ` ≈ 1 is only a monitor, `VI_NOTES.md` §4 "Server").
     pub(crate) fn insert(
         &mut self,
         kf: &ServerKeyframe,
@@ -211,6 +215,7 @@ impl ServerMap {
         points: &[Option<PointId>],
     ) -> KfId {
         let id = KeyframeId::new(ClientId::new(kf.client_id), kf.id).raw();
+        let r_sc = t_sk.rotation * kf.t_ck.rotation.inverse();
         self.map.insert_keyframe(Keyframe {
             id,
             t_ns: kf.t_ns,
@@ -219,8 +224,11 @@ impl ServerMap {
             readout_ns: kf.readout_ns,
             features: kf.features.clone(),
             points: points.to_vec(),
-            inertial: None,
-            imu: None,
+            inertial: kf.inertial.map(|i| KeyframeInertial {
+                v_wb: r_sc * i.v_wb,
+                ..i
+            }),
+            imu: kf.imu.clone(),
         });
         for p in points.iter().flatten() {
             self.map.update_point(*p);

@@ -6,7 +6,8 @@ use nalgebra::{Isometry3, Vector3};
 use crate::camera::PinholeRadtan;
 use crate::features::OrbFeatures;
 use crate::ids::ClientKeyframeId;
-use crate::vo::{Keyframe, KfId, PointId};
+use crate::vo::keyframe_imu::KeyframeImu;
+use crate::vo::{Keyframe, KeyframeInertial, KfId, PointId};
 use crate::CoreError;
 
 pub use crate::ids::MapId;
@@ -34,6 +35,13 @@ pub struct ServerKeyframe {
     pub features: OrbFeatures,
     /// Client map-point id seen by each keypoint, if any.
     pub client_points: Vec<Option<PointId>>,
+    /// Velocity (in the client map) and biases of a visual-inertial client's keyframe after
+    /// its inertial initialisation (`VI_NOTES.md` §4 "Server"); `None` otherwise.
+    pub inertial: Option<KeyframeInertial>,
+    /// The IMU segment since the previous keyframe of the session and the client's IMU
+    /// calibration (issue 19, Fig. 5.4); `None` for a monocular client. A session's first
+    /// keyframe has one without predecessor (`t_prev_ns` `None`, no samples).
+    pub imu: Option<KeyframeImu>,
 }
 
 impl ServerKeyframe {
@@ -49,6 +57,8 @@ impl ServerKeyframe {
             readout_ns: kf.readout_ns,
             features: kf.features.clone(),
             client_points: kf.points.clone(),
+            inertial: kf.inertial,
+            imu: kf.imu.clone(),
         }
     }
 

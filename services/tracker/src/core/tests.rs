@@ -137,6 +137,8 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
         KeyframeMsg {
             header: h,
             records: Vec::new().into(),
+            imu: Vec::new().into(),
+            imu_cut: 0,
         },
         5,
     );
