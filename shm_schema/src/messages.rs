@@ -954,7 +954,7 @@ const _: () = {
     assert!(size_of::<FrameAck>() == 56);
     assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 8 + 16 + 16 + 32 + 16);
     assert!(size_of::<ImuCalib>() == 56 + 8 + 32 + 3 * 72);
-    assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16 + 72 + 24 + 8 + 312);
+    assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16 + 72 + 8 + 16 + 312);
     assert!(size_of::<KeypointRecord>() == 64 && align_of::<KeypointRecord>() == 8);
     assert!(size_of::<ImuRecord>() == 64 && align_of::<ImuRecord>() == 8);
     assert!(size_of::<KeyframeRecord>() == 64 && align_of::<KeyframeRecord>() == 8);

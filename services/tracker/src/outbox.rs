@@ -8,7 +8,10 @@
 use std::collections::BTreeMap;
 
 use shm_schema::topics::{MAX_IMU_RECORDS, MAX_KEYPOINTS};
-use shm_schema::{ImuRecord, KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT};
+use shm_schema::{
+    ImuRecord, KeyframeHeader, KeyframeRecord, KeypointRecord, MsgMeta, Pose, FLAG_RESEND,
+    NO_MAP_POINT,
+};
 use slam_core::vo::keyframe_imu::KeyframeImu;
 use slam_core::vo::Keyframe;
 
@@ -32,6 +35,13 @@ impl KeyframeMsg {
     /// The keyframe's (VO session, id).
     pub fn key(&self) -> (u32, u64) {
         (self.header.meta.session_id, self.header.keyframe_id)
+    }
+
+    /// The payload as published: the keypoint records, then the IMU records.
+    pub fn payload(&self) -> Vec<KeyframeRecord> {
+        let kps = self.records.iter().map(|r| KeyframeRecord::from(*r));
+        kps.chain(self.imu.iter().map(|r| KeyframeRecord::from(*r)))
+            .collect()
     }
 }
 

@@ -25,10 +25,19 @@ pub fn transform_pose(s: &Sim3, t: &Isometry3<f64>) -> Isometry3<f64> {
     s.compose(&Sim3::from_isometry(t, 1.0)).to_isometry()
 }
 
-/// Transforms a whole map (keyframe poses and points) by the similarity `s`.
+/// Moves a keyframe's velocity (a visual-inertial client's, issue 19) with its map by the
+/// similarity `s`: `v' = s R v` (biases are in the body frame and do not move).
+fn transform_velocity(s: &Sim3, inertial: &mut Option<crate::vo::KeyframeInertial>) {
+    if let Some(i) = inertial {
+        i.v_wb = s.r * i.v_wb * s.s;
+    }
+}
+
+/// Transforms a whole map (keyframe poses, velocities and points) by the similarity `s`.
 pub fn transform_map(map: &mut ClientMap, s: &Sim3) {
     for kf in map.keyframes.values_mut() {
         kf.t_cw = transform_pose(s, &kf.t_cw.inverse()).inverse();
+        transform_velocity(s, &mut kf.inertial);
     }
     let ids: Vec<PointId> = map.points.keys().copied().collect();
     for mp in map.points.values_mut() {
@@ -159,6 +168,7 @@ pub fn apply_pose_corrections(
             }
         };
         kf.t_cw = transform_pose(d, &kf.t_cw.inverse()).inverse();
+        transform_velocity(d, &mut kf.inertial);
     }
     let ids: Vec<PointId> = map.points.keys().copied().collect();
     for mp in map.points.values_mut() {

@@ -299,7 +299,7 @@ mod tests {
         let raw = Preintegrated::from_window(&a.samples, t0, a.t_ns, bias, params);
         let wire = Preintegrated::from_window(&wa, t0, a.t_ns, bias, params);
         let (raw, wire) = (raw.expect("raw"), wire.expect("wire"));
-        let dr = (raw.delta_r().inverse() * wire.delta_r()).angle();
+        let dr = (raw.delta_r().matrix() - wire.delta_r().matrix()).norm();
         assert!(dr < 1e-12, "{dr}");
         assert!((raw.delta_v() - wire.delta_v()).norm() < 1e-12);
         assert!((raw.delta_p() - wire.delta_p()).norm() < 1e-12);
