@@ -67,7 +67,11 @@ fn check_messages(kfs: &[(KeyframeHeader, Vec<i64>)], stamps: &[i64]) -> usize {
         }
         let p = prev.expect("same session");
         assert!(h.n_imu > 0, "keyframe {} without a segment", h.keyframe_id);
-        assert_eq!(h.imu_t0_ns, p.imu_t1_ns, "keyframe {}: tiles", h.keyframe_id);
+        assert_eq!(
+            h.imu_t0_ns, p.imu_t1_ns,
+            "keyframe {}: tiles",
+            h.keyframe_id
+        );
         assert_eq!(
             (times[0], times[times.len() - 1]),
             (h.imu_t0_ns, h.imu_t1_ns),
@@ -140,7 +144,11 @@ fn keyframes_carry_tiling_imu_segments_and_mono_ones_none() {
     let kfs = journaled(&out, 0);
     assert!(kfs.len() >= 4, "{} keyframes applied", kfs.len());
     let with_segment = check_messages(&kfs, &stamps);
-    assert!(with_segment + 2 >= kfs.len(), "{with_segment} of {}", kfs.len());
+    assert!(
+        with_segment + 2 >= kfs.len(),
+        "{with_segment} of {}",
+        kfs.len()
+    );
     assert_eq!(c0["keyframes_with_imu"], with_segment as u64);
     assert_eq!(c0["imu_segments_refused"], 0);
     let linked = check_server_map(&out, &stamps);
@@ -155,7 +163,10 @@ fn keyframes_carry_tiling_imu_segments_and_mono_ones_none() {
     assert!(!out.join("imu_segments_server_c1.txt").exists());
     for c in [c0, c1] {
         let mean = c["keyframe_bytes_mean"].as_f64().expect("bytes");
-        assert!(mean > std::mem::size_of::<KeyframeHeader>() as f64, "{mean}");
+        assert!(
+            mean > std::mem::size_of::<KeyframeHeader>() as f64,
+            "{mean}"
+        );
         assert!(c["keyframes_per_s"].as_f64().expect("rate") > 0.0);
     }
     // The only error: the monocular client's IMU ingest finds no IMU file.

@@ -553,7 +553,9 @@ impl Default for ImuCalib {
 
 /// One IMU sample of a keyframe message's segment (64 bytes), body frame, raw (not
 /// corrected by the intrinsics).
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable,
+)]
 #[type_name("shoal::v4::ImuRecord")]
 #[repr(C)]
 pub struct ImuRecord {
@@ -570,7 +572,9 @@ pub struct ImuRecord {
 /// One 64-byte, 8-aligned slot of a keyframe message's payload: a [`KeypointRecord`] or an
 /// [`ImuRecord`], as the header says ([`KeyframeHeader::keypoints`],
 /// [`KeyframeHeader::imu_records`]); built with `From` either of them.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable,
+)]
 #[type_name("shoal::v4::KeyframeRecord")]
 #[repr(C)]
 pub struct KeyframeRecord {

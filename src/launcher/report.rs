@@ -666,11 +666,7 @@ fn client_report(
         ]),
         keyframe_bytes_per_s: keyframe_rate(ds, total, m.keyframe_bytes),
         keyframe_bytes_mean: m.keyframe_bytes as f64 / m.keyframes_received.max(1) as f64,
-        keyframes_per_s: keyframe_rate(
-            ds,
-            total,
-            journaled_applied.unwrap_or(m.keyframes_applied),
-        ),
+        keyframes_per_s: keyframe_rate(ds, total, journaled_applied.unwrap_or(m.keyframes_applied)),
         keyframes_with_imu: m.keyframes_with_imu,
         keyframe_imu_samples: m.imu_samples_received,
         imu_segments_refused: m.imu_segments_refused,

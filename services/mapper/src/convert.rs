@@ -13,8 +13,8 @@ use shm_schema::{
 use slam_core::camera::PinholeRadtan;
 use slam_core::features::OrbFeatures;
 use slam_core::ids::MapId;
-use slam_core::lie::Sim3;
 use slam_core::imu::ImuBiases;
+use slam_core::lie::Sim3;
 use slam_core::server::{KeptKeyframe, ServerKeyframe};
 use slam_core::vo::keyframe_imu::KeyframeImu;
 use slam_core::vo::{KeyframeInertial, KfId, PointId};
@@ -146,7 +146,11 @@ fn imu_segment(h: &KeyframeHeader, imu: &[ImuRecord]) -> Result<KeyframeImu, Str
         calib,
     };
     if h.n_imu as usize != imu.len() {
-        return Err(format!("{} IMU records, header says {}", imu.len(), h.n_imu));
+        return Err(format!(
+            "{} IMU records, header says {}",
+            imu.len(),
+            h.n_imu
+        ));
     }
     let (Some(first), Some(last)) = (imu.first(), imu.last()) else {
         return Ok(seg);
@@ -156,7 +160,10 @@ fn imu_segment(h: &KeyframeHeader, imu: &[ImuRecord]) -> Result<KeyframeImu, Str
         return Err(format!("IMU record {i}: non-finite value"));
     }
     if let Some(i) = imu.windows(2).position(|w| w[1].t_ns <= w[0].t_ns) {
-        return Err(format!("IMU record {}: time not after the previous one", i + 1));
+        return Err(format!(
+            "IMU record {}: time not after the previous one",
+            i + 1
+        ));
     }
     if imu.len() < 2 || first.t_ns != h.imu_t0_ns || last.t_ns != h.imu_t1_ns {
         return Err(format!(
@@ -416,7 +423,10 @@ mod tests {
         assert_eq!(inertial.biases.gyro.x, 1e-3);
         let mut first = h;
         (first.n_imu, first.imu_t0_ns) = (0, 0);
-        let seg = server_keyframe(1, &first, &[], Ok(&[])).expect("valid").kf.imu;
+        let seg = server_keyframe(1, &first, &[], Ok(&[]))
+            .expect("valid")
+            .kf
+            .imu;
         let seg = seg.expect("a segment without predecessor");
         assert_eq!((seg.t_prev_ns, seg.samples.len()), (None, 0));
         let mut mono = first;
@@ -462,6 +472,8 @@ mod tests {
             assert!(conv.kf.imu.is_none() && conv.kf.inertial.is_none(), "{why}");
         }
         let conv = server_keyframe(1, &h, &[], Err("payload short".into())).expect("keyframe");
-        assert!(conv.imu_refused.is_some_and(|e| e.contains("payload short")));
+        assert!(conv
+            .imu_refused
+            .is_some_and(|e| e.contains("payload short")));
     }
 }

@@ -497,7 +497,7 @@ impl Mapper {
                 Ok(convert::Converted { kf, .. }) => {
                     self.clients[client as usize].applied.insert(key);
                     let job = Job::Keyframe {
-                        kf,
+                        kf: Box::new(kf),
                         idle: Some(idle.contains(&(client, key.0, key.1))),
                         replay: true,
                     };
@@ -557,12 +557,22 @@ impl Mapper {
 
     /// Converts, journals and queues a new keyframe message of client `c` (see
     /// [`Self::receive`]).
-    fn apply(&mut self, c: u32, h: &KeyframeHeader, payload: &[KeyframeRecord]) -> anyhow::Result<()> {
+    fn apply(
+        &mut self,
+        c: u32,
+        h: &KeyframeHeader,
+        payload: &[KeyframeRecord],
+    ) -> anyhow::Result<()> {
         let imu = h.imu_records(payload).map_err(|e| e.to_string());
         let converted = h
             .keypoints(payload)
             .map_err(|e| format!("keyframe {}: {e}", h.keyframe_id))
-            .and_then(|records| Ok((records, convert::server_keyframe(c, h, records, imu.clone())?)));
+            .and_then(|records| {
+                Ok((
+                    records,
+                    convert::server_keyframe(c, h, records, imu.clone())?,
+                ))
+            });
         let (records, convert::Converted { kf, imu_refused }) = match converted {
             Ok(x) => x,
             Err(e) => {
@@ -595,7 +605,7 @@ impl Mapper {
         // default idles when the queue is empty).
         let idle = self.sync.is_some().then_some(true);
         let job = Job::Keyframe {
-            kf,
+            kf: Box::new(kf),
             idle,
             replay: false,
         };
@@ -759,7 +769,11 @@ mod tests {
 
     /// A message of client 0 at `t_s` seconds: one keypoint, then (when `imu` is given) a
     /// visual-inertial client's segment of those records.
-    fn message(id: u64, t_s: i64, imu: Option<Vec<shm_schema::ImuRecord>>) -> (KeyframeHeader, Vec<KeyframeRecord>) {
+    fn message(
+        id: u64,
+        t_s: i64,
+        imu: Option<Vec<shm_schema::ImuRecord>>,
+    ) -> (KeyframeHeader, Vec<KeyframeRecord>) {
         let mut h = KeyframeHeader {
             meta: MsgMeta::new(0, 1, id, 0),
             keyframe_id: id,
@@ -849,7 +863,10 @@ mod tests {
         let mut m = Mapper::new(&params, &cfg, Status::new("mapper"), tx);
         m.open_journal(&path).expect("replay");
         assert!(m.status.errors.is_empty(), "{:?}", m.status.errors);
-        assert_eq!(m.status.values.get("journal_keyframes_on_start"), Some(&6.0));
+        assert_eq!(
+            m.status.values.get("journal_keyframes_on_start"),
+            Some(&6.0)
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

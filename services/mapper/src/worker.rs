@@ -38,8 +38,8 @@ pub const MAX_WITHOUT_IDLE: usize = 4;
 pub enum Job {
     /// A keyframe for its client's handler (created on first use).
     Keyframe {
-        /// The keyframe.
-        kf: ServerKeyframe,
+        /// The keyframe (boxed: with its IMU segment it is large beside the other jobs).
+        kf: Box<ServerKeyframe>,
         /// Run the idle step after it: `Some` to follow a journaled schedule (replay),
         /// `None` to decide live.
         idle: Option<bool>,
@@ -429,7 +429,7 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
             }
             Job::Keyframe { kf, idle, replay } => {
                 dirty = true;
-                Report::Keyframe(Box::new(handle(&mut g, &params, kf, idle, replay, &rx)))
+                Report::Keyframe(Box::new(handle(&mut g, &params, *kf, idle, replay, &rx)))
             }
         };
         if results.send(report).is_err() {
@@ -523,7 +523,10 @@ fn write_files(out: Option<&Path>, g: &Group) {
         }
         let _ = std::fs::write(out.join(format!("map_growth_c{c}.txt")), text);
         let current = cs.h.current_map_id();
-        if let Some(text) = current.and_then(|m| g.maps.get(&m)).and_then(|m| imu_segments_text(m, *c)) {
+        if let Some(text) = current
+            .and_then(|m| g.maps.get(&m))
+            .and_then(|m| imu_segments_text(m, *c))
+        {
             let _ = std::fs::write(out.join(format!("imu_segments_server_c{c}.txt")), text);
         }
         for (id, m) in &g.maps {

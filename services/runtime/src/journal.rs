@@ -472,7 +472,10 @@ fn encode(entry: &Entry) -> (u8, Vec<u8>) {
             header,
             records,
             imu,
-        } => (KIND_KEYFRAME, encode_keyframe(*client, header, records, imu)),
+        } => (
+            KIND_KEYFRAME,
+            encode_keyframe(*client, header, records, imu),
+        ),
         Entry::Idle {
             client,
             session,
@@ -913,7 +916,10 @@ mod tests {
         framed.extend(checksum(kind, len, &payload).to_le_bytes());
         let c = parse(&framed);
         assert!(c.entries.is_empty());
-        assert!(c.problem.as_deref().is_some_and(|p| p.contains("undecodable")));
+        assert!(c
+            .problem
+            .as_deref()
+            .is_some_and(|p| p.contains("undecodable")));
     }
 
     /// A spool file: a keyframe entry and its map points, read back whole; cut short, the
@@ -954,7 +960,10 @@ mod tests {
         let e = parse_spool(path, &old).expect_err("version 2");
         let text = e.to_string();
         assert!(text.contains("spool file spool/0001_0004.kf"), "{text}");
-        assert!(text.contains("journal version 2 of schema version"), "{text}");
+        assert!(
+            text.contains("journal version 2 of schema version"),
+            "{text}"
+        );
         assert!(
             text.contains(&format!("reads journal version {JOURNAL_VERSION}")),
             "{text}"

@@ -5,10 +5,10 @@
 //! the tracking state. Ids convert through [`slam_core::ids`].
 use nalgebra::{Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use shm_schema::{ImuCalib, ImuRecord, Intrinsics, Pose, TrackState};
-use slam_core::imu::{ImuIntrinsics, ImuMeasurement, ImuNoise, PreintegrationParams};
-use slam_core::vo::keyframe_imu::ImuCalibration;
 use slam_core::camera::PinholeRadtan;
+use slam_core::imu::{ImuIntrinsics, ImuMeasurement, ImuNoise, PreintegrationParams};
 use slam_core::lie::Sim3;
+use slam_core::vo::keyframe_imu::ImuCalibration;
 use slam_core::vo::VoState;
 
 /// A wire quaternion norm below this is no rotation.

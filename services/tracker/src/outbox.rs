@@ -140,7 +140,10 @@ fn with_imu_segment(
     let mut samples = seg.interpolated_samples().unwrap_or_default();
     let cut = samples.len().saturating_sub(MAX_IMU_RECORDS);
     samples.truncate(MAX_IMU_RECORDS);
-    let records: Vec<ImuRecord> = samples.iter().map(shoal_runtime::wire::imu_record).collect();
+    let records: Vec<ImuRecord> = samples
+        .iter()
+        .map(shoal_runtime::wire::imu_record)
+        .collect();
     header.n_imu = records.len() as u32;
     header.imu_t0_ns = records.first().map_or(0, |r| r.t_ns);
     (header, records, cut)

@@ -341,8 +341,10 @@ mod tests {
         assert_eq!(rec.keyframes[0].imu.len(), 2);
         assert!(rec.keyframes[0].points.is_none());
         assert_eq!(rec.errors.len(), 3, "{:?}", rec.errors);
-        assert!(rec.errors.iter().any(|e| e.contains("0000000000000004.kf")
-            && e.contains("no spool file header")));
+        assert!(rec
+            .errors
+            .iter()
+            .any(|e| e.contains("0000000000000004.kf") && e.contains("no spool file header")));
         assert!(rec.errors.iter().any(|e| e.contains("0000000000000005.kf")));
         assert_eq!(std::fs::read_dir(&dir).expect("dir").count(), 1);
         let _ = std::fs::remove_dir_all(&dir);
