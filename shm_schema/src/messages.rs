@@ -644,6 +644,8 @@ impl KeyframeHeader {
             n_keypoints: self.n_keypoints,
             len: payload.len(),
         })?;
+        // Cannot fail: both record types are 64 bytes, 8-aligned (checked at compile time
+        // at the bottom of this file).
         Ok(bytemuck::cast_slice(recs))
     }
 
@@ -665,6 +667,7 @@ impl KeyframeHeader {
                 after_keypoints: rest.len(),
             });
         }
+        // Cannot fail (as above).
         Ok(bytemuck::cast_slice(rest))
     }
 }

@@ -43,9 +43,10 @@ pub const MAX_CORRECTION_RECORDS: usize = 16384;
 pub const MAX_KEYPOINTS: usize = 4096;
 /// Largest number of IMU records in one keyframe message (10 s at 400 Hz). A longer
 /// segment (a keyframe more than 10 s after the previous one at 400 Hz) is cut by the
-/// tracker to its first `MAX_IMU_RECORDS` samples, with a counted, logged error
-/// (`keyframe_imu_cut`); the server then sees a segment that does not reach the keyframe
-/// and does not link the two keyframes.
+/// tracker to its first `MAX_IMU_RECORDS` samples, never a panic: the tracker counts it
+/// (`keyframe_imu_cut`) and logs an `imu_segment_cut` error; the cut segment ends before
+/// its keyframe, so the mapper refuses it (`bad_imu_segment`) and applies the keyframe
+/// visual-only: the two keyframes are not linked on the server.
 pub const MAX_IMU_RECORDS: usize = 4000;
 /// Records of the largest keyframe message payload (keypoints and IMU records).
 pub const MAX_KEYFRAME_RECORDS: usize = MAX_KEYPOINTS + MAX_IMU_RECORDS;

@@ -277,6 +277,60 @@ mod tests {
         }
     }
 
+    /// A segment of `n` samples 2.5 ms apart, the keyframes at both ends (between samples).
+    fn segment(n: i64, t_prev: Option<i64>) -> KeyframeImu {
+        use slam_core::imu::{ImuMeasurement, PreintegrationParams};
+        let samples = (0..n)
+            .map(|k| ImuMeasurement {
+                t_ns: k * 2_500_000,
+                gyro: nalgebra::Vector3::new(0.1, 0.0, 0.0),
+                accel: nalgebra::Vector3::new(0.0, 0.0, 9.81),
+            })
+            .collect();
+        let preint = PreintegrationParams::new(&Default::default(), &Default::default());
+        KeyframeImu {
+            t_prev_ns: t_prev,
+            t_ns: (n - 1) * 2_500_000 - 1_000_000,
+            samples,
+            calib: slam_core::vo::keyframe_imu::ImuCalibration {
+                preint: preint.expect("params"),
+                t_bc: nalgebra::Isometry3::translation(0.1, 0.0, 0.0),
+                t_d_ns: 7,
+            },
+        }
+    }
+
+    /// The IMU part of a message (issue 19): a monocular keyframe's header is unchanged; a
+    /// session's first keyframe carries the calibration and no record; a segment has its
+    /// borders exact; one longer than `MAX_IMU_RECORDS` is cut to that many records, and
+    /// the cut is reported for counting.
+    #[test]
+    fn imu_segments_on_the_wire_and_cut_beyond_the_limit() {
+        let h = KeyframeHeader::default();
+        let (mono, recs, cut) = with_imu_segment(h, None);
+        assert_eq!((mono, recs.len(), cut), (h, 0, 0));
+        let (first, recs, cut) = with_imu_segment(h, Some(&segment(10, None)));
+        assert_eq!((first.has_imu, first.n_imu, recs.len(), cut), (1, 0, 0, 0));
+        assert_eq!(first.imu_calib.t_d_ns, 7);
+        assert_eq!(first.imu_calib.pose_bc.t[0], 0.1);
+        let seg = segment(100, Some(1_000_000));
+        let (vi, recs, cut) = with_imu_segment(h, Some(&seg));
+        assert_eq!((vi.n_imu as usize, recs.len(), cut), (100, 100, 0));
+        assert_eq!((vi.imu_t0_ns, vi.imu_t1_ns), (1_000_000, seg.t_ns));
+        assert_eq!((recs[0].t_ns, recs[99].t_ns), (1_000_000, seg.t_ns));
+        let long = segment(MAX_IMU_RECORDS as i64 + 50, Some(1_000_000));
+        let (cut_h, recs, cut) = with_imu_segment(h, Some(&long));
+        assert_eq!(
+            (cut_h.n_imu as usize, recs.len()),
+            (MAX_IMU_RECORDS, MAX_IMU_RECORDS)
+        );
+        assert_eq!(cut, 50);
+        assert!(
+            recs[MAX_IMU_RECORDS - 1].t_ns < long.t_ns,
+            "ends before the keyframe"
+        );
+    }
+
     /// A burst beyond the in-flight limit is paced; acknowledgements let the rest out; an
     /// unacknowledged keyframe is re-sent after the timeout, flagged, and counted.
     #[test]
