@@ -1,5 +1,6 @@
 //! Message types. All are `#[repr(C)]`, `Copy`, fixed-size and [`ZeroCopySend`]; sizes and
 //! alignments are checked at compile time at the bottom of this file.
+use bytemuck::{Pod, Zeroable};
 use iceoryx2::prelude::ZeroCopySend;
 
 use crate::{MAGIC, SCHEMA_VERSION};
@@ -553,9 +554,7 @@ impl Default for ImuCalib {
 
 /// One IMU sample of a keyframe message's segment (64 bytes), body frame, raw (not
 /// corrected by the intrinsics).
-#[derive(
-    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[type_name("shoal::v4::ImuRecord")]
 #[repr(C)]
 pub struct ImuRecord {
@@ -572,9 +571,7 @@ pub struct ImuRecord {
 /// One 64-byte, 8-aligned slot of a keyframe message's payload: a [`KeypointRecord`] or an
 /// [`ImuRecord`], as the header says ([`KeyframeHeader::keypoints`],
 /// [`KeyframeHeader::imu_records`]); built with `From` either of them.
-#[derive(
-    Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[type_name("shoal::v4::KeyframeRecord")]
 #[repr(C)]
 pub struct KeyframeRecord {
@@ -676,7 +673,7 @@ impl KeyframeHeader {
 pub const NO_MAP_POINT: u64 = u64::MAX;
 
 /// One keypoint of a keyframe message (64 bytes).
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, bytemuck::Pod, bytemuck::Zeroable)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable)]
 #[type_name("shoal::v4::KeypointRecord")]
 #[repr(C)]
 pub struct KeypointRecord {
