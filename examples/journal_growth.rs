@@ -52,10 +52,12 @@ fn main() -> anyhow::Result<()> {
                 client,
                 header,
                 records,
+                imu,
             } => {
                 pending_bytes -= rec_bytes(&records);
-                let kf = match mapper::convert::server_keyframe(client, &header, &records) {
-                    Ok(k) => k,
+                let kf = match mapper::convert::server_keyframe(client, &header, &records, Ok(&imu))
+                {
+                    Ok(k) => k.kf,
                     Err(e) => {
                         eprintln!("skipped: {e}");
                         continue;

@@ -21,7 +21,7 @@ pub use messages::*;
 /// Version of the message layout. Bump on any change of a type in this crate, with the
 /// `vN` of every `#[type_name("shoal::vN::…")]` in [`messages`] (a unit test checks that they
 /// agree), so that iceoryx2 tells binaries of different layouts apart.
-pub const SCHEMA_VERSION: u32 = 3;
+pub const SCHEMA_VERSION: u32 = 4;
 
 /// Magic number at the start of every message (`"SHOL"`).
 pub const MAGIC: u32 = 0x5348_4F4C;

@@ -1,5 +1,6 @@
 //! Message types. All are `#[repr(C)]`, `Copy`, fixed-size and [`ZeroCopySend`]; sizes and
 //! alignments are checked at compile time at the bottom of this file.
+use bytemuck::{Pod, Zeroable};
 use iceoryx2::prelude::ZeroCopySend;
 
 use crate::{MAGIC, SCHEMA_VERSION};
@@ -33,7 +34,7 @@ pub const FLAG_INERTIAL_MAP: u32 = 1 << 6;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
-#[type_name("shoal::v3::MsgMeta")]
+#[type_name("shoal::v4::MsgMeta")]
 #[repr(C)]
 pub struct MsgMeta {
     /// [`MAGIC`].
@@ -120,7 +121,7 @@ impl MsgMeta {
 /// A rigid pose `T_ab` (maps b-frame points into frame a): translation and a unit
 /// quaternion in Hamilton convention, stored `[x, y, z, w]` (TUM order).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::Pose")]
+#[type_name("shoal::v4::Pose")]
 #[repr(C)]
 pub struct Pose {
     /// Translation `t_ab`.
@@ -211,7 +212,7 @@ impl FeatureRecord {
 
 /// Camera intrinsics and radial-tangential distortion (seed eq. 2.57-2.60).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::Intrinsics")]
+#[type_name("shoal::v4::Intrinsics")]
 #[repr(C)]
 pub struct Intrinsics {
     /// `[fx, fy, cx, cy]` in pixels.
@@ -223,7 +224,7 @@ pub struct Intrinsics {
 /// User header of a frame sample; the payload is the `[u8]` pixel slice
 /// (`stride * height` bytes). Published by `camera_ingest`, read in place by the tracker.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::FrameHeader")]
+#[type_name("shoal::v4::FrameHeader")]
 #[repr(C)]
 pub struct FrameHeader {
     /// Identity, version, sequence number (= frame index in the stream), publish stamp.
@@ -271,7 +272,7 @@ impl FrameHeader {
 
 /// One IMU sample (body frame), published by `imu_ingest`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::ImuMsg")]
+#[type_name("shoal::v4::ImuMsg")]
 #[repr(C)]
 pub struct ImuMsg {
     /// Identity, version, sequence number, publish stamp.
@@ -287,7 +288,7 @@ pub struct ImuMsg {
 /// Sent by a frame consumer (the tracker) when it has taken a frame. In lock-step replay
 /// the ingests wait for it before publishing the next frame (and the IMU samples up to it).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::FrameAck")]
+#[type_name("shoal::v4::FrameAck")]
 #[repr(C)]
 pub struct FrameAck {
     /// Identity; `meta.seq` is the ack's own sequence number.
@@ -370,7 +371,7 @@ pub mod stage {
 
 /// Per-frame output of the tracker: pose, state, latency stamps and stage timings.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::TrackedPose")]
+#[type_name("shoal::v4::TrackedPose")]
 #[repr(C)]
 pub struct TrackedPose {
     /// Identity; `meta.seq` is the frame's sequence number, `meta.publish_mono_ns` the pose
@@ -454,10 +455,15 @@ impl PoseSource {
     }
 }
 
-/// Header of a keyframe message (tracker → mapper); the payload is a slice of
-/// [`KeypointRecord`]s (seed §3.3: pose in the client map + keypoints + descriptors).
+/// Header of a keyframe message (tracker → mapper, seed §3.3: pose in the client map +
+/// keypoints + descriptors; for a visual-inertial client also velocity, biases and the IMU
+/// segment since the previous keyframe, `VI_NOTES.md` §4 "Server", Fig. 5.4). The payload is
+/// a slice of [`KeyframeRecord`]s: the first [`Self::n_keypoints`] are [`KeypointRecord`]s,
+/// the next [`Self::n_imu`] are [`ImuRecord`]s (read them with [`Self::keypoints`] and
+/// [`Self::imu_records`]); one message, so the segment is acknowledged, spooled, journaled
+/// and re-sent with its keyframe.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::KeyframeHeader")]
+#[type_name("shoal::v4::KeyframeHeader")]
 #[repr(C)]
 pub struct KeyframeHeader {
     /// Identity (client, session); `meta.seq` counts keyframe messages of the client.
@@ -486,14 +492,193 @@ pub struct KeyframeHeader {
     pub gyro_bias: [f64; 3],
     /// Accelerometer bias, m/s² (effective, body frame; valid with `inertial`).
     pub accel_bias: [f64; 3],
+    /// IMU records in the payload after the keypoints (at most
+    /// [`crate::topics::MAX_IMU_RECORDS`]): the samples over `[imu_t0_ns, imu_t1_ns]`, the
+    /// first and the last linearly interpolated at exactly those borders (Fig. 5.4), so the
+    /// segments of consecutive keyframes share their border sample. 0 for a monocular
+    /// client, for a session's first keyframe, and for a segment the client could not
+    /// complete (no sample yet beyond a border).
+    pub n_imu: u32,
+    /// 1 when the client is visual-inertial: `imu_t1_ns` and `imu_calib` are valid (also
+    /// with `n_imu` = 0).
+    pub has_imu: u32,
+    /// Start of the IMU segment, ns on the IMU clock: the previous keyframe's
+    /// `imu_t1_ns` (valid with `n_imu` > 0).
+    pub imu_t0_ns: i64,
+    /// This keyframe's time on the IMU clock, `t_ns + t_d`, ns (valid with `has_imu`).
+    pub imu_t1_ns: i64,
+    /// The client's fixed IMU calibration, to preintegrate the segment on the server
+    /// (valid with `has_imu`).
+    pub imu_calib: ImuCalib,
+}
+
+/// The fixed IMU calibration of a visual-inertial client (`VI_NOTES.md` §1.4, §4 "Server":
+/// the server re-integrates the keyframes' segments with it).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v4::ImuCalib")]
+#[repr(C)]
+pub struct ImuCalib {
+    /// Camera pose in the body (IMU) frame, `T_bc` (`p_b = R_bc p_c + t_bc`, EuRoC
+    /// `T_BS`), metric.
+    pub pose_bc: Pose,
+    /// Camera-IMU time offset `t_d`: `t_imu = t_cam + t_d`, ns.
+    pub t_d_ns: i64,
+    /// Gyro white noise density σ_g, rad/s/√Hz.
+    pub gyro_noise_density: f64,
+    /// Accelerometer white noise density σ_a, m/s²/√Hz.
+    pub accel_noise_density: f64,
+    /// Gyro bias random walk σ_bg, rad/s²/√Hz.
+    pub gyro_bias_rw: f64,
+    /// Accelerometer bias random walk σ_ba, m/s³/√Hz.
+    pub accel_bias_rw: f64,
+    /// Accelerometer scale/misalignment `T_a`, column-major (identity: ideal).
+    pub t_a: [f64; 9],
+    /// Gyro scale/misalignment `T_g`, column-major (identity: ideal).
+    pub t_g: [f64; 9],
+    /// Gyro g-sensitivity `T_s`, rad/s per m/s², column-major (zero: ideal).
+    pub t_s: [f64; 9],
+}
+
+impl Default for ImuCalib {
+    fn default() -> Self {
+        const I: [f64; 9] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        Self {
+            pose_bc: Pose::IDENTITY,
+            t_d_ns: 0,
+            gyro_noise_density: 0.0,
+            accel_noise_density: 0.0,
+            gyro_bias_rw: 0.0,
+            accel_bias_rw: 0.0,
+            t_a: I,
+            t_g: I,
+            t_s: [0.0; 9],
+        }
+    }
+}
+
+/// One IMU sample of a keyframe message's segment (64 bytes), body frame, raw (not
+/// corrected by the intrinsics).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
+#[type_name("shoal::v4::ImuRecord")]
+#[repr(C)]
+pub struct ImuRecord {
+    /// Time, ns on the IMU clock.
+    pub t_ns: i64,
+    /// Angular rate `ω_m`, rad/s.
+    pub gyro: [f64; 3],
+    /// Specific force `a_m`, m/s².
+    pub accel: [f64; 3],
+    /// Reserved, zero.
+    pub reserved: u64,
+}
+
+/// One 64-byte, 8-aligned slot of a keyframe message's payload: a [`KeypointRecord`] or an
+/// [`ImuRecord`], as the header says ([`KeyframeHeader::keypoints`],
+/// [`KeyframeHeader::imu_records`]); built with `From` either of them.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend, Pod, Zeroable)]
+#[type_name("shoal::v4::KeyframeRecord")]
+#[repr(C)]
+pub struct KeyframeRecord {
+    /// The record's bytes, as words (for the alignment).
+    pub words: [u64; 8],
+}
+
+impl From<KeypointRecord> for KeyframeRecord {
+    fn from(r: KeypointRecord) -> Self {
+        bytemuck::cast(r)
+    }
+}
+
+impl From<ImuRecord> for KeyframeRecord {
+    fn from(r: ImuRecord) -> Self {
+        bytemuck::cast(r)
+    }
+}
+
+/// A keyframe payload that does not hold what its header says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PayloadError {
+    /// Fewer records than `n_keypoints`.
+    Keypoints {
+        /// `n_keypoints` of the header.
+        n_keypoints: u32,
+        /// Records in the payload.
+        len: usize,
+    },
+    /// The records after the keypoints are not `n_imu`.
+    Imu {
+        /// `n_imu` of the header.
+        n_imu: u32,
+        /// Records after the keypoints.
+        after_keypoints: usize,
+    },
+}
+
+impl core::fmt::Display for PayloadError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Keypoints { n_keypoints, len } => write!(
+                f,
+                "header says {n_keypoints} keypoints, payload holds {len} records"
+            ),
+            Self::Imu {
+                n_imu,
+                after_keypoints,
+            } => write!(
+                f,
+                "header says {n_imu} IMU records, payload holds {after_keypoints} after the keypoints"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for PayloadError {}
+
+impl KeyframeHeader {
+    /// The keypoint records of `payload`: its first `n_keypoints` records.
+    pub fn keypoints<'a>(
+        &self,
+        payload: &'a [KeyframeRecord],
+    ) -> Result<&'a [KeypointRecord], PayloadError> {
+        let n = self.n_keypoints as usize;
+        let recs = payload.get(..n).ok_or(PayloadError::Keypoints {
+            n_keypoints: self.n_keypoints,
+            len: payload.len(),
+        })?;
+        // Cannot fail: both record types are 64 bytes, 8-aligned (checked at compile time
+        // at the bottom of this file).
+        Ok(bytemuck::cast_slice(recs))
+    }
+
+    /// The IMU records of `payload`: the `n_imu` records after the keypoints, which must
+    /// end the payload.
+    pub fn imu_records<'a>(
+        &self,
+        payload: &'a [KeyframeRecord],
+    ) -> Result<&'a [ImuRecord], PayloadError> {
+        let rest = payload
+            .get(self.n_keypoints as usize..)
+            .ok_or(PayloadError::Keypoints {
+                n_keypoints: self.n_keypoints,
+                len: payload.len(),
+            })?;
+        if rest.len() != self.n_imu as usize {
+            return Err(PayloadError::Imu {
+                n_imu: self.n_imu,
+                after_keypoints: rest.len(),
+            });
+        }
+        // Cannot fail (as above).
+        Ok(bytemuck::cast_slice(rest))
+    }
 }
 
 /// `map_point_id` of a keypoint with no map point.
 pub const NO_MAP_POINT: u64 = u64::MAX;
 
 /// One keypoint of a keyframe message (64 bytes).
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::KeypointRecord")]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend, Pod, Zeroable)]
+#[type_name("shoal::v4::KeypointRecord")]
 #[repr(C)]
 pub struct KeypointRecord {
     /// Pixel u (distorted image), level-0 coordinates.
@@ -531,7 +716,7 @@ impl Default for KeypointRecord {
 
 /// Mapper → tracker: acknowledgement and pose feedback (seed §3.4.1).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::Feedback")]
+#[type_name("shoal::v4::Feedback")]
 #[repr(C)]
 pub struct Feedback {
     /// Identity (client the feedback is for).
@@ -557,7 +742,7 @@ pub const MAX_LOOP_COVISIBLE: usize = 32;
 /// a server map, with what place recognition and loop geometry need (seed §3.4.1-3.4.2);
 /// the payload is a slice of [`LoopKeypointRecord`]s.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::LoopKeyframeHeader")]
+#[type_name("shoal::v4::LoopKeyframeHeader")]
 #[repr(C)]
 pub struct LoopKeyframeHeader {
     /// Identity (client, session of the keyframe; `meta.seq` counts loop keyframe messages
@@ -611,7 +796,7 @@ impl Default for LoopKeyframeHeader {
 
 /// One keypoint of a loop keyframe message (88 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::LoopKeypointRecord")]
+#[type_name("shoal::v4::LoopKeypointRecord")]
 #[repr(C)]
 pub struct LoopKeypointRecord {
     /// Pixel u (distorted image), level-0 coordinates.
@@ -654,7 +839,7 @@ impl Default for LoopKeypointRecord {
 /// mapper's snapshot (`next = 0` takes a new snapshot), at most `max` of them (DESIGN.md: a
 /// restarted loop closer rebuilds its keyframe database from the mapper).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::ResyncRequest")]
+#[type_name("shoal::v4::ResyncRequest")]
 #[repr(C)]
 pub struct ResyncRequest {
     /// Identity (`meta.seq` counts requests).
@@ -685,7 +870,7 @@ pub const RECORD_POINT_PAIR: u32 = 2;
 /// of [`CorrectionRecord`]s. The loop closer computes, the mapper (owner of the maps)
 /// applies.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::CorrectionHeader")]
+#[type_name("shoal::v4::CorrectionHeader")]
 #[repr(C)]
 pub struct CorrectionHeader {
     /// Identity (`client_id` of the query keyframe; `meta.seq` counts corrections).
@@ -737,7 +922,7 @@ impl Default for CorrectionHeader {
 
 /// One record of a correction (88 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("shoal::v3::CorrectionRecord")]
+#[type_name("shoal::v4::CorrectionRecord")]
 #[repr(C)]
 pub struct CorrectionRecord {
     /// [`RECORD_KEYFRAME_DELTA`] or [`RECORD_POINT_PAIR`].
@@ -776,8 +961,11 @@ const _: () = {
     assert!(size_of::<ImuMsg>() == 40 + 8 + 48);
     assert!(size_of::<FrameAck>() == 56);
     assert!(size_of::<TrackedPose>() == 40 + 16 + 112 + 8 + 16 + 16 + 32 + 16);
-    assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16 + 72);
+    assert!(size_of::<ImuCalib>() == 56 + 8 + 32 + 3 * 72);
+    assert!(size_of::<KeyframeHeader>() == 40 + 16 + 56 + 72 + 16 + 72 + 8 + 16 + 312);
     assert!(size_of::<KeypointRecord>() == 64 && align_of::<KeypointRecord>() == 8);
+    assert!(size_of::<ImuRecord>() == 64 && align_of::<ImuRecord>() == 8);
+    assert!(size_of::<KeyframeRecord>() == 64 && align_of::<KeyframeRecord>() == 8);
     assert!(size_of::<Feedback>() == 40 + 16 + 56 + 16);
     assert!(size_of::<LoopKeypointRecord>() == 88 && align_of::<LoopKeypointRecord>() == 8);
     assert!(size_of::<LoopKeyframeHeader>() == 40 + 32 + 56 + 72 + 16 + 8 * 32 + 4 * 32);
@@ -875,6 +1063,9 @@ mod tests {
             type_name::<TrackedPose>(),
             type_name::<KeyframeHeader>(),
             type_name::<KeypointRecord>(),
+            type_name::<ImuCalib>(),
+            type_name::<ImuRecord>(),
+            type_name::<KeyframeRecord>(),
             type_name::<Feedback>(),
             type_name::<LoopKeyframeHeader>(),
             type_name::<LoopKeypointRecord>(),
@@ -887,6 +1078,45 @@ mod tests {
             assert!(n.starts_with(&prefix), "{n} is not under {prefix}");
             assert!(named.contains(&n), "{n}");
         }
+    }
+
+    /// A payload of keypoints then IMU records reads back as both, in place; a header
+    /// promising more records than the payload holds is refused for the part it concerns.
+    #[test]
+    fn keyframe_payload_holds_keypoints_then_imu_records() {
+        let kp = KeypointRecord {
+            u: 3.5,
+            map_point_id: 9,
+            descriptor: [7; 32],
+            ..KeypointRecord::default()
+        };
+        let imu = ImuRecord {
+            t_ns: -5,
+            gyro: [0.1, 0.2, 0.3],
+            accel: [1.0, 2.0, 9.81],
+            reserved: 0,
+        };
+        let payload: Vec<KeyframeRecord> = vec![kp.into(), kp.into(), imu.into()];
+        let mut h = KeyframeHeader {
+            n_keypoints: 2,
+            n_imu: 1,
+            ..KeyframeHeader::default()
+        };
+        assert_eq!(h.keypoints(&payload), Ok(&[kp, kp][..]));
+        assert_eq!(h.imu_records(&payload), Ok(&[imu][..]));
+        h.n_imu = 2;
+        assert_eq!(h.keypoints(&payload), Ok(&[kp, kp][..]));
+        let e = h.imu_records(&payload).unwrap_err();
+        assert!(e.to_string().contains("2 IMU records"), "{e}");
+        h.n_keypoints = 4;
+        assert!(matches!(
+            h.keypoints(&payload),
+            Err(PayloadError::Keypoints { len: 3, .. })
+        ));
+        assert!(h.imu_records(&payload).is_err());
+        h.n_keypoints = 0;
+        h.n_imu = 0;
+        assert!(h.imu_records(&payload).is_err(), "records nobody declared");
     }
 
     #[test]

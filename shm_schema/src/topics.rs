@@ -13,7 +13,7 @@ use crate::{
     CorrectionHeader, CorrectionRecord, Feedback, LoopKeyframeHeader, LoopKeypointRecord,
     ResyncRequest, TrackedPose,
 };
-use crate::{FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeypointRecord, SCHEMA_VERSION};
+use crate::{FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeyframeRecord, SCHEMA_VERSION};
 
 /// The iceoryx2 service flavour used between processes.
 pub type Ipc = ipc::Service;
@@ -41,6 +41,15 @@ pub const CORRECTION_BUFFER: usize = 16;
 pub const MAX_CORRECTION_RECORDS: usize = 16384;
 /// Largest number of keypoints in one keyframe message.
 pub const MAX_KEYPOINTS: usize = 4096;
+/// Largest number of IMU records in one keyframe message (10 s at 400 Hz). A longer
+/// segment (a keyframe more than 10 s after the previous one at 400 Hz) is cut by the
+/// tracker to its first `MAX_IMU_RECORDS` samples, never a panic: the tracker counts it
+/// (`keyframe_imu_cut`) and logs an `imu_segment_cut` error; the cut segment ends before
+/// its keyframe, so the mapper refuses it (`bad_imu_segment`) and applies the keyframe
+/// visual-only: the two keyframes are not linked on the server.
+pub const MAX_IMU_RECORDS: usize = 4000;
+/// Records of the largest keyframe message payload (keypoints and IMU records).
+pub const MAX_KEYFRAME_RECORDS: usize = MAX_KEYPOINTS + MAX_IMU_RECORDS;
 
 /// Errors of opening a topic, naming the service.
 #[derive(Debug)]
@@ -72,12 +81,12 @@ fn err(service: &str, e: impl core::fmt::Debug) -> TopicError {
     }
 }
 
-/// The name of a per-client topic, e.g. `shoal/v3/c0/frames`.
+/// The name of a per-client topic, e.g. `shoal/v4/c0/frames`.
 pub fn client_topic(client: u32, topic: &str) -> String {
     format!("shoal/v{SCHEMA_VERSION}/c{client}/{topic}")
 }
 
-/// The name of a host-wide topic, e.g. `shoal/v3/loop_keyframes`.
+/// The name of a host-wide topic, e.g. `shoal/v4/loop_keyframes`.
 pub fn host_topic(topic: &str) -> String {
     format!("shoal/v{SCHEMA_VERSION}/{topic}")
 }
@@ -235,13 +244,14 @@ fixed_topic!(
     "Mapper → tracker acknowledgements and pose feedback of a client."
 );
 
-/// Keyframe messages of a client: [`KeypointRecord`] slices with a [`KeyframeHeader`].
+/// Keyframe messages of a client: [`KeyframeRecord`] slices (keypoints, then the IMU
+/// segment) with a [`KeyframeHeader`].
 /// Keyframes must not be lost: the tracker keeps each until the mapper acknowledges it and
 /// re-sends unacknowledged ones, so a bounded buffer with safe overflow is safe.
 pub fn keyframes_service(
     node: &Node<Ipc>,
     client: u32,
-) -> Result<PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
+) -> Result<PubSubFactory<Ipc, [KeyframeRecord], KeyframeHeader>, TopicError> {
     keyframe_topic(node, &client_topic(client, "keyframes"))
 }
 
@@ -348,21 +358,22 @@ where
 fn keyframe_topic(
     node: &Node<Ipc>,
     name: &str,
-) -> Result<PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
+) -> Result<PubSubFactory<Ipc, [KeyframeRecord], KeyframeHeader>, TopicError> {
     slice_topic(node, name, KEYFRAME_BUFFER)
 }
 
-/// A keyframe publisher with room for [`MAX_KEYPOINTS`] records per message.
+/// A keyframe publisher with room for [`MAX_KEYFRAME_RECORDS`] records per message
+/// ([`MAX_KEYPOINTS`] keypoints and [`MAX_IMU_RECORDS`] IMU samples).
 pub fn keyframe_publisher(
-    service: &PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>,
-) -> Result<Publisher<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
-    slice_publisher(service, MAX_KEYPOINTS)
+    service: &PubSubFactory<Ipc, [KeyframeRecord], KeyframeHeader>,
+) -> Result<Publisher<Ipc, [KeyframeRecord], KeyframeHeader>, TopicError> {
+    slice_publisher(service, MAX_KEYFRAME_RECORDS)
 }
 
 /// A keyframe subscriber with the service's full buffer.
 pub fn keyframe_subscriber(
-    service: &PubSubFactory<Ipc, [KeypointRecord], KeyframeHeader>,
-) -> Result<Subscriber<Ipc, [KeypointRecord], KeyframeHeader>, TopicError> {
+    service: &PubSubFactory<Ipc, [KeyframeRecord], KeyframeHeader>,
+) -> Result<Subscriber<Ipc, [KeyframeRecord], KeyframeHeader>, TopicError> {
     slice_subscriber(service, KEYFRAME_BUFFER)
 }
 

@@ -124,6 +124,17 @@ pub struct ClientReport {
     pub cpu_s: BTreeMap<String, f64>,
     /// Keyframe message bytes the mapper received per second of data.
     pub keyframe_bytes_per_s: f64,
+    /// Mean bytes of a keyframe message the mapper received (header and payload: keypoint
+    /// and IMU records; re-sends included).
+    pub keyframe_bytes_mean: f64,
+    /// Keyframes the mapper applied per second of data.
+    pub keyframes_per_s: f64,
+    /// Keyframe messages the mapper received with an IMU segment (issue 19).
+    pub keyframes_with_imu: u64,
+    /// IMU samples in those segments.
+    pub keyframe_imu_samples: u64,
+    /// Keyframes the mapper applied visual-only because their IMU segment did not hold.
+    pub imu_segments_refused: u64,
     /// Frames published with a pose in the server map (from the mapper's feedback).
     pub frames_server_pose: u64,
     /// Of those, frames whose pose is in another map than the client's final one (a map
@@ -657,6 +668,11 @@ fn client_report(
             ),
         ]),
         keyframe_bytes_per_s: keyframe_rate(ds, total, m.keyframe_bytes),
+        keyframe_bytes_mean: m.keyframe_bytes as f64 / m.keyframes_received.max(1) as f64,
+        keyframes_per_s: keyframe_rate(ds, total, journaled_applied.unwrap_or(m.keyframes_applied)),
+        keyframes_with_imu: m.keyframes_with_imu,
+        keyframe_imu_samples: m.imu_samples_received,
+        imu_segments_refused: m.imu_segments_refused,
         frames_server_pose: rec.tracked_server,
         frames_server_pose_other_maps: o.server_frames_other_maps,
         ate_client_keyframes: o.ate_client_keyframes,
@@ -687,7 +703,7 @@ fn frames_by_source(rec: &super::recorder::ClientRecord) -> BTreeMap<String, u64
         .collect()
 }
 
-/// Keyframe bytes sent per second of data over the first `total` frames.
+/// Keyframe bytes (or keyframes) per second of data over the first `total` frames.
 fn keyframe_rate(ds: &datasets::Dataset, total: u64, bytes: u64) -> f64 {
     let frames = &ds.frames[..(total as usize).min(ds.frames.len())];
     let data_s = match (frames.first(), frames.last()) {

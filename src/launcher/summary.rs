@@ -81,7 +81,8 @@ fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
     let _ = writeln!(
         s,
         "client {c}: {}/{} frames posed ({} tracked, {} backfilled); unposed: {} before \
-         initialisation, {} lost, {} dropped, {} corrupt; keyframes {} sent, {} applied",
+         initialisation, {} lost, {} dropped, {} corrupt; keyframes {} sent, {} applied \
+         ({:.2}/s, {:.1} kB each, {} with an IMU segment)",
         cl.frames_posed,
         replayed(cl),
         cl.frames_tracked,
@@ -91,7 +92,10 @@ fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
         cl.frames_unposed.dropped,
         cl.frames_unposed.corrupt,
         cl.keyframes_sent,
-        cl.keyframes_applied
+        cl.keyframes_applied,
+        cl.keyframes_per_s,
+        cl.keyframe_bytes_mean * 1e-3,
+        cl.keyframes_with_imu
     );
     mode_line(s, cl);
     // The Sim(3) figures, with the SE(3) ATE (no scale correction) when there is one.

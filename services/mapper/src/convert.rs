@@ -1,23 +1,27 @@
-//! Wire ↔ algorithm conversions: a keyframe message (header + keypoint records) into a
-//! [`ServerKeyframe`], a kept keyframe into a loop keyframe message, a correction message
-//! into a [`Correction`] (poses, intrinsics and keypoints through [`shoal_runtime::wire`]).
+//! Wire ↔ algorithm conversions: a keyframe message (header + keypoint records + IMU
+//! records) into a [`ServerKeyframe`], a kept keyframe into a loop keyframe message, a
+//! correction message into a [`Correction`] (poses, intrinsics, keypoints and the IMU
+//! calibration through [`shoal_runtime::wire`]).
 use std::collections::BTreeMap;
 
+use nalgebra::Vector3;
 use shm_schema::{
-    CorrectionHeader, CorrectionRecord, Intrinsics, KeyframeHeader, KeypointRecord,
+    CorrectionHeader, CorrectionRecord, ImuRecord, Intrinsics, KeyframeHeader, KeypointRecord,
     LoopKeyframeHeader, LoopKeypointRecord, MsgMeta, CORRECTION_MERGE, CORRECTION_POSE_GRAPH,
     FLAG_INERTIAL_MAP, MAX_LOOP_COVISIBLE, NO_MAP_POINT, RECORD_KEYFRAME_DELTA, RECORD_POINT_PAIR,
 };
 use slam_core::camera::PinholeRadtan;
 use slam_core::features::OrbFeatures;
 use slam_core::ids::MapId;
+use slam_core::imu::ImuBiases;
 use slam_core::lie::Sim3;
 use slam_core::server::{KeptKeyframe, ServerKeyframe};
-use slam_core::vo::{KfId, PointId};
+use slam_core::vo::keyframe_imu::KeyframeImu;
+use slam_core::vo::{KeyframeInertial, KfId, PointId};
 
 use shoal_runtime::wire::{
-    camera_from_intrinsics, iso_from_wire, sim3_from_wire, valid_intrinsics, wire_from_iso,
-    wire_keypoint,
+    camera_from_intrinsics, imu_calibration_from_wire, imu_measurement, iso_from_wire,
+    sim3_from_wire, valid_intrinsics, wire_from_iso, wire_keypoint,
 };
 
 /// The camera of a keyframe message.
@@ -25,15 +29,28 @@ pub fn camera_of(h: &KeyframeHeader) -> PinholeRadtan {
     camera_from_intrinsics(&h.intrinsics, h.width, h.height)
 }
 
+/// A keyframe message converted: the keyframe, and why its IMU part was refused if it was
+/// (the keyframe is then visual-only: no segment, no velocity and biases).
+#[derive(Debug)]
+pub struct Converted {
+    /// The keyframe for the handler.
+    pub kf: ServerKeyframe,
+    /// Why the IMU segment or the inertial state was refused (`ErrorKind::BadImuSegment`).
+    pub imu_refused: Option<String>,
+}
+
 /// Converts a keyframe message of client `client` into what the handler takes. Errors
 /// (with a reason) on an unusable message: keypoint count not matching the header, a
-/// non-finite pose, bad intrinsics. The rolling-shutter readout time is not on the wire
-/// (the server map does not use it) and is set to 0.
+/// non-finite pose, bad intrinsics. The IMU part (`imu`: the payload's IMU records, or why
+/// the payload does not hold them) is checked by [`inertial_parts`]; refused, the keyframe
+/// goes on visual-only and [`Converted::imu_refused`] says why. The rolling-shutter readout
+/// time is not on the wire (the server map does not use it) and is set to 0.
 pub fn server_keyframe(
     client: u32,
     h: &KeyframeHeader,
     records: &[KeypointRecord],
-) -> Result<ServerKeyframe, String> {
+    imu: Result<&[ImuRecord], String>,
+) -> Result<Converted, String> {
     if h.n_keypoints as usize != records.len() {
         return Err(format!(
             "keyframe {}: header says {} keypoints, payload holds {}",
@@ -59,6 +76,10 @@ pub fn server_keyframe(
         features.descriptors.push(r.descriptor);
         client_points.push((r.map_point_id != NO_MAP_POINT).then_some(r.map_point_id));
     }
+    let (inertial, seg, imu_refused) = match imu.and_then(|r| inertial_parts(h, r)) {
+        Ok((inertial, seg)) => (inertial, seg, None),
+        Err(e) => (None, None, Some(format!("keyframe {}: {e}", h.keyframe_id))),
+    };
     let kf = ServerKeyframe {
         client_id: client,
         session_id: h.meta.session_id,
@@ -69,11 +90,90 @@ pub fn server_keyframe(
         readout_ns: 0,
         features,
         client_points,
-        inertial: None,
-        imu: None,
+        inertial,
+        imu: seg,
     };
     kf.validate().map_err(|e| e.to_string())?;
-    Ok(kf)
+    Ok(Converted { kf, imu_refused })
+}
+
+/// The velocity and biases (with `inertial`; `refined` 0: no server window has refined
+/// them yet) and the IMU segment (with `has_imu`) of a keyframe message, checked (issue 19,
+/// `VI_NOTES.md` §4 Fig. 5.4): finite values, a valid calibration, `n_imu` records (none for
+/// a session's first keyframe), strictly increasing times from exactly `imu_t0_ns` to
+/// exactly `imu_t1_ns` = `t_ns + t_d`. A monocular message gives `(None, None)`.
+pub fn inertial_parts(
+    h: &KeyframeHeader,
+    imu: &[ImuRecord],
+) -> Result<(Option<KeyframeInertial>, Option<KeyframeImu>), String> {
+    let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+    let inertial = if h.inertial == 0 {
+        None
+    } else if finite(&h.velocity_w) && finite(&h.gyro_bias) && finite(&h.accel_bias) {
+        Some(KeyframeInertial {
+            v_wb: Vector3::from(h.velocity_w),
+            biases: ImuBiases {
+                gyro: Vector3::from(h.gyro_bias),
+                accel: Vector3::from(h.accel_bias),
+            },
+            refined: 0,
+        })
+    } else {
+        return Err("non-finite velocity or biases".into());
+    };
+    if h.has_imu == 0 {
+        if !imu.is_empty() {
+            return Err(format!("{} IMU records without an IMU", imu.len()));
+        }
+        return Ok((inertial, None));
+    }
+    Ok((inertial, Some(imu_segment(h, imu)?)))
+}
+
+/// The IMU segment of a message with `has_imu` (see [`inertial_parts`]).
+fn imu_segment(h: &KeyframeHeader, imu: &[ImuRecord]) -> Result<KeyframeImu, String> {
+    let calib = imu_calibration_from_wire(&h.imu_calib)?;
+    if h.imu_t1_ns != h.t_ns.saturating_add(calib.t_d_ns) {
+        return Err(format!(
+            "IMU time {} ns is not the frame time {} ns + t_d {} ns",
+            h.imu_t1_ns, h.t_ns, calib.t_d_ns
+        ));
+    }
+    let mut seg = KeyframeImu {
+        t_prev_ns: None,
+        t_ns: h.imu_t1_ns,
+        samples: Vec::new(),
+        calib,
+    };
+    if h.n_imu as usize != imu.len() {
+        return Err(format!(
+            "{} IMU records, header says {}",
+            imu.len(),
+            h.n_imu
+        ));
+    }
+    let (Some(first), Some(last)) = (imu.first(), imu.last()) else {
+        return Ok(seg);
+    };
+    let finite = |r: &ImuRecord| r.gyro.iter().chain(&r.accel).all(|v| v.is_finite());
+    if let Some(i) = imu.iter().position(|r| !finite(r)) {
+        return Err(format!("IMU record {i}: non-finite value"));
+    }
+    if let Some(i) = imu.windows(2).position(|w| w[1].t_ns <= w[0].t_ns) {
+        return Err(format!(
+            "IMU record {}: time not after the previous one",
+            i + 1
+        ));
+    }
+    if imu.len() < 2 || first.t_ns != h.imu_t0_ns || last.t_ns != h.imu_t1_ns {
+        return Err(format!(
+            "IMU records over [{}, {}] ns, the segment is [{}, {}] ns",
+            first.t_ns, last.t_ns, h.imu_t0_ns, h.imu_t1_ns
+        ));
+    }
+    seg.t_prev_ns = Some(h.imu_t0_ns);
+    seg.samples = imu.iter().map(imu_measurement).collect();
+    Ok(seg)
 }
 
 /// A loop correction as the mapper applies it.
@@ -258,12 +358,125 @@ mod tests {
             },
             KeypointRecord::default(),
         ];
-        let kf = server_keyframe(3, &h, &recs).expect("valid");
+        let conv = server_keyframe(3, &h, &recs, Ok(&[])).expect("valid");
+        let kf = conv.kf;
         assert_eq!(kf.client_id, 3);
         assert_eq!(kf.client_points, vec![Some(42), None]);
         assert_eq!(kf.features.keypoints[0].octave, 2);
-        assert!(server_keyframe(3, &h, &recs[..1]).is_err());
+        assert!(kf.imu.is_none() && kf.inertial.is_none() && conv.imu_refused.is_none());
+        assert!(server_keyframe(3, &h, &recs[..1], Ok(&[])).is_err());
         h.intrinsics.pinhole[0] = 0.0;
-        assert!(server_keyframe(3, &h, &recs).is_err());
+        assert!(server_keyframe(3, &h, &recs, Ok(&[])).is_err());
+    }
+
+    /// A visual-inertial keyframe message at 2 s (t_d = 1 ms) with the segment from 1.95 s:
+    /// samples every 20 ms, borders exact.
+    fn vi_message() -> (KeyframeHeader, Vec<ImuRecord>) {
+        let (t0, t1) = (1_951_000_000, 2_001_000_000);
+        let imu: Vec<ImuRecord> = [t0, t0 + 9_000_000, t0 + 29_000_000, t1]
+            .iter()
+            .map(|&t_ns| ImuRecord {
+                t_ns,
+                gyro: [0.1, 0.0, -0.1],
+                accel: [0.0, 0.0, 9.81],
+                reserved: 0,
+            })
+            .collect();
+        let mut h = KeyframeHeader {
+            keyframe_id: 8,
+            t_ns: 2_000_000_000,
+            width: 640,
+            height: 480,
+            pose_ck: Pose::IDENTITY,
+            inertial: 1,
+            velocity_w: [1.0, 2.0, 3.0],
+            gyro_bias: [1e-3, 0.0, 0.0],
+            n_imu: imu.len() as u32,
+            has_imu: 1,
+            imu_t0_ns: t0,
+            imu_t1_ns: t1,
+            ..KeyframeHeader::default()
+        };
+        h.intrinsics.pinhole = [400.0, 400.0, 320.0, 240.0];
+        h.imu_calib.t_d_ns = 1_000_000;
+        h.imu_calib.gyro_noise_density = 1.7e-4;
+        h.imu_calib.pose_bc.t = [0.05, 0.0, 0.0];
+        (h, imu)
+    }
+
+    /// Issue 19: the segment, calibration, velocity and biases of a visual-inertial message
+    /// reach the server keyframe; a session's first keyframe has a segment without
+    /// predecessor; a monocular message has none.
+    #[test]
+    fn visual_inertial_message_to_server_keyframe() {
+        let (h, imu) = vi_message();
+        let conv = server_keyframe(1, &h, &[], Ok(&imu)).expect("valid");
+        assert!(conv.imu_refused.is_none(), "{:?}", conv.imu_refused);
+        let seg = conv.kf.imu.expect("segment");
+        assert_eq!((seg.t_prev_ns, seg.t_ns), (Some(h.imu_t0_ns), h.imu_t1_ns));
+        assert!(seg.is_complete());
+        assert_eq!(seg.samples.len(), 4);
+        assert_eq!(seg.samples[2].t_ns, imu[2].t_ns);
+        assert_eq!(seg.samples[2].accel.z, 9.81);
+        assert_eq!(seg.calib.t_d_ns, 1_000_000);
+        assert_eq!(seg.calib.preint.noise.gyro_noise_density, 1.7e-4);
+        assert_eq!(seg.calib.t_bc.translation.vector.x, 0.05);
+        let inertial = conv.kf.inertial.expect("inertial");
+        assert_eq!(inertial.v_wb, Vector3::new(1.0, 2.0, 3.0));
+        assert_eq!(inertial.biases.gyro.x, 1e-3);
+        let mut first = h;
+        (first.n_imu, first.imu_t0_ns) = (0, 0);
+        let seg = server_keyframe(1, &first, &[], Ok(&[]))
+            .expect("valid")
+            .kf
+            .imu;
+        let seg = seg.expect("a segment without predecessor");
+        assert_eq!((seg.t_prev_ns, seg.samples.len()), (None, 0));
+        let mut mono = first;
+        (mono.has_imu, mono.inertial) = (0, 0);
+        let conv = server_keyframe(1, &mono, &[], Ok(&[])).expect("valid");
+        assert!(conv.kf.imu.is_none() && conv.kf.inertial.is_none());
+        assert!(conv.imu_refused.is_none());
+    }
+
+    /// A segment that does not hold is refused with its reason and the keyframe goes on
+    /// visual-only: times out of order, a NaN, borders off `imu_t0_ns`/`imu_t1_ns`, a
+    /// keyframe time that is not `t_ns + t_d`, a payload that does not hold `n_imu`
+    /// records, a singular `T_a`, a non-finite velocity.
+    #[test]
+    fn a_bad_segment_leaves_the_keyframe_visual_only() {
+        let (h, imu) = vi_message();
+        let mut cases: Vec<(&str, KeyframeHeader, Vec<ImuRecord>)> = Vec::new();
+        let mut swapped = imu.clone();
+        swapped.swap(1, 2);
+        cases.push(("not after the previous", h, swapped));
+        let mut nan = imu.clone();
+        nan[1].gyro[2] = f64::NAN;
+        cases.push(("non-finite", h, nan));
+        let mut early = h;
+        early.imu_t0_ns -= 1;
+        cases.push(("the segment is", early, imu.clone()));
+        let mut late = h;
+        late.t_ns += 1;
+        cases.push(("t_d", late, imu.clone()));
+        let mut more = h;
+        more.n_imu = 5;
+        cases.push(("header says 5", more, imu.clone()));
+        let mut singular = h;
+        singular.imu_calib.t_a = [0.0; 9];
+        cases.push(("T_a", singular, imu.clone()));
+        let mut fast = h;
+        fast.velocity_w[0] = f64::INFINITY;
+        cases.push(("velocity", fast, imu.clone()));
+        for (why, h, imu) in cases {
+            let conv = server_keyframe(1, &h, &[], Ok(&imu)).expect("still a keyframe");
+            let e = conv.imu_refused.expect("refused");
+            assert!(e.contains(why) && e.contains("keyframe 8"), "{why}: {e}");
+            assert!(conv.kf.imu.is_none() && conv.kf.inertial.is_none(), "{why}");
+        }
+        let conv = server_keyframe(1, &h, &[], Err("payload short".into())).expect("keyframe");
+        assert!(conv
+            .imu_refused
+            .is_some_and(|e| e.contains("payload short")));
     }
 }

@@ -11,7 +11,7 @@ use anyhow::Context;
 use crossbeam_channel::Receiver;
 use shm_schema::time::monotonic_ns;
 use shm_schema::{
-    CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeypointRecord,
+    CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeyframeRecord, KeypointRecord,
     LoopKeyframeHeader, LoopKeypointRecord, MsgMeta,
 };
 use shoal_runtime::journal::{Entry, Journal, OpenError};
@@ -479,12 +479,13 @@ impl Mapper {
             .collect();
         let mut n = 0;
         for e in entries {
-            let (client, header, records) = match e {
+            let (client, header, records, imu) = match e {
                 Entry::Keyframe {
                     client,
                     header,
                     records,
-                } => (client, header, records),
+                    imu,
+                } => (client, header, records, imu),
                 Entry::Correction { header, records } => {
                     match convert::correction(&header, &records) {
                         Ok(c) => self.dispatch(c, true)?,
@@ -507,11 +508,13 @@ impl Mapper {
                 continue;
             }
             let key = (header.meta.session_id, header.keyframe_id);
-            match convert::server_keyframe(client, &header, &records) {
-                Ok(kf) => {
+            // An IMU part refused live is refused again (the keyframe was visual-only then
+            // too), already counted: not an error of the replay.
+            match convert::server_keyframe(client, &header, &records, Ok(&imu)) {
+                Ok(convert::Converted { kf, .. }) => {
                     self.clients[client as usize].applied.insert(key);
                     let job = Job::Keyframe {
-                        kf,
+                        kf: Box::new(kf),
                         idle: Some(idle.contains(&(client, key.0, key.1))),
                         replay: true,
                     };
@@ -524,52 +527,35 @@ impl Mapper {
         Ok(n)
     }
 
-    /// One keyframe message of client `c`: journal, queue, acknowledge.
+    /// Counts a keyframe message of client `c` as received: bytes (header and payload),
+    /// IMU segment and samples.
+    fn count_received(&mut self, c: u32, h: &KeyframeHeader, payload: &[KeyframeRecord]) {
+        let n = self.counters.clients.of(c);
+        n.keyframes_received += 1;
+        n.keyframe_bytes +=
+            (std::mem::size_of::<KeyframeHeader>() + std::mem::size_of_val(payload)) as u64;
+        if h.n_imu > 0 {
+            n.keyframes_with_imu += 1;
+            n.imu_samples_received += u64::from(h.n_imu);
+        }
+    }
+
+    /// One keyframe message of client `c` (header and payload: keypoints, then the IMU
+    /// segment): journal, queue, acknowledge. Keypoints that do not match the header are a
+    /// `bad_keyframe` (acknowledged, not applied); an IMU segment that does not hold is a
+    /// `bad_imu_segment`, counted, and the keyframe is applied visual-only.
     pub fn receive(
         &mut self,
         c: u32,
         h: &KeyframeHeader,
-        records: &[KeypointRecord],
+        payload: &[KeyframeRecord],
     ) -> anyhow::Result<()> {
-        let n = self.counters.clients.of(c);
-        n.keyframes_received += 1;
-        n.keyframe_bytes +=
-            (std::mem::size_of::<KeyframeHeader>() + std::mem::size_of_val(records)) as u64;
+        self.count_received(c, h, payload);
         let key = (h.meta.session_id, h.keyframe_id);
         if self.clients[c as usize].applied.contains(&key) {
-            n.keyframes_duplicate += 1;
+            self.counters.clients.of(c).keyframes_duplicate += 1;
         } else {
-            match convert::server_keyframe(c, h, records) {
-                Err(e) => {
-                    // Acknowledged (a re-send would not be better) but not applied.
-                    let detail = format!("client {c}: {e}");
-                    self.status.error(ErrorKind::BadKeyframe, detail);
-                }
-                Ok(kf) => {
-                    if let Some(j) = self.journal.as_mut() {
-                        j.append(&Entry::Keyframe {
-                            client: c,
-                            header: Box::new(*h),
-                            records: records.to_vec(),
-                        })
-                        .context("writing the journal")?;
-                    }
-                    let cl = &mut self.clients[c as usize];
-                    cl.applied.insert(key);
-                    cl.waiting.insert(key, (*h, records.to_vec()));
-                    self.counters.clients.of(c).keyframes_applied += 1;
-                    self.queue(
-                        c,
-                        Job::Keyframe {
-                            kf,
-                            // Lock-step: the idle step after every keyframe, whatever
-                            // the queue (the live default idles when the queue is empty).
-                            idle: self.sync.is_some().then_some(true),
-                            replay: false,
-                        },
-                    )?;
-                }
-            }
+            self.apply(c, h, payload)?;
         }
         let cl = &mut self.clients[c as usize];
         let ack = Feedback {
@@ -584,6 +570,63 @@ impl Mapper {
         cl.fb_seq += 1;
         self.counters.clients.of(c).keyframes_acked += 1;
         Ok(())
+    }
+
+    /// Converts, journals and queues a new keyframe message of client `c` (see
+    /// [`Self::receive`]).
+    fn apply(
+        &mut self,
+        c: u32,
+        h: &KeyframeHeader,
+        payload: &[KeyframeRecord],
+    ) -> anyhow::Result<()> {
+        let imu = h.imu_records(payload).map_err(|e| e.to_string());
+        let converted = h
+            .keypoints(payload)
+            .map_err(|e| format!("keyframe {}: {e}", h.keyframe_id))
+            .and_then(|records| {
+                Ok((
+                    records,
+                    convert::server_keyframe(c, h, records, imu.clone())?,
+                ))
+            });
+        let (records, convert::Converted { kf, imu_refused }) = match converted {
+            Ok(x) => x,
+            Err(e) => {
+                // Acknowledged (a re-send would not be better) but not applied.
+                let detail = format!("client {c}: {e}");
+                self.status.error(ErrorKind::BadKeyframe, detail);
+                return Ok(());
+            }
+        };
+        if let Some(e) = imu_refused {
+            self.counters.clients.of(c).imu_segments_refused += 1;
+            let detail = format!("client {c}: {e}; used visual-only");
+            self.status.error(ErrorKind::BadImuSegment, detail);
+        }
+        if let Some(j) = self.journal.as_mut() {
+            j.append(&Entry::Keyframe {
+                client: c,
+                header: Box::new(*h),
+                records: records.to_vec(),
+                imu: imu.as_deref().unwrap_or_default().to_vec(),
+            })
+            .context("writing the journal")?;
+        }
+        let key = (h.meta.session_id, h.keyframe_id);
+        let cl = &mut self.clients[c as usize];
+        cl.applied.insert(key);
+        cl.waiting.insert(key, (*h, records.to_vec()));
+        self.counters.clients.of(c).keyframes_applied += 1;
+        // Lock-step: the idle step after every keyframe, whatever the queue (the live
+        // default idles when the queue is empty).
+        let idle = self.sync.is_some().then_some(true);
+        let job = Job::Keyframe {
+            kf: Box::new(kf),
+            idle,
+            replay: false,
+        };
+        self.queue(c, job)
     }
 
     /// A handler's outcome: journal the idle step, forward kept keyframes, publish feedback,
@@ -738,6 +781,109 @@ mod tests {
         m.open_journal(&path).expect("reopen");
         assert_eq!(m.counters.journals_rejected, 0);
         assert!(m.status.errors.is_empty(), "{:?}", m.status.errors);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A message of client 0 at `t_s` seconds: one keypoint, then (when `imu` is given) a
+    /// visual-inertial client's segment of those records.
+    fn message(
+        id: u64,
+        t_s: i64,
+        imu: Option<Vec<shm_schema::ImuRecord>>,
+    ) -> (KeyframeHeader, Vec<KeyframeRecord>) {
+        let mut h = KeyframeHeader {
+            meta: MsgMeta::new(0, 1, id, 0),
+            keyframe_id: id,
+            t_ns: t_s * 1_000_000_000,
+            width: 640,
+            height: 480,
+            n_keypoints: 1,
+            ..KeyframeHeader::default()
+        };
+        h.intrinsics.pinhole = [400.0, 400.0, 320.0, 240.0];
+        let mut payload = vec![KeyframeRecord::from(KeypointRecord::default())];
+        if let Some(imu) = imu {
+            h.has_imu = 1;
+            h.imu_t1_ns = h.t_ns;
+            h.n_imu = imu.len() as u32;
+            h.imu_t0_ns = imu.first().map_or(0, |r| r.t_ns);
+            payload.extend(imu.into_iter().map(KeyframeRecord::from));
+        }
+        (h, payload)
+    }
+
+    /// IMU records every 0.5 s from `t0_s` to `t1_s`.
+    fn segment(t0_s: i64, t1_s: i64) -> Vec<shm_schema::ImuRecord> {
+        (2 * t0_s..=2 * t1_s)
+            .map(|k| shm_schema::ImuRecord {
+                t_ns: k * 500_000_000,
+                ..Default::default()
+            })
+            .collect()
+    }
+
+    /// Issue 19: keyframes with good and malformed IMU segments are all applied (journaled,
+    /// acknowledged); a malformed segment (times out of order, a NaN, more records declared
+    /// than the slice holds) is a counted `bad_imu_segment` and the keyframe goes on
+    /// visual-only. The journal keeps each message with its segment as received, and a
+    /// restarted mapper replays all of them without an error.
+    #[test]
+    fn malformed_segments_are_counted_and_the_keyframes_applied() {
+        let dir = std::env::temp_dir().join(format!("shoal_mapper_imu_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("mapper_journal.bin");
+        let params = crate::Params::parse_from(["mapper", "--clients", "1"]);
+        let cfg = params.config().expect("default configuration");
+        let (tx, _rx) = crossbeam_channel::unbounded();
+        let mut m = Mapper::new(&params, &cfg, Status::new("mapper"), tx);
+        m.open_journal(&path).expect("journal");
+        let mut unordered = segment(2, 3);
+        unordered.swap(0, 1);
+        let mut nan = segment(3, 4);
+        nan[1].accel[0] = f64::NAN;
+        let (h_short, mut short) = message(5, 5, Some(segment(4, 5)));
+        short.pop();
+        let msgs = [
+            message(1, 1, Some(Vec::new())),
+            message(2, 2, Some(segment(1, 2))),
+            message(3, 3, Some(unordered)),
+            message(4, 4, Some(nan)),
+            (h_short, short),
+            message(6, 6, None),
+        ];
+        for (h, payload) in &msgs {
+            m.receive(0, h, payload).expect("received");
+        }
+        let n = m.counters.client(0);
+        assert_eq!(n.keyframes_applied, 6);
+        assert_eq!(n.keyframes_acked, 6);
+        assert_eq!(n.keyframes_with_imu, 4, "messages with records");
+        assert_eq!(n.imu_samples_received, 3 + 3 + 3 + 3);
+        assert_eq!(n.imu_segments_refused, 3);
+        assert_eq!(m.status.errors_of(ErrorKind::BadImuSegment), 3);
+        assert_eq!(m.status.errors_of(ErrorKind::BadKeyframe), 0);
+        let bytes = 6 * std::mem::size_of::<KeyframeHeader>() + (6 + 3 + 3 + 3 + 2) * 64;
+        assert_eq!(n.keyframe_bytes, bytes as u64);
+        drop(m);
+        let j = shoal_runtime::journal::read_journal(&path).expect("journal");
+        let imu_lens: Vec<usize> = j
+            .entries
+            .iter()
+            .filter_map(|e| match e {
+                Entry::Keyframe { imu, .. } => Some(imu.len()),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(imu_lens, vec![0, 3, 3, 3, 0, 0]);
+        let (tx, _rx) = crossbeam_channel::unbounded();
+        let mut m = Mapper::new(&params, &cfg, Status::new("mapper"), tx);
+        m.open_journal(&path).expect("replay");
+        assert!(m.status.errors.is_empty(), "{:?}", m.status.errors);
+        assert_eq!(
+            m.status.values.get("journal_keyframes_on_start"),
+            Some(&6.0)
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

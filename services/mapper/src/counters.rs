@@ -87,8 +87,15 @@ impl MapperCounters {
 pub struct MapperClientCounters {
     /// Keyframe messages received (re-sends included).
     pub keyframes_received: u64,
-    /// Bytes of those messages.
+    /// Bytes of those messages (header and payload: keypoint and IMU records).
     pub keyframe_bytes: u64,
+    /// Of those messages, the ones carrying an IMU segment (issue 19).
+    pub keyframes_with_imu: u64,
+    /// IMU samples in those segments.
+    pub imu_samples_received: u64,
+    /// Keyframes applied visual-only because their IMU segment (or inertial state) did
+    /// not hold (`bad_imu_segment` errors).
+    pub imu_segments_refused: u64,
     /// Re-sends of keyframes already applied (acknowledged again, not re-applied).
     pub keyframes_duplicate: u64,
     /// Keyframes journaled and queued for the handler.

@@ -8,7 +8,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::{
-    CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeypointRecord,
+    CorrectionHeader, CorrectionRecord, Feedback, KeyframeHeader, KeyframeRecord,
     LoopKeyframeHeader, LoopKeypointRecord, ResyncRequest,
 };
 use shoal_runtime::{ErrorKind, ServiceStart, Status};
@@ -20,7 +20,7 @@ use crate::{Params, SERVICE_NAME};
 /// The mapper's shared-memory ports.
 struct Ports {
     node: Node<Ipc>,
-    keyframes: Vec<Subscriber<Ipc, [KeypointRecord], KeyframeHeader>>,
+    keyframes: Vec<Subscriber<Ipc, [KeyframeRecord], KeyframeHeader>>,
     feedback: Vec<Publisher<Ipc, Feedback, ()>>,
     loop_keyframes: Publisher<Ipc, [LoopKeypointRecord], LoopKeyframeHeader>,
     corrections: Subscriber<Ipc, [CorrectionRecord], CorrectionHeader>,

@@ -38,8 +38,8 @@ pub const MAX_WITHOUT_IDLE: usize = 4;
 pub enum Job {
     /// A keyframe for its client's handler (created on first use).
     Keyframe {
-        /// The keyframe.
-        kf: ServerKeyframe,
+        /// The keyframe (boxed: with its IMU segment it is large beside the other jobs).
+        kf: Box<ServerKeyframe>,
         /// Run the idle step after it: `Some` to follow a journaled schedule (replay),
         /// `None` to decide live.
         idle: Option<bool>,
@@ -442,7 +442,7 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
             }
             Job::Keyframe { kf, idle, replay } => {
                 dirty = true;
-                Report::Keyframe(Box::new(handle(&mut g, &params, kf, idle, replay, &rx)))
+                Report::Keyframe(Box::new(handle(&mut g, &params, *kf, idle, replay, &rx)))
             }
         };
         if results.send(report).is_err() {
@@ -523,7 +523,8 @@ fn handle(
 /// other clients' keyframes, in the same frame); its earlier maps (older sessions, not
 /// merged) in `..._m{n}.txt`; `OUT/keyframes_client_c{c}.txt`, the client poses `T_ck` of
 /// every keyframe of the current session as received (the client VO's keyframes, for
-/// comparison); `OUT/map_growth_c{c}.txt`, the size of its map after each keyframe.
+/// comparison); `OUT/map_growth_c{c}.txt`, the size of its map after each keyframe;
+/// `OUT/imu_segments_server_c{c}.txt` for a visual-inertial client ([`imu_segments_text`]).
 /// (Pose-graph corrections also leave `OUT/correction_{id}_before.txt` / `_after.txt`: the
 /// corrected map's keyframes right before and after the correction and its global BA.)
 fn write_files(out: Option<&Path>, g: &Group) {
@@ -535,6 +536,12 @@ fn write_files(out: Option<&Path>, g: &Group) {
         }
         let _ = std::fs::write(out.join(format!("map_growth_c{c}.txt")), text);
         let current = cs.h.current_map_id();
+        if let Some(text) = current
+            .and_then(|m| g.maps.get(&m))
+            .and_then(|m| imu_segments_text(m, *c))
+        {
+            let _ = std::fs::write(out.join(format!("imu_segments_server_c{c}.txt")), text);
+        }
         for (id, m) in &g.maps {
             let mine = |k: &u64| KeyframeId::from_raw(*k).client().raw() == *c;
             let name = if Some(*id) == current {
@@ -558,6 +565,41 @@ fn write_files(out: Option<&Path>, g: &Group) {
             &cs.client_kfs,
         );
     }
+}
+
+/// The IMU segments of client `c`'s keyframes in server map `m` (issue 19), one line per
+/// keyframe in id order: frame time, the segment's start and end on the IMU clock (start -1
+/// without a predecessor), its samples, first and last sample times, and 1 when it links the
+/// client's keyframe before it in the map (`KeyframeImu::links`). `None` when none of them
+/// has a segment (a monocular client).
+fn imu_segments_text(m: &slam_core::server::ServerMap, c: u32) -> Option<String> {
+    let mut text =
+        String::from("# t_ns imu_t0_ns imu_t1_ns samples first_sample_ns last_sample_ns linked\n");
+    let mut prev: Option<&slam_core::vo::keyframe_imu::KeyframeImu> = None;
+    let mut any = false;
+    for (k, kf) in &m.map.keyframes {
+        if KeyframeId::from_raw(*k).client().raw() != c {
+            continue;
+        }
+        let Some(seg) = &kf.imu else {
+            prev = None;
+            continue;
+        };
+        any = true;
+        let first = seg.samples.first().map_or(-1, |s| s.t_ns);
+        let last = seg.samples.last().map_or(-1, |s| s.t_ns);
+        let linked = prev.is_some_and(|p| seg.links(p));
+        text.push_str(&format!(
+            "{} {} {} {} {first} {last} {}\n",
+            kf.t_ns,
+            seg.t_prev_ns.unwrap_or(-1),
+            seg.t_ns,
+            seg.samples.len(),
+            u8::from(linked)
+        ));
+        prev = Some(seg);
+    }
+    any.then_some(text)
 }
 
 /// Writes a TUM trajectory (`t tx ty tz qx qy qz qw`, t in seconds, nine decimals)

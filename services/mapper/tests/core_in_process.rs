@@ -161,7 +161,7 @@ fn tracker_keyframes_through_the_mapper_core() {
     let mut out = Published::default();
     let mut msgs = Vec::new();
     let sent = keyframes_of_the_tracker(|k| {
-        m.receive(0, &k.header, &k.records).expect("receive");
+        m.receive(0, &k.header, &k.payload()).expect("receive");
         msgs.push(k.key());
         // The outcomes arrive asynchronously: the feedback of earlier keyframes too.
         m.drain_outcomes(&rx).expect("outcomes");
@@ -229,7 +229,7 @@ fn a_restarted_mapper_rebuilds_its_map_from_the_journal() {
     let mut out = Published::default();
     let mut msgs: Vec<KeyframeMsg> = Vec::new();
     let sent = keyframes_of_the_tracker(|k| {
-        m.receive(0, &k.header, &k.records).expect("receive");
+        m.receive(0, &k.header, &k.payload()).expect("receive");
         msgs.push(k.clone());
         m.drain_outcomes(&rx).expect("outcomes");
         out.take(&mut m)
@@ -249,7 +249,7 @@ fn a_restarted_mapper_rebuilds_its_map_from_the_journal() {
 
     let (first, rest) = msgs.split_at(1);
     for k in first.iter().chain(rest) {
-        m2.receive(0, &k.header, &k.records).expect("receive");
+        m2.receive(0, &k.header, &k.payload()).expect("receive");
     }
     m2.drain_outcomes(&rx2).expect("outcomes");
     out2.take(&mut m2);
@@ -274,9 +274,9 @@ fn a_malformed_keyframe_is_acknowledged_counted_and_skipped() {
         if n == 3 {
             let mut bad = k.header;
             bad.pose_ck.q = [f64::NAN; 4];
-            m.receive(0, &bad, &k.records).expect("receive");
+            m.receive(0, &bad, &k.payload()).expect("receive");
         } else {
-            m.receive(0, &k.header, &k.records).expect("receive");
+            m.receive(0, &k.header, &k.payload()).expect("receive");
         }
         m.drain_outcomes(&rx).expect("outcomes");
         out.take(&mut m)

@@ -52,6 +52,12 @@ error_kinds! {
     BadKeyframe = "bad_keyframe",
     /// A correction message that does not decode (mapper).
     BadCorrection = "bad_correction",
+    /// A keyframe message's IMU segment that does not hold (times, values, borders, record
+    /// count): the keyframe is used without it, visual-only (mapper, issue 19).
+    BadImuSegment = "bad_imu_segment",
+    /// An IMU segment longer than `shm_schema::topics::MAX_IMU_RECORDS`, cut to that many
+    /// samples in its keyframe message (tracker, issue 19).
+    ImuSegmentCut = "imu_segment_cut",
     // The services' own work.
     /// Lock-step: no consumer acknowledged a frame in time (camera ingest).
     AckTimeout = "ack_timeout",

@@ -17,23 +17,29 @@
 //! ([`JOURNAL_VERSION`], [`shm_schema::SCHEMA_VERSION`]: the payloads are the messages'
 //! fields). A journal without it, or of another version, is refused with a
 //! [`VersionError`] naming the file ([`Journal::open`], [`read_journal`]) instead of being
-//! misread. Spool files hold no header and one keyframe entry, followed (since the
-//! visual-inertial resume, issue 17) by a [`Entry::MapPoints`] entry with the positions of
-//! the points it observes ([`encode_entry`], [`parse`]); that kind appears in spool files
-//! only, so the journal version is unchanged.
+//! misread. Spool files start with their own header, `"SHOALSPL" | JOURNAL_VERSION u32 |
+//! SCHEMA_VERSION u32` ([`spool_file_header`], [`parse_spool`]; since journal version 3,
+//! issue 19: a spool file of an older tracker, without it, is refused the same way), then
+//! hold one keyframe entry followed by a [`Entry::MapPoints`] entry with the positions of the
+//! points it observes (issue 17); that kind appears in spool files only.
+//!
+//! Journal version 3 (schema version 4, issue 19): a keyframe entry carries the header's IMU
+//! fields and the IMU segment's records after the keypoints ([`Entry::Keyframe::imu`]).
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use shm_schema::{
-    CorrectionHeader, CorrectionRecord, Intrinsics, KeyframeHeader, KeypointRecord, MsgMeta, Pose,
-    SCHEMA_VERSION,
+    CorrectionHeader, CorrectionRecord, ImuCalib, ImuRecord, Intrinsics, KeyframeHeader,
+    KeypointRecord, MsgMeta, Pose, SCHEMA_VERSION,
 };
 
 /// Version of the journal format (header, framing and payload encodings). Bump on any change
 /// of them.
-pub const JOURNAL_VERSION: u32 = 2;
+pub const JOURNAL_VERSION: u32 = 3;
 /// First bytes of a journal file.
 const FILE_MAGIC: [u8; 8] = *b"SHOALJNL";
+/// First bytes of a spool file.
+const SPOOL_MAGIC: [u8; 8] = *b"SHOALSPL";
 /// Bytes of the file header (magic, journal version, schema version).
 pub const FILE_HEAD: usize = 16;
 
@@ -75,6 +81,9 @@ pub enum Entry {
         header: Box<KeyframeHeader>,
         /// Keypoint records.
         records: Vec<KeypointRecord>,
+        /// The IMU segment's records (`header.n_imu` of them as sent; none for a
+        /// monocular client).
+        imu: Vec<ImuRecord>,
     },
     /// The handler of `client` ran its idle step right after handling keyframe `kf_id` of
     /// `session`.
@@ -202,8 +211,74 @@ fn decode_meta(d: &mut Dec) -> Option<MsgMeta> {
     })
 }
 
-fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) -> Vec<u8> {
-    let mut e = Enc(Vec::with_capacity(256 + 64 * records.len()));
+fn encode_imu_calib(e: &mut Enc, c: &ImuCalib) {
+    encode_pose(e, &c.pose_bc);
+    e.i64(c.t_d_ns);
+    e.f64s(&[
+        c.gyro_noise_density,
+        c.accel_noise_density,
+        c.gyro_bias_rw,
+        c.accel_bias_rw,
+    ]);
+    for m in [&c.t_a, &c.t_g, &c.t_s] {
+        e.f64s(m);
+    }
+}
+
+fn decode_imu_calib(d: &mut Dec) -> Option<ImuCalib> {
+    let pose_bc = decode_pose(d)?;
+    let t_d_ns = d.i64()?;
+    let [gyro_noise_density, accel_noise_density, gyro_bias_rw, accel_bias_rw] = d.f64s()?;
+    Some(ImuCalib {
+        pose_bc,
+        t_d_ns,
+        gyro_noise_density,
+        accel_noise_density,
+        gyro_bias_rw,
+        accel_bias_rw,
+        t_a: d.f64s()?,
+        t_g: d.f64s()?,
+        t_s: d.f64s()?,
+    })
+}
+
+/// Bytes of one [`ImuRecord`] in an entry.
+const IMU_RECORD_BYTES: usize = 64;
+
+fn encode_imu_records(e: &mut Enc, imu: &[ImuRecord]) {
+    e.u32(imu.len() as u32);
+    for r in imu {
+        e.i64(r.t_ns);
+        e.f64s(&r.gyro);
+        e.f64s(&r.accel);
+        e.u64(r.reserved);
+    }
+}
+
+fn decode_imu_records(d: &mut Dec) -> Option<Vec<ImuRecord>> {
+    let n = d.u32()? as usize;
+    if n > d.0.len() / IMU_RECORD_BYTES {
+        return None;
+    }
+    (0..n)
+        .map(|_| {
+            Some(ImuRecord {
+                t_ns: d.i64()?,
+                gyro: d.f64s()?,
+                accel: d.f64s()?,
+                reserved: d.u64()?,
+            })
+        })
+        .collect()
+}
+
+fn encode_keyframe(
+    client: u32,
+    h: &KeyframeHeader,
+    records: &[KeypointRecord],
+    imu: &[ImuRecord],
+) -> Vec<u8> {
+    let mut e = Enc(Vec::with_capacity(640 + 64 * (records.len() + imu.len())));
     e.u32(client);
     encode_meta(&mut e, &h.meta);
     e.u64(h.keyframe_id);
@@ -218,6 +293,11 @@ fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) 
     e.f64s(&h.velocity_w);
     e.f64s(&h.gyro_bias);
     e.f64s(&h.accel_bias);
+    e.u32(h.n_imu);
+    e.u32(h.has_imu);
+    e.i64(h.imu_t0_ns);
+    e.i64(h.imu_t1_ns);
+    encode_imu_calib(&mut e, &h.imu_calib);
     e.u32(records.len() as u32);
     for r in records {
         for v in [r.u, r.v, r.angle, r.response] {
@@ -228,6 +308,7 @@ fn encode_keyframe(client: u32, h: &KeyframeHeader, records: &[KeypointRecord]) 
         e.u64(r.map_point_id);
         e.0.extend(r.descriptor);
     }
+    encode_imu_records(&mut e, imu);
     e.0
 }
 
@@ -254,6 +335,11 @@ fn decode_keyframe(p: &[u8]) -> Option<Entry> {
         velocity_w: d.f64s()?,
         gyro_bias: d.f64s()?,
         accel_bias: d.f64s()?,
+        n_imu: d.u32()?,
+        has_imu: d.u32()?,
+        imu_t0_ns: d.i64()?,
+        imu_t1_ns: d.i64()?,
+        imu_calib: decode_imu_calib(&mut d)?,
     });
     let n = d.u32()? as usize;
     if n > d.0.len() / 64 {
@@ -272,10 +358,12 @@ fn decode_keyframe(p: &[u8]) -> Option<Entry> {
             descriptor: d.take()?,
         });
     }
+    let imu = decode_imu_records(&mut d)?;
     Some(Entry::Keyframe {
         client,
         header,
         records,
+        imu,
     })
 }
 
@@ -383,7 +471,11 @@ fn encode(entry: &Entry) -> (u8, Vec<u8>) {
             client,
             header,
             records,
-        } => (KIND_KEYFRAME, encode_keyframe(*client, header, records)),
+            imu,
+        } => (
+            KIND_KEYFRAME,
+            encode_keyframe(*client, header, records, imu),
+        ),
         Entry::Idle {
             client,
             session,
@@ -419,31 +511,70 @@ fn decode(kind: u8, p: &[u8]) -> Option<Entry> {
     }
 }
 
-/// The header a journal of this binary starts with.
-fn file_header() -> [u8; FILE_HEAD] {
+/// The header a file of `kind` written by this binary starts with.
+fn header_of(kind: FileKind) -> [u8; FILE_HEAD] {
     let mut h = [0u8; FILE_HEAD];
-    h[..8].copy_from_slice(&FILE_MAGIC);
+    h[..8].copy_from_slice(kind.magic());
     h[8..12].copy_from_slice(&JOURNAL_VERSION.to_le_bytes());
     h[12..].copy_from_slice(&SCHEMA_VERSION.to_le_bytes());
     h
 }
 
-/// A journal file this binary does not read: no header, or one of another version.
+/// The header a journal of this binary starts with.
+fn file_header() -> [u8; FILE_HEAD] {
+    header_of(FileKind::Journal)
+}
+
+/// The header a spool file of this binary starts with (its entries follow, framed as in a
+/// journal: [`encode_entry`]).
+pub fn spool_file_header() -> [u8; FILE_HEAD] {
+    header_of(FileKind::Spool)
+}
+
+/// The two kinds of files of framed entries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FileKind {
+    /// The mapper's journal.
+    Journal,
+    /// A tracker's spool file (one keyframe).
+    Spool,
+}
+
+impl FileKind {
+    fn magic(self) -> &'static [u8; 8] {
+        match self {
+            Self::Journal => &FILE_MAGIC,
+            Self::Spool => &SPOOL_MAGIC,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Self::Journal => "journal",
+            Self::Spool => "spool file",
+        }
+    }
+}
+
+/// A journal or spool file this binary does not read: no header, or one of another version.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct VersionError {
     /// The file.
     pub path: PathBuf,
+    /// Journal or spool file.
+    pub kind: FileKind,
     /// (journal version, schema version) of the file's header; `None` when it has none.
     pub found: Option<(u32, u32)>,
 }
 
 impl std::fmt::Display for VersionError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "journal {}: ", self.path.display())?;
+        let kind = self.kind.name();
+        write!(f, "{kind} {}: ", self.path.display())?;
         match self.found {
             None => write!(
                 f,
-                "no journal header (written by an older binary, or not a journal)"
+                "no {kind} header (written by an older binary, or not a {kind})"
             )?,
             Some((j, s)) => write!(f, "journal version {j} of schema version {s}")?,
         }
@@ -458,9 +589,9 @@ impl std::error::Error for VersionError {}
 
 /// The versions in the header of journal bytes; `Err(None)` without a header, `Err(found)`
 /// for another version.
-fn check_header(bytes: &[u8]) -> Result<(), Option<(u32, u32)>> {
+fn check_header(bytes: &[u8], kind: FileKind) -> Result<(), Option<(u32, u32)>> {
     let head = bytes.get(..FILE_HEAD).ok_or(None)?;
-    if head[..8] != FILE_MAGIC {
+    if head[..8] != *kind.magic() {
         return Err(None);
     }
     let word = |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
@@ -474,8 +605,20 @@ fn check_header(bytes: &[u8]) -> Result<(), Option<(u32, u32)>> {
 /// Parses the bytes of a journal file (header, then entries); `good_len` counts the header.
 /// Errors, naming `path`, when the header is missing or of another version.
 pub fn parse_journal(path: &Path, bytes: &[u8]) -> Result<Contents, VersionError> {
-    check_header(bytes).map_err(|found| VersionError {
+    parse_with_header(path, bytes, FileKind::Journal)
+}
+
+/// Parses the bytes of a spool file (header, then entries); errors, naming `path`, when
+/// the header is missing (a spool file of a tracker before journal version 3) or of another
+/// version.
+pub fn parse_spool(path: &Path, bytes: &[u8]) -> Result<Contents, VersionError> {
+    parse_with_header(path, bytes, FileKind::Spool)
+}
+
+fn parse_with_header(path: &Path, bytes: &[u8], kind: FileKind) -> Result<Contents, VersionError> {
+    check_header(bytes, kind).map_err(|found| VersionError {
         path: path.to_path_buf(),
+        kind,
         found,
     })?;
     Ok(parse_from(bytes, FILE_HEAD))
@@ -716,11 +859,67 @@ mod tests {
             ..KeypointRecord::default()
         };
         r.descriptor[5] = 0xab;
+        // A visual-inertial keyframe with a three-sample segment (even ids) or a monocular one.
+        let imu: Vec<ImuRecord> = (0..3 * (1 - id as i64 % 2))
+            .map(|k| ImuRecord {
+                t_ns: 1_000 * id as i64 - 10 + 5 * k,
+                gyro: [0.1, -0.2, 0.3 * k as f64],
+                accel: [0.5, 9.81, -1e-3],
+                reserved: 0,
+            })
+            .collect();
+        if !imu.is_empty() {
+            header.n_imu = imu.len() as u32;
+            header.has_imu = 1;
+            header.imu_t0_ns = imu[0].t_ns;
+            header.imu_t1_ns = imu[imu.len() - 1].t_ns;
+            header.imu_calib.pose_bc.t = [0.01, -0.02, 0.03];
+            header.imu_calib.t_d_ns = -1234;
+            header.imu_calib.gyro_noise_density = 1.7e-4;
+            header.imu_calib.accel_bias_rw = 3e-3;
+            header.imu_calib.t_s[4] = 1e-3;
+        }
         Entry::Keyframe {
             client: 1,
             header: Box::new(header),
             records: vec![r, KeypointRecord::default()],
+            imu,
         }
+    }
+
+    /// A keyframe entry with an IMU segment (header fields, calibration, records) reads
+    /// back whole, as a monocular one does; cut inside its IMU records, or with a record
+    /// count beyond the entry, it is refused (a torn or undecodable entry), never misread.
+    #[test]
+    fn keyframe_with_imu_segment_round_trips() {
+        for id in [2, 3] {
+            let bytes = encode_entry(&keyframe(id));
+            let c = parse(&bytes);
+            assert_eq!(c.entries, vec![keyframe(id)]);
+            assert!(c.problem.is_none());
+        }
+        let bytes = encode_entry(&keyframe(2));
+        let c = parse(&bytes[..bytes.len() - 8 - 40]);
+        assert!(c.entries.is_empty());
+        assert!(c.problem.as_deref().is_some_and(|p| p.contains("torn")));
+        // A corrupt IMU record count (re-checksummed: not a torn write) is undecodable.
+        let (kind, mut payload) = encode(&keyframe(2));
+        let at = payload.len() - 3 * IMU_RECORD_BYTES - 4;
+        assert_eq!(payload[at..at + 4], 3u32.to_le_bytes());
+        payload[at..at + 4].copy_from_slice(&4u32.to_le_bytes());
+        let len = payload.len() as u32;
+        let mut framed = Vec::new();
+        framed.extend(MAGIC.to_le_bytes());
+        framed.extend(u32::from(kind).to_le_bytes());
+        framed.extend(len.to_le_bytes());
+        framed.extend(&payload);
+        framed.extend(checksum(kind, len, &payload).to_le_bytes());
+        let c = parse(&framed);
+        assert!(c.entries.is_empty());
+        assert!(c
+            .problem
+            .as_deref()
+            .is_some_and(|p| p.contains("undecodable")));
     }
 
     /// A spool file: a keyframe entry and its map points, read back whole; cut short, the
@@ -739,16 +938,39 @@ mod tests {
                 },
             ],
         };
-        let mut bytes = encode_entry(&keyframe(4));
+        let path = Path::new("spool/0001_0004.kf");
+        let mut bytes = spool_file_header().to_vec();
+        bytes.extend(encode_entry(&keyframe(4)));
         let keyframe_len = bytes.len();
         bytes.extend(encode_entry(&points));
-        let c = parse(&bytes);
+        let c = parse_spool(path, &bytes).expect("this version");
         assert_eq!(c.entries, vec![keyframe(4), points]);
         assert!(c.problem.is_none());
-        let c = parse(&bytes[..bytes.len() - 3]);
+        let c = parse_spool(path, &bytes[..bytes.len() - 3]).expect("this version");
         assert_eq!(c.entries, vec![keyframe(4)]);
         assert_eq!(c.good_len, keyframe_len as u64);
         assert!(c.problem.is_some());
+        // A spool file of an older tracker (no header) or of another version is refused
+        // with both versions named; a journal is not a spool file.
+        let e = parse_spool(path, &bytes[FILE_HEAD..]).expect_err("no header");
+        assert_eq!((e.kind, e.found), (FileKind::Spool, None));
+        assert!(e.to_string().contains("no spool file header"), "{e}");
+        let mut old = bytes.clone();
+        old[8..12].copy_from_slice(&2u32.to_le_bytes());
+        let e = parse_spool(path, &old).expect_err("version 2");
+        let text = e.to_string();
+        assert!(text.contains("spool file spool/0001_0004.kf"), "{text}");
+        assert!(
+            text.contains("journal version 2 of schema version"),
+            "{text}"
+        );
+        assert!(
+            text.contains(&format!("reads journal version {JOURNAL_VERSION}")),
+            "{text}"
+        );
+        let mut journal = file_header().to_vec();
+        journal.extend(&bytes[FILE_HEAD..]);
+        assert!(parse_spool(path, &journal).is_err());
     }
 
     #[test]

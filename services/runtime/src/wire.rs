@@ -3,10 +3,12 @@
 //! poses and similarities (the wire quaternion is `[x, y, z, w]`, nalgebra's constructor
 //! takes `w` first: the swap is done here and nowhere else), camera intrinsics, keypoints and
 //! the tracking state. Ids convert through [`slam_core::ids`].
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-use shm_schema::{Intrinsics, Pose, TrackState};
+use nalgebra::{Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use shm_schema::{ImuCalib, ImuRecord, Intrinsics, Pose, TrackState};
 use slam_core::camera::PinholeRadtan;
+use slam_core::imu::{ImuIntrinsics, ImuMeasurement, ImuNoise, PreintegrationParams};
 use slam_core::lie::Sim3;
+use slam_core::vo::keyframe_imu::ImuCalibration;
 use slam_core::vo::VoState;
 
 /// A wire quaternion norm below this is no rotation.
@@ -135,6 +137,68 @@ pub fn track_state_from_vo(s: VoState) -> TrackState {
     }
 }
 
+/// A visual-inertial client's IMU calibration as a keyframe message carries it (issue 19;
+/// matrices column-major).
+pub fn wire_from_imu_calibration(c: &ImuCalibration) -> ImuCalib {
+    let (n, k) = (&c.preint.noise, &c.preint.intrinsics);
+    let cols = |m: &Matrix3<f64>| -> [f64; 9] { std::array::from_fn(|i| m.as_slice()[i]) };
+    ImuCalib {
+        pose_bc: wire_from_iso(&c.t_bc),
+        t_d_ns: c.t_d_ns,
+        gyro_noise_density: n.gyro_noise_density,
+        accel_noise_density: n.accel_noise_density,
+        gyro_bias_rw: n.gyro_bias_rw,
+        accel_bias_rw: n.accel_bias_rw,
+        t_a: cols(&k.t_a),
+        t_g: cols(&k.t_g),
+        t_s: cols(&k.t_s),
+    }
+}
+
+/// The IMU calibration of a keyframe message (the inverse of
+/// [`wire_from_imu_calibration`]); errors with the reason when the pose is not finite or the
+/// preintegration settings are refused (a noise density negative or not finite, `T_a` or
+/// `T_g` singular).
+pub fn imu_calibration_from_wire(c: &ImuCalib) -> Result<ImuCalibration, String> {
+    let t_bc = iso_from_wire(&c.pose_bc).ok_or("invalid camera-to-body pose T_bc")?;
+    let noise = ImuNoise {
+        gyro_noise_density: c.gyro_noise_density,
+        accel_noise_density: c.accel_noise_density,
+        gyro_bias_rw: c.gyro_bias_rw,
+        accel_bias_rw: c.accel_bias_rw,
+    };
+    let intrinsics = ImuIntrinsics {
+        t_a: Matrix3::from_column_slice(&c.t_a),
+        t_g: Matrix3::from_column_slice(&c.t_g),
+        t_s: Matrix3::from_column_slice(&c.t_s),
+    };
+    let preint = PreintegrationParams::new(&noise, &intrinsics).map_err(|e| e.to_string())?;
+    Ok(ImuCalibration {
+        preint,
+        t_bc,
+        t_d_ns: c.t_d_ns,
+    })
+}
+
+/// An IMU record of a keyframe message as a measurement.
+pub fn imu_measurement(r: &ImuRecord) -> ImuMeasurement {
+    ImuMeasurement {
+        t_ns: r.t_ns,
+        gyro: Vector3::from(r.gyro),
+        accel: Vector3::from(r.accel),
+    }
+}
+
+/// A measurement as an IMU record of a keyframe message.
+pub fn imu_record(m: &ImuMeasurement) -> ImuRecord {
+    ImuRecord {
+        t_ns: m.t_ns,
+        gyro: m.gyro.into(),
+        accel: m.accel.into(),
+        reserved: 0,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -191,5 +255,31 @@ mod tests {
     fn track_states() {
         assert_eq!(track_state_from_vo(VoState::Tracking), TrackState::Tracking);
         assert_eq!(track_state_from_vo(VoState::Lost), TrackState::Lost);
+    }
+
+    /// The IMU calibration survives the wire (T_bc, t_d, noise densities, intrinsics); a
+    /// singular T_a or a negative density is refused with the reason.
+    #[test]
+    fn imu_calibration_round_trips() {
+        let mut intrinsics = ImuIntrinsics::default();
+        intrinsics.t_a[(0, 1)] = 2e-3;
+        intrinsics.t_s[(2, 0)] = -1e-4;
+        let calib = ImuCalibration {
+            preint: PreintegrationParams::new(&ImuNoise::default(), &intrinsics).expect("params"),
+            t_bc: pose(),
+            t_d_ns: -3_500_000,
+        };
+        let w = wire_from_imu_calibration(&calib);
+        assert_eq!(w.t_a[3], 2e-3, "column-major");
+        let back = imu_calibration_from_wire(&w).expect("valid");
+        assert_eq!(back.preint, calib.preint);
+        assert_eq!(back.t_d_ns, calib.t_d_ns);
+        assert!((back.t_bc.translation.vector - calib.t_bc.translation.vector).norm() < 1e-15);
+        let mut bad = w;
+        bad.t_a = [0.0; 9];
+        assert!(imu_calibration_from_wire(&bad).is_err_and(|e| e.contains("T_a")));
+        bad = w;
+        bad.accel_noise_density = -1.0;
+        assert!(imu_calibration_from_wire(&bad).is_err());
     }
 }

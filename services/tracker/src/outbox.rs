@@ -7,24 +7,41 @@
 //! publishes them ([`KeyframeMsg`]); times are the caller's `now_ns`.
 use std::collections::BTreeMap;
 
-use shm_schema::topics::MAX_KEYPOINTS;
-use shm_schema::{KeyframeHeader, KeypointRecord, MsgMeta, Pose, FLAG_RESEND, NO_MAP_POINT};
+use shm_schema::topics::{MAX_IMU_RECORDS, MAX_KEYPOINTS};
+use shm_schema::{
+    ImuRecord, KeyframeHeader, KeyframeRecord, KeypointRecord, MsgMeta, Pose, FLAG_RESEND,
+    NO_MAP_POINT,
+};
+use slam_core::vo::keyframe_imu::KeyframeImu;
 use slam_core::vo::Keyframe;
 
-/// A keyframe message (header and keypoint records) as it goes on the wire.
+/// A keyframe message (header, keypoint records, IMU records) as it goes on the wire.
 #[derive(Debug, Clone)]
 pub struct KeyframeMsg {
-    /// Header: session, id, pose, intrinsics.
+    /// Header: session, id, pose, intrinsics, IMU segment borders and calibration.
     pub header: KeyframeHeader,
     /// One record per keypoint, shared by the outbox and the messages it hands out (a
     /// re-send copies the header only).
     pub records: std::sync::Arc<[KeypointRecord]>,
+    /// The IMU segment since the previous keyframe (`header.n_imu` samples, borders
+    /// interpolated, `VI_NOTES.md` §4 Fig. 5.4); empty for a monocular client.
+    pub imu: std::sync::Arc<[ImuRecord]>,
+    /// Samples of the segment left out because it was longer than [`MAX_IMU_RECORDS`]
+    /// (counted and logged by the sender; not on the wire).
+    pub imu_cut: usize,
 }
 
 impl KeyframeMsg {
     /// The keyframe's (VO session, id).
     pub fn key(&self) -> (u32, u64) {
         (self.header.meta.session_id, self.header.keyframe_id)
+    }
+
+    /// The payload as published: the keypoint records, then the IMU records.
+    pub fn payload(&self) -> Vec<KeyframeRecord> {
+        let kps = self.records.iter().map(|r| KeyframeRecord::from(*r));
+        kps.chain(self.imu.iter().map(|r| KeyframeRecord::from(*r)))
+            .collect()
     }
 }
 
@@ -94,11 +111,42 @@ pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg
         velocity_w: kf.inertial.map_or([0.0; 3], |i| i.v_wb.into()),
         gyro_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.gyro.into()),
         accel_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.accel.into()),
+        ..KeyframeHeader::default()
     };
+    let (header, imu, imu_cut) = with_imu_segment(header, kf.imu.as_ref());
     KeyframeMsg {
         header,
         records: records.into(),
+        imu: imu.into(),
+        imu_cut,
     }
+}
+
+/// `header` with the IMU fields of segment `seg` (issue 19; `None`: a monocular client,
+/// unchanged), its records (borders interpolated at exactly the previous keyframe's and
+/// this keyframe's IMU times, [`KeyframeImu::interpolated_samples`]; none for a session's
+/// first keyframe or an incomplete segment), and the samples cut beyond
+/// [`MAX_IMU_RECORDS`] (the segment then ends at its last record, before the keyframe).
+fn with_imu_segment(
+    mut header: KeyframeHeader,
+    seg: Option<&KeyframeImu>,
+) -> (KeyframeHeader, Vec<ImuRecord>, usize) {
+    let Some(seg) = seg else {
+        return (header, Vec::new(), 0);
+    };
+    header.has_imu = 1;
+    header.imu_t1_ns = seg.t_ns;
+    header.imu_calib = shoal_runtime::wire::wire_from_imu_calibration(&seg.calib);
+    let mut samples = seg.interpolated_samples().unwrap_or_default();
+    let cut = samples.len().saturating_sub(MAX_IMU_RECORDS);
+    samples.truncate(MAX_IMU_RECORDS);
+    let records: Vec<ImuRecord> = samples
+        .iter()
+        .map(shoal_runtime::wire::imu_record)
+        .collect();
+    header.n_imu = records.len() as u32;
+    header.imu_t0_ns = records.first().map_or(0, |r| r.t_ns);
+    (header, records, cut)
 }
 
 impl Outbox {
@@ -224,7 +272,63 @@ mod tests {
         KeyframeMsg {
             header,
             records: vec![KeypointRecord::default(); 3].into(),
+            imu: Vec::new().into(),
+            imu_cut: 0,
         }
+    }
+
+    /// A segment of `n` samples 2.5 ms apart, the keyframes at both ends (between samples).
+    fn segment(n: i64, t_prev: Option<i64>) -> KeyframeImu {
+        use slam_core::imu::{ImuMeasurement, PreintegrationParams};
+        let samples = (0..n)
+            .map(|k| ImuMeasurement {
+                t_ns: k * 2_500_000,
+                gyro: nalgebra::Vector3::new(0.1, 0.0, 0.0),
+                accel: nalgebra::Vector3::new(0.0, 0.0, 9.81),
+            })
+            .collect();
+        let preint = PreintegrationParams::new(&Default::default(), &Default::default());
+        KeyframeImu {
+            t_prev_ns: t_prev,
+            t_ns: (n - 1) * 2_500_000 - 1_000_000,
+            samples,
+            calib: slam_core::vo::keyframe_imu::ImuCalibration {
+                preint: preint.expect("params"),
+                t_bc: nalgebra::Isometry3::translation(0.1, 0.0, 0.0),
+                t_d_ns: 7,
+            },
+        }
+    }
+
+    /// The IMU part of a message (issue 19): a monocular keyframe's header is unchanged; a
+    /// session's first keyframe carries the calibration and no record; a segment has its
+    /// borders exact; one longer than `MAX_IMU_RECORDS` is cut to that many records, and
+    /// the cut is reported for counting.
+    #[test]
+    fn imu_segments_on_the_wire_and_cut_beyond_the_limit() {
+        let h = KeyframeHeader::default();
+        let (mono, recs, cut) = with_imu_segment(h, None);
+        assert_eq!((mono, recs.len(), cut), (h, 0, 0));
+        let (first, recs, cut) = with_imu_segment(h, Some(&segment(10, None)));
+        assert_eq!((first.has_imu, first.n_imu, recs.len(), cut), (1, 0, 0, 0));
+        assert_eq!(first.imu_calib.t_d_ns, 7);
+        assert_eq!(first.imu_calib.pose_bc.t[0], 0.1);
+        let seg = segment(100, Some(1_000_000));
+        let (vi, recs, cut) = with_imu_segment(h, Some(&seg));
+        assert_eq!((vi.n_imu as usize, recs.len(), cut), (100, 100, 0));
+        assert_eq!((vi.imu_t0_ns, vi.imu_t1_ns), (1_000_000, seg.t_ns));
+        assert_eq!((recs[0].t_ns, recs[99].t_ns), (1_000_000, seg.t_ns));
+        let long = segment(MAX_IMU_RECORDS as i64 + 50, Some(1_000_000));
+        let (cut_h, recs, cut) = with_imu_segment(h, Some(&long));
+        assert_eq!(
+            (cut_h.n_imu as usize, recs.len()),
+            (MAX_IMU_RECORDS, MAX_IMU_RECORDS)
+        );
+        assert_eq!(cut, 50);
+        assert!(
+            recs[MAX_IMU_RECORDS - 1].t_ns < long.t_ns,
+            "ends before the keyframe"
+        );
     }
 
     /// A burst beyond the in-flight limit is paced; acknowledgements let the rest out; an

@@ -11,7 +11,7 @@ use iceoryx2::port::subscriber::Subscriber;
 use shm_schema::time::monotonic_ns;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::{
-    Feedback, FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeypointRecord, TrackedPose,
+    Feedback, FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeyframeRecord, TrackedPose,
 };
 use shoal_runtime::{ErrorKind, ServiceStart, Status, StatusFile};
 
@@ -27,7 +27,7 @@ const SERVER_SYNC_TIMEOUT: Duration = Duration::from_secs(30);
 const END_WAIT_NS: i64 = 5_000_000_000;
 
 type FrameSub = Subscriber<Ipc, [u8], FrameHeader>;
-type KeyframePub = Publisher<Ipc, [KeypointRecord], KeyframeHeader>;
+type KeyframePub = Publisher<Ipc, [KeyframeRecord], KeyframeHeader>;
 
 /// The tracker's shared-memory ports and files.
 struct Ports {
@@ -124,7 +124,7 @@ impl Ports {
             return;
         };
         let c = m.header.meta.client_id;
-        if let Err(e) = sp.write(c, &m.header, &m.records, &e.points) {
+        if let Err(e) = sp.write(c, m, &e.points) {
             let detail = format!("keyframe {}: {e}", m.header.keyframe_id);
             status.error(ErrorKind::Spool, detail);
         }
@@ -307,10 +307,15 @@ fn write_frame_log(l: &mut impl Write, h: &FrameHeader, pixels: &[u8]) -> std::i
     )
 }
 
-/// Publishes a keyframe message (header and records into one loaned sample).
+/// Publishes a keyframe message: header, keypoint records then IMU records into one loaned
+/// sample (`KeyframeHeader::keypoints`, `KeyframeHeader::imu_records`).
 fn publish_keyframe(publisher: &KeyframePub, m: &KeyframeMsg) -> anyhow::Result<()> {
-    let sample = publisher.loan_slice_uninit(m.records.len())?;
-    let mut sample = sample.write_from_slice(&m.records);
+    let (n_kp, n_imu) = (m.records.len(), m.imu.len());
+    let sample = publisher.loan_slice_uninit(n_kp + n_imu)?;
+    let mut sample = sample.write_from_fn(|i| match i.checked_sub(n_kp) {
+        None => KeyframeRecord::from(m.records[i]),
+        Some(j) => KeyframeRecord::from(m.imu[j]),
+    });
     *sample.user_header_mut() = m.header;
     sample.send()?;
     Ok(())

@@ -14,13 +14,20 @@
 //! BA refines the window afterwards; that refinement dies with the process), and, in a
 //! second entry of the file ([`Entry::MapPoints`]), the world positions of those points:
 //! with them a visual-inertial successor rebuilds the dead process's client map and resumes
-//! its session (`core/resume.rs`, issue 17). A file written before that has no second
-//! entry: it is recovered as before (sent), and its session is not resumed.
+//! its session (`core/resume.rs`, issue 17). A file without that second entry is recovered
+//! and sent, and its session is not resumed.
+//!
+//! A file starts with a header naming its version
+//! ([`shoal_runtime::journal::spool_file_header`]); since issue 19 the keyframe entry carries
+//! the IMU segment of the message, and a file of an older tracker (no header, or another
+//! version) is refused with both versions named, deleted, and counted as a spool error.
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
-use shm_schema::{KeyframeHeader, KeypointRecord};
-use shoal_runtime::journal::{encode_entry, parse, Entry, SpooledPoint};
+use shm_schema::{ImuRecord, KeyframeHeader, KeypointRecord};
+use shoal_runtime::journal::{encode_entry, parse_spool, spool_file_header, Entry, SpooledPoint};
+
+use crate::outbox::KeyframeMsg;
 
 /// A keyframe recovered from the spool.
 pub struct Recovered {
@@ -28,6 +35,8 @@ pub struct Recovered {
     pub header: KeyframeHeader,
     /// Keypoint records.
     pub records: Vec<KeypointRecord>,
+    /// The IMU segment's records (empty for a monocular client).
+    pub imu: Vec<ImuRecord>,
     /// Positions of the points it observed when spooled (`None`: a file of an older
     /// tracker, written without them).
     pub points: Option<Vec<SpooledPoint>>,
@@ -38,7 +47,7 @@ pub struct Recovered {
 #[derive(Debug, Clone)]
 pub struct SpoolEntry {
     /// The keyframe message.
-    pub msg: crate::outbox::KeyframeMsg,
+    pub msg: KeyframeMsg,
     /// Id and world position of each map point the keyframe observes.
     pub points: Vec<SpooledPoint>,
 }
@@ -109,7 +118,14 @@ impl Spool {
                     continue;
                 }
             };
-            let contents = parse(&bytes);
+            let contents = match parse_spool(&path, &bytes) {
+                Ok(c) => c,
+                Err(e) => {
+                    out.errors.push(e.to_string());
+                    let _ = std::fs::remove_file(&path);
+                    continue;
+                }
+            };
             let mut entries = contents.entries.into_iter();
             match (entries.next(), entries.next(), entries.next()) {
                 (
@@ -117,6 +133,7 @@ impl Spool {
                         client: c,
                         header,
                         records,
+                        imu,
                     }),
                     points,
                     None,
@@ -129,6 +146,7 @@ impl Spool {
                     out.keyframes.push(Recovered {
                         header: *header,
                         records,
+                        imu,
                         points: match points {
                             Some(Entry::MapPoints { points }) => Some(points),
                             _ => None,
@@ -153,21 +171,23 @@ impl Spool {
         out
     }
 
-    /// Writes a keyframe just created (its message as it would be sent now) and the
-    /// positions of its map points, in one file.
+    /// Writes a keyframe just created (its message as it would be sent now, IMU segment
+    /// included) and the positions of its map points, in one file.
     pub fn write(
         &mut self,
         client: u32,
-        header: &KeyframeHeader,
-        records: &[KeypointRecord],
+        msg: &KeyframeMsg,
         points: &[SpooledPoint],
     ) -> std::io::Result<()> {
+        let header = &msg.header;
         let key = (header.meta.session_id, header.keyframe_id);
-        let mut bytes = encode_entry(&Entry::Keyframe {
+        let mut bytes = spool_file_header().to_vec();
+        bytes.extend(encode_entry(&Entry::Keyframe {
             client,
             header: Box::new(*header),
-            records: records.to_vec(),
-        });
+            records: msg.records.to_vec(),
+            imu: msg.imu.to_vec(),
+        }));
         bytes.extend(encode_entry(&Entry::MapPoints {
             points: points.to_vec(),
         }));
@@ -213,12 +233,26 @@ mod tests {
     use super::*;
     use shm_schema::MsgMeta;
 
-    fn message(session: u32, id: u64) -> (KeyframeHeader, Vec<KeypointRecord>) {
+    /// Keyframe `id`'s message, with a two-sample IMU segment from the previous one.
+    fn message(session: u32, id: u64) -> KeyframeMsg {
+        let t_ns = id as i64 * 1000;
+        let imu: Vec<ImuRecord> = [t_ns - 1000, t_ns]
+            .iter()
+            .map(|&t| ImuRecord {
+                t_ns: t,
+                gyro: [0.1, 0.0, id as f64],
+                ..ImuRecord::default()
+            })
+            .collect();
         let header = KeyframeHeader {
             meta: MsgMeta::new(3, session, 0, 0),
             keyframe_id: id,
-            t_ns: id as i64 * 1000,
+            t_ns,
             n_keypoints: 2,
+            n_imu: 2,
+            has_imu: 1,
+            imu_t0_ns: t_ns - 1000,
+            imu_t1_ns: t_ns,
             ..KeyframeHeader::default()
         };
         let records = vec![
@@ -229,7 +263,12 @@ mod tests {
             };
             2
         ];
-        (header, records)
+        KeyframeMsg {
+            header,
+            records: records.into(),
+            imu: imu.into(),
+            imu_cut: 0,
+        }
     }
 
     #[test]
@@ -242,8 +281,7 @@ mod tests {
             p_w: [1.0, 2.0, 3.0],
         }];
         for id in 1..=6 {
-            let (h, r) = message(65537, id);
-            s.write(3, &h, &r, &points).expect("write");
+            s.write(3, &message(65537, id), &points).expect("write");
         }
         // Keyframe 3 leaves the window (1 and 2 were culled), then the process dies.
         assert_eq!(s.sent(65537, 3), 3);
@@ -256,6 +294,8 @@ mod tests {
         assert_eq!(ids, vec![4, 5, 6]);
         assert_eq!(rec.keyframes[0].records[0].u, 4.0);
         assert_eq!(rec.keyframes[0].records[1].map_point_id, 7);
+        assert_eq!(rec.keyframes[0].imu, message(65537, 4).imu.to_vec());
+        assert_eq!(rec.keyframes[0].header, message(65537, 4).header);
         assert_eq!(rec.keyframes[0].points.as_deref(), Some(&points[..]));
         assert_eq!(rec.errors.len(), 1, "{:?}", rec.errors);
         assert!(
@@ -271,28 +311,42 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
-    /// A file of an older tracker (the keyframe entry alone) is recovered without point
-    /// positions; one with a foreign entry after the keyframe is refused as corrupt.
+    /// A file without the map points entry is recovered without point positions; one with
+    /// a foreign entry after the keyframe is refused as corrupt; a file of a tracker before
+    /// issue 19 (no spool header), or one cut inside its IMU records, is refused, named,
+    /// and deleted.
     #[test]
-    fn an_older_spool_file_is_recovered_without_points() {
+    fn older_torn_and_foreign_spool_files() {
         let dir = std::env::temp_dir().join(format!("shoal_spool_old_{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let mut s = Spool::open(&dir).expect("spool");
-        let (h, r) = message(65537, 2);
+        let m = message(65537, 2);
         let entry = Entry::Keyframe {
             client: 3,
-            header: Box::new(h),
-            records: r,
+            header: Box::new(m.header),
+            records: m.records.to_vec(),
+            imu: m.imu.to_vec(),
         };
-        std::fs::write(s.path(65537, 2), encode_entry(&entry)).expect("old file");
-        let mut foreign = encode_entry(&entry);
+        let mut alone = spool_file_header().to_vec();
+        alone.extend(encode_entry(&entry));
+        std::fs::write(s.path(65537, 2), &alone).expect("file");
+        let mut foreign = alone.clone();
         foreign.extend(encode_entry(&entry));
         std::fs::write(s.path(65537, 3), foreign).expect("foreign file");
+        std::fs::write(s.path(65537, 4), encode_entry(&entry)).expect("pre-v3 file");
+        std::fs::write(s.path(65537, 5), &alone[..alone.len() - 30]).expect("torn file");
         let rec = s.recover(3);
         assert_eq!(rec.keyframes.len(), 1);
         assert_eq!(rec.keyframes[0].header.keyframe_id, 2);
+        assert_eq!(rec.keyframes[0].imu.len(), 2);
         assert!(rec.keyframes[0].points.is_none());
-        assert_eq!(rec.errors.len(), 1, "{:?}", rec.errors);
+        assert_eq!(rec.errors.len(), 3, "{:?}", rec.errors);
+        assert!(rec
+            .errors
+            .iter()
+            .any(|e| e.contains("0000000000000004.kf") && e.contains("no spool file header")));
+        assert!(rec.errors.iter().any(|e| e.contains("0000000000000005.kf")));
+        assert_eq!(std::fs::read_dir(&dir).expect("dir").count(), 1);
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -203,6 +203,11 @@ pub struct PreintegrationParams {
     pub noise_cov: Matrix6,
     /// Bias random-walk densities `(σ_bg, σ_ba)` (rad/s²/√Hz, m/s³/√Hz).
     pub bias_walk: (f64, f64),
+    /// The noise densities these settings were made from (a keyframe message carries them
+    /// so that the server builds the same settings, `VI_NOTES.md` §4 "Server").
+    pub noise: ImuNoise,
+    /// The intrinsics these settings were made from (idem).
+    pub intrinsics: ImuIntrinsics,
 }
 
 impl PreintegrationParams {
@@ -228,6 +233,8 @@ impl PreintegrationParams {
             correction,
             noise_cov: c * raw * c.transpose(),
             bias_walk: (d[2], d[3]),
+            noise: *noise,
+            intrinsics: *intrinsics,
         })
     }
 }
@@ -324,6 +331,14 @@ fn block3(m: &Matrix9x6, r: usize, c: usize) -> Matrix3<f64> {
 }
 
 /// Linear interpolation of a sample pair at `t` (ns); `a.t_ns < b.t_ns` is not required.
+/// The sample linearly interpolated between `a` and `b` at `t_ns` (`VI_NOTES.md` §4,
+/// Fig. 5.4: `y(t) = y_a + (t - t_a)/(t_b - t_a) (y_b - y_a)`; `y_a` when both share a
+/// time), computed as [`Preintegrated::integrate_window`] does at a window's borders.
+pub fn interpolate<S: TimedImuSample>(a: &S, b: &S, t_ns: i64) -> ImuMeasurement {
+    let (gyro, accel) = lerp(a, b, t_ns);
+    ImuMeasurement { t_ns, gyro, accel }
+}
+
 fn lerp<S: TimedImuSample>(a: &S, b: &S, t: i64) -> (Vector3<f64>, Vector3<f64>) {
     let span = b.t_ns() - a.t_ns();
     let s = if span > 0 {

@@ -12,8 +12,12 @@
 //!   "[P] A culled keyframe joins its two segments"), so consecutive keyframes of the map
 //!   stay linked.
 //! - Times are on the IMU clock (`t_imu = t_cam + t_d`, `VI_NOTES.md` §1).
+//! - On the wire to the server (issue 19) a segment goes with its border samples
+//!   interpolated at exactly the two keyframes' times ([`KeyframeImu::interpolated_samples`],
+//!   Fig. 5.4): neighbours share the border sample, no gap, no overlap.
 use nalgebra::Isometry3;
 
+use crate::imu::preint::interpolate;
 use crate::imu::{ImuMeasurement, PreintegrationParams};
 
 /// The fixed IMU calibration of a visual-inertial client.
@@ -56,6 +60,35 @@ impl KeyframeImu {
     /// complete: the two keyframes are linked by an IMU factor.
     pub fn links(&self, prev: &KeyframeImu) -> bool {
         self.t_prev_ns == Some(prev.t_ns) && self.is_complete()
+    }
+
+    /// The segment as a keyframe message carries it (`VI_NOTES.md` §4, Fig. 5.4): the
+    /// samples strictly inside `(t_prev_ns, t_ns)`, unchanged, between two border samples
+    /// linearly interpolated at exactly `t_prev_ns` and `t_ns` from the samples bracketing
+    /// them, so that the segments of consecutive keyframes share their border sample
+    /// (bit for bit: both interpolate the same two samples). Preintegrating it gives what
+    /// preintegrating the bracketed samples gives. `None` when the segment is not complete
+    /// ([`Self::is_complete`]; a session's first keyframe, or a border sample missing).
+    pub fn interpolated_samples(&self) -> Option<Vec<ImuMeasurement>> {
+        let t0 = self.t_prev_ns.filter(|_| self.is_complete())?;
+        let s = &self.samples;
+        // The sample at `t` or the two around it (they exist: the segment is complete).
+        let border = |t: i64| {
+            let k = s.partition_point(|m| m.t_ns < t);
+            match (k.checked_sub(1).and_then(|j| s.get(j)), s.get(k)) {
+                (_, Some(b)) if b.t_ns == t => Some(*b),
+                (Some(a), Some(b)) => Some(interpolate(a, b, t)),
+                _ => None,
+            }
+        };
+        let inside = s.iter().filter(|m| m.t_ns > t0 && m.t_ns < self.t_ns);
+        let mut out = Vec::with_capacity(s.len());
+        out.push(border(t0)?);
+        out.extend(inside.copied());
+        if self.t_ns > t0 {
+            out.push(border(self.t_ns)?);
+        }
+        Some(out)
     }
 }
 
@@ -157,6 +190,7 @@ impl KeyframeImuSource {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::imu::Preintegrated;
     use nalgebra::Vector3;
 
     fn m(t_ns: i64) -> ImuMeasurement {
@@ -205,6 +239,88 @@ mod tests {
         assert!(!d.is_complete());
         assert_eq!(bracket(&[m(0), m(10)], 3, 7).len(), 2);
         assert!(bracket(&[], 3, 7).is_empty());
+    }
+
+    /// A sample of a smooth signal at `t_ns` (3 ms spacing, not a multiple of the
+    /// keyframe times, so the borders fall between samples).
+    fn smooth(t_ns: i64) -> ImuMeasurement {
+        let t = t_ns as f64 * 1e-9;
+        ImuMeasurement {
+            t_ns,
+            gyro: Vector3::new((3.0 * t).sin(), 0.2 * t, (2.0 * t).cos()),
+            accel: Vector3::new(0.5 * t, (t * 5.0).cos(), 9.81 + 0.1 * t),
+        }
+    }
+
+    /// Fig. 5.4: the wire segment starts and ends exactly at the two keyframes' IMU times,
+    /// its interior samples are the stream's, unchanged, and it preintegrates to what the
+    /// bracketed samples give; two consecutive segments tile the time axis (one shared
+    /// border sample, bit for bit, no gap, no overlap).
+    #[test]
+    fn interpolated_segments_have_exact_borders_and_tile() {
+        let mut s = source();
+        for k in 0..200 {
+            s.push(smooth(k * 3_000_000));
+        }
+        let _first = s.segment(10_000_000);
+        let a = s.segment(100_000_001);
+        let b = s.segment(250_000_007);
+        let (wa, wb) = (
+            a.interpolated_samples().expect("complete"),
+            b.interpolated_samples().expect("complete"),
+        );
+        let t0 = a.t_prev_ns.expect("has a predecessor");
+        assert_eq!((t0, a.t_ns), (10_000_002, 100_000_003));
+        assert_eq!(wa.first().map(|m| m.t_ns), Some(t0));
+        assert_eq!(wa.last().map(|m| m.t_ns), Some(a.t_ns));
+        let interior: Vec<_> = a
+            .samples
+            .iter()
+            .filter(|m| m.t_ns > t0 && m.t_ns < a.t_ns)
+            .copied()
+            .collect();
+        assert_eq!(&wa[1..wa.len() - 1], &interior[..]);
+        assert!(wa.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
+        // The interpolated border lies on the segment between its two neighbours.
+        let (p, q) = (a.samples[0], a.samples[1]);
+        let f = (t0 - p.t_ns) as f64 / (q.t_ns - p.t_ns) as f64;
+        assert!((wa[0].gyro - (p.gyro + (q.gyro - p.gyro) * f)).norm() < 1e-15);
+        // Tiling: b starts where a ends, with the same sample.
+        assert_eq!(b.t_prev_ns, Some(a.t_ns));
+        assert_eq!(wb.first(), wa.last());
+        let covered: i64 = [&wa, &wb]
+            .iter()
+            .map(|w| w[w.len() - 1].t_ns - w[0].t_ns)
+            .sum();
+        assert_eq!(covered, b.t_ns - t0);
+        // Same preintegration as the bracketed samples.
+        let bias = crate::imu::ImuBiases::default();
+        let params = a.calib.preint;
+        let raw = Preintegrated::from_window(&a.samples, t0, a.t_ns, bias, params);
+        let wire = Preintegrated::from_window(&wa, t0, a.t_ns, bias, params);
+        let (raw, wire) = (raw.expect("raw"), wire.expect("wire"));
+        let dr = (raw.delta_r().matrix() - wire.delta_r().matrix()).norm();
+        assert!(dr < 1e-12, "{dr}");
+        assert!((raw.delta_v() - wire.delta_v()).norm() < 1e-12);
+        assert!((raw.delta_p() - wire.delta_p()).norm() < 1e-12);
+        assert!((raw.covariance() - wire.covariance()).norm() < 1e-12);
+    }
+
+    /// No wire segment for a session's first keyframe or an incomplete one; a segment
+    /// whose border falls on a sample keeps that sample.
+    #[test]
+    fn interpolated_samples_need_a_complete_segment() {
+        let mut s = source();
+        for t in (0..=100).step_by(10) {
+            s.push(m(t));
+        }
+        assert_eq!(s.segment(18).interpolated_samples(), None);
+        let b = s.segment(48);
+        let w = b.interpolated_samples().expect("complete");
+        let times: Vec<i64> = w.iter().map(|x| x.t_ns).collect();
+        assert_eq!(times, vec![20, 30, 40, 50]);
+        assert_eq!(w, b.samples);
+        assert_eq!(s.segment(108).interpolated_samples(), None);
     }
 
     /// Before the first keyframe only the last seconds are kept.

@@ -4,6 +4,7 @@
 //! client's local mapping and by the server's keyframe handler.
 use super::keyframe_imu::join_segments;
 use super::map::{ClientMap, Keyframe, KfId};
+use crate::ids::KeyframeId;
 
 /// Parameters of [`redundant_fraction`] and [`cull_redundant_keyframes`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -107,15 +108,20 @@ pub fn cull_redundant_keyframes(
 }
 
 /// A culled keyframe's IMU segment joins the next keyframe's, so the keyframes around it
-/// stay linked ([`crate::vo::keyframe_imu`]).
+/// stay linked ([`crate::vo::keyframe_imu`]). The next keyframe is the next id of the same
+/// client: in a server map ids carry the client in their high bits
+/// ([`crate::ids::KeyframeId`]; a VO's ids are all of client 0), and a merged map holds
+/// other clients' keyframes after a client's newest.
 fn join_imu_into_successor(map: &mut ClientMap, culled: &Keyframe) {
     let Some(seg) = &culled.imu else {
         return;
     };
+    let client = |id: KfId| KeyframeId::from_raw(id).client();
     if let Some(next) = map
         .keyframes
         .range_mut(culled.id + 1..)
         .next()
+        .filter(|(id, _)| client(**id) == client(culled.id))
         .and_then(|(_, kf)| kf.imu.as_mut())
     {
         join_segments(seg, next);
@@ -194,6 +200,40 @@ mod tests {
     /// leaves keyframe 3's segment starting at keyframe 0, with every sample once.
     #[test]
     fn culled_keyframes_join_their_imu_segments_into_the_next() {
+        let m = culled_with_imu(0);
+        let (k0, k3) = (&m.keyframes[&0], &m.keyframes[&3]);
+        let seg = k3.imu.as_ref().expect("imu");
+        assert!(seg.links(k0.imu.as_ref().expect("imu")));
+        let times: Vec<i64> = seg.samples.iter().map(|s| s.t_ns).collect();
+        assert_eq!(times, (0..=30).collect::<Vec<_>>());
+    }
+
+    /// The server's culling (the same function on a server map, issue 19): with server ids
+    /// (client in the high bits) a culled keyframe's segment joins its client's next
+    /// keyframe, never another client's keyframe that follows it in id order.
+    #[test]
+    fn server_culling_joins_segments_within_a_client() {
+        use crate::ids::ClientId;
+        let base = KeyframeId::new(ClientId::new(1), 0).raw();
+        let m = culled_with_imu(base);
+        let seg = m.keyframes[&(base + 3)].imu.as_ref().expect("imu");
+        assert!(seg.links(m.keyframes[&base].imu.as_ref().expect("imu")));
+        assert_eq!(seg.samples.len(), 31);
+        // Client 1's newest keyframe culled: client 2's keyframe after it in id order, with
+        // a segment of the same times (two clients replaying one dataset), is left alone.
+        let mut m = ClientMap::new(1, 0);
+        let other = KeyframeId::new(ClientId::new(2), 0).raw();
+        let culled = with_segment(kf(base + 1, 1, 0), 10);
+        let mut next = with_segment(kf(other, 1, 0), 20);
+        next.imu.as_mut().expect("imu").t_prev_ns = Some(10);
+        let before = next.imu.clone();
+        m.insert_keyframe(next);
+        join_imu_into_successor(&mut m, &culled);
+        assert_eq!(m.keyframes[&other].imu, before);
+    }
+
+    /// Keyframe `k` with the segment from `t - 10` (none before 0) to `t`, samples each ns.
+    fn with_segment(mut k: Keyframe, t: i64) -> Keyframe {
         use crate::imu::ImuMeasurement;
         use crate::vo::keyframe_imu::{bracket, ImuCalibration, KeyframeImu};
         let calib = ImuCalibration {
@@ -209,25 +249,34 @@ mod tests {
                 accel: Vector3::zeros(),
             })
             .collect();
-        let mut m = five_keyframes_seeing_20_points(|id| {
-            let mut k = kf(id, 20, 0);
-            let t = 10 * id as i64;
-            let t_prev = (id > 0).then(|| t - 10);
-            k.imu = Some(KeyframeImu {
-                t_prev_ns: t_prev,
-                t_ns: t,
-                samples: bracket(&samples, t_prev.unwrap_or(t), t).to_vec(),
-                calib,
-            });
-            k
+        let t_prev = (t > 0).then(|| t - 10);
+        k.imu = Some(KeyframeImu {
+            t_prev_ns: t_prev,
+            t_ns: t,
+            samples: bracket(&samples, t_prev.unwrap_or(t), t).to_vec(),
+            calib,
         });
+        k
+    }
+
+    /// Five keyframes with ids `base..base + 5`, segments every 10 ns, after culling
+    /// (keyframes `base + 1` and `base + 2` go).
+    fn culled_with_imu(base: KfId) -> ClientMap {
+        let mut m = ClientMap::new(1, 0);
+        for i in 0..5 {
+            m.insert_keyframe(with_segment(kf(base + i, 20, 0), 10 * i as i64));
+        }
+        for i in 0..20u32 {
+            let obs: Vec<(KfId, u32)> = (0..5).map(|k| (base + k, i)).collect();
+            m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
+        }
+        for k in 0..5 {
+            m.update_covisibility(base + k);
+        }
         let p = KfCullingParams::default();
-        assert_eq!(cull_redundant_keyframes(&mut m, 4, &[], &p), vec![1, 2]);
-        let (k0, k3) = (&m.keyframes[&0], &m.keyframes[&3]);
-        let seg = k3.imu.as_ref().expect("imu");
-        assert!(seg.links(k0.imu.as_ref().expect("imu")));
-        let times: Vec<i64> = seg.samples.iter().map(|s| s.t_ns).collect();
-        assert_eq!(times, (0..=30).collect::<Vec<_>>());
+        let culled = cull_redundant_keyframes(&mut m, base + 4, &[], &p);
+        assert_eq!(culled, vec![base + 1, base + 2]);
+        m
     }
 
     #[test]

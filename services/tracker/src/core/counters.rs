@@ -42,6 +42,12 @@ pub struct TrackerCounters {
     pub keyframes_spooled: u64,
     /// Keyframes recovered from a killed predecessor's spool and sent.
     pub keyframes_recovered: u64,
+    /// Keyframe messages queued with an IMU segment (issue 19; recovered ones included).
+    pub keyframes_with_imu: u64,
+    /// IMU records in those messages.
+    pub keyframe_imu_samples: u64,
+    /// Keyframe messages whose IMU segment was cut to `MAX_IMU_RECORDS` samples.
+    pub keyframe_imu_cut: u64,
     /// Feedback messages taken.
     pub feedback_received: u64,
     /// Pose feedback used for server-map poses.

@@ -451,6 +451,7 @@ impl TrackerCore {
 
     /// Sends a keyframe message (kept until acknowledged) and drops it from the spool.
     pub fn send_keyframe(&mut self, msg: KeyframeMsg, now_ns: i64) -> Vec<Out> {
+        self.count_imu_segment(&msg);
         let key = msg.key();
         let mut msgs = vec![];
         self.outbox.send(msg, now_ns, &mut msgs);
@@ -459,6 +460,26 @@ impl TrackerCore {
             out.push(Out::SpoolSent(key));
         }
         out
+    }
+
+    /// Counts a keyframe message's IMU segment; one cut to `MAX_IMU_RECORDS` is an error
+    /// in the status (`shm_schema::topics::MAX_IMU_RECORDS`).
+    fn count_imu_segment(&mut self, msg: &KeyframeMsg) {
+        if !msg.imu.is_empty() {
+            self.counters.keyframes_with_imu += 1;
+            self.counters.keyframe_imu_samples += msg.imu.len() as u64;
+        }
+        if msg.imu_cut > 0 {
+            self.counters.keyframe_imu_cut += 1;
+            let detail = format!(
+                "keyframe {}: IMU segment of {} samples cut to {} (the server sees no link)",
+                msg.header.keyframe_id,
+                msg.imu.len() + msg.imu_cut,
+                msg.imu.len()
+            );
+            self.status
+                .error(shoal_runtime::ErrorKind::ImuSegmentCut, detail);
+        }
     }
 
     /// At the end of stream: the keyframes still in the VO map, oldest first, to send one

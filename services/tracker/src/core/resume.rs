@@ -66,6 +66,8 @@ fn message(k: Recovered) -> KeyframeMsg {
     KeyframeMsg {
         header: k.header,
         records: k.records.into(),
+        imu: k.imu.into(),
+        imu_cut: 0,
     }
 }
 

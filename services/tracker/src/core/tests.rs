@@ -133,10 +133,13 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     let mut h = shm_schema::KeyframeHeader::default();
     h.meta.session_id = StartIds::new(2).session(1);
     h.keyframe_id = 9;
+    // It carries an IMU segment that was cut (issue 19): counted, and an error in the status.
     let out = core.recover_keyframe(
         KeyframeMsg {
             header: h,
             records: Vec::new().into(),
+            imu: vec![shm_schema::ImuRecord::default(); 2].into(),
+            imu_cut: 3,
         },
         5,
     );
@@ -145,6 +148,15 @@ fn a_restart_resumes_the_counters_of_the_killed_tracker() {
     let c: TrackerCounters = s.counters_as();
     assert_eq!(c.keyframes_sent, 11);
     assert_eq!(c.keyframes_recovered, 1);
+    assert_eq!(
+        (
+            c.keyframes_with_imu,
+            c.keyframe_imu_samples,
+            c.keyframe_imu_cut
+        ),
+        (1, 2, 1)
+    );
+    assert_eq!(s.errors_of(shoal_runtime::ErrorKind::ImuSegmentCut), 1);
     let next: TrackerResume = s.take_resume(RESUME_VERSION).expect("resume state");
     assert_eq!((next.last_frame_seq, next.keyframes_unacked), (Some(47), 1));
 }

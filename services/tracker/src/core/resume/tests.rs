@@ -75,6 +75,7 @@ impl Ports {
             .map(|e| Recovered {
                 header: e.msg.header,
                 records: e.msg.records.to_vec(),
+                imu: e.msg.imu.to_vec(),
                 points: Some(e.points.clone()),
             })
             .collect()
