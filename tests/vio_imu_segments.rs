@@ -120,20 +120,20 @@ fn check_server_map(out: &Path, stamps: &[i64]) -> usize {
     linked
 }
 
-/// A visual-inertial `drone` client and a monocular `loop` client (its copy has no IMU
-/// stream, so `auto` runs it monocular) in one lock-step run.
+/// A visual-inertial `drone` client and a monocular `loop` client (`--mode` once per
+/// dataset; both datasets have an IMU stream) in one lock-step run: the visual-inertial
+/// client's server map is metric and gravity-aligned, the monocular one's is neither.
 #[test]
 fn keyframes_carry_tiling_imu_segments_and_mono_ones_none() {
     let tmp = tempdir();
     let vi = synthetic(&tmp.path().join("drone"), "drone", 100, None);
     let mono = synthetic(&tmp.path().join("loop"), "loop", 60, None);
-    std::fs::remove_dir_all(mono[0].join("mav0/imu0")).expect("no IMU for the mono client");
     let out = tmp.path().join("out");
     let res = run_pipeline(
         &[&vi[0], &mono[0]],
         &out,
         "imu_segments",
-        &["--lockstep", "--mode", "auto"],
+        &["--lockstep", "--mode", "vio", "--mode", "mono"],
     );
     assert!(res.status.success());
     let rep = report(&out);
@@ -169,10 +169,22 @@ fn keyframes_carry_tiling_imu_segments_and_mono_ones_none() {
         );
         assert!(c["keyframes_per_s"].as_f64().expect("rate") > 0.0);
     }
-    // The only error: the monocular client's IMU ingest finds no IMU file.
     let errors = rep["error_counts"].as_object().expect("error_counts");
+    assert!(errors.is_empty(), "{errors:?}");
+    // report.json `maps`: one map per client (no overlap, no merge), flagged by kind.
+    let maps = rep["maps"].as_array().expect("maps");
+    let map_of = |c: u64| {
+        maps.iter()
+            .find(|m| m["clients"] == serde_json::json!([c]))
+            .unwrap_or_else(|| panic!("no map of client {c}: {maps:?}"))
+    };
+    assert_eq!(map_of(0)["metric"], true, "{maps:?}");
+    assert_eq!(map_of(0)["gravity_aligned"], true, "{maps:?}");
+    assert_eq!(map_of(1)["metric"], false, "{maps:?}");
+    assert_eq!(map_of(1)["gravity_aligned"], false, "{maps:?}");
+    let vi = &rep["services"]["mapper"]["counters"]["c0.vi_windows"];
     assert!(
-        errors.keys().all(|k| k == "imu_ingest:1/missing_file"),
-        "{errors:?}"
+        vi.as_u64().is_some_and(|n| n >= 1),
+        "visual-inertial local BAs: {vi}"
     );
 }

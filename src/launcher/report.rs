@@ -17,7 +17,9 @@ use tracker::core::TrackerCounters;
 mod accuracy;
 
 pub use accuracy::AteReport;
-use accuracy::{evaluate_client, evaluate_file, evaluate_poses, split_wire, PlotSpec};
+use accuracy::{
+    evaluate_client, evaluate_file, evaluate_file_aligned, evaluate_poses, split_wire, PlotSpec,
+};
 
 use super::child::Supervised;
 use super::recorder::{write_tum, Percentiles, Recorder};
@@ -146,6 +148,9 @@ pub struct ClientReport {
     /// ATE of the server keyframes of the client's current server map
     /// (`keyframes_server_c{i}.txt`).
     pub ate_server_keyframes: Option<AteReport>,
+    /// The same with a rigid (SE(3)) alignment, no scale: the figure of a metric map (a
+    /// visual-inertial client's, `maps[].metric`); a monocular map's is not metric.
+    pub ate_server_keyframes_se3: Option<AteReport>,
     /// ATE of the per-frame poses in the client's final server map
     /// (`trajectory_server_c{i}.txt`): each frame relative to its session's keyframes' final
     /// server poses (`sessions.frames_server_from_keyframes`), else as reported live.
@@ -479,6 +484,7 @@ struct ClientOutputs {
     ate_4dof: Option<AteReport>,
     ate_client_keyframes: Option<AteReport>,
     ate_server_keyframes: Option<AteReport>,
+    ate_server_keyframes_se3: Option<AteReport>,
     ate_server_frames: Option<AteReport>,
     /// Live server poses left out because they are in a map later merged into another.
     server_frames_other_maps: u64,
@@ -541,6 +547,12 @@ impl ClientOutputs {
             ate_4dof,
             ate_client_keyframes: ate_file("keyframes_client"),
             ate_server_keyframes: ate_file("keyframes_server"),
+            ate_server_keyframes_se3: evaluate_file_aligned(
+                ds,
+                &out.join(format!("keyframes_server_c{c}.txt")),
+                Alignment::Se3,
+                None,
+            ),
             ate_server_frames: evaluate_client(ds, &server_traj, &plot_spec("trajectory_server")),
             server_frames_other_maps: other_maps,
             sessions: one.report,
@@ -677,6 +689,7 @@ fn client_report(
         frames_server_pose_other_maps: o.server_frames_other_maps,
         ate_client_keyframes: o.ate_client_keyframes,
         ate_server_keyframes: o.ate_server_keyframes,
+        ate_server_keyframes_se3: o.ate_server_keyframes_se3,
         ate_server_frames: o.ate_server_frames,
         sessions: o.sessions,
         local_mapping: local_mapping(&t).to_string(),

@@ -115,7 +115,11 @@ fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {
     };
     let accuracy: Vec<String> = [
         acc("frames", &cl.ate, &cl.ate_se3),
-        acc("server keyframes", &cl.ate_server_keyframes, &None),
+        acc(
+            "server keyframes",
+            &cl.ate_server_keyframes,
+            &cl.ate_server_keyframes_se3,
+        ),
     ]
     .into_iter()
     .flatten()

@@ -92,10 +92,20 @@ pub(super) fn evaluate_file(
     path: &Path,
     plot: &PlotSpec,
 ) -> Option<AteReport> {
+    evaluate_file_aligned(ds, path, Alignment::Sim3, Some(plot))
+}
+
+/// Evaluates the TUM trajectory file `path` with `alignment` (and a plot if asked).
+pub(super) fn evaluate_file_aligned(
+    ds: &datasets::Dataset,
+    path: &Path,
+    alignment: Alignment,
+    plot: Option<&PlotSpec>,
+) -> Option<AteReport> {
     let traj = datasets::trajectory::read_tum(path).ok()?;
     let est_t: Vec<i64> = traj.poses.iter().map(|p| p.t_ns).collect();
     let est_p: Vec<_> = traj.poses.iter().map(|p| p.pose).collect();
-    evaluate_poses(ds, &est_t, &est_p, Alignment::Sim3, Some(plot))
+    evaluate_poses(ds, &est_t, &est_p, alignment, plot)
 }
 
 /// Evaluates poses (camera → map) against the ground truth of `ds` after `alignment`, and
