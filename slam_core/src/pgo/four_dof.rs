@@ -144,19 +144,7 @@ pub fn optimize_four_dof(
             "4-dof pgo: the fixed mask must name at least one vertex".into(),
         ));
     }
-    let mut var = vec![None; n];
-    let mut nv = 0;
-    for (v, slot) in var.iter_mut().enumerate() {
-        if !fixed[v] {
-            *slot = Some(nv);
-            nv += 1;
-        }
-    }
-    if nv == 0 {
-        return Err(CoreError::NotEnoughData(
-            "4-dof pgo: every vertex is fixed".into(),
-        ));
-    }
+    let (var, nv) = super::lm::free_vertices(fixed, "4-dof pgo")?;
     let rot = |p: &Isometry3<f64>| p.rotation.to_rotation_matrix();
     let psi0: Vec<f64> = poses.iter().map(|p| yaw(&rot(p))).collect();
     let tilt: Vec<Rotation3<f64>> = poses

@@ -157,6 +157,28 @@ pub fn graph_cost<P: LiePose<D>, const D: usize>(
     e
 }
 
+/// The variable index of each vertex (`None` for a vertex held by `fixed`) and the number
+/// of variables; errors (named `what`) when every vertex is fixed.
+pub(crate) fn free_vertices(
+    fixed: &[bool],
+    what: &str,
+) -> Result<(Vec<Option<usize>>, usize), CoreError> {
+    let mut var = vec![None; fixed.len()];
+    let mut nv = 0;
+    for (slot, f) in var.iter_mut().zip(fixed) {
+        if !f {
+            *slot = Some(nv);
+            nv += 1;
+        }
+    }
+    if nv == 0 {
+        return Err(CoreError::NotEnoughData(format!(
+            "{what}: every vertex is fixed"
+        )));
+    }
+    Ok((var, nv))
+}
+
 /// Per-edge precomputation: `Z⁻¹`, variable indices and block positions.
 #[derive(Debug, Clone, Copy)]
 struct EdgeSlot<P> {
@@ -204,19 +226,7 @@ impl<'a, P: LiePose<D>, const D: usize> BetweenProblem<'a, P, D> {
                 "pgo: bad fixed mask or active coordinates".into(),
             ));
         }
-        let mut var = vec![None; n];
-        let mut nv = 0;
-        for (v, slot) in var.iter_mut().enumerate() {
-            if !fixed[v] {
-                *slot = Some(nv);
-                nv += 1;
-            }
-        }
-        if nv == 0 {
-            return Err(CoreError::NotEnoughData(
-                "pgo: every vertex is fixed".into(),
-            ));
-        }
+        let (var, nv) = free_vertices(fixed, "pgo")?;
         let mut pairs: Vec<(u32, u32)> = Vec::with_capacity(edges.len() + nv);
         for e in edges {
             if e.i >= n || e.j >= n {
