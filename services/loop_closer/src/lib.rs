@@ -102,6 +102,10 @@ pub struct LoopCloserCounters {
     pub loops: u64,
     /// Loops found between two maps (merges).
     pub merges: u64,
+    /// Of `loops`, those corrected by the 4-DoF pose graph (a metric, gravity-aligned map).
+    pub loops_four_dof: u64,
+    /// Of `merges`, those of two metric, gravity-aligned maps (yaw and translation only).
+    pub merges_four_dof: u64,
     /// Corrections sent to the mapper.
     pub corrections_sent: u64,
     /// Time spent in loop detection, µs.
@@ -223,6 +227,8 @@ pub struct Outgoing {
     pub records: Vec<CorrectionRecord>,
     /// One-line summary for the log.
     pub summary: String,
+    /// The correction has 4 degrees of freedom (x, y, z, yaw): metric, gravity-aligned maps.
+    pub four_dof: bool,
 }
 
 impl Closer {
@@ -354,6 +360,7 @@ impl Closer {
             ),
             header,
             records,
+            four_dof: q_inertial && m_inertial,
         })
     }
 
@@ -451,6 +458,7 @@ impl Closer {
             ),
             header,
             records,
+            four_dof: inertial,
         })
     }
 }
@@ -647,8 +655,10 @@ impl LoopCloserCore {
         };
         if c.header.kind == CORRECTION_MERGE {
             n.merges += 1;
+            n.merges_four_dof += u64::from(c.four_dof);
         } else {
             n.loops += 1;
+            n.loops_four_dof += u64::from(c.four_dof);
         }
         eprintln!("loop_closer: {}", c.summary);
         if self.detect_only {
@@ -676,6 +686,7 @@ fn done_marker(h: &LoopKeyframeHeader, now_ns: i64) -> Outgoing {
         },
         records: Vec::new(),
         summary: String::new(),
+        four_dof: false,
     }
 }
 
