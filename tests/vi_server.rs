@@ -6,11 +6,10 @@
 //! alignment (no scale to fit), their scale within 1%.
 //!
 //! One lap each (640 frames): measured 0.0274-0.0296 m over 61.8 m (0.044-0.048%; two runs
-//! of the test profile differ: each client is locked to its own stream, not to the other's),
-//! Sim(3)
-//! scale 1.005-1.006 (the visual global BA after the merge lets the scale move;
-//! BENCHMARKS.md, issue 19). On half a lap (320 frames) the two maps merged in one run and
-//! not in the next.
+//! of the test profile differ: each client is locked to its own stream, not to the
+//! other's), Sim(3) scale 1.005-1.006 (the visual global BA after the merge lets the scale
+//! move; BENCHMARKS.md, issue 19). On half a lap (320 frames) the two maps merged in one
+//! run and not in the next.
 mod common;
 
 use common::*;
