@@ -187,6 +187,20 @@ struct Last {
     lambda: f64,
     /// Its server keyframe when it was kept (its pose may since have moved in BA).
     server_kf: Option<KfId>,
+    /// A metric keyframe in a metric map: its scale ratio is 1 (λ only a monitor).
+    metric: bool,
+}
+
+impl Last {
+    /// The scale ratio predictions and the client's feedback use (eq. 3.1, 3.4): 1 for a
+    /// metric keyframe in a metric map (`VI_NOTES.md` §4 "Server"), else the smoothed λ.
+    fn lambda_used(&self) -> f64 {
+        if self.metric {
+            1.0
+        } else {
+            self.lambda
+        }
+    }
 }
 
 /// The newest keyframe of the session when it was discarded, kept aside: if the session
@@ -308,7 +322,7 @@ impl KeyframeHandler {
     pub fn feedback(&self, maps: &ServerMaps) -> Option<ServerFeedback> {
         let (acked_keyframe_id, acked_session_id) = self.acked?;
         let pose = match (self.current, self.last) {
-            (Some(m), Some(l)) => Some((m, self.last_server_pose(maps, &l), l.lambda)),
+            (Some(m), Some(l)) => Some((m, self.last_server_pose(maps, &l), l.lambda_used())),
             _ => None,
         };
         Some(ServerFeedback {
@@ -475,6 +489,7 @@ impl KeyframeHandler {
             t_sk: second.t_ck,
             lambda: 1.0,
             server_kf: Some(k2),
+            metric: frame.is_inertial(),
         });
         self.reference = Some(k2);
         self.latest_kept = Some(k2);
@@ -527,11 +542,8 @@ impl KeyframeHandler {
         }
         // Eq. 3.1, 3.4; in a metric map the scale ratio of a metric keyframe is 1, the
         // smoothed λ only a monitor (`VI_NOTES.md` §4 "Server").
-        let lambda_pred = if map.frame.is_inertial() && kf.is_inertial() {
-            1.0
-        } else {
-            last.lambda
-        };
+        let metric = map.frame.is_inertial() && kf.is_inertial();
+        let lambda_pred = if metric { 1.0 } else { last.lambda };
         let pred = predict_server_pose(&last.t_ck, &t_sj, lambda_pred, &kf.t_ck);
         let refined = self.refiner.refine(
             map,
@@ -629,6 +641,7 @@ impl KeyframeHandler {
             t_sk,
             lambda,
             server_kf,
+            metric,
         });
         self.held = match server_kf {
             Some(_) => None,

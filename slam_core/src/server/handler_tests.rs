@@ -316,4 +316,9 @@ fn visual_inertial_keyframes_get_a_metric_map_and_linked_segments() {
         );
     }
     assert!(m.keyframes.values().all(|k| k.inertial.is_some()));
+    // The feedback of a metric map gives the scale ratio 1 exactly; the smoothed λ of the
+    // measured ratios (≈ 1 up to noise) is only a monitor.
+    let fb = h.feedback(&maps).unwrap().pose.unwrap();
+    assert_eq!(fb.2, 1.0);
+    assert_ne!(h.lambda(), 1.0, "λ was measured and smoothed");
 }
