@@ -15,31 +15,6 @@ fn u(v: &serde_json::Value) -> u64 {
     v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
 }
 
-/// Server keyframes of both clients (one map) against both agents' ground truth with one
-/// Sim(3): (RMSE m, keyframes). Agent 1's times are shifted so the two never associate
-/// across agents.
-fn joint_server_ate(out: &Path, ds: &[std::path::PathBuf]) -> (f64, usize) {
-    const SHIFT: i64 = 1_000_000_000_000; // 1000 s
-    let (mut gt_t, mut gt_p, mut est_t, mut est_p) = (vec![], vec![], vec![], vec![]);
-    for (c, d) in ds.iter().enumerate() {
-        let dataset = datasets::open(d).expect("dataset");
-        let gt = dataset.ground_truth.expect("ground truth");
-        let est = datasets::trajectory::read_tum(&out.join(format!("keyframes_server_c{c}.txt")))
-            .expect("server keyframes");
-        let shift = c as i64 * SHIFT;
-        gt_t.extend(gt.iter().map(|g| g.t_ns + shift));
-        gt_p.extend(gt.iter().map(|g| g.pose));
-        est_t.extend(est.poses.iter().map(|p| p.t_ns + shift));
-        est_p.extend(est.poses.iter().map(|p| p.pose));
-    }
-    let params = slam_core::metrics::EvalParams {
-        alignment: slam_core::metrics::Alignment::Sim3,
-        ..Default::default()
-    };
-    let r = slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &params).expect("ATE");
-    (r.ape.rmse, r.pairs.len())
-}
-
 #[test]
 fn two_agents_maps_merge_into_one_accurate_map() {
     let dir = tempdir();
@@ -85,7 +60,8 @@ fn two_agents_maps_merge_into_one_accurate_map() {
             s["rmse_m"], cl["ate_client_keyframes"]["rmse_m"]
         );
     }
-    let (rmse, n) = joint_server_ate(&out, &ds);
+    let joint = joint_server_eval(&out, &ds, slam_core::metrics::Alignment::Sim3);
+    let (rmse, n) = (joint.ape.rmse, joint.pairs.len());
     let percent = 100.0 * rmse / length;
     eprintln!(
         "both agents in one map: {n} server keyframes, ATE {rmse:.4} m = {percent:.3}% of {length:.1} m"

@@ -45,8 +45,7 @@ fn two_visual_inertial_clients_merge_into_one_metric_map() {
         (Some(true), Some(true))
     );
     let mut length = 0.0;
-    let (mut gt_t, mut gt_p, mut est_t, mut est_p) = (vec![], vec![], vec![], vec![]);
-    for (c, d) in ds.iter().take(2).enumerate() {
+    for c in 0..2 {
         let windows = mc.client(c as u32).vi_windows;
         assert!(
             windows >= 3,
@@ -58,31 +57,9 @@ fn two_visual_inertial_clients_merge_into_one_metric_map() {
         length += cl["ate_se3"]["path_length_m"]
             .as_f64()
             .expect("path length");
-        // Both agents in one evaluation, agent 1's times shifted so they never associate
-        // across agents.
-        let shift = c as i64 * 1_000_000_000_000;
-        let gt = datasets::open(d)
-            .expect("dataset")
-            .ground_truth
-            .expect("ground truth");
-        gt_t.extend(gt.iter().map(|g| g.t_ns + shift));
-        gt_p.extend(gt.iter().map(|g| g.pose));
-        let est = datasets::trajectory::read_tum(&out.join(format!("keyframes_server_c{c}.txt")))
-            .expect("server keyframes");
-        est_t.extend(est.poses.iter().map(|p| p.t_ns + shift));
-        est_p.extend(est.poses.iter().map(|p| p.pose));
     }
-    let params = slam_core::metrics::EvalParams {
-        alignment: slam_core::metrics::Alignment::Se3,
-        ..Default::default()
-    };
-    let e = slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &params).expect("ATE");
-    let sim3 = slam_core::metrics::EvalParams {
-        alignment: slam_core::metrics::Alignment::Sim3,
-        ..Default::default()
-    };
-    let scale = slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &sim3)
-        .expect("ATE")
+    let e = joint_server_eval(&out, &ds[..2], slam_core::metrics::Alignment::Se3);
+    let scale = joint_server_eval(&out, &ds[..2], slam_core::metrics::Alignment::Sim3)
         .alignment
         .scale;
     let percent = 100.0 * e.ape.rmse / length;

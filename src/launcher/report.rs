@@ -670,15 +670,7 @@ fn client_report(
         server_maps: m.maps,
         keyframes_forwarded: m.keyframes_forwarded,
         loop_keyframes_received: lc.client(ci).keyframes_received,
-        cpu_s: BTreeMap::from([
-            ("tracker".to_string(), st.cpu_of(&trk)),
-            ("camera_ingest".to_string(), st.cpu_of(&cam)),
-            ("imu_ingest".to_string(), st.cpu_of(&imu)),
-            (
-                "mapper_handler".to_string(),
-                (m.handle_us + m.idle_us) as f64 * 1e-6,
-            ),
-        ]),
+        cpu_s: client_cpu_s(st, [&trk, &cam, &imu], &m),
         keyframe_bytes_per_s: keyframe_rate(ds, total, m.keyframe_bytes),
         keyframe_bytes_mean: m.keyframe_bytes as f64 / m.keyframes_received.max(1) as f64,
         keyframes_per_s: keyframe_rate(ds, total, journaled_applied.unwrap_or(m.keyframes_applied)),
@@ -704,6 +696,25 @@ fn client_report(
         latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
         files: Vec::new(),
     }
+}
+
+/// CPU time of a client's tracker, camera and IMU ingest (`services`, in that order) and of
+/// its mapper handler, s.
+fn client_cpu_s(
+    st: &Statuses,
+    services: [&str; 3],
+    m: &mapper::MapperClientCounters,
+) -> BTreeMap<String, f64> {
+    let [trk, cam, imu] = services;
+    BTreeMap::from([
+        ("tracker".to_string(), st.cpu_of(trk)),
+        ("camera_ingest".to_string(), st.cpu_of(cam)),
+        ("imu_ingest".to_string(), st.cpu_of(imu)),
+        (
+            "mapper_handler".to_string(),
+            (m.handle_us + m.idle_us) as f64 * 1e-6,
+        ),
+    ])
 }
 
 /// Posed frames by source (the sources that posed any).

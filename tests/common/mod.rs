@@ -312,3 +312,32 @@ pub fn shm_entries(test: &str) -> Vec<String> {
     names.sort();
     names
 }
+
+/// The server keyframes of every client (`OUT/keyframes_server_c{i}.txt`, client `i` on
+/// `ds[i]`, all in one map) against their agents' ground truths in one evaluation with
+/// `alignment`; each agent's times are shifted by 1000 s so poses never associate across
+/// agents.
+pub fn joint_server_eval(
+    out: &Path,
+    ds: &[PathBuf],
+    alignment: slam_core::metrics::Alignment,
+) -> slam_core::metrics::EvalResult {
+    const SHIFT: i64 = 1_000_000_000_000; // 1000 s
+    let (mut gt_t, mut gt_p, mut est_t, mut est_p) = (vec![], vec![], vec![], vec![]);
+    for (c, d) in ds.iter().enumerate() {
+        let dataset = datasets::open(d).expect("dataset");
+        let gt = dataset.ground_truth.expect("ground truth");
+        let est = datasets::trajectory::read_tum(&out.join(format!("keyframes_server_c{c}.txt")))
+            .expect("server keyframes");
+        let shift = c as i64 * SHIFT;
+        gt_t.extend(gt.iter().map(|g| g.t_ns + shift));
+        gt_p.extend(gt.iter().map(|g| g.pose));
+        est_t.extend(est.poses.iter().map(|p| p.t_ns + shift));
+        est_p.extend(est.poses.iter().map(|p| p.pose));
+    }
+    let params = slam_core::metrics::EvalParams {
+        alignment,
+        ..Default::default()
+    };
+    slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &params).expect("ATE")
+}

@@ -363,7 +363,16 @@ impl Mapper {
         for m in maps {
             self.map_sizes.insert(m.id, m.clone());
         }
-        let details = MapperDetails {
+        let (n, kfs, pts) = self.map_sizes.values().fold((0, 0, 0), |a, m| {
+            (a.0 + 1, a.1 + m.keyframes as u64, a.2 + m.points as u64)
+        });
+        let c = &mut self.counters;
+        (c.maps, c.keyframes, c.points) = (n, kfs, pts);
+    }
+
+    /// The live maps as the report lists them (the status file's `details`).
+    fn details(&self) -> MapperDetails {
+        MapperDetails {
             maps: self
                 .map_sizes
                 .values()
@@ -376,13 +385,7 @@ impl Mapper {
                     gravity_aligned: m.frame.gravity_aligned,
                 })
                 .collect(),
-        };
-        self.status.set_details(&details);
-        let (n, kfs, pts) = self.map_sizes.values().fold((0, 0, 0), |a, m| {
-            (a.0 + 1, a.1 + m.keyframes as u64, a.2 + m.points as u64)
-        });
-        let c = &mut self.counters;
-        (c.maps, c.keyframes, c.points) = (n, kfs, pts);
+        }
     }
 
     fn set_figures(&mut self, c: u32, f: MapFigures) {
@@ -730,6 +733,7 @@ impl Mapper {
     /// The status as of now (the counters put in), to write.
     pub fn status_now(&mut self) -> &Status {
         self.status.put_counters(&self.counters);
+        self.status.set_details(&self.details());
         &self.status
     }
 
