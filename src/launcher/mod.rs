@@ -144,7 +144,7 @@ fn write_configs(
 
 /// The command-line arguments of `desc` after `shoal service`: the launcher's wiring and
 /// the service's configuration file (`--status` is added by [`Supervised::spawn`]).
-fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) -> Vec<String> {
+fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
     use topology::Kind;
     let out = &cfg.out;
     // Every service knows the replay mode: in lock-step the tracker, mapper and loop closer
@@ -175,7 +175,6 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc, t0_mono_ns: i64) 
                 args.extend(["--calib".to_string(), path_arg(calib)]);
             }
             args.extend(["--rate".to_string(), cfg.rate.to_string()]);
-            args.extend(["--t0-mono-ns".to_string(), t0_mono_ns.to_string()]);
             if let Some(m) = cfg.max_frames {
                 args.extend(["--max-frames".to_string(), m.to_string()]);
             }
@@ -192,16 +191,12 @@ fn path_arg(p: &Path) -> String {
 }
 
 /// The supervised processes of the run, one per descriptor of `topology`, in its order.
-fn services_for(
-    cfg: &RunConfig,
-    topology: &[topology::ServiceDesc],
-    t0_mono_ns: i64,
-) -> Vec<Supervised> {
+fn services_for(cfg: &RunConfig, topology: &[topology::ServiceDesc]) -> Vec<Supervised> {
     topology
         .iter()
         .map(|desc| {
             let ends_by_itself = desc.role() != topology::Role::Server;
-            let args = service_args(cfg, desc, t0_mono_ns);
+            let args = service_args(cfg, desc);
             let mut sv = Supervised::new(&desc.name(), args, &cfg.out, ends_by_itself);
             sv.env
                 .push((topics::ENV_IPC_PREFIX.to_string(), cfg.ipc_prefix.clone()));
@@ -254,8 +249,6 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let node = topics::create_node("launcher", &cfg.ipc_prefix)?;
     let mut recorder = Recorder::new(&node, cfg.datasets.len() as u32)?;
 
-    // All sensors on one stream origin a little in the future.
-    let t0 = monotonic_ns() + 2_000_000_000;
     let topology = topology::topology(cfg.datasets.len() as u32);
     let setups: Vec<modes::ClientSetup> = datasets
         .iter()
@@ -263,7 +256,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         .map(|(c, ds)| modes::client_setup(cfg.mode_of(c), ds, cfg.calib_of(c)))
         .collect();
     write_configs(cfg, &topology, &setups)?;
-    let mut services = services_for(cfg, &topology, t0);
+    let mut services = services_for(cfg, &topology);
     start_services(&mut services, &topology, &exe)?;
     tracing::info!("all {} services ready", services.len());
 
@@ -400,14 +393,30 @@ fn claim_prefix(prefix: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// How far after the consumers are ready the sensors' stream origin lies: time for the
+/// ingests to start (read the dataset's index, open their ports) before their first sample
+/// is due.
+const STREAM_LEAD_NS: i64 = 1_500_000_000;
+
 /// Starts the services in the topology's phases (consumers, then producers), each phase
-/// ready before the next starts.
+/// ready before the next starts. The producers (the ingests) share one stream origin
+/// (`--t0-mono-ns`), set once the consumers are ready: however long the server and trackers
+/// took to start on a loaded machine, the first frames are not already late.
 fn start_services(
     services: &mut [Supervised],
     topology: &[topology::ServiceDesc],
     exe: &Path,
 ) -> anyhow::Result<()> {
-    for phase in topology::start_phases(topology) {
+    let [consumers, producers] = topology::start_phases(topology);
+    for (k, phase) in [consumers, producers].into_iter().enumerate() {
+        if k == 1 {
+            let t0 = monotonic_ns() + STREAM_LEAD_NS;
+            for &i in &phase {
+                services[i]
+                    .args
+                    .extend(["--t0-mono-ns".to_string(), t0.to_string()]);
+            }
+        }
         for &i in &phase {
             let sv = &mut services[i];
             sv.spawn(exe)
