@@ -220,6 +220,7 @@ impl Sim {
         let w = ViWindow {
             keyframes: (first..=last)
                 .map(|k| ViKeyframe {
+                    rig: 0,
                     t_ns: self.kf_ns[k],
                     state: states[k],
                     fixed: k == first,
@@ -235,6 +236,7 @@ impl Sim {
             camera: *self.world.camera(),
             gravity_w: gravity_w(),
             prior: None,
+            ..ViWindow::empty()
         };
         (w, ids)
     }

@@ -48,11 +48,20 @@
 //! Schur complement (each point's 3x3 block, damped by the same λ; the points couple the
 //! `[θ; p; v]` corner of the keyframe blocks); the reduced keyframe system (15-dof blocks:
 //! the IMU factors couple neighbours, co-observed points any pair) is
-//! [`BlockSparseSystem`] with a dense LLᵀ (a window has ≤ ~20 free keyframes). A point with
+//! [`BlockSparseSystem`] with a dense LLᵀ for a window (≤ ~20 free keyframes), a sparse one
+//! (block AMD ordering) beyond [`DENSE_MAX_KEYFRAMES`] free keyframes (a global BA). A point with
 //! fewer than two valid observations in the window has no depth information and is held
 //! fixed (its observation still constrains its keyframe). Keep one
 //! [`ViSolver`] per thread: after the first call on a window of a given size, `optimize`
 //! allocates nothing (the Jacobians of every factor go into reused buffers).
+//!
+//! **Several chains, several cameras** (the server's global visual-inertial BA, seed §5.4
+//! "global BA = all"): the IMU-linked keyframes after [`ViWindow::n_visual`] may form several
+//! chains, one after the other ([`ViWindow::chain_starts`]: no IMU factor into a chain's
+//! first keyframe), e.g. one per client; each keyframe has its own camera and `t_bc`
+//! ([`ViKeyframe::rig`]). A free keyframe without any IMU factor (a chain of one: a
+//! monocular client's keyframe in a metric map) moves its pose only: its velocity and
+//! biases, which nothing observes, are held by a stiff diagonal ([`UNLINKED_STIFFNESS`]).
 //!
 //! **Use in the local mapper** (per new keyframe, not per frame; `crate::vo::vi_window`
 //! builds and writes back the window from the client map):
@@ -83,6 +92,14 @@ pub type Matrix2x9 = SMatrix<f64, 2, 9>;
 type Matrix9 = SMatrix<f64, 9, 9>;
 type Matrix9x3 = SMatrix<f64, 9, 3>;
 
+/// Free keyframes up to which the reduced system is factorised densely (a local window);
+/// beyond, sparsely after a block AMD ordering (a global BA).
+pub const DENSE_MAX_KEYFRAMES: usize = 48;
+
+/// Information put on the velocity and bias dimensions of a free keyframe without an IMU
+/// factor (module docs, "Several chains"): nothing else observes them.
+pub const UNLINKED_STIFFNESS: f64 = 1e8;
+
 /// A keyframe of the window: its time and navigation state (IMU body in the gravity-aligned
 /// world).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -93,6 +110,18 @@ pub struct ViKeyframe {
     pub state: NavState,
     /// Held constant (its factors still count); see the module docs.
     pub fixed: bool,
+    /// Its camera and `t_bc`: 0 = [`ViWindow::camera`] and [`ViWindow::t_bc`], `r ≥ 1` =
+    /// [`ViWindow::extra_rigs`]`[r - 1]`.
+    pub rig: u16,
+}
+
+/// A camera and its camera-to-body transform (one per client in a global BA).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViRig {
+    /// The camera model.
+    pub camera: PinholeRadtan,
+    /// Camera-to-body `T_bc`.
+    pub t_bc: Isometry3<f64>,
 }
 
 /// One observation of a map point in a keyframe.
@@ -132,9 +161,14 @@ pub struct ViWindow {
     /// Keyframes at the start of [`ViWindow::keyframes`] without IMU factors (older
     /// covisible keyframes that only anchor the points; normally fixed).
     pub n_visual: usize,
-    /// `preints[k]` integrates the IMU from keyframe `n_visual + k` to `n_visual + k + 1`
-    /// (`keyframes.len() - n_visual - 1` entries).
+    /// The IMU factors between consecutive keyframes after `n_visual`, in order, except into
+    /// a chain's first keyframe ([`ViWindow::chain_starts`]): without extra chains
+    /// `preints[k]` integrates from keyframe `n_visual + k` to `n_visual + k + 1`
+    /// (`keyframes.len() - n_visual - 1 - chain_starts.len()` entries).
     pub preints: Vec<Preintegrated>,
+    /// Indices (> `n_visual`, increasing) of keyframes that start a new IMU chain: no
+    /// factor from the keyframe before (module docs, "Several chains"). Empty for a window.
+    pub chain_starts: Vec<u32>,
     /// Map points in the world frame, m.
     pub points_w: Vec<Vector3<f64>>,
     /// Observations of the points in the keyframes.
@@ -143,6 +177,8 @@ pub struct ViWindow {
     pub t_bc: Isometry3<f64>,
     /// The camera model.
     pub camera: PinholeRadtan,
+    /// Cameras of keyframes with [`ViKeyframe::rig`] ≥ 1 (other clients').
+    pub extra_rigs: Vec<ViRig>,
     /// Gravity in the world frame (e.g. [`super::gravity_w`]).
     pub gravity_w: Vector3<f64>,
     /// Optional Gaussian prior on one keyframe.
@@ -157,12 +193,26 @@ impl ViWindow {
             keyframes: Vec::new(),
             n_visual: 0,
             preints: Vec::new(),
+            chain_starts: Vec::new(),
             points_w: Vec::new(),
             observations: Vec::new(),
             t_bc: Isometry3::identity(),
             camera: PinholeRadtan::pinhole(1, 1, 1.0, 1.0, 0.0, 0.0),
+            extra_rigs: Vec::new(),
             gravity_w: super::gravity_w(),
             prior: None,
+        }
+    }
+
+    /// The camera and `t_bc` of keyframe `kf` ([`ViKeyframe::rig`]; rig 0 when out of range).
+    #[inline]
+    pub fn rig(&self, kf: usize) -> (&PinholeRadtan, &Isometry3<f64>) {
+        match self.keyframes.get(kf).map_or(0, |k| k.rig as usize) {
+            0 => (&self.camera, &self.t_bc),
+            r => self
+                .extra_rigs
+                .get(r - 1)
+                .map_or((&self.camera, &self.t_bc), |x| (&x.camera, &x.t_bc)),
         }
     }
 }
@@ -374,6 +424,10 @@ pub struct ViSolver {
     pairs: Vec<(u32, u32)>,
     /// Variable block of each keyframe (`u32::MAX` = fixed).
     var_of_kf: Vec<u32>,
+    /// The keyframe each IMU factor starts at (it ends at the next one).
+    links: Vec<u32>,
+    /// Whether each keyframe has an IMU factor.
+    linked: Vec<bool>,
     /// Observations grouped by point: `obs_order[point_start[p]..point_start[p + 1]]`.
     obs_order: Vec<u32>,
     point_start: Vec<u32>,
@@ -388,8 +442,6 @@ pub struct ViSolver {
     dp: Vec<Vector3<f64>>,
     /// Per observation: `W = w J_xᵀ J_p` (6x3).
     w_blk: Vec<Matrix9x3>,
-    /// Schur terms per free keyframe pair `(a ≤ b)`, `a * n + b`.
-    pair_acc: Vec<Matrix9>,
     cand_states: Vec<NavState>,
     cand_points: Vec<Vector3<f64>>,
 }
@@ -417,6 +469,8 @@ impl ViSolver {
             sys: BlockSparseSystem::new("vi window"),
             pairs: Vec::new(),
             var_of_kf: Vec::new(),
+            links: Vec::new(),
+            linked: Vec::new(),
             obs_order: Vec::new(),
             point_start: Vec::new(),
             imu_sqrt_info: Vec::new(),
@@ -427,7 +481,6 @@ impl ViSolver {
             g_p: Vec::new(),
             dp: Vec::new(),
             w_blk: Vec::new(),
-            pair_acc: Vec::new(),
             cand_states: Vec::new(),
             cand_points: Vec::new(),
         }
@@ -528,8 +581,34 @@ impl ViSolver {
     fn setup(&mut self, w: &ViWindow) -> Result<(), CoreError> {
         let (nk, np) = (w.keyframes.len(), w.points_w.len());
         let bad = |m: &str| Err(CoreError::InvalidArgument(format!("vi window: {m}")));
-        if w.n_visual >= nk.max(1) || w.preints.len() + w.n_visual + 1 != nk.max(1) {
-            return bad("need one preintegration per consecutive keyframe pair");
+        if w.n_visual >= nk.max(1)
+            || w.preints.len() + w.n_visual + 1 + w.chain_starts.len() != nk.max(1)
+        {
+            return bad("need one preintegration per consecutive keyframe pair of a chain");
+        }
+        if w.chain_starts.windows(2).any(|p| p[0] >= p[1])
+            || w.chain_starts
+                .iter()
+                .any(|&c| c as usize <= w.n_visual || c as usize >= nk)
+        {
+            return bad("chain starts not increasing within the IMU-linked keyframes");
+        }
+        if w.keyframes
+            .iter()
+            .any(|k| k.rig as usize > w.extra_rigs.len())
+        {
+            return bad("keyframe rig out of range");
+        }
+        self.links.clear();
+        self.linked.clear();
+        self.linked.resize(nk, false);
+        let mut starts = w.chain_starts.iter().peekable();
+        for k in w.n_visual + 1..nk {
+            if starts.next_if(|&&c| c as usize == k).is_none() {
+                self.links.push(k as u32 - 1);
+                self.linked[k - 1] = true;
+                self.linked[k] = true;
+            }
         }
         if w.observations.iter().any(|o| {
             o.kf as usize >= nk
@@ -572,8 +651,8 @@ impl ViSolver {
         }
         // Pattern: IMU neighbours and co-observing keyframes.
         self.pairs.clear();
-        for k in w.n_visual + 1..nk {
-            let (a, b) = (self.var_of_kf[k - 1], self.var_of_kf[k]);
+        for &k in &self.links {
+            let (a, b) = (self.var_of_kf[k as usize], self.var_of_kf[k as usize + 1]);
             if a != u32::MAX && b != u32::MAX {
                 self.pairs.push((a, b));
             }
@@ -591,8 +670,13 @@ impl ViSolver {
                 }
             }
         }
+        let factorization = if n_var as usize <= DENSE_MAX_KEYFRAMES {
+            Factorization::Dense
+        } else {
+            Factorization::SparseBlockAmd
+        };
         self.sys
-            .setup_uniform(n_var as usize, 15, 1, &mut self.pairs, Factorization::Dense)?;
+            .setup_uniform(n_var as usize, 15, 1, &mut self.pairs, factorization)?;
         self.imu_sqrt_info.clear();
         for pre in &w.preints {
             self.imu_sqrt_info.push(imu_sqrt_information(pre)?);
@@ -602,8 +686,6 @@ impl ViSolver {
         self.lin_cand.obs.resize(no, ObsLin::default());
         self.lin_cand.imu.resize(w.preints.len(), ImuLin::default());
         self.w_blk.resize(no, Matrix9x3::zeros());
-        let nv = n_var as usize;
-        self.pair_acc.resize(nv * nv, Matrix9::zeros());
         self.lin.imu.resize(w.preints.len(), ImuLin::default());
         self.v_inv.resize(np, Matrix3::zeros());
         self.g_p.resize(np, Vector3::zeros());

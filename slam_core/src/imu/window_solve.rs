@@ -17,20 +17,23 @@ const CHI2_2DOF_95: f64 = 5.991;
 
 /// Evaluates every factor at `states`, `points`: the χ² of each family and the robust cost;
 /// with `lin`, also stores the whitened residuals and Jacobians. Allocates nothing.
+#[allow(clippy::too_many_arguments)]
 fn evaluate(
     w: &ViWindow,
     states: &[NavState],
     points: &[Vector3<f64>],
     p: &ViParams,
     sqrt_info: &[Matrix15],
+    links: &[u32],
     mut lin: Option<&mut Linearization>,
 ) -> ViChi2 {
     let mut chi = ViChi2::default();
     for (k, o) in w.observations.iter().enumerate() {
         let st = &states[o.kf as usize];
         let pt = &points[o.point as usize];
-        let proj = reprojection_jacobians(&w.camera, &w.t_bc, st, pt, o.dt_s);
-        let Some((uv, j_x, j_p)) = proj.filter(|_| in_view(w, st, pt, o.dt_s, p.min_depth_m))
+        let (camera, t_bc) = w.rig(o.kf as usize);
+        let proj = reprojection_jacobians(camera, t_bc, st, pt, o.dt_s);
+        let Some((uv, j_x, j_p)) = proj.filter(|_| in_view(t_bc, st, pt, o.dt_s, p.min_depth_m))
         else {
             chi.behind += 1;
             if let Some(l) = lin.as_deref_mut() {
@@ -54,8 +57,8 @@ fn evaluate(
             };
         }
     }
-    for (k, pre) in w.preints.iter().enumerate() {
-        let i = w.n_visual + k;
+    for (k, (pre, &i)) in w.preints.iter().zip(links).enumerate() {
+        let i = i as usize;
         let res = pre.residual(&states[i], &states[i + 1], &w.gravity_w);
         let l_inv = &sqrt_info[k];
         let r = l_inv * res.r;
@@ -88,9 +91,15 @@ fn evaluate(
 /// and within the normalised field `|x/z|, |y/z| ≤ MAX_TAN` (beyond it the distortion
 /// polynomial is meaningless and its Jacobian explodes).
 #[inline]
-fn in_view(w: &ViWindow, st: &NavState, p_w: &Vector3<f64>, dt_s: f64, min_depth: f64) -> bool {
+fn in_view(
+    t_bc: &nalgebra::Isometry3<f64>,
+    st: &NavState,
+    p_w: &Vector3<f64>,
+    dt_s: f64,
+    min_depth: f64,
+) -> bool {
     let p_b = st.r.inverse() * (p_w - st.p - st.v * dt_s);
-    let p_c = w.t_bc.rotation.inverse() * (p_b - w.t_bc.translation.vector);
+    let p_c = t_bc.rotation.inverse() * (p_b - t_bc.translation.vector);
     p_c.z >= min_depth && p_c.x.abs() <= MAX_TAN * p_c.z && p_c.y.abs() <= MAX_TAN * p_c.z
 }
 
@@ -116,6 +125,7 @@ impl ViSolver {
             &w.points_w,
             p,
             &self.imu_sqrt_info,
+            &self.links,
             Some(&mut self.lin),
         )
     }
@@ -128,6 +138,7 @@ impl ViSolver {
             &self.cand_points,
             p,
             &self.imu_sqrt_info,
+            &self.links,
             Some(&mut self.lin_cand),
         )
     }
@@ -151,11 +162,22 @@ impl ViSolver {
     }
 
     /// Assembles the keyframe factors (IMU, prior, reprojection pose blocks) into the
-    /// system's `H` and `-g`.
+    /// system's `H` and `-g`; the velocity and biases of a free keyframe without IMU factor
+    /// are held by [`super::UNLINKED_STIFFNESS`].
     fn assemble_keyframe_factors(&mut self, w: &ViWindow) -> Result<(), CoreError> {
         self.sys.clear();
-        for (k, l) in self.lin.imu.iter().enumerate() {
-            let i = w.n_visual + k;
+        for (k, &linked) in self.linked.iter().enumerate() {
+            let a = self.var_of_kf[k];
+            if !linked && a != u32::MAX {
+                let di = self.sys.diag_index(a as usize);
+                let blk = self.sys.block_values_mut(di);
+                for d in 6..15 {
+                    blk[d + 15 * d] += super::UNLINKED_STIFFNESS;
+                }
+            }
+        }
+        for (l, &i) in self.lin.imu.iter().zip(&self.links) {
+            let i = i as usize;
             let (a, b) = (self.var_of_kf[i], self.var_of_kf[i + 1]);
             if a != u32::MAX {
                 self.sys
@@ -201,10 +223,9 @@ impl ViSolver {
     }
 
     /// Eliminates point `pt` (Schur complement, damping `lambda` on its 3x3 block): stores
-    /// `(V + λI)⁻¹`, `g_p` and the `W` blocks, updates the reduced right-hand side and
-    /// accumulates `-W V⁻¹ Wᵀ` per keyframe pair (9x9 pose-velocity corners) in `pair_acc`.
-    fn eliminate_point(&mut self, w: &ViWindow, pt: usize, lambda: f64) {
-        let n = self.sys.n();
+    /// `(V + λI)⁻¹`, `g_p` and the `W` blocks, updates the reduced right-hand side and adds
+    /// `-W V⁻¹ Wᵀ` per keyframe pair into the 9x9 pose-velocity corners of their blocks.
+    fn eliminate_point(&mut self, w: &ViWindow, pt: usize, lambda: f64) -> Result<(), CoreError> {
         let (s, e) = (
             self.point_start[pt] as usize,
             self.point_start[pt + 1] as usize,
@@ -247,14 +268,14 @@ impl ViSolver {
                 }
             }
         }
+        if n_valid < 2 {
+            return Ok(());
+        }
         for x in s..e {
             let ox = self.obs_order[x] as usize;
             let a = self.var_of_kf[w.observations[ox].kf as usize];
             if a == u32::MAX {
                 continue;
-            }
-            if n_valid < 2 {
-                break;
             }
             let wv = self.w_blk[ox] * v_inv;
             for y in x..e {
@@ -264,36 +285,25 @@ impl ViSolver {
                     continue;
                 }
                 let m = -(wv * self.w_blk[oy].transpose());
-                let (a, b) = (a as usize, b as usize);
-                if a == b {
-                    self.pair_acc[a * n + a] += m;
-                    if x != y {
-                        self.pair_acc[a * n + a] += m.transpose();
-                    }
-                } else if a < b {
-                    self.pair_acc[a * n + b] += m;
-                } else {
-                    self.pair_acc[b * n + a] += m.transpose();
-                }
+                self.add_pair(a as usize, b as usize, &m, x != y)?;
             }
         }
+        Ok(())
     }
 
-    /// Adds the accumulated 9x9 Schur terms of the points into the system's blocks.
-    fn flush_pair_acc(&mut self) -> Result<(), CoreError> {
-        let n = self.sys.n();
-        for a in 0..n {
-            for b in a..n {
-                let m = self.pair_acc[a * n + b];
-                if m == Matrix9::zeros() {
-                    continue;
-                }
-                let k = self
-                    .sys
-                    .block_index(a, b)
-                    .ok_or_else(|| CoreError::Degenerate("vi window: pattern".into()))?;
-                add9(self.sys.block_values_mut(k), &m, false);
-            }
+    /// Adds the 9x9 Schur term `m` of keyframe variables `(a, b)` to `H_ab` (and its
+    /// transpose to `H_ba`: on the diagonal, when `both` the two observations differ).
+    #[inline]
+    fn add_pair(&mut self, a: usize, b: usize, m: &Matrix9, both: bool) -> Result<(), CoreError> {
+        let (i, j, t) = if a <= b { (a, b, false) } else { (b, a, true) };
+        let k = self
+            .sys
+            .block_index(i, j)
+            .ok_or_else(|| CoreError::Degenerate("vi window: pattern".into()))?;
+        let blk = self.sys.block_values_mut(k);
+        add9(blk, m, t);
+        if a == b && both {
+            add9(blk, m, true);
         }
         Ok(())
     }
@@ -302,13 +312,10 @@ impl ViSolver {
     /// their blocks; the keyframe blocks are not damped here).
     pub(super) fn assemble_reduced(&mut self, w: &ViWindow, lambda: f64) -> Result<(), CoreError> {
         self.assemble_keyframe_factors(w)?;
-        let n = self.sys.n();
-        self.pair_acc.clear();
-        self.pair_acc.resize(n * n, Matrix9::zeros());
         for pt in 0..w.points_w.len() {
-            self.eliminate_point(w, pt, lambda);
+            self.eliminate_point(w, pt, lambda)?;
         }
-        self.flush_pair_acc()
+        Ok(())
     }
 
     /// Solves the damped normal equations for the keyframe step (into the system's `x`) and

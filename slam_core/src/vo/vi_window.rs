@@ -294,6 +294,7 @@ fn window_states(
             .push(UnitQuaternion::from_rotation_matrix(&state.r));
         job.c_before.push(kf.center());
         w.keyframes.push(ViKeyframe {
+            rig: 0,
             t_ns: kf.imu.as_ref().map_or(kf.t_ns, |s| s.t_ns),
             state,
             fixed: c < w.n_visual || (c == w.n_visual && !gauged),
@@ -375,11 +376,17 @@ pub fn apply_vi_window(map: &mut ClientMap, job: &mut ViWindowJob, w: &mut ViWin
         let c = split_world_correction(job, w);
         map.world_correction = Some(map.world_correction.map_or(c, |old| old.then(&c)));
     }
-    for ((id, kf), refined) in job.kf_ids.iter().zip(&w.keyframes).zip(&job.refined) {
+    for (c, ((id, kf), refined)) in job
+        .kf_ids
+        .iter()
+        .zip(&w.keyframes)
+        .zip(&job.refined)
+        .enumerate()
+    {
         let Some(m) = map.keyframes.get_mut(id).filter(|_| !kf.fixed) else {
             continue;
         };
-        m.t_cw = kf.state.camera_pose(&w.t_bc);
+        m.t_cw = kf.state.camera_pose(w.rig(c).1);
         m.inertial = Some(KeyframeInertial {
             v_wb: kf.state.v,
             biases: kf.state.biases,
@@ -446,7 +453,8 @@ fn split_world_correction(job: &ViWindowJob, w: &mut ViWindow) -> WorldCorrectio
 fn inlier(w: &ViWindow, o: &ViObservation) -> bool {
     let st = &w.keyframes[o.kf as usize].state;
     let p = &w.points_w[o.point as usize];
-    reprojection_jacobians(&w.camera, &w.t_bc, st, p, o.dt_s)
+    let (camera, t_bc) = w.rig(o.kf as usize);
+    reprojection_jacobians(camera, t_bc, st, p, o.dt_s)
         .is_some_and(|(uv, _, _)| ((uv - o.uv) / o.sigma_px).norm_squared() <= CHI2_2DOF_95)
 }
 
