@@ -395,6 +395,8 @@ impl Mapper {
         n.keyframes_culled = f.stats.culled;
         n.revisit_global_ba = f.stats.revisit_global_ba;
         n.kept_at_session_end = f.stats.kept_at_session_end;
+        n.global_bas = f.stats.global_bas;
+        n.global_vi_bas = f.stats.global_vi_bas;
         n.vi_windows = f.stats.vi_windows;
         n.vi_windows_skipped = f.stats.vi_windows_skipped;
         n.maps = f.stats.maps;

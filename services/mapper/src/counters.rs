@@ -134,6 +134,10 @@ pub struct MapperClientCounters {
     pub revisit_global_ba: u64,
     /// Gauge (handler): keyframes inserted at their session's end.
     pub kept_at_session_end: u64,
+    /// Gauge (handler): global BAs solved (after loops, merges, revisits).
+    pub global_bas: u64,
+    /// Gauge (handler): global BAs that were visual-inertial (metric, gravity-aligned maps).
+    pub global_vi_bas: u64,
     /// Gauge (handler): visual-inertial local BAs solved (metric, gravity-aligned maps).
     pub vi_windows: u64,
     /// Gauge (handler): visual-inertial local BAs not built or failed (a visual one ran).

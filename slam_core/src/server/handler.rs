@@ -23,7 +23,7 @@ use super::types::{
     HandleReport, KeptKeyframe, KeyframeStatus, MapFrame, MapId, ServerFeedback, ServerKeyframe,
 };
 use crate::ids::{ClientId, KeyframeId, MapPointId};
-use crate::imu::window::{ViSolver, ViWindow};
+use crate::imu::window::{ViParams, ViSolver, ViWindow};
 use crate::lie::Sim3;
 use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
 use crate::optim::PoseOptParams;
@@ -33,8 +33,10 @@ use crate::vo::local_mapping::{
     create_points_with_neighbours, cull_recent_points, global_bundle_adjustment,
     local_bundle_adjustment,
 };
+use crate::vo::map::ClientMap;
 use crate::vo::vi_window::{
-    apply_vi_window, prepare_vi_window, ViMappingMode, ViMappingParams, ViWindowJob,
+    apply_global_vi, apply_vi_window, prepare_global_vi, prepare_vi_window, ViMappingMode,
+    ViMappingParams, ViWindowJob,
 };
 use crate::vo::{KfId, PointId};
 use crate::CoreError;
@@ -157,6 +159,10 @@ pub struct HandlerStats {
     pub maps: u64,
     /// Global BAs run because a kept keyframe revisited an old place.
     pub revisit_global_ba: u64,
+    /// Global BAs solved (after a loop, a merge or a revisit), visual-inertial ones included.
+    pub global_bas: u64,
+    /// Global BAs that were visual-inertial (metric, gravity-aligned maps).
+    pub global_vi_bas: u64,
     /// Visual-inertial local BAs solved (metric, gravity-aligned maps).
     pub vi_windows: u64,
     /// Visual-inertial local BAs that could not be built or failed (the visual one ran).
@@ -737,16 +743,24 @@ impl KeyframeHandler {
             // only ever grew (BENCHMARKS.md, "Long run"); the local BA's stays bounded by
             // its window. A global BA runs at most once per few seconds of data, so the
             // allocation is noise beside its 100-250 ms.
-            let ba = global_bundle_adjustment(
-                &mut map.map,
-                &mut BundleAdjuster::new(),
-                &mut BaProblem::new(),
-            );
+            let vi = map.frame.is_inertial() && self.params.vi.mode != ViMappingMode::Off;
+            let vi = vi && global_vi_ba(&mut map.map, &self.params.vi.solver);
+            let ba = if vi {
+                None
+            } else {
+                global_bundle_adjustment(
+                    &mut map.map,
+                    &mut BundleAdjuster::new(),
+                    &mut BaProblem::new(),
+                )
+            };
+            self.stats.global_bas += u64::from(vi || ba.is_some());
+            self.stats.global_vi_bas += u64::from(vi);
             return Some(IdleReport {
                 ba,
                 culled: Vec::new(),
                 global: true,
-                vi_window: false,
+                vi_window: vi,
             });
         }
         let vi_window = map.frame.is_inertial() && self.vi_local_ba(map, k);
@@ -864,6 +878,27 @@ impl KeyframeHandler {
     pub fn server_kf_id(&self, kf_id: KfId) -> KfId {
         KeyframeId::new(ClientId::new(self.client_id), kf_id).raw()
     }
+}
+
+/// The global visual-inertial BA of a metric, gravity-aligned map (seed §5.4, "then VI
+/// global BA"; [`prepare_global_vi`]), with a workspace of its own freed afterwards (it
+/// scales with the whole map, see [`KeyframeHandler::idle_step`]). Returns whether it was
+/// solved and written back; the visual global BA is the caller's fallback.
+fn global_vi_ba(map: &mut ClientMap, params: &ViParams) -> bool {
+    let (mut w, mut job) = (ViWindow::empty(), ViWindowJob::default());
+    if prepare_global_vi(map, &mut w, &mut job).is_err() {
+        return false;
+    }
+    let solved = ViSolver::new().optimize(&mut w, params).is_ok()
+        && w.keyframes.iter().all(|kf| {
+            let s = &kf.state;
+            s.p.iter().chain(s.v.iter()).all(|x| x.is_finite())
+        })
+        && w.points_w.iter().all(|p| p.iter().all(|x| x.is_finite()));
+    if solved {
+        apply_global_vi(map, &mut job, &w);
+    }
+    solved
 }
 
 #[cfg(test)]

@@ -458,6 +458,9 @@ fn inlier(w: &ViWindow, o: &ViObservation) -> bool {
         .is_some_and(|(uv, _, _)| ((uv - o.uv) / o.sigma_px).norm_squared() <= CHI2_2DOF_95)
 }
 
+mod global;
+pub use global::{apply_global_vi, prepare_global_vi};
+
 #[cfg(test)]
 #[path = "vi_window_tests.rs"]
 mod tests;
