@@ -23,7 +23,8 @@ use slam_core::server::{HandlerParams, KeyframeStatus};
 use crate::convert::{self, Correction};
 use crate::counters::{MapSummary, MapperCounters, MapperDetails};
 use crate::worker::{
-    CorrectionKind, CorrectionOutcome, Job, MapFigures, MapSize, Outcome, Report, Worker,
+    CorrectionKind, CorrectionOutcome, GlobalBaOutcome, Job, MapFigures, MapSize, Outcome, Report,
+    Worker,
 };
 use crate::{lockstep, MapperConfig, Params};
 
@@ -72,6 +73,8 @@ pub struct Mapper {
     pub counters: MapperCounters,
     /// Lock-step synchronisation (`None`: free-running).
     sync: Option<lockstep::LockstepSync>,
+    /// Lock-step: the handler threads wait for their global BAs (a reproducible run).
+    wait_global_ba: bool,
     /// Messages to publish, in order.
     out: Vec<Out>,
 }
@@ -115,6 +118,7 @@ impl Mapper {
             results_tx,
             status,
             sync: sync.then(|| lockstep::LockstepSync::new(lockstep::LOOP_SYNC_TIMEOUT)),
+            wait_global_ba: params.mode == ReplayMode::Lockstep,
             out: Vec::new(),
         }
     }
@@ -159,6 +163,7 @@ impl Mapper {
                         self.handler_params.clone(),
                         self.out_dir.clone(),
                         self.results_tx.clone(),
+                        self.wait_global_ba,
                     )
                     .context("starting a handler thread")?,
                 );
@@ -359,6 +364,43 @@ impl Mapper {
         self.set_map_sizes(&o.maps);
     }
 
+    /// A global BA's outcome: counted, its feedback published (when it did not run
+    /// within a keyframe or correction, whose feedback follows), figures updated.
+    fn global_ba_outcome(&mut self, o: GlobalBaOutcome) {
+        let n = &mut self.counters;
+        let solve_us = (o.solve_ms * 1e3) as u64;
+        n.global_ba_us += solve_us;
+        n.global_ba_max_us = n.global_ba_max_us.max(solve_us);
+        n.global_ba_apply_us += (o.apply_ms * 1e3) as u64;
+        match &o.applied {
+            Some(a) => {
+                n.global_bas += 1;
+                n.global_bas_inertial += u64::from(o.inertial);
+                n.global_ba_keyframes_propagated += a.keyframes_propagated as u64;
+                eprintln!(
+                    "mapper: global {} BA of map {:#x}: {} keyframes in {:.0} ms, {} propagated",
+                    if o.inertial {
+                        "visual-inertial"
+                    } else {
+                        "visual"
+                    },
+                    o.map.raw(),
+                    o.keyframes,
+                    o.solve_ms,
+                    a.keyframes_propagated
+                );
+            }
+            None => n.global_bas_dropped += 1,
+        }
+        for f in &o.feedback {
+            self.send_feedback(f);
+        }
+        for (c, fig) in &o.figures {
+            self.set_figures(*c, *fig);
+        }
+        self.set_map_sizes(&o.maps);
+    }
+
     fn set_map_sizes(&mut self, maps: &[MapSize]) {
         for m in maps {
             self.map_sizes.insert(m.id, m.clone());
@@ -396,7 +438,6 @@ impl Mapper {
         n.revisit_global_ba = f.stats.revisit_global_ba;
         n.kept_at_session_end = f.stats.kept_at_session_end;
         n.global_bas = f.stats.global_bas;
-        n.global_vi_bas = f.stats.global_vi_bas;
         n.vi_windows = f.stats.vi_windows;
         n.vi_windows_skipped = f.stats.vi_windows_skipped;
         n.maps = f.stats.maps;
@@ -725,6 +766,7 @@ impl Mapper {
             match r {
                 Report::Keyframe(o) => self.outcome(*o)?,
                 Report::Correction(o) => self.correction_outcome(*o),
+                Report::GlobalBa(o) => self.global_ba_outcome(*o),
             }
             n += 1;
         }

@@ -58,6 +58,22 @@ pub struct MapperCounters {
     pub resync_keyframes_sent: u64,
     /// Lock-step: waits for the loop closer that timed out.
     pub lockstep_loop_timeouts: u64,
+    /// Global BAs applied (after loops, merges, revisits; on the groups' global BA
+    /// threads).
+    pub global_bas: u64,
+    /// Of them, visual-inertial (metric, gravity-aligned maps).
+    pub global_bas_inertial: u64,
+    /// Global BAs not applied: their map was corrected or merged away while they solved,
+    /// or the solve failed.
+    pub global_bas_dropped: u64,
+    /// Time the global BA threads spent solving, µs.
+    pub global_ba_us: u64,
+    /// The longest global BA solve, µs.
+    pub global_ba_max_us: u64,
+    /// Time the handler threads spent writing global BAs back, µs.
+    pub global_ba_apply_us: u64,
+    /// Keyframes that entered a map while its global BA solved, moved with it.
+    pub global_ba_keyframes_propagated: u64,
     /// Gauge: live server maps.
     pub maps: u64,
     /// Gauge: keyframes in them.
@@ -134,10 +150,9 @@ pub struct MapperClientCounters {
     pub revisit_global_ba: u64,
     /// Gauge (handler): keyframes inserted at their session's end.
     pub kept_at_session_end: u64,
-    /// Gauge (handler): global BAs solved (after loops, merges, revisits).
+    /// Gauge (handler): global BAs of its current map applied (after loops, merges,
+    /// revisits).
     pub global_bas: u64,
-    /// Gauge (handler): global BAs that were visual-inertial (metric, gravity-aligned maps).
-    pub global_vi_bas: u64,
     /// Gauge (handler): visual-inertial local BAs solved (metric, gravity-aligned maps).
     pub vi_windows: u64,
     /// Gauge (handler): visual-inertial local BAs not built or failed (a visual one ran).

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
+use crossbeam_channel::{Receiver, Sender};
 use datasets::trajectory::{write_tum_file, TumDigits, TumRow};
 use nalgebra::Isometry3;
 use slam_core::ids::KeyframeId;
@@ -26,6 +26,10 @@ use slam_core::server::{
 };
 
 use crate::convert::Correction;
+
+mod global_ba;
+pub use global_ba::GlobalBaOutcome;
+use global_ba::GlobalBaRunner;
 
 /// How often a busy handler rewrites its trajectory files.
 const WRITE_EVERY: Duration = Duration::from_secs(2);
@@ -165,6 +169,8 @@ pub enum Report {
     Keyframe(Box<Outcome>),
     /// A correction was applied (or refused).
     Correction(Box<CorrectionOutcome>),
+    /// A global BA was applied (or dropped).
+    GlobalBa(Box<GlobalBaOutcome>),
 }
 
 /// A running worker thread.
@@ -175,18 +181,22 @@ pub struct Worker {
 }
 
 impl Worker {
-    /// Starts a worker thread (named after the client it is first started for); its
-    /// trajectory files go to `out` (if any).
+    /// Starts a worker thread (named after the client it is first started for) and its
+    /// global BA thread ([`global_ba`]; `wait_global_ba` in lock-step); its trajectory
+    /// files go to `out` (if any).
     pub fn spawn(
         first_client: u32,
         params: HandlerParams,
         out: Option<PathBuf>,
         results: Sender<Report>,
+        wait_global_ba: bool,
     ) -> std::io::Result<Self> {
         let (tx, rx) = crossbeam_channel::unbounded();
+        let name = format!("handlers_c{first_client}");
+        let gba = GlobalBaRunner::spawn(&name, params.vi, wait_global_ba)?;
         let thread = std::thread::Builder::new()
-            .name(format!("handlers_c{first_client}"))
-            .spawn(move || serve(params, out, rx, results))?;
+            .name(name)
+            .spawn(move || serve(params, out, rx, results, gba))?;
         Ok(Self {
             tx: Some(tx),
             thread: Some(thread),
@@ -237,6 +247,9 @@ struct ClientState {
 pub struct Group {
     maps: ServerMaps,
     clients: BTreeMap<u32, ClientState>,
+    /// Corrections (merges, pose graphs) applied to each map: a global BA solved across
+    /// one is stale ([`global_ba`]).
+    generations: BTreeMap<MapId, u64>,
 }
 
 impl Group {
@@ -291,6 +304,9 @@ impl Group {
             } => {
                 let r = merge_maps(&mut self.maps, *from, *into, s_into_from, pairs)
                     .map_err(|e| e.to_string())?;
+                for m in [from, into] {
+                    *self.generations.entry(*m).or_insert(0) += 1;
+                }
                 let mut first = true;
                 for cs in self.clients.values_mut() {
                     if cs.h.apply_merge(*from, *into, s_into_from, first) {
@@ -313,6 +329,7 @@ impl Group {
                     return Err(format!("pose-graph correction of unknown map {map:#x}"));
                 };
                 let r = apply_pose_corrections(&mut m.map, deltas, fallback);
+                *self.generations.entry(*map).or_insert(0) += 1;
                 let fused = slam_core::server::correction::fuse_points(m, pairs);
                 let mut first = true;
                 for cs in self.clients.values_mut() {
@@ -347,14 +364,17 @@ impl Group {
     }
 }
 
-/// Applies a correction, then the global BA it asks for (live and in replays); with an
-/// output folder, a pose-graph correction's map is written before and after.
+/// Applies a correction and starts the global BA it asks for (live and in replays; in
+/// lock-step it is done before the local BAs, and returned); with an output folder, a
+/// pose-graph correction's map is written before and after (and after its global BA in
+/// lock-step only).
 fn correct(
     g: &mut Group,
+    gba: &mut GlobalBaRunner,
     out: Option<&std::path::Path>,
     correction: Correction,
     replay: bool,
-) -> CorrectionOutcome {
+) -> (CorrectionOutcome, Vec<GlobalBaOutcome>) {
     let t0 = Instant::now();
     let snapshot = |g: &Group, when: &str| {
         if let (Some(out), Correction::PoseGraph { id, map, .. }) = (out, &correction) {
@@ -366,7 +386,9 @@ fn correct(
     };
     snapshot(g, "before");
     let result = g.apply(&correction);
+    let mut gbas = Vec::new();
     if result.is_ok() {
+        gbas = gba.request(g);
         for cs in g.clients.values_mut() {
             while cs.h.idle_step(&mut g.maps).is_some() {}
         }
@@ -377,7 +399,7 @@ fn correct(
         (Correction::Merge { from, .. }, Ok(_)) => Some(*from),
         _ => None,
     };
-    CorrectionOutcome {
+    let outcome = CorrectionOutcome {
         id: correction.id(),
         kind: match correction {
             Correction::Merge { .. } => CorrectionKind::Merge,
@@ -394,17 +416,41 @@ fn correct(
         maps: g.sizes(),
         absorbed,
         apply_ms: t0.elapsed().as_secs_f64() * 1e3,
-    }
+    };
+    (outcome, gbas)
 }
 
-fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results: Sender<Report>) {
+fn serve(
+    params: HandlerParams,
+    out: Option<PathBuf>,
+    rx: Receiver<Job>,
+    results: Sender<Report>,
+    mut gba: GlobalBaRunner,
+) {
     let mut g = Group::default();
     let mut dirty = false;
     let mut last_write = Instant::now();
+    let done = gba.done().clone();
     loop {
-        let job = match rx.recv_timeout(Duration::from_millis(200)) {
-            Ok(j) => j,
-            Err(RecvTimeoutError::Timeout) => {
+        let job = crossbeam_channel::select! {
+            recv(rx) -> j => match j {
+                Ok(j) => Some(j),
+                Err(_) => break,
+            },
+            recv(done) -> s => {
+                if let Ok(s) = s {
+                    dirty = true;
+                    let o = gba.finish(&mut g, s);
+                    if results.send(Report::GlobalBa(Box::new(o))).is_err() {
+                        break;
+                    }
+                }
+                None
+            },
+            default(Duration::from_millis(200)) => None,
+        };
+        let (report, gbas) = match job {
+            None => {
                 if dirty && last_write.elapsed() > WRITE_EVERY {
                     write_files(out.as_deref(), &g);
                     dirty = false;
@@ -412,40 +458,38 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
                 }
                 continue;
             }
-            Err(RecvTimeoutError::Disconnected) => break,
-        };
-        let report = match job {
-            Job::HandOver { to } => {
+            Some(Job::HandOver { to }) => {
                 write_files(out.as_deref(), &g);
                 let _ = to.send(std::mem::take(&mut g));
                 return;
             }
-            Job::Snapshot { reply } => {
+            Some(Job::Snapshot { reply }) => {
                 let _ = reply.send(g.snapshot());
                 continue;
             }
-            Job::TakeOver { from } => {
+            Some(Job::TakeOver { from }) => {
                 if let Ok(other) = from.recv() {
                     g.maps.extend(other.maps);
                     g.clients.extend(other.clients);
+                    g.generations.extend(other.generations);
                 }
                 continue;
             }
-            Job::Correction { correction, replay } => {
+            Some(Job::Correction { correction, replay }) => {
                 dirty = true;
-                Report::Correction(Box::new(correct(
-                    &mut g,
-                    out.as_deref(),
-                    correction,
-                    replay,
-                )))
+                let (o, gbas) = correct(&mut g, &mut gba, out.as_deref(), correction, replay);
+                (Report::Correction(Box::new(o)), gbas)
             }
-            Job::Keyframe { kf, idle, replay } => {
+            Some(Job::Keyframe { kf, idle, replay }) => {
                 dirty = true;
-                Report::Keyframe(Box::new(handle(&mut g, &params, *kf, idle, replay, &rx)))
+                let (o, gbas) = handle(&mut g, &mut gba, &params, *kf, idle, replay, &rx);
+                (Report::Keyframe(Box::new(o)), gbas)
             }
         };
-        if results.send(report).is_err() {
+        let sent = gbas
+            .into_iter()
+            .all(|o| results.send(Report::GlobalBa(Box::new(o))).is_ok());
+        if !sent || results.send(report).is_err() {
             break;
         }
         if dirty && last_write.elapsed() > WRITE_EVERY {
@@ -454,17 +498,21 @@ fn serve(params: HandlerParams, out: Option<PathBuf>, rx: Receiver<Job>, results
             last_write = Instant::now();
         }
     }
+    gba.stop();
     write_files(out.as_deref(), &g);
 }
 
+/// Handles a keyframe, starts the global BA it asks for (a revisit; in lock-step it is done
+/// before the idle step, and returned), then runs the idle step if due.
 fn handle(
     g: &mut Group,
+    gba: &mut GlobalBaRunner,
     params: &HandlerParams,
     kf: ServerKeyframe,
     idle: Option<bool>,
     replay: bool,
     rx: &Receiver<Job>,
-) -> Outcome {
+) -> (Outcome, Vec<GlobalBaOutcome>) {
     let client = kf.client_id;
     let cs = g.clients.entry(client).or_insert_with(|| ClientState {
         h: KeyframeHandler::new(client, params.clone()),
@@ -494,6 +542,14 @@ fn handle(
         && idle.unwrap_or_else(|| rx.is_empty() || cs.since_idle + 1 >= MAX_WITHOUT_IDLE);
     cs.since_idle = if idled { 0 } else { cs.since_idle + 1 };
     let t1 = Instant::now();
+    let mut gbas = Vec::new();
+    if idled {
+        gbas = gba.request(g);
+    }
+    let cs = g
+        .clients
+        .get_mut(&client)
+        .expect("the client's state was created above");
     if idled {
         while cs.h.idle_step(&mut g.maps).is_some() {}
     }
@@ -503,7 +559,7 @@ fn handle(
             .push((t_ns, m.map.keyframes.len(), m.map.points.len()));
     }
     let feedback = cs.h.feedback(&g.maps);
-    Outcome {
+    let outcome = Outcome {
         client,
         session: kf_session,
         kf_id,
@@ -515,7 +571,8 @@ fn handle(
         maps: g.sizes(),
         handle_ms,
         idle_ms,
-    }
+    };
+    (outcome, gbas)
 }
 
 /// Per client `c` of the group: `OUT/keyframes_server_c{c}.txt`, the server poses `T_sk` of

@@ -16,6 +16,7 @@ use std::collections::{BTreeMap, HashMap};
 use nalgebra::Isometry3;
 
 use super::correction::{scale_ratio_after_loop, transform_pose};
+use super::global_ba::{GlobalBa, GlobalBaApplied};
 use super::refine::Refiner;
 use super::scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
 use super::server_map::ServerMap;
@@ -23,20 +24,17 @@ use super::types::{
     HandleReport, KeptKeyframe, KeyframeStatus, MapFrame, MapId, ServerFeedback, ServerKeyframe,
 };
 use crate::ids::{ClientId, KeyframeId, MapPointId};
-use crate::imu::window::{ViParams, ViSolver, ViWindow};
+use crate::imu::window::{ViSolver, ViWindow};
 use crate::lie::Sim3;
 use crate::optim::ba::{BaProblem, BaReport, BundleAdjuster};
 use crate::optim::PoseOptParams;
 use crate::vo::keyframe_imu::{join_segments, KeyframeImu};
 use crate::vo::kf_culling::{cull_redundant_keyframes, KfCullingParams};
 use crate::vo::local_mapping::{
-    create_points_with_neighbours, cull_recent_points, global_bundle_adjustment,
-    local_bundle_adjustment,
+    create_points_with_neighbours, cull_recent_points, local_bundle_adjustment,
 };
-use crate::vo::map::ClientMap;
 use crate::vo::vi_window::{
-    apply_global_vi, apply_vi_window, prepare_global_vi, prepare_vi_window, ViMappingMode,
-    ViMappingParams, ViWindowJob,
+    apply_vi_window, prepare_vi_window, ViMappingMode, ViMappingParams, ViWindowJob,
 };
 use crate::vo::{KfId, PointId};
 use crate::CoreError;
@@ -159,10 +157,8 @@ pub struct HandlerStats {
     pub maps: u64,
     /// Global BAs run because a kept keyframe revisited an old place.
     pub revisit_global_ba: u64,
-    /// Global BAs solved (after a loop, a merge or a revisit), visual-inertial ones included.
+    /// Global BAs of its current map applied (after a loop, a merge or a revisit).
     pub global_bas: u64,
-    /// Global BAs that were visual-inertial (metric, gravity-aligned maps).
-    pub global_vi_bas: u64,
     /// Visual-inertial local BAs solved (metric, gravity-aligned maps).
     pub vi_windows: u64,
     /// Visual-inertial local BAs that could not be built or failed (the visual one ran).
@@ -736,30 +732,25 @@ impl KeyframeHandler {
         let k = self.latest_kept?;
         let map = maps.get_mut(&self.current?)?;
         if std::mem::take(&mut self.global_ba) {
-            // Seed §3.4.2: global BA after a loop correction (the seed runs it on its own
-            // thread; here it is the handler's next idle step, so keyframes wait for it).
-            // Its workspace is its own and freed afterwards: it scales with every
-            // observation of the map (≈ 27 MiB at 70 keyframes), and kept in the handler it
-            // only ever grew (BENCHMARKS.md, "Long run"); the local BA's stays bounded by
-            // its window. A global BA runs at most once per few seconds of data, so the
-            // allocation is noise beside its 100-250 ms.
-            let vi = map.frame.is_inertial() && self.params.vi.mode != ViMappingMode::Off;
-            let vi = vi && global_vi_ba(&mut map.map, &self.params.vi.solver);
-            let ba = if vi {
-                None
-            } else {
-                global_bundle_adjustment(
-                    &mut map.map,
-                    &mut BundleAdjuster::new(),
-                    &mut BaProblem::new(),
-                )
-            };
-            self.stats.global_bas += u64::from(vi || ba.is_some());
-            self.stats.global_vi_bas += u64::from(vi);
+            // Seed §3.4.2: global BA after a loop correction, here the handler's next idle
+            // step when nobody took it to run elsewhere ([`Self::take_global_ba`]; the
+            // mapper runs it on a thread of its own). Its workspace is its own and freed
+            // afterwards: it scales with every observation of the map (≈ 27 MiB at 70
+            // keyframes), and kept in the handler it only ever grew (BENCHMARKS.md, "Long
+            // run"); the local BA's stays bounded by its window.
+            let mut gba = GlobalBa::prepare(map, &self.params.vi)?;
+            let vi = gba.is_inertial();
+            let applied = gba
+                .solve(&self.params.vi.solver)
+                .then(|| gba.apply(map))
+                .flatten();
+            if let Some(a) = &applied {
+                self.after_global_ba(a);
+            }
             return Some(IdleReport {
-                ba,
+                ba: None,
                 culled: Vec::new(),
-                global: true,
+                global: applied.is_some(),
                 vi_window: vi,
             });
         }
@@ -874,31 +865,32 @@ impl KeyframeHandler {
         }
     }
 
+    /// Takes a pending global BA request (after a loop, a merge or a revisit) to run it
+    /// elsewhere ([`GlobalBa`]); else the next idle step runs it. True when one was pending.
+    pub fn take_global_ba(&mut self) -> bool {
+        std::mem::take(&mut self.global_ba)
+    }
+
+    /// A global BA of the current map was applied: counted, and the pending pose of a last
+    /// keyframe that was not kept follows its client's correction.
+    pub fn after_global_ba(&mut self, applied: &GlobalBaApplied) {
+        self.stats.global_bas += 1;
+        if let (Some(l), Some(d)) = (
+            self.last.as_mut(),
+            applied.client_deltas.get(&self.client_id),
+        ) {
+            if l.server_kf.is_none() {
+                l.t_sk = d * l.t_sk;
+            }
+        }
+        self.held = None;
+        self.converged = false;
+    }
+
     /// Server id of client keyframe `kf_id` of this client.
     pub fn server_kf_id(&self, kf_id: KfId) -> KfId {
         KeyframeId::new(ClientId::new(self.client_id), kf_id).raw()
     }
-}
-
-/// The global visual-inertial BA of a metric, gravity-aligned map (seed §5.4, "then VI
-/// global BA"; [`prepare_global_vi`]), with a workspace of its own freed afterwards (it
-/// scales with the whole map, see [`KeyframeHandler::idle_step`]). Returns whether it was
-/// solved and written back; the visual global BA is the caller's fallback.
-fn global_vi_ba(map: &mut ClientMap, params: &ViParams) -> bool {
-    let (mut w, mut job) = (ViWindow::empty(), ViWindowJob::default());
-    if prepare_global_vi(map, &mut w, &mut job).is_err() {
-        return false;
-    }
-    let solved = ViSolver::new().optimize(&mut w, params).is_ok()
-        && w.keyframes.iter().all(|kf| {
-            let s = &kf.state;
-            s.p.iter().chain(s.v.iter()).all(|x| x.is_finite())
-        })
-        && w.points_w.iter().all(|p| p.iter().all(|x| x.is_finite()));
-    if solved {
-        apply_global_vi(map, &mut job, &w);
-    }
-    solved
 }
 
 #[cfg(test)]

@@ -322,3 +322,69 @@ fn visual_inertial_keyframes_get_a_metric_map_and_linked_segments() {
     assert_eq!(fb.2, 1.0);
     assert_ne!(h.lambda(), 1.0, "λ was measured and smoothed");
 }
+
+/// A global BA solved elsewhere ([`GlobalBa`]): the problem is copied out of the map, a
+/// keyframe and a point enter the map while it solves, and the write-back moves them with
+/// their client's newest problem keyframe (their pose relative to it is kept), while the
+/// problem keyframes are pulled back from a disturbance.
+#[test]
+fn a_global_ba_solved_elsewhere_carries_its_correction_to_what_came_meanwhile() {
+    use crate::imu::window::ViParams;
+    use crate::vo::vi_window::ViMappingParams;
+    let mut h = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    let mut maps = ServerMaps::new();
+    for k in 0..8 {
+        h.handle(
+            &mut maps,
+            keyframe(k as u64, 1, &true_pose(k), &true_pose(k)),
+        )
+        .unwrap();
+        h.idle_step(&mut maps);
+    }
+    let id = h.current_map_id().unwrap();
+    let m = maps.get_mut(&id).unwrap();
+    assert!(m.map.keyframes.len() >= 3, "{}", m.map.keyframes.len());
+    // Disturb every keyframe but the oldest (the gauge): the BA pulls them back.
+    for (i, kf) in m.map.keyframes.values_mut().enumerate().skip(1) {
+        kf.t_cw = Isometry3::translation(0.02 * i as f64, -0.01, 0.005) * kf.t_cw;
+    }
+    let mut gba = GlobalBa::prepare(m, &ViMappingParams::default()).unwrap();
+    assert!(!gba.is_inertial(), "a visual map");
+    // Meanwhile a keyframe (a copy of the newest, 10 cm on) and a point it made.
+    let (&newest, last) = m.map.keyframes.iter().next_back().unwrap();
+    let mut new_kf = last.clone();
+    let new_id = newest + 1;
+    new_kf.id = new_id;
+    new_kf.t_cw = Isometry3::translation(-0.1, 0.0, 0.0) * last.t_cw;
+    let (&some_point, p) = m.map.points.iter().next().unwrap();
+    let mut new_point = p.clone();
+    let new_pid = m.map.points.keys().max().unwrap() + 1;
+    new_point.id = new_pid;
+    new_point.observations = vec![(new_id, 0)];
+    m.map.keyframes.insert(new_id, new_kf);
+    m.map.points.insert(new_pid, new_point);
+    assert!(m.map.points.contains_key(&some_point));
+    let before = |m: &ServerMap| {
+        let (r, n) = (&m.map.keyframes[&newest], &m.map.keyframes[&new_id]);
+        let rel = r.t_cw * n.t_cw.inverse();
+        let p_r = r.t_cw * nalgebra::Point3::from(m.map.points[&new_pid].p_w);
+        (rel, p_r, r.t_cw)
+    };
+    let (rel0, p0, t_ref0) = before(m);
+    assert!(gba.solve(&ViParams::default()));
+    let applied = gba.apply(m).unwrap();
+    assert_eq!(
+        (applied.keyframes_propagated, applied.points_propagated),
+        (1, 1),
+        "{applied:?}"
+    );
+    let (rel1, p1, t_ref1) = before(m);
+    let moved = (t_ref1.inverse() * t_ref0).translation.vector.norm();
+    assert!(moved > 0.01, "the newest problem keyframe moved {moved} m");
+    assert!(
+        (rel1.to_homogeneous() - rel0.to_homogeneous()).amax() < 1e-9,
+        "the new keyframe kept its pose relative to it"
+    );
+    assert!((p1 - p0).norm() < 1e-9, "and so did the new point");
+    assert!(applied.client_deltas.contains_key(&CLIENT));
+}

@@ -12,6 +12,7 @@
 //! `T_sk` (camera → server map `s`); `λ` is server length over client length.
 
 pub mod correction;
+pub mod global_ba;
 pub mod handler;
 mod refine;
 pub mod scale;
@@ -22,6 +23,7 @@ pub use correction::{
     apply_pose_corrections, merge_maps, scale_ratio_after_loop, transform_map, transform_pose,
     CorrectionReport, MergeReport,
 };
+pub use global_ba::{GlobalBa, GlobalBaApplied};
 pub use handler::{HandlerParams, HandlerStats, IdleReport, KeyframeHandler, ServerMaps};
 pub use scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
 pub use server_map::{Owner, ServerMap};

@@ -187,13 +187,22 @@ pub fn global_bundle_adjustment(
     ba: &mut crate::optim::ba::BundleAdjuster,
     problem: &mut crate::optim::ba::BaProblem,
 ) -> Option<crate::optim::ba::BaReport> {
-    let all: Vec<KfId> = map.keyframes.keys().copied().collect();
-    let job = prepare_ba(map, all, problem)?;
+    let job = prepare_global_ba(map, problem)?;
     let report = ba
         .optimize(problem, &crate::optim::ba::BaParams::local())
         .ok()?;
     apply_local_ba(map, &job, problem, ba.inliers());
     Some(report)
+}
+
+/// The problem of [`global_bundle_adjustment`] (every keyframe free but the oldest, every
+/// point), for a caller that solves it elsewhere (the server's global BA thread).
+pub fn prepare_global_ba(
+    map: &ClientMap,
+    problem: &mut crate::optim::ba::BaProblem,
+) -> Option<LocalBaJob> {
+    let all: Vec<KfId> = map.keyframes.keys().copied().collect();
+    prepare_ba(map, all, problem)
 }
 
 /// Builds a BA problem in which the keyframes `local` are free (except the map's oldest
