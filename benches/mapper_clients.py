@@ -1,9 +1,12 @@
 import os, sys, time, subprocess, json
 # Runs `shoal run --rate 1.0` with N clients and sums the CPU time of each child process
 # (utime+stime from /proc/PID/stat, sampled every 0.5 s). Issue 4 benchmark (BENCHMARKS.md).
-# usage: mapper_clients.py SHOAL_BINARY OUT N DATASET [DATASET...] (datasets used round-robin)
-B, out, n, data = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4:]
-args = [B, 'run', '--rate', '1.0', '--max-frames', '600', '--out', out, '--quiet', '--ipc-prefix', f'bn{n}_', '--tracker-arg=--window=10']
+# usage: mapper_clients.py SHOAL_BINARY OUT N DATASET [DATASET...] [-- EXTRA_RUN_ARGS...]
+# (datasets used round-robin; e.g. `-- --mode vio` for visual-inertial clients, issue 19)
+B, out, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+rest = sys.argv[4:]
+data, extra = (rest[:rest.index('--')], rest[rest.index('--') + 1:]) if '--' in rest else (rest, [])
+args = [B, 'run', '--rate', '1.0', '--max-frames', '600', '--out', out, '--quiet', '--ipc-prefix', f'bn{n}_', '--tracker-arg=--window=10'] + extra
 for i in range(n):
     args += ['--dataset', data[i % len(data)]]
 p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
@@ -34,4 +37,13 @@ res = {}
 for pid, (name, ticks, start) in seen.items():
     res[name] = res.get(name, 0) + ticks / hz
 print(json.dumps({'wall_s': wall, 'cpu_s': res}, indent=1))
+try:
+    rep = json.load(open(out + '/report.json'))
+    for i, c in enumerate(rep['clients']):
+        lat = c.get('latency_ms_publish_to_pose', {})
+        print(f"c{i}: frames dropped {c['frames_dropped']} of {c['frames_total']}, keyframes sent/applied "
+              f"{c.get('keyframes_sent')}/{c.get('keyframes_applied')}, publish->pose {lat}")
+    print('maps', rep.get('maps'))
+except Exception as e:
+    print('report.json:', e)
 json.dump({'wall_s': wall, 'cpu_s': res}, open(out + '/cpu.json', 'w'))

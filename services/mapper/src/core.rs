@@ -73,8 +73,9 @@ pub struct Mapper {
     pub counters: MapperCounters,
     /// Lock-step synchronisation (`None`: free-running).
     sync: Option<lockstep::LockstepSync>,
-    /// Lock-step: the handler threads wait for their global BAs (a reproducible run).
-    wait_global_ba: bool,
+    /// Lock-step: the handler threads wait for their global BAs and idle on a fixed
+    /// schedule (a reproducible run).
+    lockstep: bool,
     /// Messages to publish, in order.
     out: Vec<Out>,
 }
@@ -118,7 +119,7 @@ impl Mapper {
             results_tx,
             status,
             sync: sync.then(|| lockstep::LockstepSync::new(lockstep::LOOP_SYNC_TIMEOUT)),
-            wait_global_ba: params.mode == ReplayMode::Lockstep,
+            lockstep: params.mode == ReplayMode::Lockstep,
             out: Vec::new(),
         }
     }
@@ -163,7 +164,7 @@ impl Mapper {
                         self.handler_params.clone(),
                         self.out_dir.clone(),
                         self.results_tx.clone(),
-                        self.wait_global_ba,
+                        self.lockstep,
                     )
                     .context("starting a handler thread")?,
                 );
@@ -739,6 +740,9 @@ impl Mapper {
         }
         n.handle_us += (o.handle_ms * 1e3) as u64;
         n.idle_us += (o.idle_ms * 1e3) as u64;
+        n.handler_queue_max = n.handler_queue_max.max(o.queued as u64);
+        n.idle_interval = o.idle_interval as u64;
+        n.idle_interval_max = n.idle_interval_max.max(o.idle_interval as u64);
         if let Some(sync) = self.sync.as_mut() {
             // Lock-step: the feedback goes out once the keyframe is finished.
             sync.push(lockstep::Settling {

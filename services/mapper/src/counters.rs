@@ -140,6 +140,13 @@ pub struct MapperClientCounters {
     pub handle_us: u64,
     /// Time the handler spent in idle steps, µs.
     pub idle_us: u64,
+    /// The longest backlog of the client's handler group seen behind one of its keyframes.
+    pub handler_queue_max: u64,
+    /// Gauge: the group's idle interval (keyframes between local BAs in a backlog; real
+    /// time adapts it so the handlers keep up, `worker::pacing`).
+    pub idle_interval: u64,
+    /// The largest idle interval the group took.
+    pub idle_interval_max: u64,
     /// Gauge (handler): keyframes inserted in a server map.
     pub keyframes_kept: u64,
     /// Gauge (handler): keyframes refined and discarded.

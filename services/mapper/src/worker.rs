@@ -28,8 +28,10 @@ use slam_core::server::{
 use crate::convert::Correction;
 
 mod global_ba;
+mod pacing;
 pub use global_ba::GlobalBaOutcome;
 use global_ba::GlobalBaRunner;
+use pacing::IdlePacing;
 
 /// How often a busy handler rewrites its trajectory files.
 const WRITE_EVERY: Duration = Duration::from_secs(2);
@@ -128,6 +130,10 @@ pub struct Outcome {
     pub handle_ms: f64,
     /// Time in the idle step, ms.
     pub idle_ms: f64,
+    /// Jobs queued behind this keyframe when it was handled (the group's backlog).
+    pub queued: usize,
+    /// The group's idle interval after it ([`pacing`]).
+    pub idle_interval: usize,
 }
 
 /// The two kinds of correction.
@@ -182,21 +188,22 @@ pub struct Worker {
 
 impl Worker {
     /// Starts a worker thread (named after the client it is first started for) and its
-    /// global BA thread ([`global_ba`]; `wait_global_ba` in lock-step); its trajectory
-    /// files go to `out` (if any).
+    /// global BA thread ([`global_ba`]); its trajectory files go to `out` (if any). In
+    /// `lockstep` it waits for its global BAs and idles on a fixed schedule ([`pacing`]),
+    /// so that a run is reproducible.
     pub fn spawn(
         first_client: u32,
         params: HandlerParams,
         out: Option<PathBuf>,
         results: Sender<Report>,
-        wait_global_ba: bool,
+        lockstep: bool,
     ) -> std::io::Result<Self> {
         let (tx, rx) = crossbeam_channel::unbounded();
         let name = format!("handlers_c{first_client}");
-        let gba = GlobalBaRunner::spawn(&name, params.vi, wait_global_ba)?;
+        let gba = GlobalBaRunner::spawn(&name, params.vi, lockstep)?;
         let thread = std::thread::Builder::new()
             .name(name)
-            .spawn(move || serve(params, out, rx, results, gba))?;
+            .spawn(move || serve(params, out, rx, results, gba, lockstep))?;
         Ok(Self {
             tx: Some(tx),
             thread: Some(thread),
@@ -250,6 +257,8 @@ pub struct Group {
     /// Corrections (merges, pose graphs) applied to each map: a global BA solved across
     /// one is stale ([`global_ba`]).
     generations: BTreeMap<MapId, u64>,
+    /// When to idle in a backlog (real time).
+    pacing: IdlePacing,
 }
 
 impl Group {
@@ -426,6 +435,7 @@ fn serve(
     rx: Receiver<Job>,
     results: Sender<Report>,
     mut gba: GlobalBaRunner,
+    lockstep: bool,
 ) {
     let mut g = Group::default();
     let mut dirty = false;
@@ -482,7 +492,13 @@ fn serve(
             }
             Some(Job::Keyframe { kf, idle, replay }) => {
                 dirty = true;
-                let (o, gbas) = handle(&mut g, &mut gba, &params, *kf, idle, replay, &rx);
+                let job = KeyframeJob {
+                    kf: *kf,
+                    idle,
+                    replay,
+                    lockstep,
+                };
+                let (o, gbas) = handle(&mut g, &mut gba, &params, job, &rx);
                 (Report::Keyframe(Box::new(o)), gbas)
             }
         };
@@ -502,17 +518,30 @@ fn serve(
     write_files(out.as_deref(), &g);
 }
 
+/// A keyframe job as [`handle`] takes it.
+struct KeyframeJob {
+    kf: ServerKeyframe,
+    /// The journaled idle decision (replay), else decided here.
+    idle: Option<bool>,
+    replay: bool,
+    lockstep: bool,
+}
+
 /// Handles a keyframe, starts the global BA it asks for (a revisit; in lock-step it is done
 /// before the idle step, and returned), then runs the idle step if due.
 fn handle(
     g: &mut Group,
     gba: &mut GlobalBaRunner,
     params: &HandlerParams,
-    kf: ServerKeyframe,
-    idle: Option<bool>,
-    replay: bool,
+    job: KeyframeJob,
     rx: &Receiver<Job>,
 ) -> (Outcome, Vec<GlobalBaOutcome>) {
+    let KeyframeJob {
+        kf,
+        idle,
+        replay,
+        lockstep,
+    } = job;
     let client = kf.client_id;
     let cs = g.clients.entry(client).or_insert_with(|| ClientState {
         h: KeyframeHandler::new(client, params.clone()),
@@ -538,8 +567,17 @@ fn handle(
     // in a burst (a client that sends its whole window at the end of its stream would
     // otherwise get no local BA at all while its map grows). The journal records the
     // decision, so a replay takes the same schedule.
+    g.pacing.on_keyframe(client, t_ns, handle_ms);
+    let queued = rx.len();
     let idled = result.is_ok()
-        && idle.unwrap_or_else(|| rx.is_empty() || cs.since_idle + 1 >= MAX_WITHOUT_IDLE);
+        && idle.unwrap_or_else(|| {
+            if lockstep {
+                queued == 0 || cs.since_idle + 1 >= MAX_WITHOUT_IDLE
+            } else {
+                g.pacing
+                    .idle_due(cs.since_idle, queued == 0, MAX_WITHOUT_IDLE)
+            }
+        });
     cs.since_idle = if idled { 0 } else { cs.since_idle + 1 };
     let t1 = Instant::now();
     let mut gbas = Vec::new();
@@ -554,6 +592,9 @@ fn handle(
         while cs.h.idle_step(&mut g.maps).is_some() {}
     }
     let idle_ms = t1.elapsed().as_secs_f64() * 1e3;
+    if idled {
+        g.pacing.on_idle(idle_ms);
+    }
     if let Some(m) = cs.h.current_map(&g.maps) {
         cs.growth
             .push((t_ns, m.map.keyframes.len(), m.map.points.len()));
@@ -571,6 +612,8 @@ fn handle(
         maps: g.sizes(),
         handle_ms,
         idle_ms,
+        queued,
+        idle_interval: g.pacing.interval(MAX_WITHOUT_IDLE),
     };
     (outcome, gbas)
 }
