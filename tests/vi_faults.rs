@@ -21,8 +21,8 @@
 //! measurement, one kill per run: `benches/vi_faults.sh`.
 //!
 //! Two runs with kills, several services each (`--kill` repeated), plus the shared
-//! fault-free run: 4.4 minutes of the test profile on 2 cores, the data rendered once per
-//! build included.
+//! fault-free run: 3.1 minutes of the test profile on 2 cores (4.4 when the data is
+//! rendered, once per build).
 mod common;
 
 use std::collections::BTreeMap;
