@@ -31,6 +31,13 @@ pub const FLAG_WORLD_MOVE: u32 = 1 << 5;
 /// visual-inertial client's, `VI_NOTES.md` §4 "Server"): loops and merges between such
 /// maps have 4 degrees of freedom (x, y, z, yaw).
 pub const FLAG_INERTIAL_MAP: u32 = 1 << 6;
+/// A [`FrameAck`] that acknowledges no frame: a restarted tracker continuing its killed
+/// predecessor's visual-inertial session asks its IMU ingest to publish again, in
+/// lock-step, the samples from the one at or before `frame_t_ns` on (its session's newest
+/// keyframe: the samples since then died with the predecessor, and the next keyframe's IMU
+/// segment needs them). `frame_seq` is 0, so a consumer that reads it as an
+/// acknowledgement learns nothing from it.
+pub const FLAG_IMU_REPLAY: u32 = 1 << 7;
 
 /// Common head of every message: identity, version and the publish stamp.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]

@@ -131,9 +131,12 @@ pub struct ClientReport {
     pub keyframe_bytes_mean: f64,
     /// Keyframes the mapper applied per second of data.
     pub keyframes_per_s: f64,
-    /// Keyframe messages the mapper received with an IMU segment (issue 19).
+    /// Keyframes the mapper applied with an IMU segment (issue 19): distinct keyframes of
+    /// the client in the mapper's journal with IMU records, as `keyframes_applied` (the
+    /// mapper's own count of the messages it received lags its last status write when it
+    /// is killed).
     pub keyframes_with_imu: u64,
-    /// IMU samples in those segments.
+    /// IMU samples in those segments (each keyframe's once).
     pub keyframe_imu_samples: u64,
     /// Keyframes the mapper applied visual-only because their IMU segment did not hold.
     pub imu_segments_refused: u64,
@@ -311,7 +314,7 @@ pub struct RunReport {
 struct Gathered {
     statuses: Statuses,
     /// Distinct keyframes per client in the mapper journal, if it could be read.
-    journaled: Option<Vec<u64>>,
+    journaled: Option<Vec<Journaled>>,
     outputs: Vec<ClientOutputs>,
     /// Per client, its files in the output folder.
     files: Vec<Vec<String>>,
@@ -350,18 +353,36 @@ impl Gathered {
     }
 }
 
-/// Distinct keyframes (session, id) per client in the mapper journal at `path`.
-fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<u64>> {
+/// A client's keyframes in the mapper's journal, each distinct keyframe once.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Journaled {
+    /// Distinct keyframes (session, id).
+    applied: u64,
+    /// Of those, the ones with IMU records.
+    with_imu: u64,
+    /// Their IMU records.
+    imu_samples: u64,
+}
+
+/// The keyframes of each client in the mapper journal at `path`.
+fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<Journaled>> {
     let contents = shoal_runtime::journal::read_journal(path).ok()?;
-    let mut seen: Vec<std::collections::HashSet<(u32, u64)>> = vec![Default::default(); clients];
+    let mut seen: Vec<std::collections::HashMap<(u32, u64), u64>> =
+        vec![Default::default(); clients];
     for e in &contents.entries {
         if let shoal_runtime::journal::Entry::Keyframe { client, header, .. } = e {
             if let Some(s) = seen.get_mut(*client as usize) {
-                s.insert((header.meta.session_id, header.keyframe_id));
+                let key = (header.meta.session_id, header.keyframe_id);
+                s.insert(key, u64::from(header.n_imu));
             }
         }
     }
-    Some(seen.iter().map(|s| s.len() as u64).collect())
+    let count = |s: &std::collections::HashMap<(u32, u64), u64>| Journaled {
+        applied: s.len() as u64,
+        with_imu: s.values().filter(|n| **n > 0).count() as u64,
+        imu_samples: s.values().sum(),
+    };
+    Some(seen.iter().map(count).collect())
 }
 
 /// CPU time (user + system) of the calling process, s.
@@ -610,9 +631,10 @@ fn client_report(
     c: usize,
     rec: &super::recorder::ClientRecord,
     st: &Statuses,
-    journaled_applied: Option<u64>,
+    journaled: Option<Journaled>,
     o: ClientOutputs,
 ) -> ClientReport {
+    let journaled_applied = journaled.map(|j| j.applied);
     let ci = c as u32;
     let (cam, imu, trk) = (
         camera_ingest::service_name(ci),
@@ -674,8 +696,8 @@ fn client_report(
         keyframe_bytes_per_s: keyframe_rate(ds, total, m.keyframe_bytes),
         keyframe_bytes_mean: m.keyframe_bytes as f64 / m.keyframes_received.max(1) as f64,
         keyframes_per_s: keyframe_rate(ds, total, journaled_applied.unwrap_or(m.keyframes_applied)),
-        keyframes_with_imu: m.keyframes_with_imu,
-        keyframe_imu_samples: m.imu_samples_received,
+        keyframes_with_imu: journaled.map_or(m.keyframes_with_imu, |j| j.with_imu),
+        keyframe_imu_samples: journaled.map_or(m.imu_samples_received, |j| j.imu_samples),
         imu_segments_refused: m.imu_segments_refused,
         frames_server_pose: rec.tracked_server,
         frames_server_pose_other_maps: o.server_frames_other_maps,

@@ -16,7 +16,9 @@
 //! `ack_timeout_ms` with an [`ErrorKind::AckTimeout`] and `frames_unacked`). The end of
 //! stream is re-sent every 250 ms until acknowledged, for at most `ack_timeout_ms`.
 use serde::{Deserialize, Serialize};
-use shm_schema::{FrameAck, FrameHeader, MsgMeta, FLAG_END_OF_STREAM, FLAG_RESEND};
+use shm_schema::{
+    FrameAck, FrameHeader, MsgMeta, FLAG_END_OF_STREAM, FLAG_IMU_REPLAY, FLAG_RESEND,
+};
 use shoal_runtime::{ErrorKind, ReplayClock, ReplayMode, Status};
 
 use crate::CameraIngestConfig;
@@ -213,9 +215,10 @@ impl<'a> CameraReplayCore<'a> {
         self.status
     }
 
-    /// A frame acknowledgement received (one of another schema version is ignored).
+    /// A frame acknowledgement received (one of another schema version, or an IMU replay
+    /// request, which acknowledges no frame, is ignored).
     pub fn on_ack(&mut self, ack: &FrameAck) {
-        if ack.meta.check().is_ok() {
+        if ack.meta.check().is_ok() && ack.meta.flags & FLAG_IMU_REPLAY == 0 {
             let seq = ack.frame_seq;
             self.acked = Some(self.acked.map_or(seq, |a| a.max(seq)));
         }

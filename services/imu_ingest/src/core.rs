@@ -15,7 +15,7 @@
 //! never reach the core: the dataset reader skipped them, and the ports report them
 //! ([`shoal_runtime::report_input_issues`]) on a first start.
 use serde::{Deserialize, Serialize};
-use shm_schema::{FrameAck, ImuMsg, MsgMeta, FLAG_END_OF_STREAM};
+use shm_schema::{FrameAck, ImuMsg, MsgMeta, FLAG_END_OF_STREAM, FLAG_IMU_REPLAY};
 use shoal_runtime::{ReplayClock, ReplayMode, Status};
 
 #[cfg(test)]
@@ -30,6 +30,12 @@ pub struct ImuCounters {
     pub imu_samples_published: u64,
     /// Real time: samples due while this service was down, skipped.
     pub imu_samples_skipped_late: u64,
+    /// Lock-step: samples published again at a restarted tracker's request (the samples its
+    /// killed predecessor took since its session's newest keyframe; in
+    /// `imu_samples_published` too).
+    pub imu_samples_replayed: u64,
+    /// Those requests.
+    pub imu_replays: u64,
 }
 
 /// Format version of [`ImuResume`].
@@ -165,11 +171,38 @@ impl<'a> ImuReplayCore<'a> {
     }
 
     /// A frame acknowledgement received: lock-step, it moves the horizon (one of another
-    /// schema version is ignored).
+    /// schema version is ignored). A replay request ([`FLAG_IMU_REPLAY`]) moves the replay
+    /// back instead ([`Self::replay_from`]).
     pub fn on_ack(&mut self, ack: &FrameAck) {
-        if ack.meta.check().is_ok() {
-            let h = ack.frame_t_ns.saturating_add(self.plan.lookahead_ns);
-            self.horizon_ns = self.horizon_ns.max(h);
+        if ack.meta.check().is_err() {
+            return;
+        }
+        if ack.meta.flags & FLAG_IMU_REPLAY != 0 {
+            self.replay_from(ack.frame_t_ns);
+            return;
+        }
+        let h = ack.frame_t_ns.saturating_add(self.plan.lookahead_ns);
+        self.horizon_ns = self.horizon_ns.max(h);
+    }
+
+    /// Lock-step: the samples from the one at or before `t_ns` on are published again (up
+    /// to the horizon, then on as acknowledgements move it), followed by the end of stream
+    /// again if it was sent: a restarted tracker lost them with its killed predecessor. In
+    /// real time nothing is replayed (the frames that tracker missed are dropped too).
+    fn replay_from(&mut self, t_ns: i64) {
+        if !self.lockstep {
+            return;
+        }
+        let from = self
+            .plan
+            .samples
+            .partition_point(|s| s.t_ns <= t_ns)
+            .saturating_sub(1);
+        if from < self.next {
+            self.counters.imu_replays += 1;
+            self.counters.imu_samples_replayed += (self.next - from) as u64;
+            self.next = from;
+            self.ended = false;
         }
     }
 

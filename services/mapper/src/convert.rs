@@ -20,8 +20,8 @@ use slam_core::vo::keyframe_imu::KeyframeImu;
 use slam_core::vo::{KeyframeInertial, KfId, PointId};
 
 use shoal_runtime::wire::{
-    camera_from_intrinsics, imu_calibration_from_wire, imu_measurement, iso_from_wire,
-    sim3_from_wire, valid_intrinsics, wire_from_iso, wire_keypoint,
+    camera_from_intrinsics, iso_from_wire, keyframe_imu_from_wire, sim3_from_wire,
+    valid_intrinsics, wire_from_iso, wire_keypoint,
 };
 
 /// The camera of a keyframe message.
@@ -127,53 +127,7 @@ pub fn inertial_parts(
         }
         return Ok((inertial, None));
     }
-    Ok((inertial, Some(imu_segment(h, imu)?)))
-}
-
-/// The IMU segment of a message with `has_imu` (see [`inertial_parts`]).
-fn imu_segment(h: &KeyframeHeader, imu: &[ImuRecord]) -> Result<KeyframeImu, String> {
-    let calib = imu_calibration_from_wire(&h.imu_calib)?;
-    if h.imu_t1_ns != h.t_ns.saturating_add(calib.t_d_ns) {
-        return Err(format!(
-            "IMU time {} ns is not the frame time {} ns + t_d {} ns",
-            h.imu_t1_ns, h.t_ns, calib.t_d_ns
-        ));
-    }
-    let mut seg = KeyframeImu {
-        t_prev_ns: None,
-        t_ns: h.imu_t1_ns,
-        samples: Vec::new(),
-        calib,
-    };
-    if h.n_imu as usize != imu.len() {
-        return Err(format!(
-            "{} IMU records, header says {}",
-            imu.len(),
-            h.n_imu
-        ));
-    }
-    let (Some(first), Some(last)) = (imu.first(), imu.last()) else {
-        return Ok(seg);
-    };
-    let finite = |r: &ImuRecord| r.gyro.iter().chain(&r.accel).all(|v| v.is_finite());
-    if let Some(i) = imu.iter().position(|r| !finite(r)) {
-        return Err(format!("IMU record {i}: non-finite value"));
-    }
-    if let Some(i) = imu.windows(2).position(|w| w[1].t_ns <= w[0].t_ns) {
-        return Err(format!(
-            "IMU record {}: time not after the previous one",
-            i + 1
-        ));
-    }
-    if imu.len() < 2 || first.t_ns != h.imu_t0_ns || last.t_ns != h.imu_t1_ns {
-        return Err(format!(
-            "IMU records over [{}, {}] ns, the segment is [{}, {}] ns",
-            first.t_ns, last.t_ns, h.imu_t0_ns, h.imu_t1_ns
-        ));
-    }
-    seg.t_prev_ns = Some(h.imu_t0_ns);
-    seg.samples = imu.iter().map(imu_measurement).collect();
-    Ok(seg)
+    Ok((inertial, Some(keyframe_imu_from_wire(h, imu)?)))
 }
 
 /// A loop correction as the mapper applies it.

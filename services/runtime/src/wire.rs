@@ -4,11 +4,11 @@
 //! takes `w` first: the swap is done here and nowhere else), camera intrinsics, keypoints and
 //! the tracking state. Ids convert through [`slam_core::ids`].
 use nalgebra::{Isometry3, Matrix3, Quaternion, Translation3, UnitQuaternion, Vector3};
-use shm_schema::{ImuCalib, ImuRecord, Intrinsics, Pose, TrackState};
+use shm_schema::{ImuCalib, ImuRecord, Intrinsics, KeyframeHeader, Pose, TrackState};
 use slam_core::camera::PinholeRadtan;
 use slam_core::imu::{ImuIntrinsics, ImuMeasurement, ImuNoise, PreintegrationParams};
 use slam_core::lie::Sim3;
-use slam_core::vo::keyframe_imu::ImuCalibration;
+use slam_core::vo::keyframe_imu::{ImuCalibration, KeyframeImu};
 use slam_core::vo::VoState;
 
 /// A wire quaternion norm below this is no rotation.
@@ -197,6 +197,59 @@ pub fn imu_record(m: &ImuMeasurement) -> ImuRecord {
         accel: m.accel.into(),
         reserved: 0,
     }
+}
+
+/// The IMU segment of a keyframe message with `has_imu` (issue 19, `VI_NOTES.md` §4 Fig.
+/// 5.4), checked: a valid calibration, `imu_t1_ns` = `t_ns + t_d`, `n_imu` finite records
+/// (none for a session's first keyframe: a segment without predecessor), strictly
+/// increasing times from exactly `imu_t0_ns` to exactly `imu_t1_ns`. Shared by the mapper
+/// (a received message) and the tracker (a spooled one, rebuilt into its client map).
+pub fn keyframe_imu_from_wire(
+    h: &KeyframeHeader,
+    imu: &[ImuRecord],
+) -> Result<KeyframeImu, String> {
+    let calib = imu_calibration_from_wire(&h.imu_calib)?;
+    if h.imu_t1_ns != h.t_ns.saturating_add(calib.t_d_ns) {
+        return Err(format!(
+            "IMU time {} ns is not the frame time {} ns + t_d {} ns",
+            h.imu_t1_ns, h.t_ns, calib.t_d_ns
+        ));
+    }
+    let mut seg = KeyframeImu {
+        t_prev_ns: None,
+        t_ns: h.imu_t1_ns,
+        samples: Vec::new(),
+        calib,
+    };
+    if h.n_imu as usize != imu.len() {
+        return Err(format!(
+            "{} IMU records, header says {}",
+            imu.len(),
+            h.n_imu
+        ));
+    }
+    let (Some(first), Some(last)) = (imu.first(), imu.last()) else {
+        return Ok(seg);
+    };
+    let finite = |r: &ImuRecord| r.gyro.iter().chain(&r.accel).all(|v| v.is_finite());
+    if let Some(i) = imu.iter().position(|r| !finite(r)) {
+        return Err(format!("IMU record {i}: non-finite value"));
+    }
+    if let Some(i) = imu.windows(2).position(|w| w[1].t_ns <= w[0].t_ns) {
+        return Err(format!(
+            "IMU record {}: time not after the previous one",
+            i + 1
+        ));
+    }
+    if imu.len() < 2 || first.t_ns != h.imu_t0_ns || last.t_ns != h.imu_t1_ns {
+        return Err(format!(
+            "IMU records over [{}, {}] ns, the segment is [{}, {}] ns",
+            first.t_ns, last.t_ns, h.imu_t0_ns, h.imu_t1_ns
+        ));
+    }
+    seg.t_prev_ns = Some(h.imu_t0_ns);
+    seg.samples = imu.iter().map(imu_measurement).collect();
+    Ok(seg)
 }
 
 #[cfg(test)]

@@ -176,6 +176,13 @@ impl KeyframeImuSource {
         seg
     }
 
+    /// The session's last keyframe was made at camera time `t_cam_ns` by an earlier source
+    /// (a session continued after a restart): the next segment starts there, with the
+    /// samples pushed from then on (older ones are dropped when the next keyframe is cut).
+    pub fn continue_after(&mut self, t_cam_ns: i64) {
+        self.last_kf_ns = Some(t_cam_ns + self.calib.t_d_ns);
+    }
+
     /// A new VO session: its first keyframe has no predecessor (the samples are kept).
     pub fn new_session(&mut self) {
         self.last_kf_ns = None;
@@ -321,6 +328,37 @@ mod tests {
         assert_eq!(times, vec![20, 30, 40, 50]);
         assert_eq!(w, b.samples);
         assert_eq!(s.segment(108).interpolated_samples(), None);
+    }
+
+    /// A source continuing a session (a restarted tracker) cuts the next segment from the
+    /// session's last keyframe: the same segment a source that made that keyframe cuts, so
+    /// the keyframes stay linked across the restart; without the samples back to it the
+    /// segment is incomplete (no wire records), never silently shorter.
+    #[test]
+    fn a_continued_source_links_to_the_last_keyframe_of_the_session() {
+        let mut first = source();
+        for t in (0..=100).step_by(10) {
+            first.push(m(t));
+        }
+        let _ = first.segment(18);
+        let b = first.segment(48);
+        let c_ref = first.segment(78);
+        let mut next = source();
+        next.continue_after(48);
+        for t in (50..=100).step_by(10) {
+            next.push(m(t));
+        }
+        let c = next.segment(78);
+        assert_eq!(c, c_ref);
+        assert!(c.links(&b));
+        let mut late = source();
+        late.continue_after(48);
+        for t in (60..=100).step_by(10) {
+            late.push(m(t));
+        }
+        let short = late.segment(78);
+        assert_eq!(short.t_prev_ns, Some(50));
+        assert!(!short.is_complete() && short.interpolated_samples().is_none());
     }
 
     /// Before the first keyframe only the last seconds are kept.

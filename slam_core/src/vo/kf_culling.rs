@@ -77,8 +77,11 @@ pub fn redundant_fraction(map: &ClientMap, k: KfId, params: &KfCullingParams) ->
 
 /// Removes the redundant keyframes among the best covisible neighbours of `latest`
 /// (examined in ascending id order, each decision seeing the removals before it, so the
-/// result is deterministic). Never removes `latest`, the first keyframe of the map, or a
-/// keyframe in `protected`. Returns the removed ids.
+/// result is deterministic). Never removes `latest`, the first keyframe of the map, a
+/// keyframe in `protected`, or a keyframe whose IMU segment has no keyframe of its client
+/// after it to join (its client's newest in a server map that other clients' handlers
+/// cull: the client's next keyframe will start its segment there). Returns the removed
+/// ids.
 pub fn cull_redundant_keyframes(
     map: &mut ClientMap,
     latest: KfId,
@@ -90,7 +93,8 @@ pub fn cull_redundant_keyframes(
     candidates.sort_unstable();
     let mut removed = Vec::new();
     for k in candidates {
-        if k == latest || Some(k) == first || protected.contains(&k) {
+        if k == latest || Some(k) == first || protected.contains(&k) || imu_has_no_successor(map, k)
+        {
             continue;
         }
         if redundant_fraction(map, k, params) > params.redundancy {
@@ -107,6 +111,23 @@ pub fn cull_redundant_keyframes(
     removed
 }
 
+/// Whether keyframe `k` has an IMU segment and no keyframe of its client after it (the
+/// segment would have nowhere to go, [`join_imu_into_successor`]).
+fn imu_has_no_successor(map: &ClientMap, k: KfId) -> bool {
+    map.keyframes.get(&k).is_some_and(|kf| kf.imu.is_some())
+        && successor_of_client(map, k).is_none()
+}
+
+/// The keyframe after `k` in id order when it is of `k`'s client.
+fn successor_of_client(map: &ClientMap, k: KfId) -> Option<KfId> {
+    let client = |id: KfId| KeyframeId::from_raw(id).client();
+    map.keyframes
+        .range(k + 1..)
+        .next()
+        .map(|(id, _)| *id)
+        .filter(|id| client(*id) == client(k))
+}
+
 /// A culled keyframe's IMU segment joins the next keyframe's, so the keyframes around it
 /// stay linked ([`crate::vo::keyframe_imu`]). The next keyframe is the next id of the same
 /// client: in a server map ids carry the client in their high bits
@@ -116,14 +137,8 @@ fn join_imu_into_successor(map: &mut ClientMap, culled: &Keyframe) {
     let Some(seg) = &culled.imu else {
         return;
     };
-    let client = |id: KfId| KeyframeId::from_raw(id).client();
-    if let Some(next) = map
-        .keyframes
-        .range_mut(culled.id + 1..)
-        .next()
-        .filter(|(id, _)| client(**id) == client(culled.id))
-        .and_then(|(_, kf)| kf.imu.as_mut())
-    {
+    let next = successor_of_client(map, culled.id);
+    if let Some(next) = next.and_then(|n| map.keyframes.get_mut(&n)?.imu.as_mut()) {
         join_segments(seg, next);
     }
 }
@@ -230,6 +245,58 @@ mod tests {
         m.insert_keyframe(next);
         join_imu_into_successor(&mut m, &culled);
         assert_eq!(m.keyframes[&other].imu, before);
+    }
+
+    /// A merged server map (issue 19): client 1's keyframes 0-4, then client 2's; every
+    /// one sees the same points, so all are redundant. Client 2's handler culls around its
+    /// own newest: client 1's newest keyframe stays (its segment has no keyframe of client
+    /// 1 to join; client 1's next keyframe will link to it), the others of client 1 go with
+    /// their segments joined into the next, so no sample of client 1 is lost.
+    #[test]
+    fn a_clients_newest_keyframe_with_a_segment_is_not_culled_by_another_client() {
+        use crate::ids::ClientId;
+        let (c1, c2) = (
+            KeyframeId::new(ClientId::new(1), 0).raw(),
+            KeyframeId::new(ClientId::new(2), 0).raw(),
+        );
+        let mut m = ClientMap::new(1, 0);
+        let ids: Vec<KfId> = (0..5)
+            .map(|i| c1 + i)
+            .chain((0..5).map(|i| c2 + i))
+            .collect();
+        for (i, id) in ids.iter().enumerate() {
+            let t = 10 * (i as i64 % 5);
+            m.insert_keyframe(with_segment(kf(*id, 20, 0), t));
+        }
+        for i in 0..20u32 {
+            let obs: Vec<(KfId, u32)> = ids.iter().map(|k| (*k, i)).collect();
+            m.add_point(Vector3::new(i as f64 * 0.1, 0.0, 5.0), 0, &obs);
+        }
+        for k in &ids {
+            m.update_covisibility(*k);
+        }
+        let p = KfCullingParams {
+            neighbours: 20,
+            ..KfCullingParams::default()
+        };
+        let culled = cull_redundant_keyframes(&mut m, c2 + 4, &[], &p);
+        assert!(!culled.contains(&(c1 + 4)), "{culled:?}");
+        assert!(culled.contains(&(c1 + 1)), "{culled:?}");
+        let newest = m.keyframes[&(c1 + 4)].imu.as_ref().expect("segment");
+        // Client 1's chain from its first keyframe to its newest: linked, every sample once.
+        let kept: Vec<&Keyframe> = m.keyframes.range(c1..c1 + 5).map(|(_, k)| k).collect();
+        assert_eq!(kept.first().map(|k| k.id), Some(c1));
+        for w in kept.windows(2) {
+            let (a, b) = (w[0].imu.as_ref().unwrap(), w[1].imu.as_ref().unwrap());
+            assert!(b.links(a), "{} -> {}", w[0].id, w[1].id);
+        }
+        let times: Vec<i64> = newest.samples.iter().map(|s| s.t_ns).collect();
+        assert_eq!(kept.len(), 2, "client 1's first and newest");
+        assert_eq!(
+            times,
+            (0..=40).collect::<Vec<_>>(),
+            "every sample since the first"
+        );
     }
 
     /// Keyframe `k` with the segment from `t - 10` (none before 0) to `t`, samples each ns.

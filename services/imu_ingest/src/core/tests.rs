@@ -187,6 +187,58 @@ fn lockstep_publishes_up_to_the_horizon_over_a_gap() {
     assert_eq!(core.counters().imu_samples_published, 18);
 }
 
+/// A restarted tracker's replay request (lock-step): the samples from the one at or before
+/// the asked time are published again, with their own sequence numbers, then the replay
+/// goes on with the acknowledgements; the end of stream follows again. In real time a
+/// request changes nothing.
+#[test]
+fn a_replay_request_publishes_the_samples_again_from_the_asked_time() {
+    let s = samples(0, 300, 10);
+    let mut core = fresh(ReplayMode::Lockstep, &s);
+    core.on_ack(&ack(200 * MS));
+    assert_eq!(run_at(&mut core, 0).0.len(), 31);
+    let replay = |t_ns| {
+        let mut a = ack(t_ns);
+        a.meta.flags |= FLAG_IMU_REPLAY;
+        a
+    };
+    core.on_ack(&replay(255 * MS));
+    assert_eq!(
+        core.horizon_ns(),
+        300 * MS,
+        "a replay request moves no horizon"
+    );
+    assert_eq!(run_at(&mut core, 0).0, [250, 260, 270, 280, 290, 300]);
+    core.on_ack(&replay(400 * MS));
+    assert_eq!(
+        run_at(&mut core, 0),
+        (vec![300], None),
+        "the sample before the time"
+    );
+    core.on_ack(&replay(290 * MS));
+    let mut eos = 0;
+    loop {
+        match core.step(0) {
+            ImuStep::Publish(m) => {
+                assert_eq!(m.meta.seq, 29 + eos);
+                eos += 1;
+                core.on_sent();
+            }
+            ImuStep::PublishEndOfStream(_) => eos += 100,
+            ImuStep::Done => break,
+            other => panic!("{other:?}"),
+        }
+    }
+    assert_eq!(eos, 102, "samples 29 and 30, then the end of stream again");
+    let c = core.counters();
+    assert_eq!((c.imu_replays, c.imu_samples_replayed), (3, 6 + 1 + 2));
+    assert_eq!(c.imu_samples_published, 31 + 9);
+    let mut rt = fresh(ReplayMode::Realtime, &s);
+    rt.on_ack(&replay(0));
+    assert_eq!(rt.counters().imu_replays, 0);
+    assert_eq!(rt.next_index(), 0);
+}
+
 /// A dataset without frames has no acknowledgements to wait for: real-time pacing also in
 /// lock-step mode.
 #[test]

@@ -82,6 +82,9 @@ pub struct TrackerCounters {
     pub imu_samples_refused: u64,
     /// Gaps in the IMU stream longer than the visual-inertial client bridges.
     pub imu_gaps: u64,
+    /// Replays of the IMU samples since a resumed session's newest keyframe asked of the
+    /// IMU ingest (lock-step; `shm_schema::FLAG_IMU_REPLAY`).
+    pub imu_replays_asked: u64,
     /// World moves published (the inertial initialisation and its refinements).
     pub world_moves: u64,
     /// Visual-inertial sessions resumed from a killed predecessor's spool (issue 17).

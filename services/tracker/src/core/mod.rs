@@ -195,8 +195,11 @@ pub struct TrackerCore {
     /// Biases of the last frame's metric state.
     last_biases: Option<slam_core::imu::ImuBiases>,
     /// IMU samples taken before the client exists (its first frame): the last
-    /// [`PENDING_IMU_NS`] of them are given to it then.
+    /// [`PENDING_IMU_NS`] of them are given to it then (and all those from
+    /// `pending_imu_from_ns` on, the replay a resumed session asked for).
     pending_imu: std::collections::VecDeque<slam_core::imu::ImuMeasurement>,
+    /// Samples from this IMU time on are kept until the client exists, ns.
+    pending_imu_from_ns: Option<i64>,
     outbox: Outbox,
     kf_counts: KeyframeCounts,
     server: ServerState,
@@ -206,7 +209,8 @@ pub struct TrackerCore {
     /// The next frame is the first after a restart (its gap is counted apart).
     first_after_restart: bool,
     /// The next frame is the first after a restart: in lock-step it does not wait for IMU
-    /// samples ([`TrackerCore::imu_missing`]).
+    /// samples ([`TrackerCore::imu_missing`]), unless it asked for them again to resume a
+    /// visual-inertial session (`resume.rs`).
     imu_wait_waived: bool,
     ack_seq: u64,
     ended: bool,
@@ -240,6 +244,7 @@ impl TrackerCore {
             first_frame_ns: None,
             last_biases: None,
             pending_imu: Default::default(),
+            pending_imu_from_ns: None,
             outbox: Outbox::new(cfg.client),
             kf_counts,
             server: ServerState::new(cfg.client, cfg.lockstep_sync),
@@ -385,10 +390,11 @@ impl TrackerCore {
                 _ => return,
             };
             self.pending_imu.push_back(sample);
+            let keep_from = self.pending_imu_from_ns.unwrap_or(i64::MAX);
             while self
                 .pending_imu
                 .front()
-                .is_some_and(|f| f.t_ns < m.t_ns - keep_ns)
+                .is_some_and(|f| f.t_ns < m.t_ns - keep_ns && f.t_ns < keep_from)
             {
                 self.pending_imu.pop_front();
             }

@@ -21,8 +21,10 @@
 //! map that does not rebuild. The held keyframes are then sent as before, ahead of the
 //! first frame's own keyframes, and the client starts a new session.
 use nalgebra::Vector3;
-use shm_schema::{FrameHeader, NO_MAP_POINT};
-use shoal_runtime::wire::{camera_from_intrinsics, iso_from_wire, wire_keypoint};
+use shm_schema::{FrameAck, FrameHeader, MsgMeta, FLAG_IMU_REPLAY, NO_MAP_POINT};
+use shoal_runtime::wire::{
+    camera_from_intrinsics, iso_from_wire, keyframe_imu_from_wire, wire_keypoint,
+};
 use shoal_runtime::ErrorKind;
 use slam_core::features::OrbFeatures;
 use slam_core::ids::ClientPointId;
@@ -78,7 +80,7 @@ impl TrackerCore {
     pub fn recover_spool(&mut self, keyframes: Vec<Recovered>, now_ns: i64) -> Vec<Out> {
         self.spool_resume.started_ns = now_ns;
         let send = self.hold_resumable(keyframes);
-        let mut out = vec![];
+        let mut out: Vec<Out> = self.imu_replay_request(now_ns).into_iter().collect();
         for k in send {
             out.extend(self.recover_keyframe(message(k), now_ns));
         }
@@ -123,6 +125,30 @@ impl TrackerCore {
             None => self.spool_resume.held = session,
         }
         keyframes
+    }
+
+    /// For a held session: the request to the IMU ingest to publish again the samples from
+    /// the session's newest keyframe on ([`FLAG_IMU_REPLAY`]; lock-step): the predecessor
+    /// took them, and the next keyframe's IMU segment starts at that keyframe, so that the
+    /// session's keyframes stay linked on the server across the kill. The samples are kept
+    /// until the client exists, and the first frame waits for its samples as any frame.
+    fn imu_replay_request(&mut self, now_ns: i64) -> Option<Out> {
+        let newest = self.spool_resume.held.last()?;
+        let t_ns = newest.header.imu_t1_ns;
+        if newest.header.has_imu == 0 {
+            return None;
+        }
+        self.pending_imu_from_ns = Some(t_ns);
+        self.imu_wait_waived = false;
+        let mut meta = MsgMeta::new(self.cfg.client, self.session_id(), self.ack_seq, now_ns);
+        meta.flags |= FLAG_IMU_REPLAY;
+        self.ack_seq += 1;
+        self.counters.imu_replays_asked += 1;
+        Some(Out::Ack(FrameAck {
+            meta,
+            frame_seq: 0,
+            frame_t_ns: t_ns,
+        }))
     }
 
     /// Whether keyframes are held for a resume.
@@ -288,6 +314,13 @@ fn stored_keyframe(k: &Recovered, readout_ns: i64) -> Result<Keyframe, String> {
         // gravity are corrected once, `slam_core::vo::vi_window` module docs).
         refined: 1,
     });
+    // The segment it was spooled (and would have been sent) with, so that it goes to the
+    // server again with the same samples when it leaves the window, and local mapping's
+    // visual-inertial window links it to its neighbours (issue 19).
+    let imu = (h.has_imu != 0)
+        .then(|| keyframe_imu_from_wire(h, &k.imu))
+        .transpose()
+        .map_err(|e| format!("spooled keyframe {id}: IMU segment: {e}"))?;
     Ok(Keyframe {
         id,
         t_ns: h.t_ns,
@@ -297,7 +330,7 @@ fn stored_keyframe(k: &Recovered, readout_ns: i64) -> Result<Keyframe, String> {
         features,
         points,
         inertial,
-        imu: None,
+        imu,
     })
 }
 

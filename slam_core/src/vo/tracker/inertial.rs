@@ -9,8 +9,15 @@ impl VoTracker {
     /// From now on every keyframe carries the IMU samples since the previous keyframe of
     /// its session ([`crate::vo::Keyframe::imu`]), given with [`VoTracker::push_imu`]; local
     /// mapping then runs the visual-inertial window on keyframes with an inertial state.
+    /// On a VO that continues a session ([`VoTracker::resume_session`]) the next keyframe's
+    /// segment starts at the map's newest keyframe, as it would have in the session's
+    /// first process: the session's keyframes stay linked across the restart.
     pub fn enable_keyframe_imu(&mut self, calib: ImuCalibration) {
-        self.imu_source = Some(KeyframeImuSource::new(calib));
+        let mut source = KeyframeImuSource::new(calib);
+        if let Some(t_ns) = self.with_map(|m| m.keyframes.values().next_back().map(|k| k.t_ns)) {
+            source.continue_after(t_ns);
+        }
+        self.imu_source = Some(source);
     }
 
     /// One IMU sample, in time order (checked by the caller; a sample not after the last

@@ -7,12 +7,13 @@ use std::collections::BTreeMap;
 
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use nalgebra::Isometry3;
-use shm_schema::{ImuMsg, PoseSource, TrackedPose, FLAG_WORLD_MOVE};
+use shm_schema::{FrameAck, ImuMsg, PoseSource, TrackedPose, FLAG_IMU_REPLAY, FLAG_WORLD_MOVE};
 use shoal_runtime::{ErrorKind, Status};
 use slam_core::ids::{ClientKeyframeId, ClientPointId};
 use slam_core::metrics::{align, Alignment};
 
 use super::super::{CoreConfig, FrameIn, FrameStep, Out, StartIds, TrackerCore};
+use crate::outbox::KeyframeMsg;
 use crate::spool::{Recovered, SpoolEntry};
 use crate::testing::{frame_header, imu_msg};
 
@@ -50,6 +51,10 @@ struct Ports {
     poses: Vec<TrackedPose>,
     world_moves: usize,
     sent: Vec<(u32, u64)>,
+    /// The keyframe messages sent.
+    msgs: Vec<KeyframeMsg>,
+    /// Requests to the IMU ingest to replay samples.
+    replays: Vec<FrameAck>,
 }
 
 impl Ports {
@@ -60,7 +65,11 @@ impl Ports {
                     self.spool.insert(e.msg.key(), e);
                 }
                 Out::SpoolSent((s, id)) => self.spool.retain(|k, _| k.0 != s || k.1 > id),
-                Out::Keyframe(m) => self.sent.push(m.key()),
+                Out::Keyframe(m) => {
+                    self.sent.push(m.key());
+                    self.msgs.push(m);
+                }
+                Out::Ack(a) if a.meta.flags & FLAG_IMU_REPLAY != 0 => self.replays.push(a),
                 Out::Pose(p) if p.meta.flags & FLAG_WORLD_MOVE != 0 => self.world_moves += 1,
                 Out::Pose(p) if p.meta.flags == 0 => self.poses.push(p),
                 Out::Pose(_) | Out::Ack(_) | Out::CalibLog(_) => {}
@@ -133,16 +142,21 @@ fn killed_predecessor(world: &SimWorld) -> &'static (Ports, Status, Vec<ImuMsg>)
     LEFT.get_or_init(|| run_predecessor(world))
 }
 
-/// The predecessor's run up to the kill, and its status and samples as the successor
-/// finds them: the status of a restarted service, the IMU samples published to the dead
-/// process (up to its last frame's lock-step horizon, 100 ms on) gone.
-fn run_predecessor(world: &SimWorld) -> (Ports, Status, Vec<ImuMsg>) {
-    let imu: Vec<ImuMsg> = world
+/// The IMU stream of `world` as published.
+fn imu_stream(world: &SimWorld) -> Vec<ImuMsg> {
+    world
         .imu_samples()
         .iter()
         .enumerate()
         .map(|(k, s)| imu_msg(k as u64, s))
-        .collect();
+        .collect()
+}
+
+/// The predecessor's run up to the kill, and its status and samples as the successor
+/// finds them: the status of a restarted service, the IMU samples published to the dead
+/// process (up to its last frame's lock-step horizon, 100 ms on) gone.
+fn run_predecessor(world: &SimWorld) -> (Ports, Status, Vec<ImuMsg>) {
+    let imu = imu_stream(world);
     let mut core = TrackerCore::new(config(), Status::new("tracker:0"));
     let (mut ports, mut next) = (Ports::default(), 0);
     drive(&mut core, world, 0..KILLED_AT, &imu, &mut next, &mut ports);
@@ -311,4 +325,74 @@ fn an_unusable_spool_is_a_named_error_and_a_fresh_start() {
         ports.poses.iter().all(|p| p.meta.session_id == start2),
         "a new session"
     );
+}
+
+/// No IMU segment lost across the kill (issue 19): the successor asks the IMU ingest to
+/// replay the samples from the session's newest spooled keyframe on; given them, every
+/// keyframe it sends (the predecessor's, rebuilt from the spool, then its own) carries the
+/// segment since the previous one, the rebuilt ones the segment they were spooled with
+/// (joined after a keyframe culled before them), and the segments tile the session from
+/// its first spooled keyframe to its last.
+#[test]
+fn a_resumed_session_sends_every_keyframe_with_its_imu_segment() {
+    let world = world();
+    let (before, status, _) = killed_predecessor(&world);
+    let mut core = TrackerCore::new(config(), status.clone());
+    let mut ports = Ports::default();
+    ports.take(core.recover_spool(before.recovered(), 0));
+    let newest = before
+        .spool
+        .values()
+        .next_back()
+        .expect("spooled")
+        .msg
+        .header;
+    assert_eq!(ports.replays.len(), 1, "one replay request");
+    assert_eq!(ports.replays[0].frame_t_ns, newest.imu_t1_ns);
+    assert_eq!(core.counters().imu_replays_asked, 1);
+    // The ingest replays from the sample at or before the asked time.
+    let stream = imu_stream(&world);
+    let from = stream.partition_point(|m| m.t_ns <= newest.imu_t1_ns) - 1;
+    drive(
+        &mut core,
+        &world,
+        KILLED_AT..END,
+        &stream[from..],
+        &mut 0,
+        &mut ports,
+    );
+    for kf in core.take_window() {
+        let (_, out) = core.send_window_keyframe(&kf, 0);
+        ports.take(out);
+    }
+    let msgs = &ports.msgs;
+    assert!(msgs.len() > before.spool.len() + 2, "{} sent", msgs.len());
+    for m in msgs {
+        if let Some(spooled) = before.spool.get(&m.key()) {
+            let (sent, kept) = (&m.imu[..], &spooled.msg.imu[..]);
+            assert!(
+                sent.ends_with(kept),
+                "keyframe {}: its spooled segment",
+                m.key().1
+            );
+        }
+    }
+    let first = before.spool.values().next().expect("spooled").msg.clone();
+    let mut t = first.header.imu_t1_ns;
+    for m in msgs.iter().skip_while(|m| m.key() <= first.key()) {
+        let h = &m.header;
+        assert!(
+            h.n_imu > 2,
+            "keyframe {} without its segment",
+            h.keyframe_id
+        );
+        assert_eq!(
+            (h.imu_t0_ns, m.imu[0].t_ns),
+            (t, t),
+            "keyframe {}",
+            h.keyframe_id
+        );
+        t = h.imu_t1_ns;
+    }
+    assert_eq!(t, msgs.last().expect("sent").header.imu_t1_ns);
 }
