@@ -36,14 +36,7 @@ fn two_visual_inertial_clients_merge_into_one_metric_map() {
     assert_eq!(lc.merges_four_dof, lc.merges, "every merge 4-DoF: {lc:?}");
     assert_eq!(lc.loops_four_dof, lc.loops, "every loop 4-DoF: {lc:?}");
     assert_eq!(mc.corrections_refused, 0, "{mc:?}");
-    let maps = r["maps"].as_array().expect("maps");
-    assert_eq!(maps.len(), 1, "{maps:?}");
-    let m = &maps[0];
-    assert_eq!(m["clients"], serde_json::json!([0, 1]), "{m}");
-    assert_eq!(
-        (m["metric"].as_bool(), m["gravity_aligned"].as_bool()),
-        (Some(true), Some(true))
-    );
+    check_one_metric_map(&r, &[0, 1]);
     let mut length = 0.0;
     for c in 0..2 {
         let windows = mc.client(c as u32).vi_windows;

@@ -13,15 +13,6 @@ use common::*;
 use shm_schema::KeyframeHeader;
 use shoal_runtime::journal::{read_journal, Entry};
 
-/// The IMU stamps of a synthetic EuRoC folder (`mav0/imu0/data.csv`), ns.
-fn imu_stamps(agent: &Path) -> Vec<i64> {
-    let text = std::fs::read_to_string(agent.join("mav0/imu0/data.csv")).expect("imu0");
-    text.lines()
-        .filter(|l| !l.starts_with('#'))
-        .filter_map(|l| l.split(',').next()?.trim().parse().ok())
-        .collect()
-}
-
 /// Wire records of a segment over `[t0, t1]`: the stream's samples strictly inside, and the
 /// two interpolated borders.
 fn expected_records(stamps: &[i64], t0: i64, t1: i64) -> usize {

@@ -341,3 +341,24 @@ pub fn joint_server_eval(
     };
     slam_core::metrics::evaluate(&gt_t, &gt_p, &est_t, &est_p, &params).expect("ATE")
 }
+
+/// The IMU stamps of a synthetic EuRoC folder (`mav0/imu0/data.csv`), ns.
+pub fn imu_stamps(agent: &Path) -> Vec<i64> {
+    let text = std::fs::read_to_string(agent.join("mav0/imu0/data.csv")).expect("imu0");
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| l.split(',').next()?.trim().parse().ok())
+        .collect()
+}
+
+/// The report lists one map at the end, holding `clients`, metric and gravity-aligned.
+pub fn check_one_metric_map(rep: &serde_json::Value, clients: &[u32]) {
+    let maps = rep["maps"].as_array().expect("maps");
+    assert_eq!(maps.len(), 1, "{maps:?}");
+    let m = &maps[0];
+    assert_eq!(m["clients"], serde_json::json!(clients), "{m}");
+    assert_eq!(
+        (m["metric"].as_bool(), m["gravity_aligned"].as_bool()),
+        (Some(true), Some(true))
+    );
+}

@@ -393,6 +393,13 @@ pub fn apply_vi_window(map: &mut ClientMap, job: &mut ViWindowJob, w: &mut ViWin
             refined: refined + 1,
         });
     }
+    apply_points_and_outliers(map, job, w)
+}
+
+/// The write-back shared by a window and the global BA, after the keyframes: the points,
+/// then the removal of the observations above the gate (and the refresh of what moved).
+/// Returns the observations removed.
+fn apply_points_and_outliers(map: &mut ClientMap, job: &mut ViWindowJob, w: &ViWindow) -> usize {
     for (p, p_w) in job.pt_ids.iter().zip(&w.points_w) {
         if let Some(mp) = map.points.get_mut(p) {
             mp.p_w = *p_w;

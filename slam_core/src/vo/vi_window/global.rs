@@ -22,7 +22,7 @@
 //! the problem was built is left to the caller (the server propagates the correction).
 use nalgebra::{Isometry3, Vector2};
 
-use super::{inlier, ViSkip, ViWindowJob};
+use super::{apply_points_and_outliers, ViSkip, ViWindowJob};
 use crate::imu::window::{ViKeyframe, ViObservation, ViRig, ViWindow};
 use crate::imu::{gravity_w, NavState, Preintegrated};
 use crate::rolling_shutter::pixel_offset_s;
@@ -206,16 +206,5 @@ pub fn apply_global_vi(map: &mut ClientMap, job: &mut ViWindowJob, w: &ViWindow)
             };
         }
     }
-    for (p, p_w) in job.pt_ids.iter().zip(&w.points_w) {
-        if let Some(mp) = map.points.get_mut(p) {
-            mp.p_w = *p_w;
-        }
-    }
-    job.inliers.clear();
-    job.inliers
-        .extend(w.observations.iter().map(|o| inlier(w, o)));
-    let removed = job.inliers.iter().filter(|i| !**i).count();
-    crate::vo::local_mapping::remove_outlier_observations(map, &job.obs_keys, &job.inliers);
-    crate::vo::local_mapping::refresh_adjusted(map, &job.kf_ids, &job.pt_ids);
-    removed
+    apply_points_and_outliers(map, job, w)
 }
