@@ -8,9 +8,11 @@
 //! iceoryx2 ports.
 //!
 //! After a keyframe the handler runs its idle step (local BA + culling) when its queue is
-//! empty or after [`MAX_WITHOUT_IDLE`] keyframes; the report says whether it did, so the
-//! main thread can journal it and a replay can follow the same schedule. After a
-//! correction the global BA runs at once (in replays too), so it needs no journal entry.
+//! empty or, in a backlog, every few keyframes (lock-step: [`MAX_WITHOUT_IDLE`]; real time:
+//! the adaptive interval of [`pacing`]); the report says whether it did, so the main thread
+//! can journal it and a replay can follow the same schedule. A correction or a revisit
+//! starts a global BA on the group's own global BA thread ([`global_ba`]; in replays too,
+//! so it needs no journal entry); lock-step waits for it, real time goes on meanwhile.
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
