@@ -204,6 +204,18 @@ impl ViWindow {
         }
     }
 
+    /// Whether every keyframe position and velocity and every point is finite (a solution
+    /// fit to write back).
+    pub fn is_finite(&self) -> bool {
+        self.keyframes.iter().all(|kf| {
+            let s = &kf.state;
+            s.p.iter().chain(s.v.iter()).all(|x| x.is_finite())
+        }) && self
+            .points_w
+            .iter()
+            .all(|p| p.iter().all(|x| x.is_finite()))
+    }
+
     /// The camera and `t_bc` of keyframe `kf` ([`ViKeyframe::rig`]; rig 0 when out of range).
     #[inline]
     pub fn rig(&self, kf: usize) -> (&PinholeRadtan, &Isometry3<f64>) {

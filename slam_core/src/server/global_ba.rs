@@ -136,12 +136,7 @@ impl GlobalBa {
                 ok
             }
             Problem::Inertial { w, .. } => {
-                ViSolver::new().optimize(w, params).is_ok()
-                    && w.keyframes.iter().all(|kf| {
-                        let s = &kf.state;
-                        s.p.iter().chain(s.v.iter()).all(|x| x.is_finite())
-                    })
-                    && w.points_w.iter().all(|p| p.iter().all(|x| x.is_finite()))
+                ViSolver::new().optimize(w, params).is_ok() && w.is_finite()
             }
         };
         self.solved

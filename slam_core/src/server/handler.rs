@@ -795,12 +795,7 @@ impl KeyframeHandler {
             self.stats.vi_windows_skipped += 1;
             return false;
         }
-        let solved = self.vi_solver.optimize(w, &self.params.vi.solver).is_ok()
-            && w.keyframes.iter().all(|kf| {
-                let s = &kf.state;
-                s.p.iter().chain(s.v.iter()).all(|x| x.is_finite())
-            })
-            && w.points_w.iter().all(|p| p.iter().all(|x| x.is_finite()));
+        let solved = self.vi_solver.optimize(w, &self.params.vi.solver).is_ok() && w.is_finite();
         if !solved {
             self.stats.vi_windows_skipped += 1;
             return false;

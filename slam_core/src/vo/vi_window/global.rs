@@ -39,15 +39,7 @@ pub fn prepare_global_vi(
     w: &mut ViWindow,
     job: &mut ViWindowJob,
 ) -> Result<(), ViSkip> {
-    *w = ViWindow {
-        keyframes: std::mem::take(&mut w.keyframes),
-        preints: std::mem::take(&mut w.preints),
-        points_w: std::mem::take(&mut w.points_w),
-        observations: std::mem::take(&mut w.observations),
-        ..ViWindow::empty()
-    };
-    w.keyframes.clear();
-    w.preints.clear();
+    *w = ViWindow::empty();
     job.kf_ids.clear();
     job.refined.clear();
     global_keyframes(map, w, job);
