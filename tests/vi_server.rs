@@ -65,3 +65,49 @@ fn two_visual_inertial_clients_merge_into_one_metric_map() {
     assert!((scale - 1.0).abs() < 0.01, "merged map scale {scale}");
     assert!(percent <= 0.1, "joint server ATE {percent:.3}% > 0.1%");
 }
+
+/// A visual-inertial client anchors its world to its metric, gravity-aligned server map
+/// (issue 19, feedback; `slam_core::vio::anchor`): with keyframes sent as they leave a
+/// 10-keyframe window, the server's feedback moves the client's world (yaw and translation)
+/// so that each frame's pose as tracked and its server-map pose agree to a centimetre or
+/// two, where without anchoring they drift apart by a decimetre and more; the rigid moves
+/// leave the recorded trajectory what it was (lock-step, one client: the same run).
+/// Measured: gap p50/p90 7.7/15.9 mm anchored, 93/154 mm not; SE(3) ATE 0.0448 m both.
+#[test]
+fn a_visual_inertial_client_tracks_in_its_server_map_frame() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "four-agents", 320, None);
+    let run = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec!["--lockstep", "--mode", "vio", "--tracker-arg=--window=10"];
+        args.extend_from_slice(extra);
+        let o = run_pipeline(&[&ds[0]], &out, name, &args);
+        assert!(o.status.success(), "shoal run {name} failed");
+        report(&out)["clients"][0].clone()
+    };
+    let anchored = run("anchored", &[]);
+    let plain = run("plain", &["--tracker-arg=--no-anchor"]);
+    let gap = |c: &serde_json::Value, q: &str| c["live_server_gap_mm"][q].as_f64().expect(q);
+    let a = &anchored["vio"]["anchor"];
+    eprintln!(
+        "anchors {a}; live pose to server pose p50/p90 {:.1}/{:.1} mm anchored, \
+         {:.1}/{:.1} mm not",
+        gap(&anchored, "p50"),
+        gap(&anchored, "p90"),
+        gap(&plain, "p50"),
+        gap(&plain, "p90")
+    );
+    assert!(a["applied"].as_u64().unwrap_or(0) >= 5, "{a}");
+    assert_eq!(a["dropped"], 0, "{a}");
+    assert!(plain["vio"]["anchor"].is_null());
+    assert!(gap(&anchored, "n") >= 150.0, "frames with a server pose");
+    assert!(gap(&anchored, "p90") < 40.0);
+    assert!(gap(&plain, "p90") > 3.0 * gap(&anchored, "p90"));
+    let ate = |c: &serde_json::Value| c["ate_se3"]["rmse_m"].as_f64().expect("ate_se3");
+    assert!(
+        (ate(&anchored) - ate(&plain)).abs() < 1e-3,
+        "trajectory {} vs {} m",
+        ate(&anchored),
+        ate(&plain)
+    );
+}

@@ -320,8 +320,8 @@ fn session_change_starts_a_new_server_map_and_feedback_composes_eq_3_4() {
         let r = h.handle(&mut maps, kf).expect("handle");
         // The client's composition of the previous feedback is the handler's prediction.
         if let (Some((t_cj, fb)), Some(pred)) = (last_fb, r.t_sk_predicted) {
-            let (_, t_sj, lambda) = fb;
-            let p: Isometry3<f64> = frame_pose_in_server_map(&t_cj, &t_sj, lambda, &t_ck);
+            let fb: slam_core::server::FeedbackPose = fb;
+            let p: Isometry3<f64> = frame_pose_in_server_map(&t_cj, &fb.t_sk, fb.lambda, &t_ck);
             assert!((p.translation.vector - pred.translation.vector).norm() < 1e-12);
         }
         if switch == Some(i) {

@@ -106,6 +106,11 @@ fn env_or(key: &str, default: usize) -> usize {
 }
 
 fn run(world: &SimWorld, mode: Mode) -> Run {
+    run_anchored(world, mode, None)
+}
+
+/// [`run`], the client anchored by `delta` (a rigid move of its world) before frame `k`.
+fn run_anchored(world: &SimWorld, mode: Mode, anchor: Option<(usize, Isometry3<f64>)>) -> Run {
     let cpu0 = cpu_ms();
     let cam = world.calib().model;
     let mut mono =
@@ -189,7 +194,13 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
                 (o, t_cw, src)
             }
             (None, Some(v)) => {
+                if let Some((_, delta)) = anchor.filter(|a| a.0 == k) {
+                    v.request_anchor(v.vo().session_id(), Some(delta));
+                }
                 let o = v.process(&frame).expect("vio");
+                if anchor.is_some_and(|a| a.0 == k) {
+                    assert_eq!(o.anchor, anchor.map(|a| a.1), "anchored at frame {k}");
+                }
                 if std::env::var("VERBOSE").is_ok() && o.vo.keyframe.is_some() {
                     if let VioStatus::Refused(e) = v.status() {
                         eprintln!("{:.2} s: {e}", (t_ns - r.times[0]) as f64 * 1e-9);
@@ -201,13 +212,13 @@ fn run(world: &SimWorld, mode: Mode) -> Run {
                         let t = (t_ns - r.times[0]) as f64 * 1e-9;
                         eprintln!(
                             "world move at {t:.2} s: scale {:.5}, {:.3}°, init {}",
-                            m.scale,
-                            m.rotation.angle().to_degrees(),
+                            m.world.s,
+                            m.world.r.angle().to_degrees(),
                             m.initialisation
                         );
                     }
                     for p in r.poses[session_start..k].iter_mut().flatten() {
-                        *p = transform_pose_cw(p, m.scale, &m.rotation);
+                        *p = transform_pose_cw(p, &m.world);
                     }
                     if m.initialisation {
                         r.init_s = Some((t_ns - r.times[0]) as f64 * 1e-9);
@@ -356,6 +367,57 @@ fn drone_vio_is_metric_and_accurate() {
     assert!(f.ate_se3_percent < 0.3, "ATE {:.3}%", f.ate_se3_percent);
     // Tracking with the IMU (issue 17): every frame after the initialisation but a few.
     assert!(f.vi_after_init_percent >= 95.0);
+}
+
+/// An anchor to the server map (issue 19: a rigid move of the client's world by yaw and
+/// translation, `slam_core::vio::anchor`) applied mid-run moves everything after it by
+/// exactly that move and nothing else: the same frames posed, each pose the un-anchored
+/// run's moved by it (to rounding), the biases unchanged. The local window does not jump.
+#[test]
+fn an_anchor_moves_the_client_world_without_a_jump() {
+    let world = world(Scenario::Phone, 8.0);
+    let plain = run(&world, VIO);
+    assert!(
+        plain.init_s.is_some_and(|s| s < 4.0),
+        "init {:?}",
+        plain.init_s
+    );
+    let k0 = world.n_frames() * 2 / 3;
+    let delta = Isometry3::new(Vector3::new(3.0, -2.0, 0.5), Vector3::new(0.0, 0.0, 0.6));
+    let moved = run_anchored(&world, VIO, Some((k0, delta)));
+    let m = slam_core::lie::Sim3::from_isometry(&delta, 1.0);
+    let (mut worst_m, mut worst_deg) = (0.0f64, 0.0f64);
+    for k in 0..world.n_frames() {
+        assert_eq!(plain.sources[k], moved.sources[k], "frame {k}");
+        let (Some(a), Some(b)) = (plain.poses[k], moved.poses[k]) else {
+            assert_eq!(
+                plain.poses[k].is_some(),
+                moved.poses[k].is_some(),
+                "frame {k}"
+            );
+            continue;
+        };
+        let want = if k >= k0 {
+            transform_pose_cw(&a, &m)
+        } else {
+            a
+        };
+        let (c_want, c_got) = (want.inverse().translation, b.inverse().translation);
+        worst_m = worst_m.max((c_want.vector - c_got.vector).norm());
+        worst_deg = worst_deg.max(want.rotation.angle_to(&b.rotation).to_degrees());
+    }
+    let bias = |r: &Run| r.biases.expect("biases").1;
+    let (ba, bb) = (bias(&plain), bias(&moved));
+    let d_bias = (ba.gyro - bb.gyro).norm() + (ba.accel - bb.accel).norm();
+    println!(
+        "anchor at frame {k0}: poses off the moved un-anchored run by {worst_m:.2e} m, \
+         {worst_deg:.2e}°; final biases by {d_bias:.2e}"
+    );
+    assert!(
+        worst_m < 1e-3 && worst_deg < 0.01,
+        "{worst_m} m, {worst_deg}°"
+    );
+    assert!(d_bias < 1e-4, "{d_bias}");
 }
 
 /// Phone (10 s hand-held walking, 30 Hz, 25 ms rolling shutter, phone IMU): the issue's

@@ -23,13 +23,15 @@ pub const FLAG_RESYNC: u32 = 1 << 3;
 pub const FLAG_HANDLED: u32 = 1 << 4;
 /// A [`TrackedPose`] that moves the world of its VO session (no frame): every earlier pose
 /// of that session (`meta.session_id`), as published, is to be re-expressed by the
-/// similarity `x' = s R x` with `s = world_scale` and `R` the rotation in `pose.q`
-/// (`pose.t` is zero). A visual-inertial client sends it when its inertial initialisation
-/// (or a refinement) moves its monocular map into the metric, gravity-aligned world.
+/// similarity `x' = s R x + t` with `s = world_scale`, `R` the rotation in `pose.q` and `t`
+/// in `pose.t`. A visual-inertial client sends it when its inertial initialisation (or a
+/// refinement) moves its monocular map into the metric, gravity-aligned world (`t` zero),
+/// and when it anchors its world to its metric server map (`s` = 1; `slam_core::vio::anchor`).
 pub const FLAG_WORLD_MOVE: u32 = 1 << 5;
 /// A [`LoopKeyframeHeader`] of a keyframe whose server map is metric and gravity-aligned (a
 /// visual-inertial client's, `VI_NOTES.md` §4 "Server"): loops and merges between such
-/// maps have 4 degrees of freedom (x, y, z, yaw).
+/// maps have 4 degrees of freedom (x, y, z, yaw). On a [`Feedback`]: its pose is of a
+/// metric keyframe in such a map, and a visual-inertial client may anchor its world to it.
 pub const FLAG_INERTIAL_MAP: u32 = 1 << 6;
 /// A [`FrameAck`] that acknowledges no frame: a restarted tracker continuing its killed
 /// predecessor's visual-inertial session asks its IMU ingest to publish again, in

@@ -4,7 +4,7 @@ use hdrhistogram::Histogram;
 use shm_schema::topics::{self, Ipc};
 use shm_schema::{PoseSource, TrackState, TrackedPose};
 
-/// Latency percentiles in milliseconds.
+/// Percentiles (milliseconds of a latency, millimetres of a distance).
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct Percentiles {
     /// Number of samples.
@@ -122,6 +122,11 @@ pub struct ClientRecord {
     pub bad_messages: u64,
     /// Frame publish → pose publish of this client's frames.
     pub publish_to_pose: LatencyHist,
+    /// Per tracked frame with a server-map pose, the distance between its camera centre as
+    /// tracked and in the server map (a visual-inertial client anchored to its map:
+    /// centimetres; otherwise the two frames' offset), recorded as µm "µs" (the
+    /// percentiles read in mm).
+    pub live_server_gap: LatencyHist,
 }
 
 impl ClientRecord {
@@ -175,8 +180,8 @@ impl ClientRecord {
     }
 
     /// Re-expresses the poses and orientations of VO session `session` received so far in
-    /// the world the tracker moved it to: `x' = s R x` (positions), `R_wc' = R R_wc`
-    /// (`FLAG_WORLD_MOVE`; `move_q` holds `R`).
+    /// the world the tracker moved it to: `x' = s R x + t` (positions), `R_wc' = R R_wc`
+    /// (`FLAG_WORLD_MOVE`; `move_pose` holds `R` and `t`).
     fn move_world(&mut self, session: u32, s: f64, move_pose: &shm_schema::Pose) {
         let Some(r) = shoal_runtime::wire::rotation_from_wire(move_pose) else {
             return;
@@ -184,9 +189,13 @@ impl ClientRecord {
         if !(s.is_finite() && s > 0.0) {
             return;
         }
+        let t_move = nalgebra::Vector3::from(move_pose.t);
+        if !t_move.iter().all(|x| x.is_finite()) {
+            return;
+        }
         self.world_moves += 1;
         let moved = |p: &shm_schema::Pose| {
-            let t = r * (nalgebra::Vector3::from(p.t) * s);
+            let t = r * (nalgebra::Vector3::from(p.t) * s) + t_move;
             let q = shoal_runtime::wire::rotation_from_wire(p).map(|q| r * q);
             q.map(|q| shm_schema::Pose {
                 t: t.into(),
@@ -261,6 +270,7 @@ impl Recorder {
                 ended: false,
                 bad_messages: 0,
                 publish_to_pose: LatencyHist::new(),
+                live_server_gap: LatencyHist::new(),
             });
         }
         Ok(Self {
@@ -327,6 +337,9 @@ impl Recorder {
                     rec.trajectory.push((p.t_ns, p.pose));
                     rec.trajectory_sessions.push(p.meta.session_id);
                     if p.has_server_pose != 0 {
+                        let d = nalgebra::Vector3::from(p.pose.t)
+                            - nalgebra::Vector3::from(p.server_pose.t);
+                        rec.live_server_gap.record_ns((d.norm() * 1e9) as i64);
                         rec.tracked_server += 1;
                         rec.server_trajectory
                             .push((p.t_ns, p.server_pose, p.server_map_id));

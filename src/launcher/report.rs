@@ -188,6 +188,11 @@ pub struct ClientReport {
     pub ate_4dof: Option<AteReport>,
     /// Frame publish → pose publish of this client's frames, ms.
     pub latency_ms_publish_to_pose: Percentiles,
+    /// Per tracked frame with a live server-map pose, the distance between the camera
+    /// centre as tracked and in the server map, mm: a visual-inertial client anchored to
+    /// its metric server map tracks in the map's frame (`slam_core::vio::anchor`), so the
+    /// two agree up to the drift since the last feedback.
+    pub live_server_gap_mm: Percentiles,
     /// The client's output files in the output folder (`*_c{i}.*`), names only.
     pub files: Vec<String>,
 }
@@ -716,6 +721,7 @@ fn client_report(
         ate_se3: o.ate_se3,
         ate_4dof: o.ate_4dof,
         latency_ms_publish_to_pose: rec.publish_to_pose.percentiles(),
+        live_server_gap_mm: rec.live_server_gap.percentiles(),
         files: Vec::new(),
     }
 }

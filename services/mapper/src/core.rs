@@ -454,7 +454,7 @@ impl Mapper {
 
     /// Publishes pose feedback (server pose of the last keyframe, λ, map id) to a client.
     fn send_feedback(&mut self, f: &slam_core::server::ServerFeedback) {
-        let Some((map_id, t_sk, lambda)) = f.pose else {
+        let Some(pose) = f.pose else {
             return;
         };
         let c = f.client_id;
@@ -462,13 +462,13 @@ impl Mapper {
             return;
         };
         let msg = Feedback {
-            meta: MsgMeta::new(c, f.acked_session_id, cl.fb_seq, monotonic_ns()),
+            meta: feedback_meta(c, f.acked_session_id, cl.fb_seq, Some(&pose)),
             acked_keyframe_id: f.acked_keyframe_id,
             acked_session_id: f.acked_session_id,
             has_pose: 1,
-            server_pose: wire_from_iso(&t_sk),
-            scale_ratio: lambda,
-            server_map_id: map_id.raw(),
+            server_pose: wire_from_iso(&pose.t_sk),
+            scale_ratio: pose.lambda,
+            server_map_id: pose.map_id.raw(),
         };
         self.out.push(Out::Feedback(msg));
         cl.fb_seq += 1;
@@ -488,11 +488,12 @@ impl Mapper {
             let Some(cl) = self.clients.get_mut(k.client as usize) else {
                 continue;
             };
-            let mut meta = MsgMeta::new(k.client, k.session, cl.fb_seq, monotonic_ns());
+            let mut meta = feedback_meta(k.client, k.session, cl.fb_seq, k.pose.as_ref());
             meta.flags |= shm_schema::FLAG_HANDLED;
-            let (map_id, t_sk, lambda) =
-                k.pose
-                    .unwrap_or((MapId::default(), nalgebra::Isometry3::identity(), 1.0));
+            let (map_id, t_sk, lambda) = k.pose.map_or(
+                (MapId::default(), nalgebra::Isometry3::identity(), 1.0),
+                |p| (p.map_id, p.t_sk, p.lambda),
+            );
             self.out.push(Out::Feedback(Feedback {
                 meta,
                 acked_keyframe_id: k.kf_id,
@@ -789,6 +790,22 @@ impl Mapper {
     pub fn take_out(&mut self) -> std::vec::Drain<'_, Out> {
         self.out.drain(..)
     }
+}
+
+/// The meta of a feedback message to client `c`: [`shm_schema::FLAG_INERTIAL_MAP`] when its
+/// pose is of a metric keyframe in a metric, gravity-aligned map (the client may anchor to
+/// it, `slam_core::vio::anchor`).
+fn feedback_meta(
+    c: u32,
+    session: u32,
+    seq: u64,
+    pose: Option<&slam_core::server::FeedbackPose>,
+) -> MsgMeta {
+    let mut meta = MsgMeta::new(c, session, seq, monotonic_ns());
+    if pose.is_some_and(|p| p.metric) {
+        meta.flags |= shm_schema::FLAG_INERTIAL_MAP;
+    }
+    meta
 }
 
 #[cfg(test)]

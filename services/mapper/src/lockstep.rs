@@ -14,8 +14,7 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-use nalgebra::Isometry3;
-use slam_core::server::MapId;
+use slam_core::server::FeedbackPose;
 
 /// Longest a handled keyframe waits for the loop closer before it is released anyway.
 pub const LOOP_SYNC_TIMEOUT: Duration = Duration::from_secs(10);
@@ -29,8 +28,8 @@ pub struct Settling {
     pub session: u32,
     /// Client keyframe id.
     pub kf_id: u64,
-    /// Pose feedback after it: server map, `T_sk` of the client's last keyframe, λ.
-    pub pose: Option<(MapId, Isometry3<f64>, f64)>,
+    /// Pose feedback after it (the client's last keyframe).
+    pub pose: Option<FeedbackPose>,
     /// Sequence number of the last loop keyframe message forwarded for it, if any.
     pub loop_seq: Option<u64>,
     /// When it was handled.

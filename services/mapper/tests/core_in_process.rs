@@ -41,6 +41,7 @@ fn keyframes_of_the_tracker(mut answer: impl FnMut(&KeyframeMsg) -> Vec<Feedback
         calib: Default::default(),
         calib_log: false,
         readout: Default::default(),
+        anchor: Default::default(),
     };
     let mut core = TrackerCore::new(cfg, Status::new("tracker:0"));
     let mut sent = 0;

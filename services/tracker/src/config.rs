@@ -333,6 +333,44 @@ pub struct TrackerConfig {
     /// Print the initialiser's and the backward walk's diagnostics on stderr (also set by
     /// the environment variable `SHOAL_DEBUG_INIT`).
     pub debug_init: bool,
+    /// A visual-inertial client anchors its world to its metric, gravity-aligned server
+    /// map from the server's feedback (`slam_core::vio::anchor`).
+    pub anchor: AnchorConfig,
+}
+
+/// The `anchor` table ([`slam_core::vio::anchor::AnchorParams`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AnchorConfig {
+    /// Anchor at all (`false`: the client's poses stay in its own world; each frame's
+    /// server-map pose still comes with it, from the feedback, eq. 3.1 and 3.4).
+    pub enabled: bool,
+    /// Smallest change of the anchor applied, m (or `min_yaw_deg`).
+    pub min_translation_m: f64,
+    /// Smallest change of the anchor's yaw applied, degrees (or `min_translation_m`).
+    pub min_yaw_deg: f64,
+}
+
+impl Default for AnchorConfig {
+    fn default() -> Self {
+        let p = slam_core::vio::anchor::AnchorParams::default();
+        Self {
+            enabled: p.enabled,
+            min_translation_m: p.min_translation_m,
+            min_yaw_deg: p.min_yaw_deg,
+        }
+    }
+}
+
+impl AnchorConfig {
+    /// As the core's parameters.
+    pub fn params(&self) -> slam_core::vio::anchor::AnchorParams {
+        slam_core::vio::anchor::AnchorParams {
+            enabled: self.enabled,
+            min_translation_m: self.min_translation_m,
+            min_yaw_deg: self.min_yaw_deg,
+        }
+    }
 }
 
 impl Default for TrackerConfig {
@@ -352,6 +390,7 @@ impl Default for TrackerConfig {
             frame_log: None,
             work_ms: 0,
             debug_init: false,
+            anchor: AnchorConfig::default(),
         }
     }
 }
@@ -408,6 +447,10 @@ pub struct TrackerFlags {
     /// Print the initialiser's diagnostics (`debug_init = true`).
     #[arg(long)]
     pub debug_init: bool,
+    /// A visual-inertial client does not anchor its world to the server map
+    /// (`anchor.enabled = false`).
+    #[arg(long)]
+    pub no_anchor: bool,
 }
 
 impl TrackerFlags {
@@ -445,6 +488,9 @@ impl TrackerFlags {
         }
         if self.debug_init {
             cfg.debug_init = true;
+        }
+        if self.no_anchor {
+            cfg.anchor.enabled = false;
         }
     }
 }

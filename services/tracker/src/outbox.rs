@@ -79,8 +79,15 @@ pub fn wire_pose(t_cw: &nalgebra::Isometry3<f64>) -> Pose {
 }
 
 /// The keyframe message of `kf` of VO session `session` (seed §3.3: its pose in the client
-/// map, keypoints, descriptors and client map-point ids); `meta.seq` is set when sent.
-pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg {
+/// map, keypoints, descriptors and client map-point ids); `meta.seq` is set when sent. Its
+/// pose and velocity are moved by `to_session`, from the client's present world to the
+/// session's own (`slam_core::vio::anchor`; the identity for a client never anchored).
+pub fn keyframe_message(
+    client: u32,
+    kf: &Keyframe,
+    session: u32,
+    to_session: &nalgebra::Isometry3<f64>,
+) -> KeyframeMsg {
     let (intrinsics, width, height) = shoal_runtime::wire::intrinsics_from_camera(&kf.camera);
     let n = kf.features.len().min(MAX_KEYPOINTS);
     let records: Vec<KeypointRecord> = (0..n)
@@ -102,13 +109,15 @@ pub fn keyframe_message(client: u32, kf: &Keyframe, session: u32) -> KeyframeMsg
         meta: MsgMeta::new(client, session, 0, 0),
         keyframe_id: kf.id,
         t_ns: kf.t_ns,
-        pose_ck: wire_pose(&kf.t_cw),
+        pose_ck: shoal_runtime::wire::wire_from_iso(&(to_session * kf.t_cw.inverse())),
         intrinsics,
         width,
         height,
         n_keypoints: n as u32,
         inertial: kf.inertial.is_some() as u32,
-        velocity_w: kf.inertial.map_or([0.0; 3], |i| i.v_wb.into()),
+        velocity_w: kf
+            .inertial
+            .map_or([0.0; 3], |i| (to_session.rotation * i.v_wb).into()),
         gyro_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.gyro.into()),
         accel_bias: kf.inertial.map_or([0.0; 3], |i| i.biases.accel.into()),
         ..KeyframeHeader::default()

@@ -20,7 +20,7 @@
 //!   a similarity to apply, now close to identity.
 use std::collections::BTreeMap;
 
-use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Translation3};
 
 use super::init::{initialize, InertialInit, InitError, InitParams};
 use super::preint::{ImuMeasurement, Preintegrated, PreintegrationParams};
@@ -191,12 +191,12 @@ impl InertialCoupler {
     }
 
     /// Moves the stored poses as the caller moved its world (e.g. with an initialisation's
-    /// `s = scale`, `R = R_gw`): `x_new = s R x` (positions), `R_new = R R_old`
-    /// (orientations).
-    pub fn transform_world(&mut self, s: f64, r: &UnitQuaternion<f64>) {
+    /// `s = scale`, `R = R_gw`, or an anchor to the server map): `x_new = s R x + t`
+    /// (positions), `R_new = R R_old` (orientations).
+    pub fn transform_world(&mut self, m: &crate::lie::Sim3) {
         for t_wc in self.keyframes.values_mut() {
-            let p = r * (t_wc.translation.vector * s);
-            *t_wc = Isometry3::from_parts(Translation3::from(p), r * t_wc.rotation);
+            let p = m.transform_point(&t_wc.translation.vector);
+            *t_wc = Isometry3::from_parts(Translation3::from(p), m.r * t_wc.rotation);
         }
     }
 

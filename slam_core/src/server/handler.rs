@@ -21,7 +21,8 @@ use super::refine::Refiner;
 use super::scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
 use super::server_map::ServerMap;
 use super::types::{
-    HandleReport, KeptKeyframe, KeyframeStatus, MapFrame, MapId, ServerFeedback, ServerKeyframe,
+    FeedbackPose, HandleReport, KeptKeyframe, KeyframeStatus, MapFrame, MapId, ServerFeedback,
+    ServerKeyframe,
 };
 use crate::ids::{ClientId, KeyframeId, MapPointId};
 use crate::imu::window::{ViSolver, ViWindow};
@@ -324,7 +325,12 @@ impl KeyframeHandler {
     pub fn feedback(&self, maps: &ServerMaps) -> Option<ServerFeedback> {
         let (acked_keyframe_id, acked_session_id) = self.acked?;
         let pose = match (self.current, self.last) {
-            (Some(m), Some(l)) => Some((m, self.last_server_pose(maps, &l), l.lambda_used())),
+            (Some(map_id), Some(l)) => Some(FeedbackPose {
+                map_id,
+                t_sk: self.last_server_pose(maps, &l),
+                lambda: l.lambda_used(),
+                metric: l.metric,
+            }),
             _ => None,
         };
         Some(ServerFeedback {

@@ -128,7 +128,8 @@ fn scale_ratio_is_measured_and_smoothed_and_poses_follow_the_truth() {
     assert!(lambda > 1.0 && lambda < 1.0 / drift);
     let fb = h.feedback(&maps).unwrap();
     assert_eq!(fb.acked_keyframe_id, 9);
-    assert!((fb.pose.unwrap().2 - lambda).abs() < 1e-12);
+    assert!((fb.pose.unwrap().lambda - lambda).abs() < 1e-12);
+    assert!(!fb.pose.unwrap().metric, "a monocular map: no anchor");
 }
 
 #[test]
@@ -163,7 +164,7 @@ fn invalid_foreign_and_duplicate_keyframes() {
     let fb = h.feedback(&maps).unwrap();
     assert_eq!((fb.acked_keyframe_id, fb.acked_session_id), (1, 1));
     assert_eq!(
-        fb.pose.unwrap().0,
+        fb.pose.unwrap().map_id,
         MapId::new(crate::ids::ClientId::new(CLIENT), 0)
     );
 }
@@ -319,7 +320,8 @@ fn visual_inertial_keyframes_get_a_metric_map_and_linked_segments() {
     // The feedback of a metric map gives the scale ratio 1 exactly; the smoothed λ of the
     // measured ratios (≈ 1 up to noise) is only a monitor.
     let fb = h.feedback(&maps).unwrap().pose.unwrap();
-    assert_eq!(fb.2, 1.0);
+    assert_eq!(fb.lambda, 1.0);
+    assert!(fb.metric);
     assert_ne!(h.lambda(), 1.0, "λ was measured and smoothed");
 }
 

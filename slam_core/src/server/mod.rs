@@ -28,6 +28,6 @@ pub use handler::{HandlerParams, HandlerStats, IdleReport, KeyframeHandler, Serv
 pub use scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
 pub use server_map::{Owner, ServerMap};
 pub use types::{
-    frame_pose_in_server_map, HandleReport, KeptKeyframe, KeptPoint, KeyframeStatus, MapFrame,
-    MapId, ServerFeedback, ServerKeyframe,
+    frame_pose_in_server_map, FeedbackPose, HandleReport, KeptKeyframe, KeptPoint, KeyframeStatus,
+    MapFrame, MapId, ServerFeedback, ServerKeyframe,
 };

@@ -232,9 +232,23 @@ pub struct ServerFeedback {
     pub acked_keyframe_id: KfId,
     /// Its session.
     pub acked_session_id: u32,
-    /// Server map of the client's keyframes, with the server pose of the last keyframe
-    /// `T_sk` and the scale ratio `λ`; `None` while the session has only one keyframe.
-    pub pose: Option<(MapId, Isometry3<f64>, f64)>,
+    /// The server pose of the client's last keyframe; `None` while the session has only
+    /// one keyframe.
+    pub pose: Option<FeedbackPose>,
+}
+
+/// The pose part of a [`ServerFeedback`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FeedbackPose {
+    /// Server map of the client's keyframes.
+    pub map_id: MapId,
+    /// Server pose of the client's last keyframe, `T_sk` (camera → server map).
+    pub t_sk: Isometry3<f64>,
+    /// Scale ratio `λ` (eq. 3.2-3.3; 1 when `metric`).
+    pub lambda: f64,
+    /// A metric keyframe in a metric, gravity-aligned map: the client may anchor its world
+    /// to the map (`vio::anchor`).
+    pub metric: bool,
 }
 
 /// Client side of the feedback (eq. 3.1, 3.4): the server-map pose of a frame with client

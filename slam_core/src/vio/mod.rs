@@ -60,10 +60,11 @@ use crate::imu::coupler::{CouplerEvent, CouplerParams, CouplerStatus, InertialCo
 use crate::imu::init::{InertialInit, InitError};
 use crate::imu::static_init::{detect_static, StaticInit, StaticParams};
 use crate::imu::{ImuBiases, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
-use crate::lie::so3_log;
+use crate::lie::{so3_log, Sim3};
 use crate::vo::{ImuCalibration, KeyframeInertial, PoseHint, VoFrame, VoOutput, VoTracker};
 use crate::CoreError;
 
+pub mod anchor;
 pub mod imu_buffer;
 pub mod navigator;
 mod resume;
@@ -156,27 +157,24 @@ pub enum PoseSource {
     None,
 }
 
-/// A similarity applied to the VO's world with a frame: `x' = s R x` for positions,
-/// `R_wc' = R R_wc` for orientations.
+/// A similarity applied to the VO's world with a frame: `x' = s R x + t` for positions,
+/// `R_wc' = R R_wc` for orientations (an initialisation or refinement: `t = 0`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WorldMove {
-    /// Scale `s`.
-    pub scale: f64,
-    /// Rotation `R` (old world to new).
-    pub rotation: UnitQuaternion<f64>,
+    /// The similarity (old world to new).
+    pub world: Sim3,
     /// The initialisation (`false`: a refinement, close to identity).
     pub initialisation: bool,
 }
 
 impl WorldMove {
-    /// The move `earlier` (if any) followed by `later`: `x'' = s_l R_l (s_e R_e x)`.
+    /// The move `earlier` (if any) followed by `later`: `x'' = M_l (M_e x)`.
     pub fn then(earlier: Option<WorldMove>, later: WorldMove) -> WorldMove {
         let Some(e) = earlier else {
             return later;
         };
         WorldMove {
-            scale: e.scale * later.scale,
-            rotation: later.rotation * e.rotation,
+            world: later.world.compose(&e.world),
             initialisation: e.initialisation || later.initialisation,
         }
     }
@@ -226,6 +224,9 @@ pub struct VioOutput {
     pub vo: VoOutput,
     /// The world moved with this frame (module docs, step 3).
     pub world_move: Option<WorldMove>,
+    /// The world was anchored to the server map before this frame ([`anchor`]; the frame's
+    /// outputs are in the anchored world, earlier ones are not re-expressed here).
+    pub anchor: Option<Isometry3<f64>>,
     /// The frame's pose, world to camera: visual(-inertial), or the IMU's while coasting.
     pub t_cw: Option<Isometry3<f64>>,
     /// Where `t_cw` (or `r_wc`) came from.
@@ -287,6 +288,20 @@ pub struct VioTracker {
     window_tracks: bool,
     /// Refinements not applied ([`VioParams::refinements_with_window`]), all sessions.
     refinements_skipped: usize,
+    /// An anchor asked for and not applied yet: (VO session, rigid move of the world).
+    anchor: Option<(u32, Isometry3<f64>)>,
+    /// Anchors applied and dropped, all sessions.
+    anchor_counts: AnchorCounts,
+}
+
+/// Anchors to the server map ([`VioTracker::request_anchor`]), all sessions.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct AnchorCounts {
+    /// Applied.
+    pub applied: usize,
+    /// Dropped: the session changed, another world move came first, the client was not
+    /// metric, or local mapping did not become idle in time (the next feedback asks again).
+    pub dropped: usize,
 }
 
 impl VioTracker {
@@ -311,6 +326,8 @@ impl VioTracker {
             last_kf: None,
             window_tracks: false,
             refinements_skipped: 0,
+            anchor: None,
+            anchor_counts: AnchorCounts::default(),
             static_init: None,
             resumed: None,
             params,
@@ -342,6 +359,39 @@ impl VioTracker {
     /// the "up" direction in the world of the orientations then.
     pub fn static_init(&self) -> Option<&(StaticInit, Option<Vector3<f64>>)> {
         self.static_init.as_ref()
+    }
+
+    /// Anchors applied and dropped ([`VioTracker::request_anchor`]).
+    pub fn anchor_counts(&self) -> AnchorCounts {
+        self.anchor_counts
+    }
+
+    /// Moves VO session `session`'s world by the rigid `delta` (`x' = R x + t`) before the
+    /// next frame: the anchor to the server map ([`anchor`]). The VO map and tracking state,
+    /// the coupler, the orientation and the navigator move together, so the local window
+    /// keeps its relative poses, biases and (turned) velocities: nothing of it jumps.
+    /// Replaces a request not applied yet (`None` withdraws it).
+    pub fn request_anchor(&mut self, session: u32, delta: Option<Isometry3<f64>>) {
+        self.anchor = delta.map(|d| (session, d));
+    }
+
+    /// Applies the anchor asked for, if it still applies (same session, metric, no other
+    /// world move with this frame) and local mapping becomes idle in time.
+    fn apply_anchor(&mut self, moved: bool) -> Option<Isometry3<f64>> {
+        let (session, delta) = self.anchor.take()?;
+        let m = Sim3::from_isometry(&delta, 1.0);
+        let ok = session == self.vo.session_id()
+            && !moved
+            && self.pending.is_none()
+            && self.status().is_metric()
+            && self.vo.transform_world(&m, self.params.world_move_timeout);
+        if !ok {
+            self.anchor_counts.dropped += 1;
+            return None;
+        }
+        self.move_beside_vo(&m);
+        self.anchor_counts.applied += 1;
+        Some(delta)
     }
 
     /// The coupler (attempts, span).
@@ -390,6 +440,7 @@ impl VioTracker {
     pub fn process(&mut self, frame: &VoFrame<'_>) -> Result<VioOutput, CoreError> {
         let t_ns = self.t_imu(frame);
         let retried = self.apply_pending();
+        let anchored = self.apply_anchor(retried.is_some());
         let rate_b = self.mean_rate_b(t_ns, frame.readout_ns);
         let frame = VoFrame {
             angular_velocity: frame.angular_velocity.or_else(|| {
@@ -423,6 +474,7 @@ impl VioTracker {
         let vo = self.vo.process_inertial(&frame, hint.as_ref(), kf_state)?;
         let mut out = VioOutput {
             world_move: retried,
+            anchor: anchored,
             t_cw: None,
             source: PoseSource::None,
             r_wc: None,
@@ -486,6 +538,7 @@ impl VioTracker {
         self.coasting = false;
         self.last_kf = None;
         self.window_tracks = false;
+        self.anchor = None;
     }
 
     /// The frame's pose: vision's (the navigator corrected), the IMU's while coasting,
@@ -597,7 +650,7 @@ impl VioTracker {
     /// backfilled poses too: every pose of a [`VioOutput`] is in the world after its move).
     fn moved_output(&self, m: &WorldMove, out: &mut VioOutput) {
         for (_, t_cw) in out.vo.backfill.iter_mut() {
-            *t_cw = crate::vo::map::transform_pose_cw(t_cw, m.scale, &m.rotation);
+            *t_cw = crate::vo::map::transform_pose_cw(t_cw, &m.world);
         }
         if let Some(nav) = &self.nav {
             out.nav = Some(*nav.state());
@@ -610,13 +663,13 @@ impl VioTracker {
 
     /// What moves with the VO's world besides it (the VO moved already): the coupler's
     /// poses, the orientation, the navigator.
-    fn move_beside_vo(&mut self, s: f64, r: &UnitQuaternion<f64>) {
-        self.coupler.transform_world(s, r);
+    fn move_beside_vo(&mut self, m: &Sim3) {
+        self.coupler.transform_world(m);
         if let Some((t, r_wb)) = self.orientation {
-            self.orientation = Some((t, r.to_rotation_matrix() * r_wb));
+            self.orientation = Some((t, m.r.to_rotation_matrix() * r_wb));
         }
         if let Some(nav) = self.nav.as_mut() {
-            nav.transform_world(s, r);
+            nav.transform_world(m);
         }
     }
 
@@ -635,20 +688,16 @@ impl VioTracker {
         else {
             return;
         };
-        let (s, r) = (c.scale, c.rotation);
-        self.move_beside_vo(s, &r);
+        self.move_beside_vo(&c);
         let m = WorldMove {
-            scale: s,
-            rotation: r,
+            world: c,
             initialisation: false,
         };
         for (_, t_cw) in out.vo.backfill.iter_mut() {
-            *t_cw = crate::vo::map::transform_pose_cw(t_cw, s, &r);
+            *t_cw = crate::vo::map::transform_pose_cw(t_cw, &c);
         }
-        out.t_cw = out
-            .t_cw
-            .map(|t| crate::vo::map::transform_pose_cw(&t, s, &r));
-        out.r_wc = out.r_wc.map(|q| r * q);
+        out.t_cw = out.t_cw.map(|t| crate::vo::map::transform_pose_cw(&t, &c));
+        out.r_wc = out.r_wc.map(|q| c.r * q);
         if let Some(nav) = &self.nav {
             out.nav = out.nav.map(|_| *nav.state());
         }
@@ -665,6 +714,7 @@ impl VioTracker {
         newest: Option<(i64, Isometry3<f64>, crate::vo::KfId)>,
     ) -> Option<WorldMove> {
         let r = UnitQuaternion::from_rotation_matrix(&init.r_gw);
+        let world = Sim3::new(r, Vector3::zeros(), init.scale);
         let done = self.init.map_or(0, |i| i.refinements);
         if !first && self.window_tracks && done >= self.params.refinements_with_window {
             self.refinements_skipped += 1;
@@ -672,12 +722,12 @@ impl VioTracker {
         }
         if !self
             .vo
-            .transform_world(init.scale, &r, self.params.world_move_timeout)
+            .transform_world(&world, self.params.world_move_timeout)
         {
             self.pending = Some((init.clone(), first));
             return None;
         }
-        self.move_beside_vo(init.scale, &r);
+        self.move_beside_vo(&world);
         // Once local mapping's window tracks them, a refinement moves the world but leaves
         // the velocities and biases to the window.
         let keep = !first && self.window_tracks;
@@ -693,7 +743,7 @@ impl VioTracker {
             (Some(nav), _) if !keep => nav.set_velocity_biases(v_wb, init.biases),
             (Some(_), _) => {}
             (None, Some((t_kf, t_cw_old, _))) => {
-                let t_cw = crate::vo::map::transform_pose_cw(&t_cw_old, init.scale, &r);
+                let t_cw = crate::vo::map::transform_pose_cw(&t_cw_old, &world);
                 let state = navigator::nav_from_camera(&t_cw, &self.params.t_bc, v_wb, init.biases);
                 let t_kf_imu = t_kf + self.params.coupler.t_d_ns;
                 self.nav = Some(Navigator::new(
@@ -718,8 +768,7 @@ impl VioTracker {
         }
         self.record_init(init, first, t_ns);
         Some(WorldMove {
-            scale: init.scale,
-            rotation: r,
+            world,
             initialisation: first,
         })
     }

@@ -23,7 +23,7 @@
 //!   preintegration covariance does not hold).
 //! - Update: `z = p_wb` from vision, `H = [I 0]`, `R = σ_vis² I`
 //!   ([`NavParams::visual_position_sigma_m`]).
-use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Vector3};
 
 use crate::imu::{gravity_w, ImuMeasurement, NavState, Preintegrated, PreintegrationParams};
 use crate::optim::{centre_covariance, PosePrior, Velocity};
@@ -328,11 +328,11 @@ impl Navigator {
         self.nav.biases = biases;
     }
 
-    /// Moves the state as the world moved, `x' = s R x`: `p' = s R p`, `v' = s R v`,
-    /// `R_wb' = R R_wb`; covariance scaled and rotated alike.
-    pub fn transform_world(&mut self, s: f64, r: &UnitQuaternion<f64>) {
-        let rm = r.to_rotation_matrix();
-        self.nav.p = rm * (self.nav.p * s);
+    /// Moves the state as the world moved, `x' = s R x + t`: `p' = s R p + t`,
+    /// `v' = s R v`, `R_wb' = R R_wb`; covariance scaled and rotated alike.
+    pub fn transform_world(&mut self, w: &crate::lie::Sim3) {
+        let (s, rm) = (w.s, w.r.to_rotation_matrix());
+        self.nav.p = w.transform_point(&self.nav.p);
         self.nav.v = rm * (self.nav.v * s);
         self.nav.r = rm * self.nav.r;
         let mut m = Matrix6::zeros();

@@ -4,10 +4,11 @@
 //! Poses are `t_cw` (world → camera, `p_c = R_cw p_w + t_cw`), as in the pose optimiser.
 use std::collections::{BTreeMap, HashMap};
 
-use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Translation3, Vector3};
 
 use crate::camera::PinholeRadtan;
 use crate::features::{hamming, OrbFeatures};
+use crate::lie::Sim3;
 
 /// Keyframe id, unique per client across sessions.
 pub type KfId = u64;
@@ -110,48 +111,30 @@ pub struct ClientMap {
     /// A similarity of the world the visual-inertial window found (its gravity and scale
     /// correction, [`super::vi_window`]) that the client has still to apply to the whole
     /// session (map, tracking state, earlier poses) as a world move.
-    pub world_correction: Option<WorldCorrection>,
-}
-
-/// A similarity `x' = s R x` of a map's world (positions; orientations `R_wc' = R R_wc`).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct WorldCorrection {
-    /// Scale `s`.
-    pub scale: f64,
-    /// Rotation `R` (old world to new).
-    pub rotation: UnitQuaternion<f64>,
-}
-
-impl WorldCorrection {
-    /// This correction followed by `later`: `x'' = s_l R_l (s R x)`.
-    pub fn then(&self, later: &WorldCorrection) -> WorldCorrection {
-        WorldCorrection {
-            scale: self.scale * later.scale,
-            rotation: later.rotation * self.rotation,
-        }
-    }
+    pub world_correction: Option<Sim3>,
 }
 
 impl ClientMap {
-    /// Moves the map into another world frame by the similarity `x' = s R x` (the metric,
-    /// gravity-aligned world of an inertial initialisation, `imu::init`): points
-    /// `p' = s R p`, viewing directions `R n`, keyframe poses `T_c'w' = (R_cw Rᵀ, s t_cw)`
-    /// (the camera frame keeps its orientation, its coordinates scale by `s`).
-    /// Keyframe velocities become `s R v` (their units scale with the world's).
-    pub fn transform_world(&mut self, s: f64, r: &UnitQuaternion<f64>) {
+    /// Moves the map into another world frame by the similarity `x' = s R x + t` (the
+    /// metric, gravity-aligned world of an inertial initialisation, `imu::init`, or the
+    /// server map's frame the client anchors to, `vio::anchor`): points `p' = s R p + t`,
+    /// viewing directions `R n`, keyframe poses by [`transform_pose_cw`] (the camera frame
+    /// keeps its orientation, its coordinates scale by `s`). Keyframe velocities become
+    /// `s R v` (their units scale with the world's).
+    pub fn transform_world(&mut self, m: &Sim3) {
         for kf in self.keyframes.values_mut() {
-            kf.t_cw = transform_pose_cw(&kf.t_cw, s, r);
+            kf.t_cw = transform_pose_cw(&kf.t_cw, m);
             if let Some(i) = kf.inertial.as_mut() {
-                i.v_wb = r * (i.v_wb * s);
+                i.v_wb = m.r * (i.v_wb * m.s);
             }
         }
         for p in self.points.values_mut() {
-            p.p_w = r * (p.p_w * s);
-            p.normal = r * p.normal;
+            p.p_w = m.transform_point(&p.p_w);
+            p.normal = m.r * p.normal;
         }
         // A pending correction of the old world, in the new one (`M C M⁻¹`).
         if let Some(c) = self.world_correction.as_mut() {
-            c.rotation = r * c.rotation * r.inverse();
+            *c = m.compose(c).compose(&m.inverse());
         }
     }
 
@@ -491,11 +474,15 @@ pub fn best_descriptor(descs: &[[u8; 32]]) -> Option<[u8; 32]> {
     Some(descs[best.1])
 }
 
-/// A world → camera pose after the world moved by `x' = s R x` ([`ClientMap::transform_world`]).
-pub fn transform_pose_cw(t_cw: &Isometry3<f64>, s: f64, r: &UnitQuaternion<f64>) -> Isometry3<f64> {
+/// A world → camera pose after the world moved by `x' = s R x + t`
+/// ([`ClientMap::transform_world`]): `R_c'w' = R_cw Rᵀ`, `t_c'w' = s t_cw - R_cw Rᵀ t` (the
+/// camera frame keeps its orientation, its coordinates scale by `s`; its centre moves to
+/// `s R c + t`).
+pub fn transform_pose_cw(t_cw: &Isometry3<f64>, m: &Sim3) -> Isometry3<f64> {
+    let r_cw = t_cw.rotation * m.r.inverse();
     Isometry3::from_parts(
-        Translation3::from(t_cw.translation.vector * s),
-        t_cw.rotation * r.inverse(),
+        Translation3::from(t_cw.translation.vector * m.s - r_cw * m.t),
+        r_cw,
     )
 }
 
@@ -503,6 +490,7 @@ pub fn transform_pose_cw(t_cw: &Isometry3<f64>, s: f64, r: &UnitQuaternion<f64>)
 mod tests {
     use super::*;
     use crate::features::KeyPoint;
+    use nalgebra::UnitQuaternion;
 
     fn kf(id: KfId, n: usize, x: f64) -> Keyframe {
         let kp = KeyPoint::at_level0(0.0, 0.0);
@@ -524,7 +512,8 @@ mod tests {
     }
 
     /// Moving the world by a similarity leaves every point where each keyframe sees it:
-    /// the camera-frame direction of each point is unchanged (its depth scales by `s`).
+    /// the camera-frame direction of each point is unchanged (its depth scales by `s`), and
+    /// each keyframe's centre moves as a point does.
     #[test]
     fn a_world_move_keeps_what_each_keyframe_sees() {
         let mut m = ClientMap::new(1, 100);
@@ -549,11 +538,18 @@ mod tests {
             v
         };
         let before = seen(&m);
-        let (s, r) = (
-            2.5,
-            UnitQuaternion::from_scaled_axis(Vector3::new(0.4, 0.1, -1.2)),
-        );
-        m.transform_world(s, &r);
+        let s = 2.5;
+        let r = UnitQuaternion::from_scaled_axis(Vector3::new(0.4, 0.1, -1.2));
+        let centres = |m: &ClientMap| -> Vec<Vector3<f64>> {
+            let c = |kf: &Keyframe| kf.t_cw.inverse().translation.vector;
+            m.keyframes.values().map(c).collect()
+        };
+        let centres_before = centres(&m);
+        let move_ = Sim3::new(r, Vector3::new(-3.0, 1.5, 0.25), s);
+        m.transform_world(&move_);
+        for (a, b) in centres_before.iter().zip(centres(&m)) {
+            assert!((move_.transform_point(a) - b).norm() < 1e-12, "{a} vs {b}");
+        }
         for (a, b) in before.iter().zip(seen(&m)) {
             assert!((a * s - b).norm() < 1e-12, "{a} vs {b}");
         }

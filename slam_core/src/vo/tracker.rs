@@ -15,7 +15,7 @@ use super::search::LocalMapMatcher;
 use super::{KeyframeRule, KeyframeRuleParams};
 use crate::camera::PinholeRadtan;
 use crate::features::{FeatureGrid, GrayImage, OrbExtractor, OrbFeatures, OrbParams};
-use crate::lie::{se3_exp, se3_log};
+use crate::lie::{se3_exp, se3_log, Sim3};
 use crate::optim::{PoseObservation, PoseOptimizer, PosePrior, Velocity};
 use crate::CoreError;
 
@@ -169,7 +169,7 @@ pub struct VoOutput {
     pub mapped: Option<MappedKeyframe>,
     /// The map's pending gravity correction when this frame read it
     /// ([`ClientMap::world_correction`]; [`VoTracker::apply_world_correction`]).
-    pub world_correction: Option<super::map::WorldCorrection>,
+    pub world_correction: Option<Sim3>,
 }
 
 /// A keyframe as local mapping left it ([`VoOutput::mapped`]).
@@ -693,55 +693,49 @@ impl VoTracker {
     }
 
     /// Moves the session's map and the tracking state into another world frame by the
-    /// similarity `x' = s R x` (the metric, gravity-aligned world an inertial
-    /// initialisation found, `imu::coupler`): map ([`ClientMap::transform_world`]), the last
-    /// frame's pose, the motion model's translation (scaled by `s`). Waits for the
-    /// local-mapping runner to be idle first (a BA solved on a snapshot of the old frame
-    /// must not land afterwards); `false`, and nothing moved, when it does not become idle
-    /// within `timeout`. Keyframes already evicted (sent) are not this map's any more.
-    pub fn transform_world(
-        &mut self,
-        s: f64,
-        r: &nalgebra::UnitQuaternion<f64>,
-        timeout: std::time::Duration,
-    ) -> bool {
+    /// similarity `x' = s R x + t` (the metric, gravity-aligned world an inertial
+    /// initialisation found, `imu::coupler`, or the server map's frame, `vio::anchor`): map
+    /// ([`ClientMap::transform_world`]), the last frame's pose, the motion model's
+    /// translation (scaled by `s`). Waits for the local-mapping runner to be idle first (a
+    /// BA solved on a snapshot of the old frame must not land afterwards); `false`, and
+    /// nothing moved, when it does not become idle within `timeout`. Keyframes already
+    /// evicted (sent) are not this map's any more.
+    pub fn transform_world(&mut self, m: &Sim3, timeout: std::time::Duration) -> bool {
         if !self.wait_local_mapping(timeout) {
             return false;
         }
-        lock(&self.shared).transform_world(s, r);
-        self.move_tracking_state(s, r);
+        lock(&self.shared).transform_world(m);
+        self.move_tracking_state(m);
         true
     }
 
     /// Applies the map's pending world correction ([`ClientMap::world_correction`], a
-    /// similarity `x' = s R x` found by local mapping's visual-inertial window): the map
-    /// and the tracking state move as with [`VoTracker::transform_world`]. Returns it;
-    /// `None` (nothing moved) when none is pending or local mapping does not become idle
-    /// within `timeout`.
-    pub fn apply_world_correction(
-        &mut self,
-        timeout: std::time::Duration,
-    ) -> Option<super::map::WorldCorrection> {
+    /// similarity found by local mapping's visual-inertial window): the map and the
+    /// tracking state move as with [`VoTracker::transform_world`]. Returns it; `None`
+    /// (nothing moved) when none is pending or local mapping does not become idle within
+    /// `timeout`.
+    pub fn apply_world_correction(&mut self, timeout: std::time::Duration) -> Option<Sim3> {
         if !self.wait_local_mapping(timeout) {
             return None;
         }
         let c = {
             let mut m = lock(&self.shared);
             let c = m.world_correction.take()?;
-            m.transform_world(c.scale, &c.rotation);
+            m.transform_world(&c);
             c
         };
-        self.move_tracking_state(c.scale, &c.rotation);
+        self.move_tracking_state(&c);
         Some(c)
     }
 
-    /// The last frame's pose and the motion model after a world move `x' = s R x`.
-    fn move_tracking_state(&mut self, s: f64, r: &nalgebra::UnitQuaternion<f64>) {
+    /// The last frame's pose and the motion model after a world move `x' = s R x + t` (the
+    /// motion model is a camera-to-camera motion: its translation scales by `s`).
+    fn move_tracking_state(&mut self, m: &Sim3) {
         if let Some(last) = self.last.as_mut() {
-            last.t_cw = super::map::transform_pose_cw(&last.t_cw, s, r);
+            last.t_cw = super::map::transform_pose_cw(&last.t_cw, m);
         }
         if let Some((v, _)) = self.velocity.as_mut() {
-            v.translation.vector *= s;
+            v.translation.vector *= m.s;
         }
     }
 
@@ -817,6 +811,7 @@ impl VoTracker {
 #[cfg(test)]
 mod tests {
     use super::VoDiagnostic;
+    use crate::lie::Sim3;
 
     /// After a world move the motion model predicts the moved pose of what it predicted
     /// before: `V' T'_last = move(V T_last)` (velocity translation scaled, last pose moved).
@@ -837,12 +832,13 @@ mod tests {
             points: vec![],
         });
         vo.velocity = Some((v, 0.05));
-        let (s, r) = (
-            0.4,
+        let m = Sim3::new(
             UnitQuaternion::from_scaled_axis(Vector3::new(-0.3, 0.8, 0.2)),
+            Vector3::new(2.0, -1.0, 0.5),
+            0.4,
         );
-        let expected = crate::vo::map::transform_pose_cw(&(v * t_last), s, &r);
-        assert!(vo.transform_world(s, &r, std::time::Duration::from_secs(1)));
+        let expected = crate::vo::map::transform_pose_cw(&(v * t_last), &m);
+        assert!(vo.transform_world(&m, std::time::Duration::from_secs(1)));
         let (v2, _) = vo.velocity.expect("velocity");
         let got = v2 * vo.last.as_ref().expect("last").t_cw;
         assert!((got.translation.vector - expected.translation.vector).norm() < 1e-12);

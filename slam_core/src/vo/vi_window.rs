@@ -47,11 +47,12 @@ use std::collections::HashMap;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector2, Vector3};
 
-use super::map::{ClientMap, KeyframeInertial, KfId, PointId, WorldCorrection};
+use super::map::{ClientMap, KeyframeInertial, KfId, PointId};
 use crate::imu::window::{
     gauge_prior, reprojection_jacobians, ViKeyframe, ViObservation, ViParams, ViWindow,
 };
 use crate::imu::{gravity_w, ImuBiases, NavState, Preintegrated};
+use crate::lie::Sim3;
 use crate::rolling_shutter::pixel_offset_s;
 
 /// The 95 % gate of χ²(2).
@@ -374,7 +375,7 @@ fn window_observations(map: &ClientMap, job: &mut ViWindowJob, w: &mut ViWindow)
 pub fn apply_vi_window(map: &mut ClientMap, job: &mut ViWindowJob, w: &mut ViWindow) -> usize {
     if job.gauged {
         let c = split_world_correction(job, w);
-        map.world_correction = Some(map.world_correction.map_or(c, |old| old.then(&c)));
+        map.world_correction = Some(map.world_correction.map_or(c, |old| c.compose(&old)));
     }
     for (c, ((id, kf), refined)) in job
         .kf_ids
@@ -421,7 +422,7 @@ fn apply_points_and_outliers(map: &mut ClientMap, job: &mut ViWindowJob, w: &ViW
 /// the inverse, `x ↦ c + R⁻¹ (x - c) / s`, in the map's present world, and `(s, R)` is left
 /// for the client to apply to the whole session as a world move. The scale stays 1 when
 /// the keyframes are too close together to tell it.
-fn split_world_correction(job: &ViWindowJob, w: &mut ViWindow) -> WorldCorrection {
+fn split_world_correction(job: &ViWindowJob, w: &mut ViWindow) -> Sim3 {
     let mut sum = nalgebra::Vector4::zeros();
     for (kf, before) in w.keyframes.iter().zip(&job.r_before) {
         let d = UnitQuaternion::from_rotation_matrix(&kf.state.r) * before.inverse();
@@ -453,7 +454,7 @@ fn split_world_correction(job: &ViWindowJob, w: &mut ViWindow) -> WorldCorrectio
     for p in &mut w.points_w {
         *p = back(p);
     }
-    WorldCorrection { scale, rotation: r }
+    Sim3::new(r, Vector3::zeros(), scale)
 }
 
 /// Whether an observation is in front of its camera and within the 95 % χ²(2) gate.

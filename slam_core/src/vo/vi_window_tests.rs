@@ -10,7 +10,7 @@ use crate::features::{KeyPoint, OrbFeatures};
 use crate::imu::window::tests::{rand3, t_bc, true_biases as biases};
 use crate::imu::window::ViSolver;
 use crate::imu::{ImuMeasurement, ImuNoise, PreintegrationParams};
-use crate::lie::so3_log;
+use crate::lie::{so3_log, Sim3};
 use crate::rolling_shutter::row_offset_s;
 use crate::twoview::synth::Rng;
 use crate::vo::keyframe_imu::{bracket, ImuCalibration, KeyframeImu};
@@ -242,18 +242,18 @@ fn a_window_returns_a_perturbed_map_to_the_truth() {
 fn a_first_window_leaves_gravity_and_scale_as_a_world_correction() {
     let (mut map, truth) = scene(8, 0, 0);
     let r_err = UnitQuaternion::from_scaled_axis(Vector3::new(0.026, 0.0, 0.0));
-    map.transform_world(1.05, &r_err);
+    map.transform_world(&Sim3::new(r_err, Vector3::zeros(), 1.05));
     let n = run_window(&mut map, &exact());
     assert_eq!(n, 8);
     let c = map.world_correction.expect("a correction");
-    assert!((c.scale * 1.05 - 1.0).abs() < 1e-4, "scale {}", c.scale);
-    assert!(c.rotation.angle_to(&r_err.inverse()) < 1e-3, "{c:?}");
+    assert!((c.s * 1.05 - 1.0).abs() < 1e-4, "scale {}", c.s);
+    assert!(c.r.angle_to(&r_err.inverse()) < 1e-3, "{c:?}");
     let newest = 7;
     let (mut w, mut job) = (ViWindow::empty(), ViWindowJob::default());
     let p = ViMappingParams::default();
     let skip = prepare_vi_window(&map, newest, &p, &mut w, &mut job);
     assert_eq!(skip, Err(ViSkip::CorrectionPending));
-    map.transform_world(c.scale, &c.rotation);
+    map.transform_world(&c);
     map.world_correction = None;
     let kf = |k: KfId| {
         let kf = &map.keyframes[&k];

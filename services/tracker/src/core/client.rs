@@ -32,6 +32,9 @@ pub struct ClientOutput {
     pub r_wc: Option<UnitQuaternion<f64>>,
     /// The world of the VO session moved with this frame (before its poses).
     pub world_move: Option<WorldMove>,
+    /// The client's world was anchored to the server map by this rigid move before the
+    /// frame ([`VioTracker::request_anchor`]).
+    pub anchor: Option<Isometry3<f64>>,
     /// The poses are metric and gravity-aligned (initialised inertially).
     pub metric: bool,
     /// The metric body state (pose, velocity, biases) once initialised.
@@ -86,6 +89,7 @@ impl Client {
                     },
                     r_wc: None,
                     world_move: None,
+                    anchor: None,
                     metric: false,
                     nav: None,
                     vo,
@@ -99,6 +103,7 @@ impl Client {
                     source: wire_source(o.source),
                     r_wc: o.r_wc,
                     world_move: o.world_move,
+                    anchor: o.anchor,
                     metric,
                     nav: o.nav,
                     vo: o.vo,

@@ -54,6 +54,9 @@ pub struct TrackerCounters {
     pub pose_feedback_used: u64,
     /// Pose feedback that referred to no keyframe sent, or was invalid.
     pub pose_feedback_unusable: u64,
+    /// Pose feedback on an older keyframe than the one already taken (lock-step's
+    /// "finished" answers come after the feedback on newer keyframes): not used.
+    pub pose_feedback_older: u64,
     /// IMU samples taken.
     pub imu_samples_received: u64,
     /// IMU samples published again by a restarted ingest (already taken).
@@ -152,6 +155,47 @@ pub struct VioReport {
     pub resumed_gap_s: Option<f64>,
     /// Why the last restart did not resume its predecessor's session (it started anew).
     pub resume_refused: Option<String>,
+    /// Anchors of the client's world to its metric server map (`None`: anchoring off).
+    pub anchor: Option<AnchorReport>,
+}
+
+/// Anchors of a visual-inertial client's world to its server map
+/// (`slam_core::vio::anchor`), this tracker's life.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct AnchorReport {
+    /// Anchor moves applied.
+    pub applied: u64,
+    /// Asked for and dropped (another world move first, a new session, local mapping busy
+    /// beyond the timeout); the next feedback asks again.
+    pub dropped: u64,
+    /// Applied moves into another server map (a merge).
+    pub new_maps: u64,
+    /// Largest translation of a move within one map (a drift correction), m.
+    pub max_translation_m: f64,
+    /// Largest yaw of a move within one map, degrees.
+    pub max_yaw_deg: f64,
+    /// Largest translation of a move into another map, m.
+    pub max_new_map_m: f64,
+    /// Server map of the last anchor.
+    pub map_id: Option<u64>,
+}
+
+impl AnchorReport {
+    /// Counts move `r`, applied.
+    pub fn count(&mut self, r: &slam_core::vio::anchor::AnchorRequest) {
+        let t = r.delta.translation.vector.norm();
+        self.applied += 1;
+        self.map_id = Some(r.map_id.raw());
+        if r.new_map {
+            self.new_maps += 1;
+            self.max_new_map_m = self.max_new_map_m.max(t);
+        } else {
+            let yaw = slam_core::vio::anchor::yaw_of(&r.delta.rotation).abs();
+            self.max_translation_m = self.max_translation_m.max(t);
+            self.max_yaw_deg = self.max_yaw_deg.max(yaw.to_degrees());
+        }
+    }
 }
 
 /// The static initialisation ([`slam_core::imu::static_init`]).

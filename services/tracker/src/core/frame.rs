@@ -9,6 +9,7 @@ use shm_schema::{
 };
 use shoal_runtime::ErrorKind;
 use slam_core::features::GrayImage;
+use slam_core::lie::Sim3;
 use slam_core::vo::VoFrame;
 
 use super::{ClientOutput, KeyframeKey, Out, TrackerCore};
@@ -64,8 +65,9 @@ pub struct Tracked {
     pub(super) metric: bool,
     /// Camera orientation `R_wc` of a frame with no pose (gyro-propagated).
     r_wc: Option<nalgebra::UnitQuaternion<f64>>,
-    /// The VO session's world moved with this frame: `(s, R)`, published before its poses.
-    world_move: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
+    /// The VO session's world moved with this frame, earlier poses to be re-expressed
+    /// (`x' = s R x + t`), published before its poses.
+    world_move: Option<Sim3>,
 }
 
 impl Tracked {
@@ -108,7 +110,7 @@ impl Tracked {
         }
         self.r_wc = c.r_wc.filter(|_| c.source == PoseSource::OrientationOnly);
         self.metric = c.metric;
-        self.world_move = c.world_move.map(|m| (m.scale, m.rotation));
+        self.world_move = c.world_move.map(|m| m.world);
         self.tracked = o.tracked as u32;
         self.is_keyframe = o.keyframe.is_some();
         let (t, s) = (&o.times, &mut self.stage_ms);
@@ -305,6 +307,7 @@ impl TrackerCore {
         t.vo_session = self.ids.session(vo_session);
         self.diagnostics = std::mem::take(&mut o.vo.diagnostics);
         t.take_output(&mut o);
+        self.follow_world_moves(&o, t);
         if let Some(nav) = o.nav {
             self.last_biases = Some(nav.biases);
         }
@@ -318,8 +321,9 @@ impl TrackerCore {
             self.counters.vo_sessions_started += 1;
         }
         let client = self.cfg.client;
+        let to_session = self.server.to_session(sess);
         for kf in &o.evicted {
-            let msg = keyframe_message(client, kf, sess);
+            let msg = keyframe_message(client, kf, sess, &to_session);
             t.out.extend(self.send_keyframe(msg, f.now_ns));
         }
         // Lock-step: the server's answers to these keyframes (pose feedback) are in before
@@ -330,13 +334,32 @@ impl TrackerCore {
         Ok(())
     }
 
+    /// The anchor (`slam_core::vio::anchor`) follows the client's world moves of this
+    /// frame: the anchor move it applied before the frame, then the frame's own world move.
+    /// Both re-express the session's earlier poses (`FLAG_WORLD_MOVE`): the recorded
+    /// trajectory stays the client's own, in the frame of its last anchor, and each live
+    /// pose is in the server map's frame as it then was.
+    fn follow_world_moves(&mut self, o: &ClientOutput, t: &mut Tracked) {
+        let anchored = o
+            .anchor
+            .and_then(|_| self.server.anchor_applied(t.vo_session));
+        if let Some(r) = anchored {
+            self.anchors.count(&r);
+            let a = Sim3::from_isometry(&r.delta, 1.0);
+            t.world_move = Some(t.world_move.map_or(a, |m| m.compose(&a)));
+        }
+        if let Some(m) = o.world_move {
+            self.server.on_world_move(t.vo_session, &m.world);
+        }
+    }
+
     /// The frame's outputs once the server had its say: new keyframes to the spool, the
     /// backfilled poses of frames seen while initialising, the acknowledgement and the
     /// tracked pose (with its server-map pose from the last feedback, eq. 3.1, 3.4).
     pub fn publish_frame(&mut self, t: Tracked, now_ns: i64) -> Vec<Out> {
         let mut out = vec![];
-        if let Some((scale, r)) = t.world_move {
-            out.push(Out::Pose(self.world_move_pose(&t, scale, &r, now_ns)));
+        if let Some(m) = t.world_move {
+            out.push(Out::Pose(self.world_move_pose(&t, &m, now_ns)));
         }
         // Keyframes enter the VO map only with a frame that reports one (two at
         // initialisation): no map lock on the other frames.
@@ -393,23 +416,17 @@ impl TrackerCore {
         }
     }
 
-    /// The message that moves the world of the frame's VO session by `x' = s R x`
+    /// The message that moves the world of the frame's VO session by `x' = s R x + t`
     /// (`FLAG_WORLD_MOVE`: the recorder re-expresses the session's earlier poses).
-    fn world_move_pose(
-        &self,
-        t: &Tracked,
-        scale: f64,
-        r: &nalgebra::UnitQuaternion<f64>,
-        now_ns: i64,
-    ) -> TrackedPose {
+    fn world_move_pose(&self, t: &Tracked, m: &Sim3, now_ns: i64) -> TrackedPose {
         let mut meta = MsgMeta::new(self.cfg.client, t.vo_session, t.header.meta.seq, now_ns);
         meta.flags = FLAG_WORLD_MOVE;
-        let iso = Isometry3::from_parts(nalgebra::Translation3::identity(), *r);
+        let iso = Isometry3::from_parts(nalgebra::Translation3::from(m.t), m.r);
         TrackedPose {
             meta,
             t_ns: t.header.t_mid_ns,
             pose: shoal_runtime::wire::wire_from_iso(&iso),
-            world_scale: scale,
+            world_scale: m.s,
             metric: 1,
             ..TrackedPose::default()
         }
@@ -488,10 +505,11 @@ impl TrackerCore {
         };
         let after = self.spooled.filter(|l| l.0 == session).map(|l| l.1);
         let client = self.cfg.client;
+        let to_session = self.server.to_session(session);
         let new: Vec<_> = v.with_map(|m| {
             m.keyframes
                 .range(after.map_or(0, |a| a + 1)..)
-                .map(|(id, kf)| (*id, spool_entry(m, client, kf, session)))
+                .map(|(id, kf)| (*id, spool_entry(m, client, kf, session, &to_session)))
                 .collect()
         });
         for (id, entry) in new {
@@ -503,12 +521,13 @@ impl TrackerCore {
 }
 
 /// The spool entry of keyframe `kf` of `map` (VO session `session`): its message and the
-/// positions of the map points it observes.
+/// positions of the map points it observes, in the session's own world (`to_session`).
 fn spool_entry(
     map: &slam_core::vo::ClientMap,
     client: u32,
     kf: &slam_core::vo::Keyframe,
     session: u32,
+    to_session: &Isometry3<f64>,
 ) -> crate::spool::SpoolEntry {
     let points = kf
         .points
@@ -517,11 +536,11 @@ fn spool_entry(
         .filter_map(|p| map.points.get(p))
         .map(|mp| shoal_runtime::journal::SpooledPoint {
             id: mp.id,
-            p_w: mp.p_w.into(),
+            p_w: (to_session * nalgebra::Point3::from(mp.p_w)).coords.into(),
         })
         .collect();
     crate::spool::SpoolEntry {
-        msg: keyframe_message(client, kf, session),
+        msg: keyframe_message(client, kf, session, to_session),
         points,
     }
 }

@@ -35,7 +35,9 @@ mod server;
 #[cfg(test)]
 mod tests;
 
-pub use counters::{StaticReport, TrackerCounters, TrackerResume, VioReport, RESUME_VERSION};
+pub use counters::{
+    AnchorReport, StaticReport, TrackerCounters, TrackerResume, VioReport, RESUME_VERSION,
+};
 pub use frame::{FrameIn, FrameStep, Tracked};
 pub use server::{KeyframeCounts, KeyframeKey, ServerRef, ServerState};
 
@@ -150,6 +152,8 @@ pub struct CoreConfig {
     pub calib_log: bool,
     /// The camera's rolling-shutter line order.
     pub readout: slam_core::rolling_shutter::ReadoutDirection,
+    /// Anchoring a visual-inertial client to its server map.
+    pub anchor: slam_core::vio::anchor::AnchorParams,
 }
 
 impl CoreConfig {
@@ -169,6 +173,7 @@ impl CoreConfig {
             calib: cfg.calib.clone(),
             calib_log: cfg.calib.log.is_some(),
             readout: cfg.readout_direction,
+            anchor: cfg.anchor.params(),
         }
     }
 }
@@ -194,6 +199,8 @@ pub struct TrackerCore {
     first_frame_ns: Option<i64>,
     /// Biases of the last frame's metric state.
     last_biases: Option<slam_core::imu::ImuBiases>,
+    /// Anchor moves applied ([`AnchorReport`]; the dropped ones are the client's count).
+    anchors: AnchorReport,
     /// IMU samples taken before the client exists (its first frame): the last
     /// [`PENDING_IMU_NS`] of them are given to it then (and all those from
     /// `pending_imu_from_ns` on, the replay a resumed session asked for).
@@ -243,11 +250,12 @@ impl TrackerCore {
             vio_disabled: None,
             first_frame_ns: None,
             last_biases: None,
+            anchors: AnchorReport::default(),
             pending_imu: Default::default(),
             pending_imu_from_ns: None,
             outbox: Outbox::new(cfg.client),
             kf_counts,
-            server: ServerState::new(cfg.client, cfg.lockstep_sync),
+            server: ServerState::new(cfg.client, cfg.lockstep_sync, cfg.anchor),
             imu: ImuInput::default(),
             imu_never_came: false,
             // After a restart `last_frame_seq` is the dead process's last status write: the
@@ -304,6 +312,12 @@ impl TrackerCore {
             r.accel_bias = Some(b.accel.into());
         }
         self.put_resume_report(v, &mut r);
+        if self.cfg.anchor.enabled {
+            r.anchor = Some(AnchorReport {
+                dropped: v.anchor_counts().dropped as u64,
+                ..self.anchors.clone()
+            });
+        }
         Some(r)
     }
 
@@ -432,6 +446,24 @@ impl TrackerCore {
     pub fn on_feedback(&mut self, f: &Feedback) {
         let (s, c) = (&mut self.status, &mut self.counters);
         self.server.on_feedback(f, &mut self.outbox, s, c);
+        self.forward_anchor();
+    }
+
+    /// A metric client asked to anchor its world to the server map the last feedback was
+    /// in, when that changed enough (`slam_core::vio::anchor`); applied before its next
+    /// frame. A feedback that asks for nothing withdraws an earlier request.
+    fn forward_anchor(&mut self) {
+        let Some(Client::Vio(v)) = self.client.as_mut() else {
+            return;
+        };
+        let vo_session = v.vo().session_id();
+        // The client's pending move is always the tracker's request (or none), so what it
+        // applies is what the tracker accounts for.
+        let r = self
+            .server
+            .anchor_request()
+            .filter(|r| v.status().is_metric() && r.session == self.ids.session(vo_session));
+        v.request_anchor(vo_session, r.map(|r| r.delta));
     }
 
     /// Lock-step: whether the server has finished keyframe `key` (see
@@ -505,7 +537,9 @@ impl TrackerCore {
         now_ns: i64,
     ) -> (KeyframeKey, Vec<Out>) {
         let vo_session = self.client.as_ref().map_or(1, |v| v.vo().session_id());
-        let msg = keyframe_message(self.cfg.client, kf, self.ids.session(vo_session));
+        let session = self.ids.session(vo_session);
+        let to_session = self.server.to_session(session);
+        let msg = keyframe_message(self.cfg.client, kf, session, &to_session);
         let key = msg.key();
         (key, self.send_keyframe(msg, now_ns))
     }

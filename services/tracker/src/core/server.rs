@@ -1,12 +1,16 @@
 //! What the tracker knows from the server's feedback: the last usable pose feedback (for
-//! frames' server-map poses, seed eq. 3.1, 3.4) and, in lock-step, which keyframes the server
+//! frames' server-map poses, seed eq. 3.1, 3.4), a visual-inertial session's anchor to its
+//! metric server map (`slam_core::vio::anchor`: what it asks the client to move, and the
+//! un-anchoring of what the tracker sends) and, in lock-step, which keyframes the server
 //! has finished.
 use std::collections::HashSet;
 
 use nalgebra::Isometry3;
-use shm_schema::{Feedback, Pose, FLAG_HANDLED};
+use shm_schema::{Feedback, Pose, FLAG_HANDLED, FLAG_INERTIAL_MAP};
 use shoal_runtime::{ErrorKind, Status};
 use slam_core::ids::MapId;
+use slam_core::lie::Sim3;
+use slam_core::vio::anchor::{AnchorParams, AnchorRequest, SessionAnchor};
 
 use super::counters::{TrackerCounters, TrackerResume};
 use crate::outbox::Outbox;
@@ -22,9 +26,13 @@ pub struct ServerRef {
     pub session: u32,
     /// Server map the keyframe is in.
     pub map_id: MapId,
+    /// Keyframe `j` (client id).
+    pub kf_id: u64,
     t_cj: Isometry3<f64>,
     t_sj: Isometry3<f64>,
     lambda: f64,
+    /// A metric keyframe in a metric, gravity-aligned map ([`FLAG_INERTIAL_MAP`]).
+    metric: bool,
 }
 
 impl ServerRef {
@@ -39,9 +47,11 @@ impl ServerRef {
         Some(Self {
             session: f.acked_session_id,
             map_id: MapId::from_raw(f.server_map_id),
+            kf_id: f.acked_keyframe_id,
             t_cj,
             t_sj,
             lambda: f.scale_ratio,
+            metric: f.meta.flags & FLAG_INERTIAL_MAP != 0,
         })
     }
 
@@ -67,14 +77,20 @@ pub struct ServerState {
     pub server_ref: Option<ServerRef>,
     /// Lock-step: keyframes the server has finished and no frame waited for yet.
     handled: HashSet<KeyframeKey>,
+    anchor_params: AnchorParams,
+    /// The anchor of the newest session that had a metric feedback.
+    anchor: Option<SessionAnchor>,
+    /// The anchor move asked of the client and not applied yet.
+    requested: Option<AnchorRequest>,
 }
 
 impl ServerState {
     /// Nothing heard from the server yet.
-    pub fn new(client: u32, sync: bool) -> Self {
+    pub fn new(client: u32, sync: bool, anchor_params: AnchorParams) -> Self {
         Self {
             client,
             sync,
+            anchor_params,
             ..Self::default()
         }
     }
@@ -97,6 +113,9 @@ impl ServerState {
         outbox.ack(f.acked_session_id, f.acked_keyframe_id);
         if f.has_pose != 0 {
             match ServerRef::from_feedback(f, outbox) {
+                // Lock-step's "finished" answer on a keyframe can come after the pose
+                // feedback on a newer one: the reference only moves forward.
+                Some(r) if self.is_older(&r) => counters.pose_feedback_older += 1,
                 Some(r) => {
                     outbox.forget_sent_before(f.acked_session_id, f.acked_keyframe_id);
                     self.server_ref = Some(r);
@@ -111,6 +130,61 @@ impl ServerState {
         }
     }
 
+    /// Whether `r` is on an older keyframe than the present reference (same session).
+    fn is_older(&self, r: &ServerRef) -> bool {
+        self.server_ref
+            .as_ref()
+            .is_some_and(|now| now.session == r.session && r.kf_id < now.kf_id)
+    }
+
+    /// The move that anchors a metric client's session to its server map, after a metric
+    /// pose feedback (`None`: anchoring off, no such feedback, or a change below the
+    /// thresholds); kept until [`ServerState::anchor_applied`] or the next request.
+    pub fn anchor_request(&mut self) -> Option<AnchorRequest> {
+        self.requested = None;
+        let r = self.server_ref.as_ref().filter(|r| r.metric)?;
+        if !self.anchor_params.enabled {
+            return None;
+        }
+        let a = match self.anchor {
+            Some(a) if a.session == r.session => a,
+            _ => *self.anchor.insert(SessionAnchor::new(r.session, r.map_id)),
+        };
+        self.requested = a.request(&r.t_cj, &r.t_sj, r.map_id, &self.anchor_params);
+        self.requested
+    }
+
+    /// The client applied the anchor move asked for (of session `session`); returns it.
+    pub fn anchor_applied(&mut self, session: u32) -> Option<AnchorRequest> {
+        let r = self.requested.take().filter(|r| r.session == session)?;
+        let a = self.anchor.as_mut().filter(|a| a.session == session)?;
+        a.applied(&r);
+        Some(r)
+    }
+
+    /// Session `session`'s world moved by `m` for another reason (a refinement, a gravity
+    /// correction): its anchor follows ([`SessionAnchor::on_world_move`]).
+    pub fn on_world_move(&mut self, session: u32, m: &Sim3) {
+        if let Some(a) = self.anchor.as_mut().filter(|a| a.session == session) {
+            a.on_world_move(m);
+        }
+        self.requested = None;
+    }
+
+    /// The rigid move from the client's present world of session `session` back to the
+    /// session's own world, in which keyframes are sent and the server's predictions work
+    /// (identity without an anchor).
+    pub fn to_session(&self, session: u32) -> Isometry3<f64> {
+        self.anchor
+            .filter(|a| a.session == session)
+            .map_or(Isometry3::identity(), |a| a.a.inverse())
+    }
+
+    /// The anchor of the newest anchored session.
+    pub fn anchor(&self) -> Option<&SessionAnchor> {
+        self.anchor.as_ref()
+    }
+
     /// Lock-step: whether the server has finished keyframe `key`; when it has, the record
     /// of finished keyframes starts afresh (feedback comes in handling order).
     pub fn take_handled(&mut self, key: KeyframeKey) -> bool {
@@ -122,10 +196,11 @@ impl ServerState {
     }
 
     /// The server-map pose and map id of a frame of VO session `session` with client pose
-    /// `t_cf`, from the last feedback of the same session (eq. 3.1, 3.4).
+    /// `t_cf` (camera → the client's present world), from the last feedback of the same
+    /// session (eq. 3.1, 3.4, in the session's own world).
     pub fn frame_pose(&self, session: u32, t_cf: &Isometry3<f64>) -> Option<(Pose, MapId)> {
         let r = self.server_ref.as_ref().filter(|r| r.session == session)?;
-        Some((r.frame_pose(t_cf), r.map_id))
+        Some((r.frame_pose(&(self.to_session(session) * t_cf)), r.map_id))
     }
 }
 

@@ -29,6 +29,7 @@ fn config(no_vo: bool) -> CoreConfig {
         calib: Default::default(),
         calib_log: false,
         readout: Default::default(),
+        anchor: Default::default(),
     }
 }
 

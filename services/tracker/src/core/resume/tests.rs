@@ -39,6 +39,7 @@ fn config() -> CoreConfig {
         calib: Default::default(),
         calib_log: false,
         readout: Default::default(),
+        anchor: Default::default(),
     }
 }
 
