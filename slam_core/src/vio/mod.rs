@@ -114,6 +114,15 @@ pub struct VioParams {
     /// (SE(3) ATE), scale +0.98 %; with the first only 0.105 %, −0.04 %; drone 0.053 % →
     /// 0.058 %, phone 0.081 % unchanged.
     pub refinements_with_window: usize,
+    /// Times after the initialisation, s, at which local mapping is asked for a
+    /// whole-session visual-inertial window (`crate::vo::vi_window`, "Session windows";
+    /// ORB-SLAM3's visual-inertial BA at its refinements, ~5 s and ~15 s after the
+    /// initialisation): scale, gravity, velocities, biases, poses and points of every
+    /// keyframe of the session (the client map's), the correction it finds applied as a
+    /// world move. An initialisation accepted several percent off in scale on a gentle
+    /// motion (the coupler's keyframe poses are those of the monocular map, fixed) is then
+    /// corrected with the visual structure. `f64::INFINITY`: never.
+    pub session_windows_after_init_s: [f64; 2],
     /// Longest wait for the local-mapping runner before a world move
     /// ([`VoTracker::transform_world`]); a move that times out is retried at the next frame.
     pub world_move_timeout: std::time::Duration,
@@ -133,6 +142,7 @@ impl VioParams {
             pose_prior: true,
             imu_tracking: true,
             refinements_with_window: 1,
+            session_windows_after_init_s: [5.0, 15.0],
             static_init: StaticParams::default(),
             inertial_init: true,
             world_move_timeout: std::time::Duration::from_secs(5),
@@ -287,6 +297,9 @@ pub struct VioTracker {
     window_tracks: bool,
     /// Refinements not applied ([`VioParams::refinements_with_window`]), all sessions.
     refinements_skipped: usize,
+    /// Session windows asked of local mapping in this session
+    /// ([`VioParams::session_windows_after_init_s`]).
+    session_windows: usize,
 }
 
 impl VioTracker {
@@ -311,6 +324,7 @@ impl VioTracker {
             last_kf: None,
             window_tracks: false,
             refinements_skipped: 0,
+            session_windows: 0,
             static_init: None,
             resumed: None,
             params,
@@ -438,6 +452,7 @@ impl VioTracker {
         self.adopt_window_state(&mut out);
         self.apply_world_correction(&mut out);
         self.keyframe(t_ns, &mut out);
+        self.ask_session_window(t_ns);
         self.detect_rest(t_ns);
         self.imu
             .keep_from(self.oldest_needed_ns(t_ns) - frame.readout_ns / 2 - 10_000_000);
@@ -486,6 +501,30 @@ impl VioTracker {
         self.coasting = false;
         self.last_kf = None;
         self.window_tracks = false;
+        self.session_windows = 0;
+    }
+
+    /// Asks local mapping for a whole-session window when the next time after the
+    /// initialisation is reached ([`VioParams::session_windows_after_init_s`]; not in a
+    /// resumed session, whose predecessor corrected its scale): for the keyframes after
+    /// this frame (the camera time after `t_ns`'s), so that no keyframe already queued to
+    /// a local-mapping thread takes it.
+    fn ask_session_window(&mut self, t_ns: i64) {
+        let Some(init) = self.init.filter(|_| self.resumed.is_none()) else {
+            return;
+        };
+        let Some(&at_s) = self
+            .params
+            .session_windows_after_init_s
+            .get(self.session_windows)
+        else {
+            return;
+        };
+        if (t_ns - init.t_ns) as f64 * 1e-9 >= at_s {
+            let t_cam = t_ns - self.params.coupler.t_d_ns;
+            self.vo.request_session_window(t_cam + 1);
+            self.session_windows += 1;
+        }
     }
 
     /// The frame's pose: vision's (the navigator corrected), the IMU's while coasting,

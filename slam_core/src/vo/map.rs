@@ -111,6 +111,10 @@ pub struct ClientMap {
     /// correction, [`super::vi_window`]) that the client has still to apply to the whole
     /// session (map, tracking state, earlier poses) as a world move.
     pub world_correction: Option<WorldCorrection>,
+    /// The visual-inertial window of the first keyframe at or after this camera time
+    /// (ns) is a whole-session one ([`super::vi_window`] module docs, "Session windows"):
+    /// asked by the visual-inertial client at its refinement times, cleared when solved.
+    pub session_window_from_ns: Option<i64>,
 }
 
 /// A similarity `x' = s R x` of a map's world (positions; orientations `R_wc' = R R_wc`).
