@@ -207,9 +207,7 @@ pub fn prepare_vi_window(
     // Gauged: the session's first windows, while no keyframe of the map is refined (a
     // resumed session's keyframes count as refined: its scale and gravity are not
     // corrected twice), and the session windows the client asks for.
-    let asked = map
-        .session_window_from_ns
-        .is_some_and(|t| newest.t_ns >= t);
+    let asked = map.session_window_from_ns.is_some_and(|t| newest.t_ns >= t);
     let gauged = asked
         || params.gauge_first_windows
             && !map
