@@ -420,6 +420,40 @@ fn an_anchor_moves_the_client_world_without_a_jump() {
     assert!(d_bias < 1e-4, "{d_bias}");
 }
 
+/// `two-agents` (24 s each, the gentle ellipses without the hand-held bounce, seed 3 as the
+/// rendered data of the pipeline runs): the initialisations come late (15.6 s, 11.6 s) and
+/// are accepted 4.8 % and 7.5 % off in scale (1σ 4.8 %); local mapping's whole-session
+/// windows (at the first window and 5 s after the initialisation) bring them within
+/// 0.83 % and 1.63 % (SE(3) ATE 0.99 % → 0.17 %, 1.53 % → 0.34 % of the path).
+#[test]
+fn two_agents_gentle_paths_get_their_scale() {
+    let mut p = SimParams::new(Scenario::TwoAgents);
+    p.seed = 3;
+    p.frames = Some((24.0 * p.rate_hz) as usize);
+    let scene = std::sync::Arc::new(datasets::sim::Scene::room(p.seed));
+    for agent in 0..2 {
+        let world = SimWorld::with_scene(p.clone(), agent, scene.clone()).expect("sim world");
+        let vio = run(&world, VIO);
+        let f = figures(&format!("two-agents {agent}"), &world, &vio, VIO);
+        assert_eq!(vio.new_sessions, 0);
+        assert!(
+            vio.init_s.is_some_and(|s| s > 10.0),
+            "init {:?}",
+            vio.init_s
+        );
+        assert!(
+            f.scale_error_percent.abs() < 2.0,
+            "{agent}: scale {:.2}%",
+            f.scale_error_percent
+        );
+        assert!(
+            f.ate_se3_percent < 0.4,
+            "{agent}: ATE {:.3}%",
+            f.ate_se3_percent
+        );
+    }
+}
+
 /// Phone (10 s hand-held walking, 30 Hz, 25 ms rolling shutter, phone IMU): the issue's
 /// targets, ATE ≤ 0.2 % of the path and scale within 1 %, initialised within 3 s
 /// (measured: 0.081 %, −0.15 %, 2.5 s).

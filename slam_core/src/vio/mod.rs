@@ -115,6 +115,15 @@ pub struct VioParams {
     /// (SE(3) ATE), scale +0.98 %; with the first only 0.105 %, −0.04 %; drone 0.053 % →
     /// 0.058 %, phone 0.081 % unchanged.
     pub refinements_with_window: usize,
+    /// Times after the initialisation, s, at which local mapping is asked for a
+    /// whole-session visual-inertial window (`crate::vo::vi_window`, "Session windows";
+    /// ORB-SLAM3's visual-inertial BA at its refinements, ~5 s and ~15 s after the
+    /// initialisation): scale, gravity, velocities, biases, poses and points of every
+    /// keyframe of the session (the client map's), the correction it finds applied as a
+    /// world move. An initialisation accepted several percent off in scale on a gentle
+    /// motion (the coupler's keyframe poses are those of the monocular map, fixed) is then
+    /// corrected with the visual structure. `f64::INFINITY`: never.
+    pub session_windows_after_init_s: [f64; 2],
     /// Longest wait for the local-mapping runner before a world move
     /// ([`VoTracker::transform_world`]); a move that times out is retried at the next frame.
     pub world_move_timeout: std::time::Duration,
@@ -134,6 +143,7 @@ impl VioParams {
             pose_prior: true,
             imu_tracking: true,
             refinements_with_window: 1,
+            session_windows_after_init_s: [5.0, 15.0],
             static_init: StaticParams::default(),
             inertial_init: true,
             world_move_timeout: std::time::Duration::from_secs(5),
@@ -288,6 +298,9 @@ pub struct VioTracker {
     window_tracks: bool,
     /// Refinements not applied ([`VioParams::refinements_with_window`]), all sessions.
     refinements_skipped: usize,
+    /// Session windows asked of local mapping in this session
+    /// ([`VioParams::session_windows_after_init_s`]).
+    session_windows: usize,
     /// An anchor asked for and not applied yet: (VO session, rigid move of the world).
     anchor: Option<(u32, Isometry3<f64>)>,
     /// Anchors applied and dropped, all sessions.
@@ -328,6 +341,7 @@ impl VioTracker {
             refinements_skipped: 0,
             anchor: None,
             anchor_counts: AnchorCounts::default(),
+            session_windows: 0,
             static_init: None,
             resumed: None,
             params,
@@ -490,6 +504,7 @@ impl VioTracker {
         self.adopt_window_state(&mut out);
         self.apply_world_correction(&mut out);
         self.keyframe(t_ns, &mut out);
+        self.ask_session_window(t_ns);
         self.detect_rest(t_ns);
         self.imu
             .keep_from(self.oldest_needed_ns(t_ns) - frame.readout_ns / 2 - 10_000_000);
@@ -539,6 +554,30 @@ impl VioTracker {
         self.last_kf = None;
         self.window_tracks = false;
         self.anchor = None;
+        self.session_windows = 0;
+    }
+
+    /// Asks local mapping for a whole-session window when the next time after the
+    /// initialisation is reached ([`VioParams::session_windows_after_init_s`]; not in a
+    /// resumed session, whose predecessor corrected its scale): for the keyframes after
+    /// this frame (the camera time after `t_ns`'s), so that no keyframe already queued to
+    /// a local-mapping thread takes it.
+    fn ask_session_window(&mut self, t_ns: i64) {
+        let Some(init) = self.init.filter(|_| self.resumed.is_none()) else {
+            return;
+        };
+        let Some(&at_s) = self
+            .params
+            .session_windows_after_init_s
+            .get(self.session_windows)
+        else {
+            return;
+        };
+        if (t_ns - init.t_ns) as f64 * 1e-9 >= at_s {
+            let t_cam = t_ns - self.params.coupler.t_d_ns;
+            self.vo.request_session_window(t_cam + 1);
+            self.session_windows += 1;
+        }
     }
 
     /// The frame's pose: vision's (the navigator corrected), the IMU's while coasting,

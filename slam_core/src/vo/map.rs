@@ -112,6 +112,10 @@ pub struct ClientMap {
     /// correction, [`super::vi_window`]) that the client has still to apply to the whole
     /// session (map, tracking state, earlier poses) as a world move.
     pub world_correction: Option<Sim3>,
+    /// The visual-inertial window of the first keyframe at or after this camera time
+    /// (ns) is a whole-session one ([`super::vi_window`] module docs, "Session windows"):
+    /// asked by the visual-inertial client at its refinement times, cleared when solved.
+    pub session_window_from_ns: Option<i64>,
 }
 
 impl ClientMap {

@@ -687,6 +687,14 @@ impl VoTracker {
             .is_some()
     }
 
+    /// Asks local mapping for a whole-session visual-inertial window at the first keyframe
+    /// at or after camera time `from_ns` ([`ClientMap::session_window_from_ns`]; a time
+    /// after the last frame's keeps inline and threaded mapping deterministic: no keyframe
+    /// already queued takes it). Locks the map.
+    pub fn request_session_window(&self, from_ns: i64) {
+        lock(&self.shared).session_window_from_ns = Some(from_ns);
+    }
+
     /// Reads the client map (locks it; the local-mapping thread waits meanwhile).
     pub fn with_map<R>(&self, f: impl FnOnce(&ClientMap) -> R) -> R {
         f(&lock(&self.shared))

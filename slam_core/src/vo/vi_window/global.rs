@@ -51,6 +51,7 @@ pub fn prepare_global_vi(
         return Err(ViSkip::FewObservations);
     }
     job.gauged = false;
+    job.asked = false;
     w.gravity_w = gravity_w();
     Ok(())
 }
