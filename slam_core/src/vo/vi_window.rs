@@ -445,9 +445,11 @@ fn apply_points_and_outliers(map: &mut ClientMap, job: &mut ViWindowJob, w: &ViW
 /// change of its keyframes' orientations, and `s`, the least-squares scale of their camera
 /// centres about the gauged keyframe's, `c`, given `R` (camera centres and points are what
 /// a world move scales, [`ClientMap::transform_world`]). The solution is re-expressed by
-/// the inverse, `x ↦ c + R⁻¹ (x - c) / s`, in the map's present world, and `(s, R)` is left
-/// for the client to apply to the whole session as a world move. The scale stays 1 when
-/// the keyframes are too close together to tell it.
+/// the inverse, `x ↦ c + R⁻¹ (x - c) / s`, in the map's present world, and the similarity
+/// about `c`, `x ↦ c + s R (x - c)`, is left for the client to apply to the whole session
+/// as a world move (the gauged keyframe stays where it is, and the move does not depend on
+/// where the world's origin is: an anchored world, `vio::anchor`, gets the same correction).
+/// The scale stays 1 when the keyframes are too close together to tell it.
 fn split_world_correction(job: &ViWindowJob, w: &mut ViWindow) -> Sim3 {
     let mut sum = nalgebra::Vector4::zeros();
     for (kf, before) in w.keyframes.iter().zip(&job.r_before) {
@@ -480,7 +482,7 @@ fn split_world_correction(job: &ViWindowJob, w: &mut ViWindow) -> Sim3 {
     for p in &mut w.points_w {
         *p = back(p);
     }
-    Sim3::new(r, Vector3::zeros(), scale)
+    Sim3::new(r, c - r * c * scale, scale)
 }
 
 /// Whether an observation is in front of its camera and within the 95 % χ²(2) gate.

@@ -88,7 +88,8 @@ pub struct TrackerCounters {
     /// Replays of the IMU samples since a resumed session's newest keyframe asked of the
     /// IMU ingest (lock-step; `shm_schema::FLAG_IMU_REPLAY`).
     pub imu_replays_asked: u64,
-    /// World moves published (the inertial initialisation and its refinements).
+    /// The client's own world moves (the inertial initialisation, its refinements and the
+    /// windows' corrections; anchor moves are counted in `vio.anchor`).
     pub world_moves: u64,
     /// Visual-inertial sessions resumed from a killed predecessor's spool (issue 17).
     pub vio_resumes: u64,

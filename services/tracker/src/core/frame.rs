@@ -307,14 +307,15 @@ impl TrackerCore {
         t.vo_session = self.ids.session(vo_session);
         self.diagnostics = std::mem::take(&mut o.vo.diagnostics);
         t.take_output(&mut o);
+        if o.world_move.is_some() {
+            // The spooled keyframes of this session are in the old world: spool them again
+            // (an anchor move alone leaves them: they are in the session's own world).
+            self.spooled = None;
+            self.counters.world_moves += 1;
+        }
         self.follow_world_moves(&o, t);
         if let Some(nav) = o.nav {
             self.last_biases = Some(nav.biases);
-        }
-        if t.world_move.is_some() {
-            // The spooled keyframes of this session are in the old world: spool them again.
-            self.spooled = None;
-            self.counters.world_moves += 1;
         }
         let o = o.vo;
         if o.new_session {
