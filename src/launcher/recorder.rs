@@ -42,6 +42,12 @@ impl LatencyHist {
         self.0.saturating_record((ns.max(0) as u64 / 1000).max(1));
     }
 
+    /// Records a distance in metres, as micrometres in place of microseconds, so that
+    /// [`LatencyHist::percentiles`] reads in millimetres (1 µm .. 60 m).
+    pub fn record_m(&mut self, m: f64) {
+        self.record_ns((m * 1e9) as i64);
+    }
+
     /// Percentiles in ms.
     pub fn percentiles(&self) -> Percentiles {
         let h = &self.0;
@@ -124,7 +130,7 @@ pub struct ClientRecord {
     pub publish_to_pose: LatencyHist,
     /// Per tracked frame with a server-map pose, the distance between its camera centre as
     /// tracked and in the server map (a visual-inertial client anchored to its map:
-    /// centimetres; otherwise the two frames' offset), recorded as µm "µs" (the
+    /// centimetres; otherwise the two frames' offset; [`LatencyHist::record_m`]: the
     /// percentiles read in mm).
     pub live_server_gap: LatencyHist,
 }
@@ -339,7 +345,7 @@ impl Recorder {
                     if p.has_server_pose != 0 {
                         let d = nalgebra::Vector3::from(p.pose.t)
                             - nalgebra::Vector3::from(p.server_pose.t);
-                        rec.live_server_gap.record_ns((d.norm() * 1e9) as i64);
+                        rec.live_server_gap.record_m(d.norm());
                         rec.tracked_server += 1;
                         rec.server_trajectory
                             .push((p.t_ns, p.server_pose, p.server_map_id));

@@ -152,9 +152,9 @@ impl SessionAnchor {
         self.a = m.compose(&a).compose(&m.inverse()).to_isometry();
     }
 
-    /// A camera-to-world pose of the client's present world in the session's.
-    pub fn to_session(&self, t_wc: &Isometry3<f64>) -> Isometry3<f64> {
-        self.a.inverse() * t_wc
+    /// The rigid move from the client's present world back to the session's, `A⁻¹`.
+    pub fn to_session(&self) -> Isometry3<f64> {
+        self.a.inverse()
     }
 }
 

@@ -168,7 +168,8 @@ pub enum PoseSource {
 }
 
 /// A similarity applied to the VO's world with a frame: `x' = s R x + t` for positions,
-/// `R_wc' = R R_wc` for orientations (an initialisation or refinement: `t = 0`).
+/// `R_wc' = R R_wc` for orientations (an initialisation or refinement about the origin,
+/// `t = 0`; a window's correction about its gauged keyframe).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WorldMove {
     /// The similarity (old world to new).
@@ -303,18 +304,8 @@ pub struct VioTracker {
     session_windows: usize,
     /// An anchor asked for and not applied yet: (VO session, rigid move of the world).
     anchor: Option<(u32, Isometry3<f64>)>,
-    /// Anchors applied and dropped, all sessions.
-    anchor_counts: AnchorCounts,
-}
-
-/// Anchors to the server map ([`VioTracker::request_anchor`]), all sessions.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct AnchorCounts {
-    /// Applied.
-    pub applied: usize,
-    /// Dropped: the session changed, another world move came first, the client was not
-    /// metric, or local mapping did not become idle in time (the next feedback asks again).
-    pub dropped: usize,
+    /// Anchors dropped, all sessions ([`VioTracker::anchors_dropped`]).
+    anchors_dropped: usize,
 }
 
 impl VioTracker {
@@ -340,7 +331,7 @@ impl VioTracker {
             window_tracks: false,
             refinements_skipped: 0,
             anchor: None,
-            anchor_counts: AnchorCounts::default(),
+            anchors_dropped: 0,
             session_windows: 0,
             static_init: None,
             resumed: None,
@@ -375,9 +366,11 @@ impl VioTracker {
         self.static_init.as_ref()
     }
 
-    /// Anchors applied and dropped ([`VioTracker::request_anchor`]).
-    pub fn anchor_counts(&self) -> AnchorCounts {
-        self.anchor_counts
+    /// Anchors asked for and dropped ([`VioTracker::request_anchor`]), all sessions: the
+    /// session changed, another world move came first, the client was not metric, or local
+    /// mapping did not become idle in time (the next feedback asks again).
+    pub fn anchors_dropped(&self) -> usize {
+        self.anchors_dropped
     }
 
     /// Moves VO session `session`'s world by the rigid `delta` (`x' = R x + t`) before the
@@ -400,11 +393,10 @@ impl VioTracker {
             && self.status().is_metric()
             && self.vo.transform_world(&m, self.params.world_move_timeout);
         if !ok {
-            self.anchor_counts.dropped += 1;
+            self.anchors_dropped += 1;
             return None;
         }
         self.move_beside_vo(&m);
-        self.anchor_counts.applied += 1;
         Some(delta)
     }
 

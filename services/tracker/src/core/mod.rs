@@ -314,7 +314,7 @@ impl TrackerCore {
         self.put_resume_report(v, &mut r);
         if self.cfg.anchor.enabled {
             r.anchor = Some(AnchorReport {
-                dropped: v.anchor_counts().dropped as u64,
+                dropped: v.anchors_dropped() as u64,
                 ..self.anchors.clone()
             });
         }

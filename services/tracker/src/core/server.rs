@@ -177,12 +177,7 @@ impl ServerState {
     pub fn to_session(&self, session: u32) -> Isometry3<f64> {
         self.anchor
             .filter(|a| a.session == session)
-            .map_or(Isometry3::identity(), |a| a.a.inverse())
-    }
-
-    /// The anchor of the newest anchored session.
-    pub fn anchor(&self) -> Option<&SessionAnchor> {
-        self.anchor.as_ref()
+            .map_or(Isometry3::identity(), |a| a.to_session())
     }
 
     /// Lock-step: whether the server has finished keyframe `key`; when it has, the record
