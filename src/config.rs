@@ -45,6 +45,13 @@ pub struct RunConfig {
     pub progress: bool,
     /// Replay at most this many frames per client.
     pub max_frames: Option<usize>,
+    /// Frame rate of datasets without timestamps (image folders: frame `k` at `k / fps`
+    /// s), Hz; their default is 20.
+    pub fps: Option<f64>,
+    /// Only frames `A..B` (A to B-1, 0-based; `A..` to the end) of the datasets, at their
+    /// own times: none, one range for every dataset, or one per dataset in the order of
+    /// `datasets` (e.g. two sessions of one sequence as two clients).
+    pub frames: Vec<datasets::FrameRange>,
     /// Give up (stop everything, report) after this many seconds.
     pub max_seconds: Option<f64>,
     /// Most restarts of a crash-looping service before it is given up: crashes in a row,
@@ -81,6 +88,8 @@ impl Default for RunConfig {
             ipc_prefix: shm_schema::topics::prefix_from_env(),
             progress: true,
             max_frames: None,
+            fps: None,
+            frames: Vec::new(),
             max_seconds: None,
             max_restarts: 20,
             kills: Vec::new(),
@@ -203,10 +212,19 @@ impl RunConfig {
         if let Some(s) = self.max_seconds {
             anyhow::ensure!(s > 0.0, "max_seconds must be positive (got {s})");
         }
+        if let Some(f) = self.fps {
+            anyhow::ensure!(f > 0.0 && f.is_finite(), "fps must be positive (got {f})");
+        }
         anyhow::ensure!(
             self.calib.len() <= 1 || self.calib.len() == self.datasets.len(),
             "{} calibration files for {} datasets: give one for all or one per dataset",
             self.calib.len(),
+            self.datasets.len()
+        );
+        anyhow::ensure!(
+            self.frames.len() <= 1 || self.frames.len() == self.datasets.len(),
+            "{} frame ranges for {} datasets: give --frames once for all or once per dataset",
+            self.frames.len(),
             self.datasets.len()
         );
         anyhow::ensure!(
@@ -216,6 +234,24 @@ impl RunConfig {
             self.datasets.len()
         );
         Ok(())
+    }
+
+    /// How client `client`'s dataset is opened: its calibration file, `fps`, `frames`.
+    pub fn open_options(&self, client: usize) -> datasets::OpenOptions {
+        datasets::OpenOptions {
+            calibration: self.calib_of(client).map(Path::to_path_buf),
+            fps: self.fps,
+            frames: self.frames_of(client),
+        }
+    }
+
+    /// The frame range of client `client`'s dataset (`frames`), if any.
+    pub fn frames_of(&self, client: usize) -> Option<datasets::FrameRange> {
+        match self.frames.as_slice() {
+            [] => None,
+            [one] => Some(*one),
+            many => many.get(client).copied(),
+        }
     }
 
     /// The mode client `client` runs: its own (`client_modes`), else `tracker.mode`.
@@ -416,6 +452,40 @@ mod tests {
         assert_eq!(back, d);
         let file = tmp("printed.toml", &text);
         assert_eq!(RunConfig::resolve(Some(&file), &[]).expect("file"), d);
+    }
+
+    #[test]
+    fn frame_ranges_and_fps_come_from_the_file_once_or_per_dataset() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let file = dir.path().join("run.toml");
+        std::fs::write(
+            &file,
+            "datasets = [\"a\", \"b\"]\nfps = 30.0\nframes = [\"0..300\", \"450..\"]\n",
+        )
+        .expect("write");
+        let c = RunConfig::resolve(Some(&file), &[]).expect("resolve");
+        assert!(c.validate().is_ok());
+        let (a, b) = (c.open_options(0), c.open_options(1));
+        assert_eq!(
+            (a.fps, a.frames.map(|r| r.to_string())),
+            (Some(30.0), Some("0..300".into()))
+        );
+        assert_eq!(b.frames.map(|r| r.to_string()), Some("450..".into()));
+        let back: RunConfig =
+            toml::from_str(&c.to_toml_with_header().expect("toml")).expect("parse");
+        assert_eq!(back.frames, c.frames);
+        let mut one = c.clone();
+        one.frames.truncate(1);
+        assert_eq!(one.frames_of(1), one.frames_of(0), "one range for all");
+        let mut three = c.clone();
+        three.frames.push("1..2".parse().expect("range"));
+        let e = three.validate().unwrap_err().to_string();
+        assert!(e.contains("3 frame ranges for 2 datasets"), "{e}");
+        let bad = RunConfig::resolve(None, &["frames = [\"9..3\"]".into()]);
+        assert!(bad.is_err(), "an empty range is refused");
+        let mut slow = c;
+        slow.fps = Some(0.0);
+        assert!(slow.validate().is_err());
     }
 
     #[test]

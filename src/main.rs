@@ -90,6 +90,14 @@ struct RunArgs {
     /// Replay at most this many frames per client.
     #[arg(long)]
     max_frames: Option<usize>,
+    /// Frame rate of datasets without timestamps (an image folder: frame k at k / FPS s;
+    /// default 20).
+    #[arg(long)]
+    fps: Option<f64>,
+    /// Only frames A to B-1 of the datasets (`A..B`, 0-based; `A..` to the end), at their
+    /// own times. Once for every dataset, or once per `--dataset` in the same order.
+    #[arg(long = "frames", value_name = "A..B")]
+    frames: Vec<datasets::FrameRange>,
     /// Stop the run after this many seconds.
     #[arg(long)]
     max_seconds: Option<f64>,
@@ -191,6 +199,12 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     }
     if args.max_seconds.is_some() {
         cfg.max_seconds = args.max_seconds;
+    }
+    if args.fps.is_some() {
+        cfg.fps = args.fps;
+    }
+    if !args.frames.is_empty() {
+        cfg.frames = args.frames;
     }
     if !args.kills.is_empty() {
         cfg.kills = args.kills;

@@ -4,11 +4,15 @@
 //! - `image_0/` + `times.txt` → KITTI odometry;
 //! - `movie_metadata.csv` → phone logger;
 //! - `frame_timestamps.csv` + `gyro.csv` + `accl.csv` + `frames/` → GoPro clip;
-//! - `cam0/` + `imu0.csv` + `config.yaml` → AprilGrid detections (feature tracks).
+//! - `cam0/` + `imu0.csv` + `config.yaml` → AprilGrid detections (feature tracks);
+//! - `images/` + `K.txt` → an image folder without timestamps.
+//!
+//! [`open_with`] also takes what `shoal run` may say of any dataset ([`OpenOptions`]): a
+//! calibration file, the frame rate of an index-only sequence, and a range of its frames.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use crate::{april, euroc, gopro, kitti, phone, Dataset, DatasetError, DatasetKind};
+use crate::{april, euroc, gopro, image_folder, kitti, phone, Dataset, DatasetError, DatasetKind};
 
 /// The kind of dataset in `path`, without reading it. `NotFound` for a missing folder,
 /// `UnknownFormat` when no layout matches.
@@ -36,26 +40,117 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
         Ok(DatasetKind::Phone)
     } else if gopro::is_gopro(path) {
         Ok(DatasetKind::GoPro)
+    } else if image_folder::is_image_folder(path) {
+        Ok(DatasetKind::ImageFolder)
     } else {
         Err(DatasetError::UnknownFormat {
             path: path.into(),
             detail: "expected `mav0/` (EuRoC), `image_0/` + `times.txt` (KITTI), \
                      `movie_metadata.csv` (phone logger) or `frame_timestamps.csv` + \
-                     `gyro.csv` + `accl.csv` (GoPro) or `cam0/` + `imu0.csv` + `config.yaml` \
-                     (AprilGrid detections)"
+                     `gyro.csv` + `accl.csv` (GoPro), `cam0/` + `imu0.csv` + `config.yaml` \
+                     (AprilGrid detections) or `images/` + `K.txt` (image folder)"
                 .into(),
         })
     }
 }
 
-/// Opens the dataset in `path` with the reader its layout calls for.
+/// Opens the dataset in `path` with the reader its layout calls for (an image folder at
+/// [`image_folder::DEFAULT_FPS`]).
 pub fn open(path: &Path) -> Result<Dataset, DatasetError> {
+    open_kind(path, None)
+}
+
+fn open_kind(path: &Path, fps: Option<f64>) -> Result<Dataset, DatasetError> {
     match detect(path)? {
         DatasetKind::Euroc => euroc::read(path),
         DatasetKind::Kitti => kitti::read(path),
         DatasetKind::Phone => phone::read(path),
         DatasetKind::GoPro => gopro::read(path),
         DatasetKind::AprilTracks => april::open(path),
+        DatasetKind::ImageFolder => image_folder::read(path, fps),
+    }
+}
+
+/// What a run may say of a dataset besides its folder.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct OpenOptions {
+    /// A calibration file in place of the dataset's own ([`open_calibrated`]).
+    pub calibration: Option<PathBuf>,
+    /// Frame rate of a sequence without timestamps (an image folder), Hz.
+    pub fps: Option<f64>,
+    /// Only these frames ([`Dataset::select_frames`]).
+    pub frames: Option<FrameRange>,
+}
+
+/// Opens the dataset in `path` as `opts` say: the reader (with `fps`), the calibration
+/// file, then the frame range.
+pub fn open_with(path: &Path, opts: &OpenOptions) -> Result<Dataset, DatasetError> {
+    let mut ds = open_kind(path, opts.fps)?;
+    if let Some(file) = &opts.calibration {
+        apply_calibration(&mut ds, path, file)?;
+    }
+    if let Some(r) = opts.frames {
+        ds.select_frames(r)?;
+    }
+    Ok(ds)
+}
+
+fn apply_calibration(ds: &mut Dataset, path: &Path, file: &Path) -> Result<(), DatasetError> {
+    let c = crate::calibration::CalibrationFile::read(file)?;
+    c.apply_to(ds).map_err(|detail| DatasetError::Parse {
+        path: file.to_path_buf(),
+        line: 0,
+        detail: format!("does not fit the dataset {}: {detail}", path.display()),
+    })
+}
+
+/// Frames `start` to `end - 1` of a sequence (0-based, in the dataset's frame order; `end`
+/// `None`: to the last), as `shoal run --frames A..B` (or `A..`) gives them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameRange {
+    /// First frame.
+    pub start: usize,
+    /// One past the last frame (`None`: the end of the sequence).
+    pub end: Option<usize>,
+}
+
+impl std::str::FromStr for FrameRange {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let bad = || format!("`{s}`: expected a frame range `A..B` (frames A to B-1) or `A..`");
+        let (a, b) = s.split_once("..").ok_or_else(bad)?;
+        let start = a.trim().parse().map_err(|_| bad())?;
+        let end = match b.trim() {
+            "" => None,
+            b => Some(b.parse().map_err(|_| bad())?),
+        };
+        if end.is_some_and(|e| e <= start) {
+            return Err(format!("`{s}`: the range holds no frame (B must exceed A)"));
+        }
+        Ok(Self { start, end })
+    }
+}
+
+impl serde::Serialize for FrameRange {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for FrameRange {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        s.parse().map_err(serde::de::Error::custom)
+    }
+}
+
+impl std::fmt::Display for FrameRange {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.end {
+            Some(e) => write!(f, "{}..{e}", self.start),
+            None => write!(f, "{}..", self.start),
+        }
     }
 }
 
@@ -64,14 +159,95 @@ pub fn open(path: &Path) -> Result<Dataset, DatasetError> {
 /// model, `T_BS`, `t_r`, and the frames re-stamped with its `t_d`). A calibration that cannot
 /// be read or does not fit the dataset is an error naming the file.
 pub fn open_calibrated(path: &Path, calibration: Option<&Path>) -> Result<Dataset, DatasetError> {
-    let mut ds = open(path)?;
-    if let Some(file) = calibration {
-        let c = crate::calibration::CalibrationFile::read(file)?;
-        c.apply_to(&mut ds).map_err(|detail| DatasetError::Parse {
-            path: file.to_path_buf(),
-            line: 0,
-            detail: format!("does not fit the dataset {}: {detail}", path.display()),
-        })?;
+    let opts = OpenOptions {
+        calibration: calibration.map(Path::to_path_buf),
+        ..OpenOptions::default()
+    };
+    open_with(path, &opts)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{FrameRecord, ImuSample, StampedPose};
+
+    #[test]
+    fn frame_ranges_parse_and_refuse_empty_ones() {
+        let r: FrameRange = "450..736".parse().expect("range");
+        assert_eq!((r.start, r.end), (450, Some(736)));
+        assert_eq!(r.to_string(), "450..736");
+        let r: FrameRange = "10..".parse().expect("open range");
+        assert_eq!((r.start, r.end), (10, None));
+        for bad in ["5", "a..9", "9..9", "9..3", "..4"] {
+            assert!(bad.parse::<FrameRange>().is_err(), "{bad}");
+        }
     }
-    Ok(ds)
+
+    fn dataset(n: usize) -> Dataset {
+        let t = |k: usize| k as i64 * 50_000_000;
+        Dataset {
+            kind: DatasetKind::Euroc,
+            root: "x".into(),
+            camera: crate::CameraCalib {
+                model: crate::PinholeRadtan::pinhole(8, 8, 1.0, 1.0, 4.0, 4.0),
+                t_bs: Default::default(),
+                t_bs_given: false,
+                readout_ns: 0,
+                time_offset_ns: 0,
+                rate_hz: 20.0,
+            },
+            frames: (0..n)
+                .map(|k| FrameRecord {
+                    t_ns: t(k),
+                    path: format!("{k}.png").into(),
+                    exposure_ns: 0,
+                    readout_ns: 0,
+                })
+                .collect(),
+            imu: (0..n * 10)
+                .map(|i| ImuSample {
+                    t_ns: i as i64 * 5_000_000,
+                    gyro: [0.0; 3],
+                    accel: [0.0; 3],
+                })
+                .collect(),
+            ground_truth: Some(
+                (0..n)
+                    .map(|k| StampedPose {
+                        t_ns: t(k),
+                        pose: Default::default(),
+                    })
+                    .collect(),
+            ),
+            issues: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn a_frame_range_keeps_its_frames_times_truth_and_imu_around_them() {
+        let mut ds = dataset(100);
+        ds.select_frames("40..60".parse().expect("range"))
+            .expect("select");
+        assert_eq!(ds.frames.len(), 20);
+        assert_eq!(ds.frames[0].path, std::path::PathBuf::from("40.png"));
+        assert_eq!(ds.frames[0].t_ns, 2_000_000_000, "the dataset's own times");
+        let gt = ds.ground_truth.as_ref().expect("truth");
+        assert_eq!((gt.len(), gt[0].t_ns), (20, 2_000_000_000));
+        let (a, b) = (ds.imu[0].t_ns, ds.imu[ds.imu.len() - 1].t_ns);
+        assert_eq!(
+            (a, b),
+            (1_000_000_000, 3_950_000_000),
+            "1 s either side, to the end"
+        );
+        let mut ds = dataset(10);
+        ds.select_frames("5..".parse().expect("range"))
+            .expect("to the end");
+        assert_eq!(ds.frames.len(), 5);
+        let mut ds = dataset(10);
+        let e = ds.select_frames("12..20".parse().expect("range"));
+        assert!(e
+            .expect_err("past the end")
+            .to_string()
+            .contains("10 frames"));
+    }
 }

@@ -13,6 +13,7 @@ pub mod detect;
 pub mod error;
 pub mod euroc;
 pub mod gopro;
+pub mod image_folder;
 pub mod image_io;
 pub mod kalibr;
 pub mod kitti;
@@ -23,7 +24,7 @@ pub mod trajectory;
 
 use std::path::PathBuf;
 
-pub use detect::{open, open_calibrated};
+pub use detect::{open, open_calibrated, open_with, FrameRange, OpenOptions};
 pub use error::DatasetError;
 pub use image_io::{decode_gray, decode_gray_into, image_size};
 pub use slam_core::camera::PinholeRadtan;
@@ -40,6 +41,9 @@ pub enum DatasetKind {
     /// A GoPro clip with its GPMF streams (`frames/*.jpg`, `frame_timestamps.csv`,
     /// `gyro.csv`, `accl.csv`).
     GoPro,
+    /// Numbered images with a calibration and no timestamps (`images/`, `K.txt`, optional
+    /// `D.txt` and ground truth; [`image_folder`]): frame `k` at `k / fps`.
+    ImageFolder,
     /// Feature tracks instead of images: AprilGrid detections (`cam0/<t_ns>.csv`,
     /// `imu0.csv`, `config.yaml`; [`april`]). Each frame's [`FrameRecord::path`] is its
     /// detections file, which the camera ingest sends as a feature frame.
@@ -188,4 +192,35 @@ pub struct Dataset {
     pub ground_truth: Option<Vec<StampedPose>>,
     /// Problems met and skipped while reading.
     pub issues: Vec<InputIssue>,
+}
+
+/// IMU kept on each side of a frame range ([`Dataset::select_frames`]), ns.
+const RANGE_IMU_MARGIN_NS: i64 = 1_000_000_000;
+
+impl Dataset {
+    /// Keeps frames `range` only, with their own times (`shoal run --frames A..B`): the
+    /// ground truth between the first and last kept frame, and the IMU from
+    /// [`RANGE_IMU_MARGIN_NS`] before to as much after. An error when the range starts past
+    /// the last frame; an end past it is the end.
+    pub fn select_frames(&mut self, range: crate::FrameRange) -> Result<(), DatasetError> {
+        let n = self.frames.len();
+        let end = range.end.unwrap_or(n).min(n);
+        if range.start >= end {
+            return Err(DatasetError::InvalidConfig {
+                detail: format!(
+                    "--frames {range}: {} has {n} frames (0..{n})",
+                    self.root.display()
+                ),
+            });
+        }
+        self.frames.truncate(end);
+        self.frames.drain(..range.start);
+        let (t0, t1) = (self.frames[0].t_ns, self.frames[self.frames.len() - 1].t_ns);
+        if let Some(gt) = &mut self.ground_truth {
+            gt.retain(|p| (t0..=t1).contains(&p.t_ns));
+        }
+        let m = RANGE_IMU_MARGIN_NS;
+        self.imu.retain(|s| (t0 - m..=t1 + m).contains(&s.t_ns));
+        Ok(())
+    }
 }

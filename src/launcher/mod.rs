@@ -178,6 +178,12 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             if let Some(m) = cfg.max_frames {
                 args.extend(["--max-frames".to_string(), m.to_string()]);
             }
+            if let Some(f) = cfg.fps {
+                args.extend(["--fps".to_string(), f.to_string()]);
+            }
+            if let Some(r) = cfg.frames_of(client) {
+                args.extend(["--frames".to_string(), r.to_string()]);
+            }
         }
     }
     args.extend(["--mode".to_string(), mode.to_string()]);
@@ -362,7 +368,7 @@ fn open_datasets(
         .iter()
         .enumerate()
         .map(|(c, path)| {
-            datasets::open_calibrated(path, cfg.calib_of(c)).map_err(|e| {
+            datasets::open_with(path, &cfg.open_options(c)).map_err(|e| {
                 let record = ErrorRecord {
                     service: "launcher".into(),
                     kind: ErrorKind::Dataset,
@@ -600,7 +606,9 @@ fn wait_server_quiet(services: &[Supervised], timeout: Duration) {
 }
 
 /// Waits until the services `among` (indices into `services`) are ready; fails when one
-/// exits during start-up or `timeout` passes.
+/// exits during start-up or `timeout` passes. A service that ends by itself and exits
+/// cleanly has done its work (an IMU ingest of a dataset without IMU samples signals ready
+/// and ends at once, possibly before its ready line is read): it is done, not failed.
 fn wait_ready_among(
     services: &mut [Supervised],
     among: &[usize],
@@ -614,6 +622,10 @@ fn wait_ready_among(
             sv.poll_ready();
             if sv.phase == Phase::Starting {
                 if let Some(st) = sv.try_reap() {
+                    if st.success() && sv.ends_by_itself {
+                        sv.phase = Phase::Done;
+                        continue;
+                    }
                     anyhow::bail!(
                         "{} exited during start-up ({}); see {}",
                         sv.name,

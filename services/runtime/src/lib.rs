@@ -605,13 +605,24 @@ pub struct ReplayArgs {
     /// Replay at most this many frames (the IMU: samples up to that frame's time).
     #[arg(long)]
     pub max_frames: Option<usize>,
+    /// Frame rate of a dataset without timestamps (an image folder), Hz.
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// Only frames A to B-1 of the dataset (`A..B`, or `A..` to the end), at their own times.
+    #[arg(long)]
+    pub frames: Option<datasets::FrameRange>,
 }
 
 impl ReplayArgs {
-    /// The dataset, with the calibration file when one is given
-    /// ([`datasets::open_calibrated`]).
+    /// The dataset as the arguments say: the calibration file, the frame rate and the
+    /// frame range ([`datasets::open_with`]).
     pub fn open_dataset(&self) -> Result<datasets::Dataset, datasets::DatasetError> {
-        datasets::open_calibrated(&self.dataset, self.calib.as_deref())
+        let opts = datasets::OpenOptions {
+            calibration: self.calib.clone(),
+            fps: self.fps,
+            frames: self.frames,
+        };
+        datasets::open_with(&self.dataset, &opts)
     }
 
     /// The [`ServiceStart`] of ingest service `service` (node `{node}_c{client}`).
