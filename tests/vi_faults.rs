@@ -19,7 +19,7 @@
 //! would test which mode each landed in, so the bound is 20% above the upper end of that
 //! spread, or of this build's own fault-free run if higher. The full "each service once"
 //! measurement, one kill per run: `benches/vi_faults.py` (session 20, with the global VI
-//! BA: fault-free 0.0388-0.0419 m over 5 runs, the six kills 0.0373-0.0438 m).
+//! BA: fault-free 0.0387-0.0419 m over 5 runs, the six kills 0.0373-0.0438 m).
 //!
 //! Two runs with kills, several services each (`--kill` repeated), plus the shared
 //! fault-free run: 3.1 minutes of the test profile on 2 cores (4.4 when the data is
