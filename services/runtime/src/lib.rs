@@ -587,6 +587,12 @@ pub struct ReplayArgs {
     /// Calibration file put in place of the dataset's own (`shoal run --calib`).
     #[arg(long)]
     pub calib: Option<PathBuf>,
+    /// Image topic of an MCAP / ROS 2 bag dataset (default: found by message type).
+    #[arg(long)]
+    pub image_topic: Option<String>,
+    /// IMU topic of an MCAP / ROS 2 bag dataset (default: found by message type).
+    #[arg(long)]
+    pub imu_topic: Option<String>,
     /// Replay mode: realtime | lockstep.
     #[arg(long, default_value = "lockstep")]
     pub mode: ReplayMode,
@@ -608,10 +614,17 @@ pub struct ReplayArgs {
 }
 
 impl ReplayArgs {
-    /// The dataset, with the calibration file when one is given
-    /// ([`datasets::open_calibrated`]).
+    /// The dataset, with the calibration file when one is given and the MCAP topics
+    /// ([`datasets::open_with`]).
     pub fn open_dataset(&self) -> Result<datasets::Dataset, datasets::DatasetError> {
-        datasets::open_calibrated(&self.dataset, self.calib.as_deref())
+        let options = datasets::OpenOptions {
+            calib: self.calib.clone(),
+            topics: datasets::mcap_bag::Topics {
+                image: self.image_topic.clone(),
+                imu: self.imu_topic.clone(),
+            },
+        };
+        datasets::open_with(&self.dataset, &options)
     }
 
     /// The [`ServiceStart`] of ingest service `service` (node `{node}_c{client}`).
