@@ -194,11 +194,11 @@ fn image_msg(k: usize, t_ns: i64, encoding: &str, data: &[u8], step: u32) -> Vec
         &msgs::Image {
             header: Header {
                 stamp: stamp(t_ns),
-                frame_id: "camera",
+                frame_id: "camera".into(),
             },
             height: H,
             width: W,
-            encoding,
+            encoding: encoding.into(),
             is_bigendian: 0,
             step,
             data: Bytes(data),
@@ -213,11 +213,11 @@ fn camera_info_msg(t_ns: i64, width: u32) -> Vec<u8> {
         &msgs::CameraInfo {
             header: Header {
                 stamp: stamp(t_ns),
-                frame_id: "camera",
+                frame_id: "camera".into(),
             },
             height: H,
             width,
-            distortion_model: "plumb_bob",
+            distortion_model: "plumb_bob".into(),
             d: vec![-0.1, 0.01, 0.001, -0.002, 0.0],
             k: [20.0, 0.0, 8.0, 0.0, 21.0, 4.0, 0.0, 0.0, 1.0],
             r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
@@ -241,7 +241,7 @@ fn imu_msg(t_ns: i64, i: usize) -> Vec<u8> {
         &msgs::Imu {
             header: Header {
                 stamp: stamp(t_ns),
-                frame_id: "imu",
+                frame_id: "imu".into(),
             },
             orientation: msgs::Quaternion::default(),
             orientation_covariance: [-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
@@ -347,6 +347,13 @@ fn ros2_bag_with_first_row_stamps() {
     assert_eq!(cds.frames[2].t_ns, T0 + 2 * PERIOD + 5_000_000 + 3_000_000);
     assert_eq!(cds.frames[2].readout_ns, 10_000_000);
     assert_eq!(cds.imu, ds.imu, "IMU stamps are sample times: unchanged");
+    // Converted, it becomes a shoal file with middle-row times.
+    let out = dir.path().join("converted.mcap");
+    write_dataset(&cds, None, &out, &WriteSettings::default()).unwrap();
+    let conv = open(&out).unwrap();
+    assert!(!conv.first_row_stamps);
+    assert_eq!(conv.frames[2].t_ns, cds.frames[2].t_ns);
+    assert_eq!(pixels(&conv), px);
     // The same bag as a rosbag2 folder.
     let bag_dir = dir.path().join("rosbag2");
     std::fs::create_dir(&bag_dir).unwrap();
@@ -360,13 +367,6 @@ fn ros2_bag_with_first_row_stamps() {
     let folder = open(&bag_dir).expect("open rosbag2 folder");
     assert_eq!(folder.frames.len(), 10);
     assert_eq!(pixels(&folder), px);
-    // Converted, it becomes a shoal file with middle-row times.
-    let out = dir.path().join("converted.mcap");
-    write_dataset(&cds, None, &out, &WriteSettings::default()).unwrap();
-    let conv = open(&out).unwrap();
-    assert!(!conv.first_row_stamps);
-    assert_eq!(conv.frames[2].t_ns, cds.frames[2].t_ns);
-    assert_eq!(pixels(&conv), px);
 }
 
 #[test]
@@ -387,19 +387,19 @@ fn compressed_and_foxglove_images_and_topic_choice() {
         let c = msgs::CompressedImage {
             header: Header {
                 stamp: stamp(t),
-                frame_id: "a",
+                frame_id: "a".into(),
             },
-            format: "png",
+            format: "png".into(),
             data: Bytes(&png),
         };
         bag.put("/a/compressed", t, &msgs::encode(&c, 100).unwrap());
         let gray = luma(k);
         let f = msgs::FoxgloveRawImage {
             timestamp: stamp(t + 1),
-            frame_id: "b",
+            frame_id: "b".into(),
             width: W,
             height: H,
-            encoding: "mono8",
+            encoding: "mono8".into(),
             step: W,
             data: Bytes(&gray),
         };

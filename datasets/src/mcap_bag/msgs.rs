@@ -5,6 +5,8 @@
 //! `00 00`: big-endian, then two option bytes); CDR alignment counts from after that header,
 //! so the body is handed to `cdr-encoding` on its own.
 
+use std::borrow::Cow;
+
 use byteorder::{BigEndian, LittleEndian};
 use serde::{Deserialize, Serialize};
 
@@ -34,14 +36,15 @@ impl Time {
     }
 }
 
-/// `std_msgs/msg/Header`.
+/// `std_msgs/msg/Header`. (Strings are `Cow`: `cdr-encoding` hands strings over as
+/// transient `&str`, so they cannot be borrowed from the message.)
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 pub struct Header<'a> {
     /// Stamp.
     pub stamp: Time,
     /// Frame name.
     #[serde(borrow)]
-    pub frame_id: &'a str,
+    pub frame_id: Cow<'a, str>,
 }
 
 /// A byte sequence (`uint8[]`) serialised in one piece (serde would write a `[u8]` byte
@@ -72,7 +75,8 @@ pub struct Image<'a> {
     /// Columns.
     pub width: u32,
     /// Pixel encoding (`mono8`, `rgb8`, `bgr8`, ...).
-    pub encoding: &'a str,
+    #[serde(borrow)]
+    pub encoding: Cow<'a, str>,
     /// 1 for big-endian multi-byte pixels.
     pub is_bigendian: u8,
     /// Bytes per row.
@@ -89,7 +93,8 @@ pub struct CompressedImage<'a> {
     #[serde(borrow)]
     pub header: Header<'a>,
     /// `jpeg`, `png`, or image_transport's `"<encoding>; jpeg compressed <encoding>"`.
-    pub format: &'a str,
+    #[serde(borrow)]
+    pub format: Cow<'a, str>,
     /// The encoded image.
     #[serde(borrow)]
     pub data: Bytes<'a>,
@@ -101,13 +106,15 @@ pub struct FoxgloveRawImage<'a> {
     /// Stamp.
     pub timestamp: Time,
     /// Frame name.
-    pub frame_id: &'a str,
+    #[serde(borrow)]
+    pub frame_id: Cow<'a, str>,
     /// Columns.
     pub width: u32,
     /// Rows.
     pub height: u32,
     /// Pixel encoding.
-    pub encoding: &'a str,
+    #[serde(borrow)]
+    pub encoding: Cow<'a, str>,
     /// Bytes per row.
     pub step: u32,
     /// Pixels.
@@ -121,12 +128,14 @@ pub struct FoxgloveCompressedImage<'a> {
     /// Stamp.
     pub timestamp: Time,
     /// Frame name.
-    pub frame_id: &'a str,
+    #[serde(borrow)]
+    pub frame_id: Cow<'a, str>,
     /// The encoded image.
     #[serde(borrow)]
     pub data: Bytes<'a>,
     /// `jpeg`, `png`, ...
-    pub format: &'a str,
+    #[serde(borrow)]
+    pub format: Cow<'a, str>,
 }
 
 /// `geometry_msgs/msg/Vector3` (also `Point`).
@@ -199,7 +208,8 @@ pub struct CameraInfo<'a> {
     /// Columns.
     pub width: u32,
     /// `plumb_bob` (k1 k2 p1 p2 k3), `rational_polynomial`, `equidistant`, ...
-    pub distortion_model: &'a str,
+    #[serde(borrow)]
+    pub distortion_model: Cow<'a, str>,
     /// Distortion coefficients.
     pub d: Vec<f64>,
     /// Intrinsics, rows (`fx 0 cx; 0 fy cy; 0 0 1`).
@@ -378,11 +388,11 @@ mod tests {
                     sec: 7,
                     nanosec: 9,
                 },
-                frame_id: "cam",
+                frame_id: "cam".into(),
             },
             height: 1,
             width: 2,
-            encoding: "mono8",
+            encoding: "mono8".into(),
             is_bigendian: 0,
             step: 2,
             data: Bytes(&[10, 20]),
@@ -396,7 +406,7 @@ mod tests {
         want.extend_from_slice(&[2, 0, 0, 0, 2, 0, 0, 0, 10, 20]);
         assert_eq!(bytes, want);
         let back: Image = decode(&bytes).unwrap();
-        assert_eq!((back.width, back.encoding, back.data.0), (2, "mono8", &[10u8, 20][..]));
+        assert_eq!((back.width, &*back.encoding, back.data.0), (2, "mono8", &[10u8, 20][..]));
         assert_eq!(back.header.stamp.to_ns(), Some(7_000_000_009));
     }
 

@@ -63,7 +63,7 @@ struct Raw<'a> {
     stamp: Time,
     width: u32,
     height: u32,
-    encoding: &'a str,
+    encoding: std::borrow::Cow<'a, str>,
     step: u32,
     data: Bytes<'a>,
 }
@@ -162,7 +162,7 @@ pub fn probe(kind: ImageKind, bytes: &[u8]) -> Result<ImageProbe, String> {
 
 /// Checks a raw image's encoding and sizes; returns the encoding and bytes per pixel.
 fn raw_layout(r: &Raw) -> Result<(RawEncoding, usize), String> {
-    let enc = raw_encoding(r.encoding)?;
+    let enc = raw_encoding(&r.encoding)?;
     let bpp = if enc == RawEncoding::Mono8 { 1 } else { 3 };
     let row = r.width as usize * bpp;
     if (r.step as usize) < row {
@@ -279,11 +279,11 @@ mod tests {
                         sec: 1,
                         nanosec: 5,
                     },
-                    frame_id: "cam",
+                    frame_id: "cam".into(),
                 },
                 height: h,
                 width: w,
-                encoding,
+                encoding: encoding.into(),
                 is_bigendian: 0,
                 step,
                 data: Bytes(data),

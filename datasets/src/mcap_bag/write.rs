@@ -131,6 +131,17 @@ pub fn write_dataset(
     write_messages(ds, &ch, &mut writer, &mut summary)?;
     w.finish().map_err(mcap_err)?;
     drop(w);
+    if summary.frames == 0 && !ds.frames.is_empty() {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(DatasetError::InvalidConfig {
+            detail: format!(
+                "{}: not written: none of the {} frames could be read (first: {})",
+                out.display(),
+                ds.frames.len(),
+                summary.skipped_frames.first().map_or("", String::as_str)
+            ),
+        });
+    }
     std::fs::rename(&tmp, out).map_err(|source| DatasetError::Io {
         path: out.to_path_buf(),
         source,
@@ -275,11 +286,11 @@ fn write_messages<W: std::io::Write + std::io::Seek>(
             let img = msgs::Image {
                 header: Header {
                     stamp: ros_time(t, out)?,
-                    frame_id: CAMERA_FRAME,
+                    frame_id: CAMERA_FRAME.into(),
                 },
                 height,
                 width,
-                encoding: "mono8",
+                encoding: "mono8".into(),
                 is_bigendian: 0,
                 step: width,
                 data: Bytes(&pixels),
@@ -301,11 +312,11 @@ fn camera_info(ds: &Dataset, stamp: Time) -> msgs::CameraInfo<'static> {
     msgs::CameraInfo {
         header: Header {
             stamp,
-            frame_id: CAMERA_FRAME,
+            frame_id: CAMERA_FRAME.into(),
         },
         height: m.height,
         width: m.width,
-        distortion_model: "plumb_bob",
+        distortion_model: "plumb_bob".into(),
         d: vec![m.k1, m.k2, m.p1, m.p2, m.k3],
         k: [m.fx, 0.0, m.cx, 0.0, m.fy, m.cy, 0.0, 0.0, 1.0],
         r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
@@ -329,7 +340,7 @@ fn imu_msg(s: &crate::ImuSample, stamp: Time) -> msgs::Imu<'static> {
     msgs::Imu {
         header: Header {
             stamp,
-            frame_id: "imu0",
+            frame_id: "imu0".into(),
         },
         orientation: msgs::Quaternion::default(),
         orientation_covariance: no_orientation,
@@ -345,7 +356,7 @@ fn pose_msg(p: &crate::StampedPose, stamp: Time) -> msgs::PoseStamped<'static> {
     msgs::PoseStamped {
         header: Header {
             stamp,
-            frame_id: "world",
+            frame_id: "world".into(),
         },
         pose: msgs::Pose {
             position: msgs::Vector3 {
