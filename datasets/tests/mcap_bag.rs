@@ -73,7 +73,10 @@ fn synthetic_round_trip_is_exact() {
         let back = open(&out).expect("open mcap");
         assert_eq!(back.kind, DatasetKind::Mcap);
         assert!(back.issues.is_empty(), "{:?}", back.issues);
-        assert!(!back.first_row_stamps, "shoal's own stamps are middle-row times");
+        assert!(
+            !back.first_row_stamps,
+            "shoal's own stamps are middle-row times"
+        );
         assert_eq!(back.imu_calib, Some(yaml));
         assert!(back.camera.readout_ns > 0 && back.camera.t_bs_given);
         assert_same_replay(&ds, &back);
@@ -86,7 +89,13 @@ fn synthetic_round_trip_is_exact() {
     let first = dir.path().join("sim_Zstd.mcap");
     let again = dir.path().join("again.mcap");
     let ds1 = open(&first).unwrap();
-    write_dataset(&ds1, ds1.imu_calib.as_ref(), &again, &WriteSettings::default()).unwrap();
+    write_dataset(
+        &ds1,
+        ds1.imu_calib.as_ref(),
+        &again,
+        &WriteSettings::default(),
+    )
+    .unwrap();
     assert_same_replay(&ds, &open(&again).unwrap());
 }
 
@@ -108,7 +117,10 @@ fn calibration_over_shoal_mcap_matches_folder() {
         calib: Some(file),
         ..OpenOptions::default()
     };
-    let (a, b) = (open_with(&src, &opts).unwrap(), open_with(&out, &opts).unwrap());
+    let (a, b) = (
+        open_with(&src, &opts).unwrap(),
+        open_with(&out, &opts).unwrap(),
+    );
     let ta: Vec<i64> = a.frames.iter().map(|f| f.t_ns).collect();
     let tb: Vec<i64> = b.frames.iter().map(|f| f.t_ns).collect();
     assert_eq!(ta, tb);
@@ -141,7 +153,10 @@ impl Bag {
     }
 
     fn channel(&mut self, topic: &str, schema: &str, encoding: &str) {
-        let sid = self.w.add_schema(schema, "ros2msg", b"(definition)").unwrap();
+        let sid = self
+            .w
+            .add_schema(schema, "ros2msg", b"(definition)")
+            .unwrap();
         let id = self
             .w
             .add_channel(sid, topic, encoding, &BTreeMap::new())
@@ -325,7 +340,10 @@ fn ros2_bag_with_first_row_stamps() {
     // Without a calibration file t_r = t_d = 0: the frame time is the header stamp.
     assert_eq!(ds.frames[2].t_ns, T0 + 2 * PERIOD);
     let m = &ds.camera.model;
-    assert_eq!((m.width, m.height, m.fx, m.fy, m.cx, m.cy), (W, H, 20.0, 21.0, 8.0, 4.0));
+    assert_eq!(
+        (m.width, m.height, m.fx, m.fy, m.cx, m.cy),
+        (W, H, 20.0, 21.0, 8.0, 4.0)
+    );
     assert_eq!((m.k1, m.k2, m.p1, m.p2), (-0.1, 0.01, 0.001, -0.002));
     assert!(!ds.camera.t_bs_given);
     assert!((ds.camera.rate_hz - 20.0).abs() < 1e-9);
@@ -409,7 +427,12 @@ fn compressed_and_foxglove_images_and_topic_choice() {
     let calib = dir.path().join("cal.toml");
     let mut cal = datasets::calibration::CalibrationFile::from_dataset(
         &datasets::CameraCalib {
-            model: datasets::PinholeRadtan::from_coefficients(W, H, [20.0, 20.0, 8.0, 4.0], [0.0; 5]),
+            model: datasets::PinholeRadtan::from_coefficients(
+                W,
+                H,
+                [20.0, 20.0, 8.0, 4.0],
+                [0.0; 5],
+            ),
             t_bs: nalgebra::Isometry3::identity(),
             t_bs_given: true,
             readout_ns: 0,
@@ -435,7 +458,9 @@ fn compressed_and_foxglove_images_and_topic_choice() {
     assert_eq!(png.frames[0].t_ns, T0);
     assert_eq!(pixels(&png), pixels(&auto));
     assert_eq!(pixels(&png)[2], luma(2));
-    let e = open_with(&path, &topic(Some("/c/proto"))).unwrap_err().to_string();
+    let e = open_with(&path, &topic(Some("/c/proto")))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("encoded as protobuf"), "{e}");
     // No CameraInfo and no calibration file: the error says what to give.
     let e = open(&path).unwrap_err().to_string();
@@ -477,7 +502,10 @@ fn missing_topics_are_errors_naming_the_file_and_topics() {
     bag.put("/imu/data", T0, &imu_msg(T0, 0));
     bag.finish();
     let e = open(&imu_only).unwrap_err().to_string();
-    assert!(e.contains("no image topic") && e.contains("/imu/data"), "{e}");
+    assert!(
+        e.contains("no image topic") && e.contains("/imu/data"),
+        "{e}"
+    );
     // Not an MCAP file.
     let junk = dir.path().join("junk.mcap");
     std::fs::write(&junk, b"not an mcap file at all").unwrap();
@@ -500,14 +528,22 @@ fn unknown_encodings_and_non_increasing_stamps_are_skipped() {
     let kinds: Vec<_> = ds.issues.iter().map(|i| i.kind).collect();
     assert_eq!(
         kinds,
-        [IssueKind::BadMessage, IssueKind::BadMessage, IssueKind::NonMonotonic]
+        [
+            IssueKind::BadMessage,
+            IssueKind::BadMessage,
+            IssueKind::NonMonotonic
+        ]
     );
     let d = &ds.issues[0].detail;
     assert!(
         d.contains("/cam/image_raw") && d.contains("message 3") && d.contains("bayer_rggb8"),
         "{d}"
     );
-    assert!(ds.issues[2].detail.contains("not after"), "{}", ds.issues[2].detail);
+    assert!(
+        ds.issues[2].detail.contains("not after"),
+        "{}",
+        ds.issues[2].detail
+    );
     let kept: Vec<usize> = ds
         .frames
         .iter()
@@ -568,7 +604,9 @@ fn damaged_chunk_is_skipped_and_later_chunks_used() {
     let ds = open(&damaged).expect("the other chunks are used");
     assert!(ds.issues.iter().all(|i| i.kind == IssueKind::TruncatedFile));
     assert_eq!(ds.issues.len(), 1, "{:?}", ds.issues);
-    assert!(ds.issues[0].detail.contains(&format!("byte {}", at.record_offset)));
+    assert!(ds.issues[0]
+        .detail
+        .contains(&format!("byte {}", at.record_offset)));
     let times: Vec<i64> = ds.frames.iter().map(|f| f.t_ns).collect();
     assert!(!times.contains(&whole.frames[10].t_ns));
     assert!(times.contains(&whole.frames[19].t_ns) && times.len() >= 17);

@@ -36,7 +36,10 @@ pub struct ShoalMeta {
 }
 
 fn nums(v: &[f64]) -> String {
-    v.iter().map(|x| format!("{x:?}")).collect::<Vec<_>>().join(" ")
+    v.iter()
+        .map(|x| format!("{x:?}"))
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 fn rows(m: &Matrix3<f64>) -> String {
@@ -51,7 +54,11 @@ pub fn to_map(meta: &ShoalMeta) -> BTreeMap<String, String> {
     };
     put("format", FORMAT.into());
     put("version", VERSION.into());
-    let conv = if meta.middle_row { MIDDLE_ROW } else { "first_row" };
+    let conv = if meta.middle_row {
+        MIDDLE_ROW
+    } else {
+        "first_row"
+    };
     put("time_convention", conv.into());
     let c = &meta.camera;
     let k = &c.model;
@@ -87,7 +94,12 @@ pub fn to_map(meta: &ShoalMeta) -> BTreeMap<String, String> {
             put("imu.t_a", rows(&k.t_a));
         }
         if let Some(b) = &i.initial_biases {
-            put("imu.initial_biases", nums(&[b.gyro.x, b.gyro.y, b.gyro.z, b.accel.x, b.accel.y, b.accel.z]));
+            put(
+                "imu.initial_biases",
+                nums(&[
+                    b.gyro.x, b.gyro.y, b.gyro.z, b.accel.x, b.accel.y, b.accel.z,
+                ]),
+            );
         }
         if let Some(t) = i.time_offset_ns {
             put("imu.time_offset_ns", t.to_string());
@@ -106,7 +118,10 @@ pub fn from_map(m: &BTreeMap<String, String>) -> Result<ShoalMeta, String> {
         return Err(format!("format `{}`, expected `{FORMAT}`", get("format")?));
     }
     if get("version")? != VERSION {
-        return Err(format!("version {} (this build reads {VERSION})", get("version")?));
+        return Err(format!(
+            "version {} (this build reads {VERSION})",
+            get("version")?
+        ));
     }
     let floats = |k: &str, n: usize| -> Result<Vec<f64>, String> {
         let v: Vec<f64> = get(k)?
@@ -119,9 +134,8 @@ pub fn from_map(m: &BTreeMap<String, String>) -> Result<ShoalMeta, String> {
         }
         Ok(v)
     };
-    let int = |k: &str| -> Result<i64, String> {
-        get(k)?.parse().map_err(|e| format!("`{k}`: {e}"))
-    };
+    let int =
+        |k: &str| -> Result<i64, String> { get(k)?.parse().map_err(|e| format!("`{k}`: {e}")) };
     let size: Vec<u32> = get("camera.size")?
         .split_whitespace()
         .map(str::parse)
@@ -132,7 +146,12 @@ pub fn from_map(m: &BTreeMap<String, String>) -> Result<ShoalMeta, String> {
     };
     let p = floats("camera.pinhole", 4)?;
     let d = floats("camera.radtan", 5)?;
-    let mut model = PinholeRadtan::from_coefficients(w, h, [p[0], p[1], p[2], p[3]], [d[0], d[1], d[2], d[3], d[4]]);
+    let mut model = PinholeRadtan::from_coefficients(
+        w,
+        h,
+        [p[0], p[1], p[2], p[3]],
+        [d[0], d[1], d[2], d[3], d[4]],
+    );
     model.readout = ReadoutDirection::parse(get("camera.readout_direction")?)?;
     let q = floats("camera.t_bs_quat_xyzw", 4)?;
     let t = floats("camera.t_bs_xyz", 3)?;

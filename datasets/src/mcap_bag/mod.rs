@@ -190,7 +190,8 @@ pub fn read(path: &Path, topics: &Topics, calib_given: bool) -> Result<Dataset, 
         detail,
     };
     let image_topic = choose_image_topic(&all, topics.image.as_deref()).map_err(bad)?;
-    let imu_topic = choose_topic(&all, topics.imu.as_deref(), msgs::names::IMU, "IMU").map_err(bad)?;
+    let imu_topic =
+        choose_topic(&all, topics.imu.as_deref(), msgs::names::IMU, "IMU").map_err(bad)?;
     let mut issues: Vec<InputIssue> = Vec::new();
     for (_, idx) in &indexes {
         issues.extend(idx.issues.iter().cloned());
@@ -337,7 +338,10 @@ fn choose_topic(
     let usable = |c: &ChannelInfo| c.encoding == "cdr" && c.schema == schema;
     match asked {
         Some(t) => match all.get(t) {
-            None => Err(format!("no {what} topic {t}; the file has: {}", topic_list(all))),
+            None => Err(format!(
+                "no {what} topic {t}; the file has: {}",
+                topic_list(all)
+            )),
             Some(c) if !usable(c) => Err(format!(
                 "topic {t} is {} encoded as {}, not CDR {schema}",
                 c.schema, c.encoding
@@ -402,7 +406,10 @@ fn collect_frames(
 fn frame_problem(last: Option<&(FrameRecord, u32, u32)>, e: &ImageEntry) -> Option<String> {
     let (prev, w, h) = last?;
     if e.stamp_ns <= prev.t_ns {
-        return Some(format!("stamp not after the previous frame's {} ns", prev.t_ns));
+        return Some(format!(
+            "stamp not after the previous frame's {} ns",
+            prev.t_ns
+        ));
     }
     ((e.width, e.height) != (*w, *h)).then(|| {
         format!(
@@ -474,7 +481,11 @@ fn camera_info_of<'a>(
     let topic = infos
         .iter()
         .find(|t| **t == &same_ns)
-        .or(if infos.len() == 1 { infos.first() } else { None })?;
+        .or(if infos.len() == 1 {
+            infos.first()
+        } else {
+            None
+        })?;
     channels_of(indexes, topic).find_map(|(_, d)| d.camera_info.as_ref())
 }
 
@@ -522,7 +533,12 @@ fn camera_model(
         (_, true) => Ok(PinholeRadtan::from_coefficients(
             width,
             height,
-            [width as f64, width as f64, width as f64 / 2.0, height as f64 / 2.0],
+            [
+                width as f64,
+                width as f64,
+                width as f64 / 2.0,
+                height as f64 / 2.0,
+            ],
             [0.0; 5],
         )),
         (Some(Err(e)), false) => Err(format!("{e}: give the camera model with --calib")),
@@ -569,7 +585,10 @@ impl McapFrameLoader {
     ) -> Result<(), DatasetError> {
         let err = |detail: String| DatasetError::Image {
             path: path.to_path_buf(),
-            detail: format!("message in the record at byte {}: {detail}", at.record_offset),
+            detail: format!(
+                "message in the record at byte {}: {detail}",
+                at.record_offset
+            ),
         };
         let bytes = self.message(path, at).map_err(err)?;
         pixels::decode_gray_into(at.kind, bytes, dst, width, height).map_err(err)

@@ -384,10 +384,7 @@ mod tests {
     fn image_layout_is_ros2_cdr() {
         let img = Image {
             header: Header {
-                stamp: Time {
-                    sec: 7,
-                    nanosec: 9,
-                },
+                stamp: Time { sec: 7, nanosec: 9 },
                 frame_id: "cam".into(),
             },
             height: 1,
@@ -406,7 +403,10 @@ mod tests {
         want.extend_from_slice(&[2, 0, 0, 0, 2, 0, 0, 0, 10, 20]);
         assert_eq!(bytes, want);
         let back: Image = decode(&bytes).unwrap();
-        assert_eq!((back.width, &*back.encoding, back.data.0), (2, "mono8", &[10u8, 20][..]));
+        assert_eq!(
+            (back.width, &*back.encoding, back.data.0),
+            (2, "mono8", &[10u8, 20][..])
+        );
         assert_eq!(back.header.stamp.to_ns(), Some(7_000_000_009));
     }
 
@@ -417,7 +417,9 @@ mod tests {
         let h: Header = decode(&be).unwrap();
         assert_eq!(h.stamp.to_ns(), Some(1_000_000_002));
         assert!(decode::<Header>(&[0, 1]).unwrap_err().contains("shorter"));
-        assert!(decode::<Header>(&[0, 7, 0, 0, 1]).unwrap_err().contains("not plain CDR"));
+        assert!(decode::<Header>(&[0, 7, 0, 0, 1])
+            .unwrap_err()
+            .contains("not plain CDR"));
         assert!(decode::<Header>(&[0, 1, 0, 0, 1, 2])
             .unwrap_err()
             .contains("CDR decoding failed"));
@@ -425,9 +427,20 @@ mod tests {
 
     #[test]
     fn time_conversions() {
-        assert_eq!(Time::from_ns(-1).unwrap(), Time { sec: -1, nanosec: 999_999_999 });
+        assert_eq!(
+            Time::from_ns(-1).unwrap(),
+            Time {
+                sec: -1,
+                nanosec: 999_999_999
+            }
+        );
         assert_eq!(Time::from_ns(-1).unwrap().to_ns(), Some(-1));
         assert!(Time::from_ns(i64::MAX).is_none());
-        assert!(Time { sec: 0, nanosec: 1_000_000_000 }.to_ns().is_none());
+        assert!(Time {
+            sec: 0,
+            nanosec: 1_000_000_000
+        }
+        .to_ns()
+        .is_none());
     }
 }

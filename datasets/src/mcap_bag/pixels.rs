@@ -275,10 +275,7 @@ mod tests {
         encode(
             &Image {
                 header: Header {
-                    stamp: Time {
-                        sec: 1,
-                        nanosec: 5,
-                    },
+                    stamp: Time { sec: 1, nanosec: 5 },
                     frame_id: "cam".into(),
                 },
                 height: h,
@@ -308,8 +305,22 @@ mod tests {
         let rgb = [200u8, 10, 30, 0, 255, 0];
         let bgr = [30u8, 10, 200, 0, 255, 0];
         let (mut a, mut b) = ([0u8; 2], [0u8; 2]);
-        decode_gray_into(ImageKind::RosRaw, &image("rgb8", 2, 1, 6, &rgb), &mut a, 2, 1).unwrap();
-        decode_gray_into(ImageKind::RosRaw, &image("bgr8", 2, 1, 6, &bgr), &mut b, 2, 1).unwrap();
+        decode_gray_into(
+            ImageKind::RosRaw,
+            &image("rgb8", 2, 1, 6, &rgb),
+            &mut a,
+            2,
+            1,
+        )
+        .unwrap();
+        decode_gray_into(
+            ImageKind::RosRaw,
+            &image("bgr8", 2, 1, 6, &bgr),
+            &mut b,
+            2,
+            1,
+        )
+        .unwrap();
         assert_eq!(a, b);
         // Rec. 709 luma of pure green is 0.7152 * 255.
         assert_eq!(a[1], 182);

@@ -186,7 +186,12 @@ fn read_fully(file: &mut File, buf: &mut [u8]) -> std::io::Result<usize> {
 
 /// Reads the body of the top-level record at `offset` (`len` bytes after its opcode and
 /// length) into `buf`.
-pub fn read_record(file: &mut File, offset: u64, len: u64, buf: &mut Vec<u8>) -> std::io::Result<u8> {
+pub fn read_record(
+    file: &mut File,
+    offset: u64,
+    len: u64,
+    buf: &mut Vec<u8>,
+) -> std::io::Result<u8> {
     file.seek(SeekFrom::Start(offset))?;
     let mut head = [0u8; 9];
     file.read_exact(&mut head)?;
@@ -223,7 +228,10 @@ impl Pass<'_> {
         let rec = match mcap::parse_record(opcode, body) {
             Ok(r) => r,
             Err(e) => {
-                self.file_issue(offset, format!("record (opcode {opcode:#04x}) does not parse: {e}"));
+                self.file_issue(
+                    offset,
+                    format!("record (opcode {opcode:#04x}) does not parse: {e}"),
+                );
                 return false;
             }
         };
@@ -276,7 +284,10 @@ impl Pass<'_> {
         let reader = match mcap::read::ChunkReader::new(header, data) {
             Ok(r) => r,
             Err(e) => {
-                self.file_issue(offset, format!("chunk cannot be read: {e}; its messages are skipped"));
+                self.file_issue(
+                    offset,
+                    format!("chunk cannot be read: {e}; its messages are skipped"),
+                );
                 return;
             }
         };
@@ -292,11 +303,14 @@ impl Pass<'_> {
                         kind: ImageKind::RosRaw,
                     };
                     if self.wanted(header.channel_id) {
-                        pending.push((header, Pending {
-                            channel: header.channel_id,
-                            at,
-                            data: data.into_owned(),
-                        }));
+                        pending.push((
+                            header,
+                            Pending {
+                                channel: header.channel_id,
+                                at,
+                                data: data.into_owned(),
+                            },
+                        ));
                     }
                 }
                 Ok(other) => self.definition(other),
@@ -343,7 +357,10 @@ impl Pass<'_> {
             issue_at(
                 self.path,
                 IssueKind::BadMessage,
-                format!("topic {topic}, message {n} (record at byte {}): {detail}", at.record_offset),
+                format!(
+                    "topic {topic}, message {n} (record at byte {}): {detail}",
+                    at.record_offset
+                ),
             )
         };
         if let Some(kind) = ImageKind::of_schema(&schema) {
@@ -410,7 +427,10 @@ fn stamped_pose(data: &[u8]) -> Result<StampedPose, String> {
     let (p, q) = (m.pose.position, m.pose.orientation);
     let quat = nalgebra::Quaternion::new(q.w, q.x, q.y, q.z);
     if !(quat.norm() - 1.0).abs().lt(&1e-6) {
-        return Err(format!("orientation is not a unit quaternion (norm {})", quat.norm()));
+        return Err(format!(
+            "orientation is not a unit quaternion (norm {})",
+            quat.norm()
+        ));
     }
     Ok(StampedPose {
         t_ns: stamp(m.header.stamp)?,

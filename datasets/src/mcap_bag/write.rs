@@ -179,7 +179,11 @@ fn add_channels<W: std::io::Write + std::io::Seek>(
     };
     Ok(Channels {
         image: channel(names::IMAGE, msgs::image_schema(), IMAGE_TOPIC)?,
-        info: channel(names::CAMERA_INFO, msgs::camera_info_schema(), CAMERA_INFO_TOPIC)?,
+        info: channel(
+            names::CAMERA_INFO,
+            msgs::camera_info_schema(),
+            CAMERA_INFO_TOPIC,
+        )?,
         imu: channel(names::IMU, msgs::imu_schema(), IMU_TOPIC)?,
         gt: if ground_truth {
             Some(channel(
@@ -274,7 +278,11 @@ fn write_messages<W: std::io::Write + std::io::Seek>(
         }
         if ti == t {
             let s = &ds.imu[i];
-            w.put(ch.imu, t, &encode(&imu_msg(s, ros_time(t, out)?), 400, out)?)?;
+            w.put(
+                ch.imu,
+                t,
+                &encode(&imu_msg(s, ros_time(t, out)?), 400, out)?,
+            )?;
             (i, summary.imu_samples) = (i + 1, summary.imu_samples + 1);
         } else if tf == t {
             let frame = &ds.frames[f];
