@@ -138,13 +138,22 @@ struct Bag {
 
 impl Bag {
     fn new(path: &Path, compression: Option<mcap::Compression>, chunk: u64) -> Self {
+        Self::with_options(
+            path,
+            mcap::WriteOptions::new()
+                .compression(compression)
+                .chunk_size(Some(chunk)),
+        )
+    }
+
+    /// Messages as top-level records, no chunks (as a recorder that streams writes).
+    fn unchunked(path: &Path) -> Self {
+        Self::with_options(path, mcap::WriteOptions::new().use_chunks(false))
+    }
+
+    fn with_options(path: &Path, options: mcap::WriteOptions) -> Self {
         let f = BufWriter::new(std::fs::File::create(path).unwrap());
-        let w = mcap::WriteOptions::new()
-            .profile("ros2")
-            .compression(compression)
-            .chunk_size(Some(chunk))
-            .create(f)
-            .unwrap();
+        let w = options.profile("ros2").create(f).unwrap();
         Self {
             w,
             ids: BTreeMap::new(),
@@ -458,6 +467,30 @@ fn compressed_and_foxglove_images_and_topic_choice() {
     assert_eq!(png.frames[0].t_ns, T0);
     assert_eq!(pixels(&png), pixels(&auto));
     assert_eq!(pixels(&png)[2], luma(2));
+    // The same messages unchunked (top-level message records) read the same.
+    let flat = dir.path().join("flat.mcap");
+    let mut bag = Bag::unchunked(&flat);
+    bag.channel("/b/raw", names::FOXGLOVE_RAW_IMAGE, "cdr");
+    for (k, f) in auto.frames.iter().enumerate() {
+        let gray = luma(k);
+        let m = msgs::FoxgloveRawImage {
+            timestamp: stamp(f.t_ns),
+            frame_id: "b".into(),
+            width: W,
+            height: H,
+            encoding: "mono8".into(),
+            step: W,
+            data: Bytes(&gray),
+        };
+        bag.put("/b/raw", f.t_ns, &msgs::encode(&m, 100).unwrap());
+    }
+    bag.finish();
+    let flat_ds = open_with(&flat, &topic(None)).unwrap();
+    assert!(matches!(
+        flat_ds.frames[1].source,
+        datasets::FrameSource::Mcap(datasets::mcap_bag::McapFrameRef { in_chunk: None, .. })
+    ));
+    assert_eq!(pixels(&flat_ds), pixels(&auto));
     let e = open_with(&path, &topic(Some("/c/proto")))
         .unwrap_err()
         .to_string();
@@ -576,7 +609,7 @@ fn cut_file_keeps_what_comes_before_the_cut() {
     std::fs::write(&cut, &bytes[..bytes.len() * 6 / 10]).unwrap();
     let ds = open(&cut).expect("a cut file is read up to the cut");
     let n = ds.frames.len();
-    assert!(n >= 8 && n < 20, "{n} frames");
+    assert!((8..20).contains(&n), "{n} frames");
     let t: Vec<_> = ds.issues.iter().map(|i| i.kind).collect();
     assert_eq!(t, [IssueKind::TruncatedFile]);
     assert!(ds.issues[0].detail.contains("cannot be read past byte"));

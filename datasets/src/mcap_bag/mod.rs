@@ -220,8 +220,9 @@ pub fn read(path: &Path, topics: &Topics, calib_given: bool) -> Result<Dataset, 
     let (camera, imu_calib, gt_topic) = match &shoal {
         Some(m) if m.middle_row => (m.camera.clone(), m.imu, m.ground_truth_topic.clone()),
         _ => {
-            let info = camera_info_of(&indexes, &all, &image_topic);
-            let model = camera_model(info, width, height, calib_given).map_err(bad)?;
+            let (info, info_problem) = camera_info_of(&indexes, &all, &image_topic);
+            let model = camera_model(info, width, height, calib_given)
+                .map_err(|e| bad(format!("{e}{}", info_problem.unwrap_or_default())))?;
             let camera = CameraCalib {
                 model,
                 t_bs: nalgebra::Isometry3::identity(),
@@ -465,12 +466,13 @@ fn collect_poses(
     out
 }
 
-/// The first `CameraInfo` of the image topic's namespace, or of the only such topic.
+/// The first `CameraInfo` of the image topic's namespace, or of the only such topic; and
+/// when that topic has none that decodes, why (for the error message).
 fn camera_info_of<'a>(
     indexes: &'a [(PathBuf, FileIndex)],
     all: &'a BTreeMap<String, ChannelInfo>,
     image_topic: &str,
-) -> Option<&'a scan::CameraInfoValues> {
+) -> (Option<&'a scan::CameraInfoValues>, Option<String>) {
     let infos: Vec<&String> = all
         .values()
         .filter(|c| c.schema == msgs::names::CAMERA_INFO && c.encoding == "cdr")
@@ -478,15 +480,19 @@ fn camera_info_of<'a>(
         .collect();
     let ns = image_topic.rsplit_once('/').map_or("", |(ns, _)| ns);
     let same_ns = format!("{ns}/camera_info");
-    let topic = infos
-        .iter()
-        .find(|t| **t == &same_ns)
-        .or(if infos.len() == 1 {
-            infos.first()
-        } else {
-            None
-        })?;
-    channels_of(indexes, topic).find_map(|(_, d)| d.camera_info.as_ref())
+    let only = if infos.len() == 1 {
+        infos.first()
+    } else {
+        None
+    };
+    let Some(topic) = infos.iter().find(|t| **t == &same_ns).or(only) else {
+        return (None, None);
+    };
+    let info = channels_of(indexes, topic).find_map(|(_, d)| d.camera_info.as_ref());
+    let problem = channels_of(indexes, topic)
+        .find_map(|(_, d)| d.issues.first())
+        .map(|i| format!(" ({})", i.detail));
+    (info, if info.is_none() { problem } else { None })
 }
 
 /// The camera model of a `CameraInfo` for images of `width` x `height`. Without one
@@ -543,7 +549,7 @@ fn camera_model(
         )),
         (Some(Err(e)), false) => Err(format!("{e}: give the camera model with --calib")),
         (None, false) => Err(format!(
-            "no {} topic: give the camera model with --calib",
+            "no usable {} message: give the camera model with --calib",
             msgs::names::CAMERA_INFO
         )),
     }

@@ -215,13 +215,6 @@ struct Pass<'p> {
     schemas: HashMap<u16, String>,
 }
 
-/// A message waiting for its chunk to check out.
-struct Pending {
-    channel: u16,
-    at: McapFrameRef,
-    data: Vec<u8>,
-}
-
 impl Pass<'_> {
     /// Takes one top-level record at `offset`; true at the end of the data section.
     fn record(&mut self, opcode: u8, body: &[u8], offset: u64) -> bool {
@@ -303,14 +296,8 @@ impl Pass<'_> {
                         kind: ImageKind::RosRaw,
                     };
                     if self.wanted(header.channel_id) {
-                        pending.push((
-                            header,
-                            Pending {
-                                channel: header.channel_id,
-                                at,
-                                data: data.into_owned(),
-                            },
-                        ));
+                        // Kept until the whole chunk has checked out.
+                        pending.push((header, at, data.into_owned()));
                     }
                 }
                 Ok(other) => self.definition(other),
@@ -327,9 +314,8 @@ impl Pass<'_> {
                 }
             }
         }
-        for (header, p) in pending {
-            self.message(&header, &p.data, p.at);
-            debug_assert_eq!(p.channel, header.channel_id);
+        for (header, at, data) in pending {
+            self.message(&header, &data, at);
         }
     }
 
