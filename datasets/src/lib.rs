@@ -1,5 +1,5 @@
-//! Dataset readers (EuRoC ASL, KITTI odometry, phone logger), trajectory IO and the
-//! synthetic world generator.
+//! Dataset readers (EuRoC ASL, KITTI odometry, phone logger, GoPro, AprilGrid detections,
+//! MCAP files and ROS 2 bags), trajectory IO and the synthetic world generator.
 //!
 //! Every reader produces the same plain [`Dataset`]: camera calibration, the list of frames
 //! (mid-row timestamps after the camera-IMU offset), IMU samples and optional ground truth.
@@ -68,7 +68,7 @@ pub struct CameraCalib {
     pub rate_hz: f64,
 }
 
-/// One camera frame on disk.
+/// One camera frame: an image file, or an image message in a recording.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameRecord {
     /// Time of the middle row (and middle of the exposure), ns on the sensor clock, t_d applied.

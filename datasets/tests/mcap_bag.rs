@@ -615,6 +615,14 @@ fn cut_file_keeps_what_comes_before_the_cut() {
     assert!(ds.issues[0].detail.contains("cannot be read past byte"));
     assert_eq!(pixels(&ds), pixels(&whole)[..n].to_vec());
     assert_eq!(ds.imu[..], whole.imu[..ds.imu.len()]);
+    // Cut inside the first chunk: nothing usable, and the error says the file is damaged.
+    let early = dir.path().join("early.mcap");
+    std::fs::write(&early, &bytes[..300]).unwrap();
+    let e = open(&early).unwrap_err().to_string();
+    assert!(
+        e.contains("early.mcap") && e.contains("the file is damaged") && e.contains("past byte"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -184,10 +184,19 @@ pub fn read(path: &Path, topics: &Topics, calib_given: bool) -> Result<Dataset, 
     }
     let shoal = shoal_meta(&indexes)?;
     let all = all_topics(&indexes);
+    // A damaged file explains a missing topic or image: the error says so.
+    let damage: Option<String> = indexes.iter().find_map(|(f, idx)| {
+        idx.issues
+            .first()
+            .map(|i| format!("{}: {}", f.display(), i.detail))
+    });
     let bad = |detail: String| DatasetError::Parse {
         path: path.to_path_buf(),
         line: 0,
-        detail,
+        detail: match &damage {
+            Some(d) => format!("{detail} (the file is damaged: {d})"),
+            None => detail,
+        },
     };
     let image_topic = choose_image_topic(&all, topics.image.as_deref()).map_err(bad)?;
     let imu_topic =
