@@ -29,6 +29,11 @@ pub struct RunConfig {
     /// Calibration files put in place of the datasets' own (`shoal run --calib`): none, one
     /// for every dataset, or one per dataset in the order of `datasets`.
     pub calib: Vec<PathBuf>,
+    /// Image topic of MCAP / ROS 2 bag datasets (`--image-topic`; default: found by
+    /// message type).
+    pub image_topic: Option<String>,
+    /// IMU topic of MCAP / ROS 2 bag datasets (`--imu-topic`; default: found by type).
+    pub imu_topic: Option<String>,
     /// Per-client modes (`shoal run --mode` given once per dataset, issue 19: mixed
     /// monocular and visual-inertial clients), in the order of `datasets`; empty: every
     /// client runs `tracker.mode`.
@@ -81,6 +86,8 @@ impl Default for RunConfig {
         Self {
             datasets: Vec::new(),
             calib: Vec::new(),
+            image_topic: None,
+            imu_topic: None,
             client_modes: Vec::new(),
             mode: ReplayMode::Lockstep,
             rate: 1.0,
@@ -236,15 +243,6 @@ impl RunConfig {
         Ok(())
     }
 
-    /// How client `client`'s dataset is opened: its calibration file, `fps`, `frames`.
-    pub fn open_options(&self, client: usize) -> datasets::OpenOptions {
-        datasets::OpenOptions {
-            calibration: self.calib_of(client).map(Path::to_path_buf),
-            fps: self.fps,
-            frames: self.frames_of(client),
-        }
-    }
-
     /// The frame range of client `client`'s dataset (`frames`), if any.
     pub fn frames_of(&self, client: usize) -> Option<datasets::FrameRange> {
         match self.frames.as_slice() {
@@ -260,6 +258,20 @@ impl RunConfig {
             .get(client)
             .copied()
             .unwrap_or(self.tracker.mode)
+    }
+
+    /// How to open client `client`'s dataset: its calibration file, the MCAP topics, `fps`
+    /// and its frame range.
+    pub fn open_options(&self, client: usize) -> datasets::OpenOptions {
+        datasets::OpenOptions {
+            calib: self.calib_of(client).map(Path::to_path_buf),
+            topics: datasets::mcap_bag::Topics {
+                image: self.image_topic.clone(),
+                imu: self.imu_topic.clone(),
+            },
+            fps: self.fps,
+            frames: self.frames_of(client),
+        }
     }
 
     /// The calibration file of client `client`, if any (`calib`).

@@ -1,5 +1,5 @@
 //! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `calibrate`, `config`, `sim`, `eval`,
-//! `pgo`, `vocab`, `bench`;
+//! `pgo`, `vocab`, `bench`, `convert`;
 //! `service` (hidden) is how the launcher starts each service as its own process.
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -9,6 +9,7 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod calibrate_cmd;
 mod config;
+mod convert_cmd;
 mod demo;
 mod eval;
 mod launcher;
@@ -45,6 +46,8 @@ enum Command {
     /// Bag-of-words vocabulary of the loop closer (`vocab train`).
     #[command(subcommand)]
     Vocab(vocab_cmd::VocabCommand),
+    /// Convert a dataset (any format `run` reads) to another format: `--to mcap`.
+    Convert(convert_cmd::ConvertArgs),
     /// Benchmarks (IPC hand-off, ...).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -63,8 +66,8 @@ struct RunArgs {
     /// Set one configuration key over the file, e.g. `tracker.window=10` (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     sets: Vec<String>,
-    /// Dataset folder (EuRoC ASL, KITTI odometry, phone logger; auto-detected). Repeat for
-    /// more clients. Replaces the file's `datasets`.
+    /// Dataset folder (EuRoC ASL, KITTI odometry, phone logger, ...), MCAP file or ROS 2
+    /// bag folder; auto-detected. Repeat for more clients. Replaces the file's `datasets`.
     #[arg(long = "dataset")]
     datasets: Vec<PathBuf>,
     /// What each client runs: `auto` (visual-inertial when its dataset has an IMU stream
@@ -78,6 +81,12 @@ struct RunArgs {
     /// per `--dataset` in the same order. Replaces the file's `calib`.
     #[arg(long = "calib", value_name = "FILE")]
     calib: Vec<PathBuf>,
+    /// Image topic of MCAP / ROS 2 bag datasets (default: found by message type).
+    #[arg(long, value_name = "TOPIC")]
+    image_topic: Option<String>,
+    /// IMU topic of MCAP / ROS 2 bag datasets (default: found by message type).
+    #[arg(long, value_name = "TOPIC")]
+    imu_topic: Option<String>,
     /// Lock-step replay: nothing dropped, deterministic (the default).
     #[arg(long, conflicts_with = "rate")]
     lockstep: bool,
@@ -180,6 +189,12 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     if !args.calib.is_empty() {
         cfg.calib = args.calib;
     }
+    if args.image_topic.is_some() {
+        cfg.image_topic = args.image_topic;
+    }
+    if args.imu_topic.is_some() {
+        cfg.imu_topic = args.imu_topic;
+    }
     if args.lockstep {
         cfg.mode = shoal_runtime::ReplayMode::Lockstep;
     }
@@ -267,6 +282,7 @@ fn main() -> ExitCode {
                 Command::Pgo(a) => pgo_cmd::run(&a),
                 Command::Vocab(v) => vocab_cmd::run(&v),
                 Command::Bench(b) => bench::run(b),
+                Command::Convert(a) => convert_cmd::run(&a),
                 Command::Service(_) => Ok(()),
             };
             match result {

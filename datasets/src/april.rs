@@ -132,6 +132,7 @@ pub fn open(root: &Path) -> Result<crate::Dataset, DatasetError> {
             path,
             exposure_ns: 0,
             readout_ns: 0,
+            source: crate::FrameSource::File,
         })
         .collect();
     let camera = crate::CameraCalib {
@@ -150,6 +151,8 @@ pub fn open(root: &Path) -> Result<crate::Dataset, DatasetError> {
         imu,
         ground_truth: None,
         issues,
+        first_row_stamps: false,
+        imu_calib: None,
     })
 }
 

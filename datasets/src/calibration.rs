@@ -342,6 +342,10 @@ impl CalibrationFile {
         let shift = new.time_offset_ns - old.time_offset_ns;
         for f in &mut ds.frames {
             f.t_ns += shift;
+            if ds.first_row_stamps {
+                // t_mid = stamp + t_r/2 + t_d (VI_NOTES.md §1).
+                f.t_ns += new.readout_ns / 2 - f.readout_ns / 2;
+            }
             f.readout_ns = new.readout_ns;
         }
         ds.camera = CameraCalib {

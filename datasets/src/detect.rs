@@ -5,14 +5,33 @@
 //! - `movie_metadata.csv` → phone logger;
 //! - `frame_timestamps.csv` + `gyro.csv` + `accl.csv` + `frames/` → GoPro clip;
 //! - `cam0/` + `imu0.csv` + `config.yaml` → AprilGrid detections (feature tracks);
-//! - `images/` + `K.txt` → an image folder without timestamps.
+//! - `images/` + `K.txt` → an image folder without timestamps;
+//! - a file starting with the MCAP magic, or a folder with a rosbag2 `metadata.yaml` →
+//!   MCAP / ROS 2 bag ([`crate::mcap_bag`]).
 //!
 //! [`open_with`] also takes what `shoal run` may say of any dataset ([`OpenOptions`]): a
-//! calibration file, the frame rate of an index-only sequence, and a range of its frames.
+//! calibration file, an MCAP recording's topics, the frame rate of an index-only sequence,
+//! and a range of its frames.
 
 use std::path::{Path, PathBuf};
 
-use crate::{april, euroc, gopro, image_folder, kitti, phone, Dataset, DatasetError, DatasetKind};
+use crate::{
+    april, euroc, gopro, image_folder, kitti, mcap_bag, phone, Dataset, DatasetError, DatasetKind,
+};
+
+/// How to open a dataset ([`open_with`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct OpenOptions {
+    /// A calibration file to put in place of the dataset's own (`--calib`).
+    pub calib: Option<PathBuf>,
+    /// The topics of an MCAP recording (`--image-topic`, `--imu-topic`); ignored for the
+    /// other formats.
+    pub topics: mcap_bag::Topics,
+    /// Frame rate of a sequence without timestamps (an image folder, `--fps`), Hz.
+    pub fps: Option<f64>,
+    /// Only these frames (`--frames`, [`Dataset::select_frames`]).
+    pub frames: Option<FrameRange>,
+}
 
 /// The kind of dataset in `path`, without reading it. `NotFound` for a missing folder,
 /// `UnknownFormat` when no layout matches.
@@ -23,14 +42,21 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
             what: "dataset folder".into(),
         });
     }
+    if mcap_bag::is_mcap_file(path) {
+        return Ok(DatasetKind::Mcap);
+    }
     if !path.is_dir() {
         return Err(DatasetError::UnknownFormat {
             path: path.into(),
-            detail: "not a folder; a dataset is a folder (EuRoC, KITTI or phone logger)".into(),
+            detail: "neither an MCAP file nor a folder (EuRoC, KITTI, phone logger, GoPro, \
+                     AprilGrid detections, rosbag2)"
+                .into(),
         });
     }
     // Before EuRoC: its `cam0/` would pass for a bare `mav0`.
-    if april::is_april_layout(path) {
+    if mcap_bag::is_rosbag2(path) {
+        Ok(DatasetKind::Mcap)
+    } else if april::is_april_layout(path) {
         Ok(DatasetKind::AprilTracks)
     } else if euroc::mav0_dir(path).is_some() {
         Ok(DatasetKind::Euroc)
@@ -48,7 +74,8 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
             detail: "expected `mav0/` (EuRoC), `image_0/` + `times.txt` (KITTI), \
                      `movie_metadata.csv` (phone logger) or `frame_timestamps.csv` + \
                      `gyro.csv` + `accl.csv` (GoPro), `cam0/` + `imu0.csv` + `config.yaml` \
-                     (AprilGrid detections) or `images/` + `K.txt` (image folder)"
+                     (AprilGrid detections), `images/` + `K.txt` (image folder) or \
+                     `metadata.yaml` (rosbag2)"
                 .into(),
         })
     }
@@ -57,51 +84,20 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
 /// Opens the dataset in `path` with the reader its layout calls for (an image folder at
 /// [`image_folder::DEFAULT_FPS`]).
 pub fn open(path: &Path) -> Result<Dataset, DatasetError> {
-    open_kind(path, None)
+    open_reader(path, &OpenOptions::default())
 }
 
-fn open_kind(path: &Path, fps: Option<f64>) -> Result<Dataset, DatasetError> {
+/// [`open`] with the options' topics (an MCAP recording's).
+fn open_reader(path: &Path, options: &OpenOptions) -> Result<Dataset, DatasetError> {
     match detect(path)? {
+        DatasetKind::Mcap => mcap_bag::read(path, &options.topics, options.calib.is_some()),
         DatasetKind::Euroc => euroc::read(path),
         DatasetKind::Kitti => kitti::read(path),
         DatasetKind::Phone => phone::read(path),
         DatasetKind::GoPro => gopro::read(path),
         DatasetKind::AprilTracks => april::open(path),
-        DatasetKind::ImageFolder => image_folder::read(path, fps),
+        DatasetKind::ImageFolder => image_folder::read(path, options.fps),
     }
-}
-
-/// What a run may say of a dataset besides its folder.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct OpenOptions {
-    /// A calibration file in place of the dataset's own ([`open_calibrated`]).
-    pub calibration: Option<PathBuf>,
-    /// Frame rate of a sequence without timestamps (an image folder), Hz.
-    pub fps: Option<f64>,
-    /// Only these frames ([`Dataset::select_frames`]).
-    pub frames: Option<FrameRange>,
-}
-
-/// Opens the dataset in `path` as `opts` say: the reader (with `fps`), the calibration
-/// file, then the frame range.
-pub fn open_with(path: &Path, opts: &OpenOptions) -> Result<Dataset, DatasetError> {
-    let mut ds = open_kind(path, opts.fps)?;
-    if let Some(file) = &opts.calibration {
-        apply_calibration(&mut ds, path, file)?;
-    }
-    if let Some(r) = opts.frames {
-        ds.select_frames(r)?;
-    }
-    Ok(ds)
-}
-
-fn apply_calibration(ds: &mut Dataset, path: &Path, file: &Path) -> Result<(), DatasetError> {
-    let c = crate::calibration::CalibrationFile::read(file)?;
-    c.apply_to(ds).map_err(|detail| DatasetError::Parse {
-        path: file.to_path_buf(),
-        line: 0,
-        detail: format!("does not fit the dataset {}: {detail}", path.display()),
-    })
 }
 
 /// Frames `start` to `end - 1` of a sequence (0-based, in the dataset's frame order; `end`
@@ -159,11 +155,32 @@ impl std::fmt::Display for FrameRange {
 /// model, `T_BS`, `t_r`, and the frames re-stamped with its `t_d`). A calibration that cannot
 /// be read or does not fit the dataset is an error naming the file.
 pub fn open_calibrated(path: &Path, calibration: Option<&Path>) -> Result<Dataset, DatasetError> {
-    let opts = OpenOptions {
-        calibration: calibration.map(Path::to_path_buf),
-        ..OpenOptions::default()
-    };
-    open_with(path, &opts)
+    open_with(
+        path,
+        &OpenOptions {
+            calib: calibration.map(Path::to_path_buf),
+            ..OpenOptions::default()
+        },
+    )
+}
+
+/// Opens the dataset in `path` as `options` say: the reader (with an MCAP recording's
+/// topics, an image folder's frame rate), the calibration file ([`open_calibrated`]), then
+/// the frame range.
+pub fn open_with(path: &Path, options: &OpenOptions) -> Result<Dataset, DatasetError> {
+    let mut ds = open_reader(path, options)?;
+    if let Some(file) = &options.calib {
+        let c = crate::calibration::CalibrationFile::read(file)?;
+        c.apply_to(&mut ds).map_err(|detail| DatasetError::Parse {
+            path: file.to_path_buf(),
+            line: 0,
+            detail: format!("does not fit the dataset {}: {detail}", path.display()),
+        })?;
+    }
+    if let Some(r) = options.frames {
+        ds.select_frames(r)?;
+    }
+    Ok(ds)
 }
 
 #[cfg(test)]
@@ -202,6 +219,7 @@ mod tests {
                     path: format!("{k}.png").into(),
                     exposure_ns: 0,
                     readout_ns: 0,
+                    source: Default::default(),
                 })
                 .collect(),
             imu: (0..n * 10)
@@ -220,6 +238,8 @@ mod tests {
                     .collect(),
             ),
             issues: Vec::new(),
+            first_row_stamps: false,
+            imu_calib: None,
         }
     }
 

@@ -366,6 +366,7 @@ fn read_frames(
             path,
             exposure_ns: 0,
             readout_ns: calib.readout_ns,
+            source: crate::FrameSource::File,
         });
     }
     Ok(frames)
@@ -593,5 +594,7 @@ pub fn read(root: &Path) -> Result<Dataset, DatasetError> {
         imu,
         ground_truth,
         issues,
+        first_row_stamps: false,
+        imu_calib: None,
     })
 }

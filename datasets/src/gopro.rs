@@ -67,6 +67,8 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
         imu,
         ground_truth: None,
         issues,
+        first_row_stamps: false,
+        imu_calib: None,
     })
 }
 
@@ -108,6 +110,7 @@ fn read_frames(dir: &Path, issues: &mut Vec<InputIssue>) -> Result<Vec<FrameReco
                 path: image,
                 exposure_ns: 0,
                 readout_ns: 0,
+                source: crate::FrameSource::File,
             });
         }
     }

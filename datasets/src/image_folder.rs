@@ -50,6 +50,7 @@ pub fn read(dir: &Path, fps: Option<f64>) -> Result<Dataset, DatasetError> {
             path: path.clone(),
             exposure_ns: 0,
             readout_ns: 0,
+            source: Default::default(),
         })
         .collect();
     let (width, height) = match frames.first() {
@@ -78,6 +79,8 @@ pub fn read(dir: &Path, fps: Option<f64>) -> Result<Dataset, DatasetError> {
         imu: Vec::new(),
         ground_truth,
         issues,
+        first_row_stamps: false,
+        imu_calib: None,
     })
 }
 

@@ -115,6 +115,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
             path,
             exposure_ns: 0,
             readout_ns: 0,
+            source: crate::FrameSource::File,
         });
         frame_index.push(k);
     }
@@ -168,5 +169,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
         imu: Vec::new(),
         ground_truth,
         issues,
+        first_row_stamps: false,
+        imu_calib: None,
     })
 }

@@ -1,5 +1,5 @@
-//! Dataset readers (EuRoC ASL, KITTI odometry, phone logger), trajectory IO and the
-//! synthetic world generator.
+//! Dataset readers (EuRoC ASL, KITTI odometry, phone logger, GoPro, AprilGrid detections,
+//! MCAP files and ROS 2 bags), trajectory IO and the synthetic world generator.
 //!
 //! Every reader produces the same plain [`Dataset`]: camera calibration, the list of frames
 //! (mid-row timestamps after the camera-IMU offset), IMU samples and optional ground truth.
@@ -17,6 +17,7 @@ pub mod image_folder;
 pub mod image_io;
 pub mod kalibr;
 pub mod kitti;
+pub mod mcap_bag;
 pub mod phone;
 pub mod sim;
 mod text;
@@ -48,6 +49,9 @@ pub enum DatasetKind {
     /// `imu0.csv`, `config.yaml`; [`april`]). Each frame's [`FrameRecord::path`] is its
     /// detections file, which the camera ingest sends as a feature frame.
     AprilTracks,
+    /// An MCAP recording or a rosbag2 folder with MCAP storage ([`mcap_bag`]); each frame
+    /// is a message in the file ([`FrameSource::Mcap`]).
+    Mcap,
 }
 
 /// Camera calibration and timing of a dataset's camera.
@@ -68,7 +72,7 @@ pub struct CameraCalib {
     pub rate_hz: f64,
 }
 
-/// One camera frame on disk.
+/// One camera frame: an image file, or an image message in a recording.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameRecord {
     /// Time of the middle row (and middle of the exposure), ns on the sensor clock, t_d applied.
@@ -79,6 +83,44 @@ pub struct FrameRecord {
     pub exposure_ns: i64,
     /// Rolling-shutter readout time of this frame in ns (0 = global shutter).
     pub readout_ns: i64,
+    /// Where the pixels are: the image file `path`, or a message in the recording `path`.
+    pub source: FrameSource,
+}
+
+/// Where a frame's pixels are ([`FrameReader`] reads either).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FrameSource {
+    /// The image file [`FrameRecord::path`] (PNG or JPEG).
+    #[default]
+    File,
+    /// An image message of the MCAP file [`FrameRecord::path`].
+    Mcap(mcap_bag::McapFrameRef),
+}
+
+/// Reads frames as 8-bit gray whatever their [`FrameSource`]; an MCAP frame is read from
+/// its file on demand ([`mcap_bag::McapFrameLoader`]). One per replaying thread.
+#[derive(Debug, Default)]
+pub struct FrameReader {
+    mcap: mcap_bag::McapFrameLoader,
+}
+
+impl FrameReader {
+    /// Decodes `frame` as 8-bit gray into `dst` (`width * height` bytes); a frame that
+    /// cannot be read or decoded, or is of another size, is an error naming its file.
+    pub fn read_gray_into(
+        &mut self,
+        frame: &FrameRecord,
+        dst: &mut [u8],
+        width: u32,
+        height: u32,
+    ) -> Result<(), DatasetError> {
+        match &frame.source {
+            FrameSource::File => decode_gray_into(&frame.path, dst, width, height),
+            FrameSource::Mcap(at) => self
+                .mcap
+                .read_gray_into(&frame.path, at, dst, width, height),
+        }
+    }
 }
 
 /// One IMU sample (body frame), seed eq. 2.53-2.56 measurements.
@@ -129,6 +171,12 @@ pub enum IssueKind {
     MissingTime,
     /// Times and poses of different counts (`length_mismatch`).
     LengthMismatch,
+    /// A recorded message that does not decode, or of an unknown encoding (`bad_message`);
+    /// it is skipped.
+    BadMessage,
+    /// A recording cut short or with a damaged chunk (`truncated_file`): what is before
+    /// the damage (or around a damaged chunk) is used.
+    TruncatedFile,
 }
 
 impl IssueKind {
@@ -140,6 +188,8 @@ impl IssueKind {
         Self::MissingFile,
         Self::MissingTime,
         Self::LengthMismatch,
+        Self::BadMessage,
+        Self::TruncatedFile,
     ];
 
     /// The kind's short machine-friendly name.
@@ -151,6 +201,8 @@ impl IssueKind {
             Self::MissingFile => "missing_file",
             Self::MissingTime => "missing_time",
             Self::LengthMismatch => "length_mismatch",
+            Self::BadMessage => "bad_message",
+            Self::TruncatedFile => "truncated_file",
         }
     }
 }
@@ -192,6 +244,12 @@ pub struct Dataset {
     pub ground_truth: Option<Vec<StampedPose>>,
     /// Problems met and skipped while reading.
     pub issues: Vec<InputIssue>,
+    /// The frames' times were first-row stamps (a ROS bag's): `t_ns` = stamp + t_r/2 + t_d,
+    /// so a calibration file with another t_r moves them by half the difference too.
+    pub first_row_stamps: bool,
+    /// The IMU calibration the recording carries (a shoal-written MCAP's), in place of an
+    /// `imu0/sensor.yaml`.
+    pub imu_calib: Option<euroc::ImuSensorCalib>,
 }
 
 /// IMU kept on each side of a frame range ([`Dataset::select_frames`]), ns.

@@ -151,6 +151,7 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
             path,
             exposure_ns,
             readout_ns,
+            source: crate::FrameSource::File,
         });
     }
 
@@ -193,6 +194,8 @@ pub fn read(dir: &Path) -> Result<Dataset, DatasetError> {
         imu,
         ground_truth: None,
         issues,
+        first_row_stamps: false,
+        imu_calib: None,
     })
 }
 

@@ -1,6 +1,7 @@
 //! `shoal bench ...`: benchmarks whose figures go to BENCHMARKS.md (never asserted in tests).
 pub mod calibrate;
 pub mod ipc;
+pub mod read;
 pub mod tracking;
 
 /// Benchmarks.
@@ -15,6 +16,9 @@ pub enum BenchCommand {
     /// Monte-Carlo runs of the online camera-IMU calibration (issue 18) on a synthetic
     /// scenario: RMSE vs the issue's targets, NEES vs its 95 % band, ±3σ coverage.
     Calibrate(calibrate::CalibrateArgs),
+    /// Frame read-and-decode throughput of a dataset (the camera ingest's work per frame),
+    /// its opening time and the peak memory: an MCAP recording against its folder.
+    Read(read::ReadArgs),
     /// The subscriber side of `bench ipc` (started by it as a child process).
     #[command(hide = true)]
     IpcPeer(ipc::PeerArgs),
@@ -27,5 +31,6 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Ipc(a) => ipc::run(&a),
         BenchCommand::IpcPeer(a) => ipc::peer(&a),
         BenchCommand::Tracking(a) => tracking::run(&a),
+        BenchCommand::Read(a) => read::run(&a),
     }
 }

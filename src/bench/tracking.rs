@@ -80,8 +80,9 @@ pub fn run(args: &TrackingArgs) -> anyhow::Result<()> {
     let mut img = vec![0u8; (cam.width * cam.height) as usize];
     let mut acc = InProcess::default();
     let mut imu_next = 0;
+    let mut frames = datasets::FrameReader::default();
     for rec in ds.frames.iter().take(n) {
-        datasets::decode_gray_into(&rec.path, &mut img, cam.width, cam.height)?;
+        frames.read_gray_into(rec, &mut img, cam.width, cam.height)?;
         let image = GrayImage::from_packed(&img, cam.width as usize, cam.height as usize)?;
         // The IMU up to the frame's last row, as the tracker service waits for it.
         let last_row_ns = rec.t_ns + rec.readout_ns / 2;

@@ -174,6 +174,12 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             if let Some(calib) = cfg.calib_of(client) {
                 args.extend(["--calib".to_string(), path_arg(calib)]);
             }
+            if let Some(t) = &cfg.image_topic {
+                args.extend(["--image-topic".to_string(), t.clone()]);
+            }
+            if let Some(t) = &cfg.imu_topic {
+                args.extend(["--imu-topic".to_string(), t.clone()]);
+            }
             args.extend(["--rate".to_string(), cfg.rate.to_string()]);
             if let Some(m) = cfg.max_frames {
                 args.extend(["--max-frames".to_string(), m.to_string()]);

@@ -36,6 +36,9 @@ fn imu_sensor_yaml(root: &Path) -> Option<PathBuf> {
 pub fn dataset_imu(
     ds: &datasets::Dataset,
 ) -> Option<Result<(datasets::euroc::ImuSensorCalib, PathBuf), datasets::DatasetError>> {
+    if let Some(y) = ds.imu_calib {
+        return Some(Ok((y, ds.root.clone())));
+    }
     if ds.kind == datasets::DatasetKind::AprilTracks {
         let noise = datasets::april::read_noise(&ds.root);
         return Some(noise.map(|noise| {

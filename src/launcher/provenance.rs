@@ -99,10 +99,21 @@ pub fn dataset_checksum(root: &Path) -> DatasetChecksum {
 }
 
 /// The manifest of `root` (`relative path \t size \t crc32` lines in sorted path order),
-/// the number of files and their bytes.
+/// the number of files and their bytes. A dataset that is one file (an MCAP recording) is
+/// its own one-line manifest, named by its file name.
 fn manifest(root: &Path) -> Result<(String, u64, u64), String> {
+    if root.is_file() {
+        let name = root.file_name().map(|n| n.to_string_lossy().into_owned());
+        let dir = root.parent().unwrap_or(Path::new("."));
+        return manifest_of(dir, name.into_iter().collect());
+    }
     let mut files = Vec::new();
     list_files(root, "", &mut files)?;
+    manifest_of(root, files)
+}
+
+/// The manifest of `files` (paths relative to `root`).
+fn manifest_of(root: &Path, mut files: Vec<String>) -> Result<(String, u64, u64), String> {
     files.sort();
     let mut text = String::new();
     let mut bytes = 0;

@@ -87,6 +87,8 @@ struct Ports {
     acks: iceoryx2::port::subscriber::Subscriber<Ipc, FrameAck, ()>,
     /// Malformed lines of the feature frames sent since the loop last took them.
     issues: std::cell::RefCell<Vec<datasets::InputIssue>>,
+    /// Reads the frames' pixels (image files, or messages of an MCAP recording on demand).
+    frames: std::cell::RefCell<datasets::FrameReader>,
 }
 
 impl Ports {
@@ -100,6 +102,7 @@ impl Ports {
             publisher,
             acks,
             issues: Default::default(),
+            frames: Default::default(),
         })
     }
 
@@ -111,24 +114,28 @@ impl Ports {
         Ok(())
     }
 
-    /// Decodes `path` straight into a loaned sample of `frame_bytes` bytes and publishes it
+    /// Decodes `frame` (its image file, or its message of an MCAP recording) straight into a loaned sample of `frame_bytes` bytes and publishes it
     /// with `header` (stamped now). A corrupt image is an error to count (`Ok(Err)`), not to
     /// stop on.
     fn send(
         &self,
-        path: &std::path::Path,
+        frame: &datasets::FrameRecord,
         frame_bytes: usize,
         mut header: FrameHeader,
     ) -> anyhow::Result<Result<(), String>> {
         if header.pixel_format == PixelFormat::Features as u32 {
-            return self.send_features(path, frame_bytes, header);
+            return self.send_features(&frame.path, frame_bytes, header);
         }
         let mut sample = self
             .publisher
             .loan_slice(frame_bytes)
             .context("loan frame sample")?;
         let (w, h) = (header.width, header.height);
-        if let Err(e) = datasets::decode_gray_into(path, sample.payload_mut(), w, h) {
+        let decoded = self
+            .frames
+            .borrow_mut()
+            .read_gray_into(frame, sample.payload_mut(), w, h);
+        if let Err(e) = decoded {
             return Ok(Err(e.to_string()));
         }
         header.meta.publish_mono_ns = monotonic_ns();
@@ -267,8 +274,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
                 }
             }
             CameraStep::Publish { index, header } => {
-                let path = &dataset.frames[index].path;
-                match ports.send(path, frame_bytes, header)? {
+                match ports.send(&dataset.frames[index], frame_bytes, header)? {
                     Ok(()) => core.on_sent(monotonic_ns()),
                     Err(e) => core.on_corrupt(e).map_err(anyhow::Error::msg)?,
                 }

@@ -43,6 +43,11 @@ error_kinds! {
     MissingTime = "missing_time",
     /// Times and poses of different counts (KITTI).
     LengthMismatch = "length_mismatch",
+    /// A recorded message (MCAP / ROS 2 bag) that does not decode or has an unknown
+    /// encoding: skipped.
+    BadMessage = "bad_message",
+    /// A recording cut short or with a damaged chunk: the rest of it is used.
+    TruncatedFile = "truncated_file",
     // Messages.
     /// A message of another schema version (a foreign publisher on the same services).
     SchemaVersion = "schema_version",
@@ -113,6 +118,8 @@ impl From<datasets::IssueKind> for ErrorKind {
             I::MissingFile => Self::MissingFile,
             I::MissingTime => Self::MissingTime,
             I::LengthMismatch => Self::LengthMismatch,
+            I::BadMessage => Self::BadMessage,
+            I::TruncatedFile => Self::TruncatedFile,
         }
     }
 }

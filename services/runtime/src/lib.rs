@@ -587,6 +587,12 @@ pub struct ReplayArgs {
     /// Calibration file put in place of the dataset's own (`shoal run --calib`).
     #[arg(long)]
     pub calib: Option<PathBuf>,
+    /// Image topic of an MCAP / ROS 2 bag dataset (default: found by message type).
+    #[arg(long)]
+    pub image_topic: Option<String>,
+    /// IMU topic of an MCAP / ROS 2 bag dataset (default: found by message type).
+    #[arg(long)]
+    pub imu_topic: Option<String>,
     /// Replay mode: realtime | lockstep.
     #[arg(long, default_value = "lockstep")]
     pub mode: ReplayMode,
@@ -614,15 +620,19 @@ pub struct ReplayArgs {
 }
 
 impl ReplayArgs {
-    /// The dataset as the arguments say: the calibration file, the frame rate and the
-    /// frame range ([`datasets::open_with`]).
+    /// The dataset as the arguments say: the calibration file, the MCAP topics, the frame
+    /// rate and the frame range ([`datasets::open_with`]).
     pub fn open_dataset(&self) -> Result<datasets::Dataset, datasets::DatasetError> {
-        let opts = datasets::OpenOptions {
-            calibration: self.calib.clone(),
+        let options = datasets::OpenOptions {
+            calib: self.calib.clone(),
+            topics: datasets::mcap_bag::Topics {
+                image: self.image_topic.clone(),
+                imu: self.imu_topic.clone(),
+            },
             fps: self.fps,
             frames: self.frames,
         };
-        datasets::open_with(&self.dataset, &opts)
+        datasets::open_with(&self.dataset, &options)
     }
 
     /// The [`ServiceStart`] of ingest service `service` (node `{node}_c{client}`).

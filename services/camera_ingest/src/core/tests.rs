@@ -14,6 +14,7 @@ fn frames(n: usize) -> Vec<datasets::FrameRecord> {
             path: format!("cam0/{k}.png").into(),
             exposure_ns: 5 * MS,
             readout_ns: 20 * MS,
+            source: datasets::FrameSource::File,
         })
         .collect()
 }
