@@ -22,7 +22,7 @@ use crate::{
 /// How to open a dataset ([`open_with`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct OpenOptions {
-    /// A calibration file to put in place of the dataset's own (`--calib`).
+    /// A calibration file to put in place of the dataset's own (`--calib`, [`open_with`]).
     pub calib: Option<PathBuf>,
     /// The topics of an MCAP recording (`--image-topic`, `--imu-topic`); ignored for the
     /// other formats.
@@ -150,23 +150,11 @@ impl std::fmt::Display for FrameRange {
     }
 }
 
-/// Opens the dataset in `path` ([`open`]) and, with `calibration`, puts that calibration file
-/// in place of the dataset's own ([`crate::calibration::CalibrationFile::apply_to`]: camera
-/// model, `T_BS`, `t_r`, and the frames re-stamped with its `t_d`). A calibration that cannot
-/// be read or does not fit the dataset is an error naming the file.
-pub fn open_calibrated(path: &Path, calibration: Option<&Path>) -> Result<Dataset, DatasetError> {
-    open_with(
-        path,
-        &OpenOptions {
-            calib: calibration.map(Path::to_path_buf),
-            ..OpenOptions::default()
-        },
-    )
-}
-
 /// Opens the dataset in `path` as `options` say: the reader (with an MCAP recording's
-/// topics, an image folder's frame rate), the calibration file ([`open_calibrated`]), then
-/// the frame range.
+/// topics, an image folder's frame rate); the calibration file in place of the dataset's
+/// own ([`crate::calibration::CalibrationFile::apply_to`]: camera model, `T_BS`, `t_r`,
+/// and the frames re-stamped with its `t_d`; one that cannot be read or does not fit the
+/// dataset is an error naming the file); then the frame range.
 pub fn open_with(path: &Path, options: &OpenOptions) -> Result<Dataset, DatasetError> {
     let mut ds = open_reader(path, options)?;
     if let Some(file) = &options.calib {

@@ -25,7 +25,7 @@ pub mod trajectory;
 
 use std::path::PathBuf;
 
-pub use detect::{open, open_calibrated, open_with, FrameRange, OpenOptions};
+pub use detect::{open, open_with, FrameRange, OpenOptions};
 pub use error::DatasetError;
 pub use image_io::{decode_gray, decode_gray_into, image_size};
 pub use slam_core::camera::PinholeRadtan;

@@ -181,6 +181,13 @@ impl Supervised {
         false
     }
 
+    /// Whether exit `st` is the end of the service's work, not a crash: a clean exit of a
+    /// service that ends by itself at the end of its input (even during start-up: an IMU
+    /// ingest of a dataset without IMU samples signals ready and ends at once).
+    pub fn ended_cleanly(&self, st: &ExitStatus) -> bool {
+        st.success() && self.ends_by_itself
+    }
+
     /// Reaps the child if it exited (waitpid, so no zombie keeps its PID and locks alive).
     pub fn try_reap(&mut self) -> Option<ExitStatus> {
         self.reap(false)

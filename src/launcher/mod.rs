@@ -612,9 +612,8 @@ fn wait_server_quiet(services: &[Supervised], timeout: Duration) {
 }
 
 /// Waits until the services `among` (indices into `services`) are ready; fails when one
-/// exits during start-up or `timeout` passes. A service that ends by itself and exits
-/// cleanly has done its work (an IMU ingest of a dataset without IMU samples signals ready
-/// and ends at once, possibly before its ready line is read): it is done, not failed.
+/// exits during start-up or `timeout` passes. One that ended cleanly
+/// ([`Supervised::ended_cleanly`], possibly before its ready line was read) is done.
 fn wait_ready_among(
     services: &mut [Supervised],
     among: &[usize],
@@ -628,7 +627,7 @@ fn wait_ready_among(
             sv.poll_ready();
             if sv.phase == Phase::Starting {
                 if let Some(st) = sv.try_reap() {
-                    if st.success() && sv.ends_by_itself {
+                    if sv.ended_cleanly(&st) {
                         sv.phase = Phase::Done;
                         continue;
                     }
@@ -668,8 +667,7 @@ fn supervise(
     for sv in services.iter_mut() {
         sv.poll_ready();
         if let Some(st) = sv.try_reap() {
-            let clean = st.success() && sv.ends_by_itself;
-            if clean {
+            if sv.ended_cleanly(&st) {
                 sv.phase = Phase::Done;
                 continue;
             }
