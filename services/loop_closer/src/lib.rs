@@ -265,9 +265,23 @@ impl Closer {
     /// [`Closer::set_debug_queries`], every query's statistics go to stderr.
     pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
         let client = KeyframeId::from_raw(kf.kf_id).client().raw();
+        let (q_points, q_covis) = (kf.points.len(), kf.covisible.len());
         let found = self.detector.add(kf);
         if self.debug_queries {
-            eprintln!("loop_closer: query {:?}", self.detector.last_query());
+            eprintln!(
+                "loop_closer: query {:?} ({} points, {} covisible)",
+                self.detector.last_query(),
+                q_points,
+                q_covis
+            );
+            let d = self.detector.last_detail();
+            let top: Vec<String> = (d.candidates.iter().take(8))
+                .map(|(c, m, s)| format!("{c:#x}@{:#x}:{s:.3}", m.raw()))
+                .collect();
+            eprintln!("loop_closer:   candidates [{}]", top.join(" "));
+            for (c, why) in &d.rejected {
+                eprintln!("loop_closer:   rejected {c:#x}: {why:?}");
+            }
         }
         let Some(m) = found else {
             return Ok(None);

@@ -183,6 +183,53 @@ pub fn neighbourhood_points<'a>(
     out
 }
 
+/// Descriptor matches of `q`'s points against a candidate's neighbourhood points
+/// ([`neighbourhood_points`]), brute force: each query point's nearest neighbourhood point
+/// at Hamming distance `<= max_distance` passing the `ratio` test, each neighbourhood point
+/// kept by its closest query point. `PointMatch::m` indexes `points`. Matching the whole
+/// covisible window instead of the one candidate keyframe (ORB-SLAM3's place recognition)
+/// finds the candidate's place even when few of its own keypoints have points: on a
+/// revisit by another session the two keyframes' points are different subsets of the scene.
+pub fn match_neighbourhood(
+    q: &KeptKeyframe,
+    points: &[NeighbourhoodPoint],
+    max_distance: u32,
+    ratio: f32,
+) -> Vec<PointMatch> {
+    let mut best_for_m = vec![(NONE, NONE); points.len()];
+    for (iq, p) in q.points.iter().enumerate() {
+        let Some(dq) = q.features.descriptors.get(p.keypoint as usize) else {
+            continue;
+        };
+        let (mut best, mut best_j, mut second) = (NONE, NONE, NONE);
+        for (j, np) in points.iter().enumerate() {
+            let d = hamming(dq, &np.descriptor);
+            if d < best {
+                (second, best, best_j) = (best, d, j as u32);
+            } else if d < second {
+                second = d;
+            }
+        }
+        let unambiguous = second == NONE || (best as f32) < ratio * second as f32;
+        if best_j != NONE && best <= max_distance && unambiguous {
+            let slot = &mut best_for_m[best_j as usize];
+            if best < slot.0 {
+                *slot = (best, iq as u32);
+            }
+        }
+    }
+    best_for_m
+        .iter()
+        .enumerate()
+        .filter(|(_, b)| b.1 != NONE)
+        .map(|(j, &(d, iq))| PointMatch {
+            q: iq,
+            m: j as u32,
+            distance: d,
+        })
+        .collect()
+}
+
 /// One guided match: query keypoint and neighbourhood point index.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct GuidedMatch {

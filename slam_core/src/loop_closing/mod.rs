@@ -26,10 +26,10 @@ mod tests;
 #[cfg(test)]
 mod tests_detect;
 
-pub use detect::{LoopDetector, LoopDetectorParams, QueryStats};
+pub use detect::{LoopDetector, LoopDetectorParams, QueryDetail, QueryStats};
 pub use matching::{match_kept_points, neighbourhood_points, NeighbourhoodPoint, PointMatch};
 pub use refine::{refine_sim3, RefineParams, Sim3Correspondence};
-pub use sim3_ransac::{compute_sim3, Sim3Params, Sim3Result};
+pub use sim3_ransac::{compute_sim3, verify_sim3, Sim3Params, Sim3Reject, Sim3Result};
 
 use crate::lie::Sim3;
 use crate::server::MapId;

@@ -6,7 +6,7 @@ use std::collections::HashSet;
 
 use nalgebra::{UnitQuaternion, Vector2, Vector3};
 
-use super::matching::{guided_matches, match_kept_points, NeighbourhoodPoint};
+use super::matching::{guided_matches, match_kept_points, match_neighbourhood, NeighbourhoodPoint};
 use super::refine::{refine_sim3, RefineParams, Sim3Correspondence};
 use crate::camera::PinholeRadtan;
 use crate::features::TH_LOW;
@@ -50,7 +50,22 @@ pub struct Sim3Params {
     pub min_inliers: usize,
     /// Seed of the RANSAC sampler (runs are reproducible).
     pub seed: u64,
+    /// Match the query's points against the candidate's whole neighbourhood
+    /// ([`match_neighbourhood`], brute force) instead of the candidate keyframe's own
+    /// points: used for merges, where the two sessions' keyframes hold different subsets of
+    /// the scene's points.
+    pub window_matching: bool,
+    /// Repeated structure test: the verification is refused when a RANSAC hypothesis that
+    /// puts the candidate's camera elsewhere (by more than 5% of the query points' median
+    /// depth) has at least this fraction of the best one's inliers, e.g. a checkerboard
+    /// matched one square off. `INFINITY` turns it off; when on, RANSAC runs all
+    /// `max_iterations`.
+    pub rival_ratio: f32,
 }
+
+/// A rival hypothesis is "elsewhere" when the candidate's camera centre moves by more than
+/// this fraction of the query points' median depth.
+const RIVAL_DISTANCE_OF_DEPTH: f64 = 0.05;
 
 /// Largest change of the scale (|ln|) the reprojection refinement may make to the 3D-3D
 /// estimate (×/÷ 1.25).
@@ -72,6 +87,8 @@ impl Default for Sim3Params {
             guided_max_distance: TH_LOW,
             min_inliers: 40,
             seed: 0x005e_ed1c,
+            window_matching: false,
+            rival_ratio: f32::INFINITY,
         }
     }
 }
@@ -164,11 +181,13 @@ fn ransac(
     cam_q: &PinholeRadtan,
     cam_m: &PinholeRadtan,
     p: &Sim3Params,
-) -> Option<(Sim3, usize)> {
+) -> Option<(Sim3, usize, usize)> {
     let n = corrs.len();
     let mut rng = SplitMix64::new(p.seed);
     let mut sample = [0usize; 3];
     let mut best: Option<(Sim3, usize)> = None;
+    let rivals = p.rival_ratio.is_finite();
+    let mut tried: Vec<(Vector3<f64>, usize)> = Vec::new();
     let mut needed = p.max_iterations.max(1);
     let mut it = 0;
     while it < needed {
@@ -194,19 +213,133 @@ fn ransac(
             .iter()
             .filter(|c| is_inlier(&s, &s_inv, c, p.chi2, cam_q, cam_m))
             .count();
+        if rivals {
+            tried.push((s_inv.t, count));
+        }
         if best.is_none_or(|b| count > b.1) {
             best = Some((s, count));
-            needed =
-                adaptive_iterations(count as f64 / n as f64, 3, p.confidence, p.max_iterations);
+            if !rivals {
+                needed = adaptive_iterations(
+                    count as f64 / n as f64,
+                    3,
+                    p.confidence,
+                    p.max_iterations,
+                );
+            }
         }
     }
-    best
+    let (s, count) = best?;
+    Some((s, count, best_rival(corrs, &s, &tried)))
+}
+
+/// The most inliers of a hypothesis in `tried` (the query camera's centre in `m`'s frame,
+/// inliers) that puts the query camera farther than [`RIVAL_DISTANCE_OF_DEPTH`] of the
+/// median query depth (in `m`'s units) from where `best` puts it.
+fn best_rival(corrs: &[Sim3Correspondence], best: &Sim3, tried: &[(Vector3<f64>, usize)]) -> usize {
+    if tried.is_empty() {
+        return 0;
+    }
+    let mut depths: Vec<f64> = corrs.iter().map(|c| c.p_q.norm()).collect();
+    depths.sort_unstable_by(f64::total_cmp);
+    let median_m = depths[depths.len() / 2] / best.s;
+    let centre = best.inverse().t;
+    tried
+        .iter()
+        .filter(|(c, _)| (c - centre).norm() > RIVAL_DISTANCE_OF_DEPTH * median_m)
+        .map(|e| e.1)
+        .max()
+        .unwrap_or(0)
+}
+
+/// Correspondences and their (query point, matched point, query keypoint) ids.
+type Correspondences = (Vec<Sim3Correspondence>, Vec<(PointId, PointId, u32)>);
+
+/// The correspondence of query point `iq` with a point at `p_m` in `m`'s frame, observed in
+/// `m` at keypoint `km` (`None`: not observed in `m`, so only its reprojection into the
+/// query is tested: weight 0 on `m`'s side). `None` when not finite.
+fn correspondence(
+    q: &KeptKeyframe,
+    iq: usize,
+    m: &KeptKeyframe,
+    p_m: Vector3<f64>,
+    km: Option<usize>,
+) -> Option<Sim3Correspondence> {
+    let pq = q.points.get(iq)?;
+    let kq = q.features.keypoints.get(pq.keypoint as usize)?;
+    let (uv_m, inv_sigma2_m) = match km.and_then(|k| m.features.keypoints.get(k)) {
+        Some(k) => (
+            Vector2::new(f64::from(k.x), f64::from(k.y)),
+            m.features.scale.inv_sigma2(k.octave),
+        ),
+        None => (Vector2::zeros(), 0.0),
+    };
+    let c = Sim3Correspondence {
+        p_q: pq.p_k,
+        p_m,
+        uv_q: Vector2::new(f64::from(kq.x), f64::from(kq.y)),
+        uv_m,
+        inv_sigma2_q: q.features.scale.inv_sigma2(kq.octave),
+        inv_sigma2_m,
+    };
+    let finite = c.p_q.iter().chain(c.p_m.iter()).chain(c.uv_q.iter());
+    finite.copied().all(f64::is_finite).then_some(c)
+}
+
+/// Correspondences from descriptor matches between the two keyframes' points.
+fn keyframe_correspondences(
+    q: &KeptKeyframe,
+    m: &KeptKeyframe,
+    guides: Option<(&FeatureVector, &FeatureVector)>,
+    params: &Sim3Params,
+) -> Correspondences {
+    let matches = match_kept_points(q, m, guides, params.max_distance, params.ratio);
+    let mut out = (Vec::with_capacity(matches.len()), Vec::new());
+    for pm in &matches {
+        let Some(pmm) = m.points.get(pm.m as usize) else {
+            continue;
+        };
+        let km = Some(pmm.keypoint as usize);
+        if let Some(c) = correspondence(q, pm.q as usize, m, pmm.p_k, km) {
+            out.0.push(c);
+            out.1.push((q.points[pm.q as usize].point, pmm.point, q.points[pm.q as usize].keypoint));
+        }
+    }
+    out
+}
+
+/// Correspondences from descriptor matches of the query's points against `m`'s
+/// neighbourhood ([`match_neighbourhood`]).
+fn neighbourhood_correspondences(
+    q: &KeptKeyframe,
+    m: &KeptKeyframe,
+    neighbourhood: &[NeighbourhoodPoint],
+    params: &Sim3Params,
+) -> Correspondences {
+    let matches = match_neighbourhood(q, neighbourhood, params.max_distance, params.ratio);
+    let keypoint_in_m: std::collections::HashMap<PointId, usize> = m
+        .points
+        .iter()
+        .map(|p| (p.point, p.keypoint as usize))
+        .collect();
+    let mut out = (Vec::with_capacity(matches.len()), Vec::new());
+    for pm in &matches {
+        let np = &neighbourhood[pm.m as usize];
+        let km = keypoint_in_m.get(&np.point).copied();
+        if let Some(c) = correspondence(q, pm.q as usize, m, np.p_m, km) {
+            out.0.push(c);
+            out.1.push((q.points[pm.q as usize].point, np.point, q.points[pm.q as usize].keypoint));
+        }
+    }
+    out
 }
 
 /// Geometric verification of loop candidate `m` for query `q` (seed §3.4.2).
 ///
 /// 1. Descriptor matches between the two keyframes' points ([`match_kept_points`]; guided
-///    by vocabulary node when `guides = Some((fv_q, fv_m))`, brute force otherwise).
+///    by vocabulary node when `guides = Some((fv_q, fv_m))`, brute force otherwise), or,
+///    with [`Sim3Params::window_matching`], between the query's points and the whole
+///    `neighbourhood` ([`match_neighbourhood`]; a point `m` does not observe is tested by
+///    its reprojection into the query only).
 /// 2. RANSAC over 3-point samples with [`umeyama`] (with scale), inliers when both
 ///    reprojections (`S p_m` into `q`, `S⁻¹ p_q` into `m`) pass `χ² <= chi2` at the
 ///    keypoints' octaves.
@@ -218,7 +351,7 @@ fn ransac(
 ///    into `q` and matched by descriptor within a radius.
 ///
 /// Returns `None` when any stage falls short of its threshold or on degenerate input
-/// (fewer than 3 matches, non-finite points, zero scale).
+/// (fewer than 3 matches, non-finite points, zero scale); [`verify_sim3`] says which.
 pub fn compute_sim3(
     q: &KeptKeyframe,
     m: &KeptKeyframe,
@@ -226,50 +359,54 @@ pub fn compute_sim3(
     neighbourhood: &[NeighbourhoodPoint],
     params: &Sim3Params,
 ) -> Option<Sim3Result> {
-    let matches = match_kept_points(q, m, guides, params.max_distance, params.ratio);
-    let n_matches = matches.len();
-    if n_matches < params.min_matches.max(3) {
-        return None;
-    }
+    verify_sim3(q, m, guides, neighbourhood, params).ok()
+}
+
+/// The stage at which [`verify_sim3`] gave up, with the support it had reached.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sim3Reject {
+    /// Fewer descriptor matches (with finite points) than [`Sim3Params::min_matches`].
+    Matches(usize),
+    /// RANSAC found no hypothesis, or fewer inliers than `min_ransac_inliers`: (matches,
+    /// inliers).
+    Ransac(usize, usize),
+    /// The refinement failed, or left fewer than `min_refined_inliers`: (RANSAC inliers,
+    /// refined inliers).
+    Refined(usize, usize),
+    /// Refined plus guided matches fewer than `min_inliers`: (refined, total).
+    Inliers(usize, usize),
+    /// A merge verified between the two keyframes but confirmed in only this many of the
+    /// query's covisible keyframes ([`super::LoopDetectorParams::merge_confirmations`]).
+    Unconfirmed(usize),
+    /// Repeated structure ([`Sim3Params::rival_ratio`]): (best inliers, the best rival's).
+    Ambiguous(usize, usize),
+}
+
+/// [`compute_sim3`], saying at which stage a rejected candidate failed.
+pub fn verify_sim3(
+    q: &KeptKeyframe,
+    m: &KeptKeyframe,
+    guides: Option<(&FeatureVector, &FeatureVector)>,
+    neighbourhood: &[NeighbourhoodPoint],
+    params: &Sim3Params,
+) -> Result<Sim3Result, Sim3Reject> {
+    let (corrs, ids) = if !params.window_matching || neighbourhood.is_empty() {
+        keyframe_correspondences(q, m, guides, params)
+    } else {
+        neighbourhood_correspondences(q, m, neighbourhood, params)
+    };
+    let n_matches = corrs.len();
     let (cam_q, cam_m) = (&q.camera, &m.camera);
-    let mut corrs = Vec::with_capacity(n_matches);
-    let mut ids = Vec::with_capacity(n_matches);
-    for pm in &matches {
-        let (Some(pq), Some(pmm)) = (q.points.get(pm.q as usize), m.points.get(pm.m as usize))
-        else {
-            continue;
-        };
-        let (Some(kq), Some(km)) = (
-            q.features.keypoints.get(pq.keypoint as usize),
-            m.features.keypoints.get(pmm.keypoint as usize),
-        ) else {
-            continue;
-        };
-        let c = Sim3Correspondence {
-            p_q: pq.p_k,
-            p_m: pmm.p_k,
-            uv_q: Vector2::new(f64::from(kq.x), f64::from(kq.y)),
-            uv_m: Vector2::new(f64::from(km.x), f64::from(km.y)),
-            inv_sigma2_q: q.features.scale.inv_sigma2(kq.octave),
-            inv_sigma2_m: m.features.scale.inv_sigma2(km.octave),
-        };
-        let finite = c
-            .p_q
-            .iter()
-            .chain(c.p_m.iter())
-            .chain(c.uv_q.iter())
-            .chain(c.uv_m.iter());
-        if finite.copied().all(f64::is_finite) {
-            corrs.push(c);
-            ids.push((pq.point, pmm.point, pq.keypoint));
-        }
-    }
     if corrs.len() < params.min_matches.max(3) {
-        return None;
+        return Err(Sim3Reject::Matches(corrs.len()));
     }
-    let (s_ransac, ransac_inliers) = ransac(&corrs, cam_q, cam_m, params)?;
+    let (s_ransac, ransac_inliers, rival) =
+        ransac(&corrs, cam_q, cam_m, params).ok_or(Sim3Reject::Ransac(corrs.len(), 0))?;
     if ransac_inliers < params.min_ransac_inliers.max(3) {
-        return None;
+        return Err(Sim3Reject::Ransac(corrs.len(), ransac_inliers));
+    }
+    if rival as f32 >= params.rival_ratio * ransac_inliers as f32 {
+        return Err(Sim3Reject::Ambiguous(ransac_inliers, rival));
     }
     let mut mask = vec![false; corrs.len()];
     classify(&s_ransac, &corrs, params.chi2, cam_q, cam_m, &mut mask);
@@ -290,7 +427,8 @@ pub fn compute_sim3(
     // refinement may wander off in scale there: the 3D-3D estimate's scale bounds it.
     let (s_start, mask_start) = (s, mask.clone());
     for _ in 0..2 {
-        let (refined, _) = refine_sim3(&s, &corrs, &mask, cam_q, cam_m, &params.refine)?;
+        let (refined, _) = refine_sim3(&s, &corrs, &mask, cam_q, cam_m, &params.refine)
+            .ok_or(Sim3Reject::Refined(ransac_inliers, 0))?;
         s = refined;
         classify(&s, &corrs, params.chi2, cam_q, cam_m, &mut mask);
     }
@@ -300,7 +438,7 @@ pub fn compute_sim3(
     }
     let refined_inliers = mask.iter().filter(|&&m| m).count();
     if refined_inliers < params.min_refined_inliers.max(3) {
-        return None;
+        return Err(Sim3Reject::Refined(ransac_inliers, refined_inliers));
     }
 
     let mut point_pairs = Vec::with_capacity(refined_inliers + neighbourhood.len() / 4);
@@ -340,9 +478,9 @@ pub fn compute_sim3(
     }
     let inliers = refined_inliers + guided.len();
     if inliers < params.min_inliers {
-        return None;
+        return Err(Sim3Reject::Inliers(refined_inliers, inliers));
     }
-    Some(Sim3Result {
+    Ok(Sim3Result {
         s_qm: s,
         point_pairs,
         extra_observations,
@@ -351,4 +489,52 @@ pub fn compute_sim3(
         refined_inliers,
         inliers,
     })
+}
+
+#[cfg(test)]
+mod rival_tests {
+    use super::*;
+
+    /// Correspondences of points on a plane 4 m ahead: `n_true` seen where they are, and
+    /// `n_shifted` whose query side is the point one "square" (0.4 m, 10% of the depth)
+    /// sideways, as a repeated pattern matched one period off gives.
+    fn corrs(n_true: usize, n_shifted: usize, cam: &PinholeRadtan) -> Vec<Sim3Correspondence> {
+        let mut rng = SplitMix64::new(7);
+        let mut out = Vec::new();
+        for i in 0..n_true + n_shifted {
+            let u = |r: &mut SplitMix64| (r.next_u64() % 10_000) as f64 / 10_000.0 - 0.5;
+            let p_m = Vector3::new(3.0 * u(&mut rng), 2.0 * u(&mut rng), 4.0);
+            let shift = if i < n_true { 0.0 } else { 0.4 };
+            let p_q = p_m + Vector3::new(shift, 0.0, 0.0);
+            out.push(Sim3Correspondence {
+                p_q,
+                p_m,
+                uv_q: cam.project(&p_q).unwrap(),
+                uv_m: cam.project(&p_m).unwrap(),
+                inv_sigma2_q: 1.0,
+                inv_sigma2_m: 1.0,
+            });
+        }
+        out
+    }
+
+    #[test]
+    fn a_pattern_matched_one_period_off_is_a_rival() {
+        let cam = PinholeRadtan::pinhole(640, 480, 450.0, 450.0, 320.0, 240.0);
+        let on = Sim3Params {
+            rival_ratio: 0.7,
+            ..Sim3Params::default()
+        };
+        // Two equally supported placements: the rival has as many inliers as the best.
+        let (_, best, rival) = ransac(&corrs(40, 40, &cam), &cam, &cam, &on).unwrap();
+        assert!(best >= 40 && rival as f32 >= 0.9 * best as f32, "{best} {rival}");
+        // One clear placement (a few stray one-off matches): no rival worth the name.
+        let (s, best, rival) = ransac(&corrs(60, 8, &cam), &cam, &cam, &on).unwrap();
+        assert!(best >= 60 && (rival as f32) < 0.7 * best as f32, "{best} {rival}");
+        assert!(s.t.norm() < 0.05 && (s.s - 1.0).abs() < 0.01);
+        // Off: RANSAC stops early and reports no rival.
+        let (_, _, rival) = ransac(&corrs(40, 40, &cam), &cam, &cam, &Sim3Params::default())
+            .unwrap();
+        assert_eq!(rival, 0);
+    }
 }

@@ -373,3 +373,47 @@ fn removal_pose_updates_and_map_rename() {
     assert!(det.set_map(kf.kf_id, MAP_B));
     assert!(!det.update_pose(123_456, kf.t_sk));
 }
+
+/// Map B (8 keyframes at places of lap 1) queried after lap 1: the merge path verifies a
+/// candidate of map A at once and confirms it in the query's covisible keyframes, so B
+/// merges at its first queries; without it (`merge_candidates: 0`) it waits for three
+/// consecutive queries with consistent candidates. Both similarities match the truth.
+#[test]
+fn a_new_map_merges_at_once_when_its_neighbours_confirm() {
+    let s = scene();
+    let first_merge = |params: LoopDetectorParams| {
+        let mut det = LoopDetector::new(vocabulary(), params);
+        for kf in &s.lap1 {
+            assert!(det.add(kf.clone()).is_none());
+        }
+        let mut stats = Vec::new();
+        for (i, kf) in s.map_b.iter().enumerate() {
+            let found = det.add(kf.clone());
+            stats.push(*det.last_query());
+            if let Some(found) = found {
+                return Some((i, found, stats));
+            }
+        }
+        None
+    };
+    let (at, found, stats) =
+        first_merge(LoopDetectorParams::default()).expect("map B merges at once");
+    println!("merge path: first merge at map-B keyframe {at}; {stats:?}");
+    assert_eq!((found.query_map, found.matched_map), (MAP_B, MAP_A));
+    let (dist, ds, dr, dt) = check(&found, &s.specs);
+    assert!(dist < 0.8 && ds < 0.01 && dr < 0.5 && dt < 0.05);
+    assert!(stats[at].merge_verified >= 1 && stats[at].verified == 0);
+    let queried = stats.iter().position(|q| q.min_score.is_some()).unwrap();
+    assert!(at <= queried + 1, "merged at {at}, first query {queried}");
+
+    let off = LoopDetectorParams {
+        merge_candidates: 0,
+        ..LoopDetectorParams::default()
+    };
+    let (later, found, stats) = first_merge(off).expect("map B merges by consistency");
+    println!("consistency only: first merge at map-B keyframe {later}");
+    assert!(later >= queried + 2 && later > at, "{later} vs {at}");
+    assert!(stats.iter().all(|q| q.merge_verified == 0));
+    let (_, ds, dr, dt) = check(&found, &s.specs);
+    assert!(ds < 0.01 && dr < 0.5 && dt < 0.05);
+}
