@@ -3,6 +3,7 @@
 /// A sparse bag-of-words vector: `(word, weight)` sorted by word, one entry per word,
 /// L1-normalised (weights sum to 1) unless empty.
 #[derive(Debug, Clone, Default, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct BowVector {
     entries: Vec<(u32, f32)>,
 }
