@@ -41,10 +41,13 @@ fn clients_of(file: &MapFile) -> BTreeSet<u32> {
 /// `old → new`. The same file always gets the same ids (the mapper and the loop closer
 /// each load it and must agree).
 pub fn remap_clients(file: &mut MapFile) -> BTreeMap<u32, u32> {
-    let table: BTreeMap<u32, u32> = clients_of(file)
-        .into_iter()
-        .zip(SAVED_CLIENT_BASE..)
-        .collect();
+    remap_clients_from(file, SAVED_CLIENT_BASE)
+}
+
+/// [`remap_clients`] to `base`, `base + 1`, ... (`shoal bench map` makes a large file of
+/// copies of one this way).
+pub fn remap_clients_from(file: &mut MapFile, base: u32) -> BTreeMap<u32, u32> {
+    let table: BTreeMap<u32, u32> = clients_of(file).into_iter().zip(base..).collect();
     let client = |c: u32| ClientId::new(table.get(&c).copied().unwrap_or(c));
     let kf = |k: u64| {
         let id = KeyframeId::from_raw(k);

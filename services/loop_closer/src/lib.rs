@@ -755,7 +755,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let status = std::mem::take(&mut start.status);
     let (mut core, out) = LoopCloserCore::new(closer, params, &cfg, status, monotonic_ns());
     if let Some(l) = loaded {
-        core.status.set_value("map_loaded_keyframes", l.keyframes as f64);
+        core.status
+            .set_value("map_loaded_keyframes", l.keyframes as f64);
         core.status.set_value("map_load_ms", l.ms);
     }
     publish(&corrections, &resync, out)?;

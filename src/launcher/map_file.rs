@@ -1,0 +1,87 @@
+//! Saved maps in a run (`--load-map`, `--save-map`): the file's check before any service
+//! starts, and what the report says about it.
+use std::path::Path;
+
+use serde::Serialize;
+
+/// A `--load-map` file as the report lists it.
+#[derive(Debug, Clone, Default, Serialize, PartialEq)]
+pub struct MapLoadReport {
+    /// The file.
+    pub file: String,
+    /// Its size, bytes.
+    pub bytes: u64,
+    /// Its format version and the shoal version that wrote it.
+    pub format_version: u32,
+    /// The shoal version that wrote it.
+    pub written_by: String,
+    /// Maps, keyframes and points it holds.
+    pub maps: u64,
+    /// Keyframes over all maps.
+    pub keyframes: u64,
+    /// Points over all maps.
+    pub points: u64,
+    /// The launcher's check (read, checksum, decode, validation), ms.
+    pub check_ms: f64,
+    /// The mapper's load (read, check, host), ms (from its status).
+    pub mapper_load_ms: Option<f64>,
+    /// Keyframes the loop closer inserted from it and its load time, ms.
+    pub loop_closer_keyframes: Option<u64>,
+    /// The loop closer's load (read, check, BoW vectors, insertion), ms.
+    pub loop_closer_load_ms: Option<f64>,
+}
+
+/// A `--save-map` file as the report lists it (from the mapper's status).
+#[derive(Debug, Clone, Default, Serialize, PartialEq)]
+pub struct MapSaveReport {
+    /// The file.
+    pub file: String,
+    /// Written, or why not (the mapper's `map_file` error is in `errors`).
+    pub saved: bool,
+    /// Its size, bytes.
+    pub bytes: u64,
+    /// Maps, keyframes and points written.
+    pub maps: u64,
+    /// Keyframes over all maps.
+    pub keyframes: u64,
+    /// Points over all maps.
+    pub points: u64,
+    /// Time to gather, encode (with BoW vectors) and write it, ms.
+    pub save_ms: f64,
+}
+
+/// Reads the map file at `path` whole (magic, version, length, checksum, decode,
+/// validation): the error names the file and the problem.
+pub fn check(path: &Path) -> anyhow::Result<MapLoadReport> {
+    let t0 = std::time::Instant::now();
+    let loaded = map_store::load(path).map_err(|e| anyhow::anyhow!("--load-map: {e}"))?;
+    Ok(MapLoadReport {
+        file: path.display().to_string(),
+        bytes: loaded.bytes,
+        format_version: loaded.header.format_version,
+        written_by: loaded.header.shoal_version,
+        maps: loaded.file.maps.len() as u64,
+        keyframes: loaded.file.keyframes() as u64,
+        points: loaded.file.points() as u64,
+        check_ms: t0.elapsed().as_secs_f64() * 1e3,
+        ..MapLoadReport::default()
+    })
+}
+
+/// A status value as an integer count.
+fn count(values: &std::collections::BTreeMap<String, f64>, key: &str) -> u64 {
+    values.get(key).map_or(0, |v| *v as u64)
+}
+
+/// The save report of `path` from the mapper's status values.
+pub fn saved(path: &Path, values: &std::collections::BTreeMap<String, f64>) -> MapSaveReport {
+    MapSaveReport {
+        file: path.display().to_string(),
+        saved: values.contains_key("map_saved_bytes"),
+        bytes: count(values, "map_saved_bytes"),
+        maps: count(values, "map_saved_maps"),
+        keyframes: count(values, "map_saved_keyframes"),
+        points: count(values, "map_saved_points"),
+        save_ms: values.get("map_save_ms").copied().unwrap_or(0.0),
+    }
+}
