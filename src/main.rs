@@ -32,7 +32,7 @@ enum Command {
     /// Run the whole pipeline on a built-in synthetic scene (no download) and summarise.
     Demo(demo::DemoArgs),
     /// Run the pipeline on one or more datasets (one client each).
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// The run configuration: `config --print` shows every key with its default.
     Config(ConfigArgs),
     /// Online camera-IMU calibration of a dataset (t_d, t_r, intrinsics, lever arm, IMU
@@ -292,7 +292,7 @@ fn main() -> ExitCode {
             init_tracing();
             let result = match command {
                 Command::Demo(a) => demo::run(a),
-                Command::Run(a) => run_cmd(a),
+                Command::Run(a) => run_cmd(*a),
                 Command::Calibrate(a) => calibrate_cmd::run(&a),
                 Command::Config(a) => config_cmd(&a),
                 Command::Sim(a) => sim_cmd::run(&a),
