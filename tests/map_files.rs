@@ -83,6 +83,7 @@ fn a_saved_map_is_loaded_merged_into_and_saved_again() {
     let loaded = &rb["map_loaded"];
     assert_eq!(u(&loaded["keyframes"]), kfs_a, "{loaded}");
     assert_eq!(u(&loaded["loop_closer_keyframes"]), kfs_a, "{loaded}");
+    assert_eq!(loaded["loop_closer_vectors_from_file"], true, "{loaded}");
     let lc: LoopCloserCounters = service_counters(&rb, "loop_closer");
     assert!(lc.merges >= 1, "B did not relocalise into A's map: {lc:?}");
     let maps = rb["maps"].as_array().expect("maps");

@@ -27,7 +27,7 @@ pub mod remap;
 
 use serde::{Deserialize, Serialize};
 use slam_core::ids::KeyframeId;
-use slam_core::place::{BowVector, Vocabulary};
+use slam_core::place::{BowVector, FeatureVector, Vocabulary};
 use slam_core::server::ServerMap;
 use slam_core::vo::KfId;
 
@@ -51,24 +51,29 @@ pub struct SavedMap {
     pub map: ServerMap,
     /// Clients with keyframes in it, ascending.
     pub clients: Vec<u32>,
-    /// Bag-of-words vector of each keyframe (server keyframe id order), computed with the
-    /// vocabulary named in the header ([`Header::vocabulary_id`]).
-    pub bow: Vec<(KfId, BowVector)>,
+    /// Bag-of-words and feature vector of each keyframe (server keyframe id order),
+    /// computed with the vocabulary named in the header ([`Header::vocabulary_id`]), the
+    /// feature vectors at [`MapFile::feature_level`].
+    pub bow: Vec<(KfId, BowVector, FeatureVector)>,
 }
 
 /// The payload of a saved-map file.
 #[derive(Debug, Clone, Serialize, Deserialize, Default)]
 pub struct MapFile {
+    /// Vocabulary level of the keyframes' feature vectors (`LoopDetectorParams::
+    /// feature_level`; 0 with no feature vectors).
+    pub feature_level: u32,
     /// The maps, by ascending map id.
     pub maps: Vec<SavedMap>,
 }
 
 impl MapFile {
-    /// The file of `maps` (cloned, by ascending id), each keyframe's BoW vector computed
-    /// with `vocabulary`.
+    /// The file of `maps` (cloned, by ascending id), each keyframe's BoW vector and feature
+    /// vector at `feature_level` computed with `vocabulary`.
     pub fn from_maps<'a>(
         maps: impl IntoIterator<Item = &'a ServerMap>,
         vocabulary: &Vocabulary,
+        feature_level: u32,
     ) -> Self {
         let mut maps: Vec<SavedMap> = maps
             .into_iter()
@@ -78,13 +83,21 @@ impl MapFile {
                     .map
                     .keyframes
                     .iter()
-                    .map(|(k, kf)| (*k, vocabulary.transform(&kf.features.descriptors)))
+                    .map(|(k, kf)| {
+                        let descriptors = &kf.features.descriptors;
+                        let level = feature_level as usize;
+                        let (bow, fv) = vocabulary.transform_with_features(descriptors, level);
+                        (*k, bow, fv)
+                    })
                     .collect(),
                 map: m.clone(),
             })
             .collect();
         maps.sort_by_key(|m| m.map.id);
-        Self { maps }
+        Self {
+            feature_level,
+            maps,
+        }
     }
 
     /// Keyframes over all maps.

@@ -66,7 +66,7 @@ pub fn remap_clients_from(file: &mut MapFile, base: u32) -> BTreeMap<u32, u32> {
             *c = client(*c).raw();
         }
         m.clients.sort_unstable();
-        for (k, _) in &mut m.bow {
+        for (k, _, _) in &mut m.bow {
             *k = kf(*k);
         }
     }

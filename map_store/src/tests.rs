@@ -60,7 +60,7 @@ fn saved(m: ServerMap) -> SavedMap {
         .map
         .keyframes
         .keys()
-        .map(|k| (*k, BowVector::default()))
+        .map(|k| (*k, BowVector::default(), FeatureVector::default()))
         .collect();
     SavedMap {
         map: m,
@@ -71,6 +71,7 @@ fn saved(m: ServerMap) -> SavedMap {
 
 fn two_maps() -> MapFile {
     MapFile {
+        feature_level: 2,
         maps: vec![
             saved(server_map(0, 0, MapFrame::VISUAL)),
             saved(server_map(1, 2, MapFrame::INERTIAL)),
@@ -267,7 +268,7 @@ fn loaded_clients_are_renamed_everywhere() {
     assert!(file.maps[0]
         .bow
         .iter()
-        .all(|(b, _)| KeyframeId::from_raw(*b).client() == base));
+        .all(|(b, _, _)| KeyframeId::from_raw(*b).client() == base));
     // A file saved after loading holds saved clients: they are renamed again, distinct.
     let mut again = file.clone();
     again.maps.push(saved(server_map(0, 0, MapFrame::VISUAL)));
@@ -279,20 +280,20 @@ fn loaded_clients_are_renamed_everywhere() {
     assert_eq!(payload(&twice), payload(&file));
 }
 
-/// The BoW vectors of a file made from maps are the vocabulary's transform of each
-/// keyframe's descriptors, one per keyframe.
+/// The BoW and feature vectors of a file made from maps are the vocabulary's transform of
+/// each keyframe's descriptors, one per keyframe.
 #[test]
 fn a_file_made_from_maps_holds_bow_vectors() {
     let vocab = slam_core::place::Vocabulary::from_bytes(SHIPPED_VOCABULARY).expect("vocabulary");
     let m = server_map(0, 0, MapFrame::VISUAL);
-    let file = MapFile::from_maps([&m], &vocab);
+    let file = MapFile::from_maps([&m], &vocab, 2);
     assert_eq!(file.maps[0].bow.len(), 3);
-    let (k, bow) = &file.maps[0].bow[1];
-    assert_eq!(
-        *bow,
-        vocab.transform(&m.map.keyframes[k].features.descriptors)
-    );
-    assert!(!bow.is_empty());
+    assert_eq!(file.feature_level, 2);
+    let (k, bow, fv) = &file.maps[0].bow[1];
+    let descriptors = &m.map.keyframes[k].features.descriptors;
+    assert_eq!(*bow, vocab.transform(descriptors));
+    assert_eq!(*fv, vocab.transform_with_features(descriptors, 2).1);
+    assert!(!bow.is_empty() && !fv.groups().is_empty());
     assert_eq!(file.maps[0].clients, vec![0]);
 }
 

@@ -27,13 +27,17 @@ pub struct MapArgs {
 /// `copies` copies of `file`'s maps, copy `i` with its clients renamed from `i · n`.
 fn copies_of(file: &MapFile, copies: u32) -> MapFile {
     let mut all: Vec<SavedMap> = Vec::new();
+    let feature_level = file.feature_level;
     for i in 0..copies {
         let mut copy = file.clone();
         map_store::remap::remap_clients_from(&mut copy, 1 + i * 64);
         all.extend(copy.maps);
     }
     all.sort_by_key(|m| m.map.id);
-    MapFile { maps: all }
+    MapFile {
+        feature_level,
+        maps: all,
+    }
 }
 
 fn median_ms(mut v: Vec<f64>) -> f64 {
@@ -67,15 +71,16 @@ pub fn run(a: &MapArgs) -> anyhow::Result<()> {
     let maps: Vec<slam_core::server::ServerMap> = file.maps.iter().map(|m| m.map.clone()).collect();
     let kfs = file.keyframes();
     let version = env!("CARGO_PKG_VERSION");
+    let level = mapper::saved::feature_level();
     // The mapper's save: BoW vectors, encoding, atomic write with fsync.
     let mut bytes = 0;
     let save_ms = timed(a.repeat, || {
-        let f = MapFile::from_maps(maps.iter(), &vocabulary);
+        let f = MapFile::from_maps(maps.iter(), &vocabulary, level);
         bytes = map_store::write(&out, &f, vocab_id, version)?;
         Ok(())
     })?;
     let bow_ms = timed(a.repeat, || {
-        MapFile::from_maps(maps.iter(), &vocabulary);
+        MapFile::from_maps(maps.iter(), &vocabulary, level);
         Ok(())
     })?;
     // The launcher's check and the mapper's load: read, checksum, decode, validate, remap.
@@ -85,9 +90,10 @@ pub fn run(a: &MapArgs) -> anyhow::Result<()> {
     })?;
     // The loop closer's load: the same, then every keyframe's BoW vector and insertion.
     let cfg = loop_closer::LoopCloserConfig::default();
+    let vocab = loop_closer::saved::vocabulary_id(&cfg);
     let closer_ms = timed(a.repeat, || {
         let mut closer = loop_closer::Closer::new(loop_closer::vocabulary(&cfg)?, cfg.method);
-        loop_closer::saved::load(&mut closer, &out)?;
+        loop_closer::saved::load(&mut closer, &out, vocab)?;
         Ok(())
     })?;
     let _ = std::fs::remove_file(&out);

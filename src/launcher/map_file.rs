@@ -29,6 +29,9 @@ pub struct MapLoadReport {
     pub loop_closer_keyframes: Option<u64>,
     /// The loop closer's load (read, check, BoW vectors, insertion), ms.
     pub loop_closer_load_ms: Option<f64>,
+    /// The loop closer used the file's BoW and feature vectors (same vocabulary and
+    /// feature level), rather than computing them again.
+    pub loop_closer_vectors_from_file: Option<bool>,
 }
 
 /// A `--save-map` file as the report lists it (from the mapper's status).

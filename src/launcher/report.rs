@@ -893,6 +893,8 @@ impl RunReport {
             r.mapper_load_ms = m.get("map_load_ms").copied();
             r.loop_closer_keyframes = l.get("map_loaded_keyframes").map(|v| *v as u64);
             r.loop_closer_load_ms = l.get("map_load_ms").copied();
+            let from_file = l.get("map_loaded_vectors_from_file");
+            r.loop_closer_vectors_from_file = from_file.map(|v| *v > 0.0);
         }
         self.map_saved = cfg
             .save_map

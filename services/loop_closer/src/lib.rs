@@ -266,6 +266,21 @@ impl Closer {
         self.detector.insert(kf);
     }
 
+    /// Stores a keyframe of a saved map with its BoW and feature vectors (no loop search).
+    pub fn insert_with_vectors(
+        &mut self,
+        kf: KeptKeyframe,
+        bow: slam_core::place::BowVector,
+        fv: slam_core::place::FeatureVector,
+    ) {
+        self.detector.insert_with_vectors(kf, bow, fv);
+    }
+
+    /// The detector's feature-vector level ([`LoopDetectorParams::feature_level`]).
+    pub fn feature_level(&self) -> Option<usize> {
+        self.detector.params().feature_level
+    }
+
     /// Adds a keyframe: a verified loop gives the correction to send. With
     /// [`Closer::set_debug_queries`], every query's statistics go to stderr.
     pub fn add(&mut self, kf: KeptKeyframe) -> Result<Option<Outgoing>, String> {
@@ -733,7 +748,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let mut closer = Closer::new(vocabulary(&cfg)?, cfg.method);
     closer.set_debug_queries(cfg.debug_loop);
     let loaded = match &params.load_map {
-        Some(path) => Some(saved::load(&mut closer, path)?),
+        Some(path) => Some(saved::load(&mut closer, path, saved::vocabulary_id(&cfg))?),
         None => None,
     };
     let mut start = ServiceStart::open(
@@ -758,6 +773,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         core.status
             .set_value("map_loaded_keyframes", l.keyframes as f64);
         core.status.set_value("map_load_ms", l.ms);
+        let from_file = f64::from(u8::from(l.vectors_from_file));
+        core.status
+            .set_value("map_loaded_vectors_from_file", from_file);
     }
     publish(&corrections, &resync, out)?;
     shoal_runtime::signal_ready();

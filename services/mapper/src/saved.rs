@@ -35,8 +35,15 @@ pub fn load(m: &mut Mapper, path: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The feature-vector level the file's keyframes get: the loop detector's default (a loop
+/// closer configured otherwise computes its own when it loads the file).
+pub fn feature_level() -> u32 {
+    let p = slam_core::loop_closing::LoopDetectorParams::default();
+    p.feature_level.map_or(0, |l| l as u32)
+}
+
 /// Writes every map the handler threads ended with to `path` (after the drain), with each
-/// keyframe's BoW vector of the shipped vocabulary; the status gets `map_saved_bytes`,
+/// keyframe's BoW and feature vectors of the shipped vocabulary; the status gets `map_saved_bytes`,
 /// `map_saved_{maps,keyframes,points}` and `map_save_ms`. A failure is a `map_file` error
 /// of the status (the run's other outputs are written anyway).
 pub fn save(m: &mut Mapper, path: &Path, all_joined: bool) {
@@ -56,7 +63,7 @@ pub fn save(m: &mut Mapper, path: &Path, all_joined: bool) {
             return m.status.error(ErrorKind::MapFile, detail);
         }
     };
-    let file = map_store::MapFile::from_maps(maps.values(), &vocabulary);
+    let file = map_store::MapFile::from_maps(maps.values(), &vocabulary, feature_level());
     let vocab_id = map_store::vocabulary_id(map_store::SHIPPED_VOCABULARY);
     match map_store::write(path, &file, vocab_id, env!("CARGO_PKG_VERSION")) {
         Ok(bytes) => {

@@ -83,6 +83,7 @@ pub fn score(a: &BowVector, b: &BowVector) -> f32 {
 /// Feature indices grouped by vocabulary node at one level (for guided matching between two
 /// images: only features under the same node are compared). Sorted by node.
 #[derive(Debug, Clone, Default, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct FeatureVector {
     groups: Vec<(u32, Vec<u32>)>,
 }
