@@ -62,6 +62,11 @@ pub fn encode(
     shoal_version: &str,
 ) -> Result<Vec<u8>, postcard::Error> {
     let payload = postcard::to_stdvec(file)?;
+    Ok(with_header(&payload, vocabulary_id, shoal_version))
+}
+
+/// The header (module docs) and `payload`.
+pub(crate) fn with_header(payload: &[u8], vocabulary_id: u32, shoal_version: &str) -> Vec<u8> {
     let version = &shoal_version.as_bytes()[..shoal_version.len().min(u16::MAX as usize)];
     let mut out = Vec::with_capacity(FIXED_LEN + version.len() + payload.len());
     out.extend_from_slice(&MAGIC);
@@ -71,10 +76,10 @@ pub fn encode(
     out.extend_from_slice(&[0; 4]);
     out.extend_from_slice(&(version.len() as u16).to_le_bytes());
     out.extend_from_slice(version);
-    out.extend_from_slice(&payload);
+    out.extend_from_slice(payload);
     let crc = file_crc(&out);
     out[24..28].copy_from_slice(&crc.to_le_bytes());
-    Ok(out)
+    out
 }
 
 /// Writes `file` to `path` atomically: a temporary file in the same folder, written and
@@ -141,10 +146,16 @@ pub fn read(path: &Path) -> Result<(Header, MapFile), MapFileError> {
 pub fn read_bytes(bytes: &[u8], path: &Path) -> Result<(Header, MapFile), MapFileError> {
     let header = read_header(bytes, path)?;
     let payload = &bytes[header.len()..];
-    let file: MapFile = postcard::from_bytes(payload).map_err(|e| MapFileError::Decode {
+    let decode = |detail: String| MapFileError::Decode {
         path: path.to_path_buf(),
-        detail: e.to_string(),
-    })?;
+        detail,
+    };
+    let (file, rest): (MapFile, _) =
+        postcard::take_from_bytes(payload).map_err(|e| decode(e.to_string()))?;
+    if !rest.is_empty() {
+        // A payload of another layout under the same version (or a writer's bug).
+        return Err(decode(format!("{} bytes left after the maps", rest.len())));
+    }
     file.validate().map_err(|detail| MapFileError::Invalid {
         path: path.to_path_buf(),
         detail,

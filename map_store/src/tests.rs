@@ -1,5 +1,7 @@
 //! Round trip, refusals, atomic write and the id remap.
 
+use std::path::Path;
+
 use nalgebra::{Isometry3, Vector3};
 use slam_core::camera::PinholeRadtan;
 use slam_core::features::{KeyPoint, OrbFeatures};
@@ -316,4 +318,16 @@ fn ply_export_writes_the_points() {
     assert_eq!(n, 4);
     let header_end = bin.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
     assert_eq!(bin.len() - header_end, 4 * 24);
+}
+
+/// A payload that passes the checksum but holds more than the maps (another layout under
+/// the same version number) is refused, not half-read.
+#[test]
+fn a_payload_with_bytes_after_the_maps_is_refused() {
+    let mut payload = payload(&two_maps());
+    payload.extend_from_slice(&[0, 0]);
+    let bytes = format::with_header(&payload, 0, "0.1.0");
+    let e = read_bytes(&bytes, Path::new("x.shoalmap")).expect_err("refused");
+    assert!(matches!(e, MapFileError::Decode { .. }), "{e}");
+    assert!(e.to_string().contains("2 bytes left after the maps"), "{e}");
 }
