@@ -18,8 +18,8 @@ pub struct MapArgs {
     /// Repetitions; the median is reported.
     #[arg(long, default_value_t = 5)]
     repeat: usize,
-    /// Where the measured file is written (default: beside FILE, `.bench` appended; removed
-    /// at the end).
+    /// Where the measured file is written and kept (default: beside FILE, `.bench`
+    /// appended, removed at the end).
     #[arg(long)]
     out: Option<PathBuf>,
 }
@@ -96,7 +96,9 @@ pub fn run(a: &MapArgs) -> anyhow::Result<()> {
         loop_closer::saved::load(&mut closer, &out, vocab)?;
         Ok(())
     })?;
-    let _ = std::fs::remove_file(&out);
+    if a.out.is_none() {
+        let _ = std::fs::remove_file(&out);
+    }
     let per_k = 1000.0 / kfs.max(1) as f64;
     println!(
         "{}: format {}, {} maps, {kfs} keyframes, {} points ({} copies)",
