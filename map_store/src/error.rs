@@ -70,7 +70,15 @@ pub enum MapFileError {
         /// What is wrong.
         detail: String,
     },
-    /// The payload passed the checksum but does not decode (or encode) as maps.
+    /// The maps could not be encoded (a writer's bug: every saved type encodes).
+    #[error("map file {path}: the maps do not encode: {detail}")]
+    Encode {
+        /// The file.
+        path: PathBuf,
+        /// The encoder's message.
+        detail: String,
+    },
+    /// The payload passed the checksum but does not decode as maps.
     #[error("map file {path}: payload does not decode: {detail}")]
     Decode {
         /// The file.

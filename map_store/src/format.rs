@@ -43,14 +43,9 @@ pub struct Header {
 }
 
 impl Header {
-    /// Bytes of the whole header.
-    pub fn len(&self) -> usize {
+    /// Bytes of the whole header (where the payload starts).
+    pub fn byte_len(&self) -> usize {
         FIXED_LEN + self.shoal_version.len()
-    }
-
-    /// Never: a header has its fixed part (for clippy's `len` / `is_empty` pairing).
-    pub fn is_empty(&self) -> bool {
-        false
     }
 }
 
@@ -91,9 +86,9 @@ pub fn write(
     vocabulary_id: u32,
     shoal_version: &str,
 ) -> Result<u64, MapFileError> {
-    let bytes = encode(file, vocabulary_id, shoal_version).map_err(|e| MapFileError::Decode {
+    let bytes = encode(file, vocabulary_id, shoal_version).map_err(|e| MapFileError::Encode {
         path: path.to_path_buf(),
-        detail: format!("encoding: {e}"),
+        detail: e.to_string(),
     })?;
     write_atomic(path, &bytes)?;
     Ok(bytes.len() as u64)
@@ -145,7 +140,7 @@ pub fn read(path: &Path) -> Result<(Header, MapFile), MapFileError> {
 /// Checks and decodes the bytes of a map file (`path` names it in errors).
 pub fn read_bytes(bytes: &[u8], path: &Path) -> Result<(Header, MapFile), MapFileError> {
     let header = read_header(bytes, path)?;
-    let payload = &bytes[header.len()..];
+    let payload = &bytes[header.byte_len()..];
     let decode = |detail: String| MapFileError::Decode {
         path: path.to_path_buf(),
         detail,

@@ -71,6 +71,23 @@ pub fn check(path: &Path) -> anyhow::Result<MapLoadReport> {
     })
 }
 
+/// Checks that the `--save-map` file can be created where it is asked: its folder exists
+/// (the mapper writes it at the end of the run; finding out then would lose the maps).
+pub fn check_save_path(path: &Path) -> anyhow::Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    anyhow::ensure!(
+        dir.is_dir(),
+        "--save-map {}: the folder {} does not exist",
+        path.display(),
+        dir.display()
+    );
+    anyhow::ensure!(!path.is_dir(), "--save-map {}: is a folder", path.display());
+    Ok(())
+}
+
 /// A status value as an integer count.
 fn count(values: &std::collections::BTreeMap<String, f64>, key: &str) -> u64 {
     values.get(key).map_or(0, |v| *v as u64)

@@ -261,6 +261,10 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         std::thread::spawn(move || provenance::dataset_checksums(&paths))
     };
     prepare_out_dir(&cfg.out)?;
+    // After the output folder is made: the map is often saved in it.
+    if let Some(p) = &cfg.save_map {
+        map_file::check_save_path(p)?;
+    }
     let datasets = match open_datasets(cfg) {
         Ok(d) => d,
         Err((e, errors)) => {
