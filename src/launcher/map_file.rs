@@ -105,3 +105,35 @@ pub fn saved(path: &Path, values: &std::collections::BTreeMap<String, f64>) -> M
         save_ms: values.get("map_save_ms").copied().unwrap_or(0.0),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A `--save-map` file in a missing folder, or naming a folder, is refused at the
+    /// start; one in an existing folder (or the current one) is accepted.
+    #[test]
+    fn the_save_map_folder_must_exist() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let e = check_save_path(&dir.path().join("missing/m.shoalmap")).expect_err("missing");
+        assert!(e.to_string().contains("does not exist"), "{e}");
+        let e = check_save_path(dir.path()).expect_err("a folder");
+        assert!(e.to_string().contains("is a folder"), "{e}");
+        check_save_path(&dir.path().join("m.shoalmap")).expect("existing folder");
+        check_save_path(Path::new("m.shoalmap")).expect("current folder");
+    }
+
+    /// The save report comes from the mapper's status values; without them the map was not
+    /// saved.
+    #[test]
+    fn the_save_report_reads_the_mapper_values() {
+        let values = [("map_saved_bytes", 1234.0), ("map_saved_keyframes", 13.0)]
+            .map(|(k, v)| (k.to_string(), v))
+            .into();
+        let r = saved(Path::new("a.shoalmap"), &values);
+        assert!(r.saved);
+        assert_eq!((r.bytes, r.keyframes, r.points), (1234, 13, 0));
+        let r = saved(Path::new("a.shoalmap"), &Default::default());
+        assert!(!r.saved);
+    }
+}
