@@ -69,6 +69,11 @@ pub struct RunConfig {
     /// Chaos (`--chaos SEED:PERIOD`), e.g. `"7:2.0"`.
     #[serde(with = "spec")]
     pub chaos: Option<ChaosSpec>,
+    /// A saved-map file the server starts from (`--load-map`; checked whole before any
+    /// service starts).
+    pub load_map: Option<PathBuf>,
+    /// Where the server's maps are saved at the end of the run (`--save-map`, atomically).
+    pub save_map: Option<PathBuf>,
     /// Every tracker (`{c}` in `frame_log` is the client index).
     pub tracker: tracker::TrackerConfig,
     /// The mapper.
@@ -101,6 +106,8 @@ impl Default for RunConfig {
             max_restarts: 20,
             kills: Vec::new(),
             chaos: None,
+            load_map: None,
+            save_map: None,
             tracker: Default::default(),
             mapper: Default::default(),
             loop_closer: Default::default(),

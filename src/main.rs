@@ -1,5 +1,5 @@
 //! `shoal`: the one binary users run. Subcommands: `demo`, `run`, `calibrate`, `config`, `sim`, `eval`,
-//! `pgo`, `vocab`, `bench`, `convert`;
+//! `pgo`, `vocab`, `bench`, `convert`, `map`;
 //! `service` (hidden) is how the launcher starts each service as its own process.
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -13,6 +13,7 @@ mod convert_cmd;
 mod demo;
 mod eval;
 mod launcher;
+mod map_cmd;
 mod pgo_cmd;
 mod plot;
 mod sim_cmd;
@@ -31,7 +32,7 @@ enum Command {
     /// Run the whole pipeline on a built-in synthetic scene (no download) and summarise.
     Demo(demo::DemoArgs),
     /// Run the pipeline on one or more datasets (one client each).
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// The run configuration: `config --print` shows every key with its default.
     Config(ConfigArgs),
     /// Online camera-IMU calibration of a dataset (t_d, t_r, intrinsics, lever arm, IMU
@@ -46,6 +47,9 @@ enum Command {
     /// Bag-of-words vocabulary of the loop closer (`vocab train`).
     #[command(subcommand)]
     Vocab(vocab_cmd::VocabCommand),
+    /// Saved-map files (`run --save-map`): `map info FILE`, `map export FILE --ply OUT`.
+    #[command(subcommand)]
+    Map(map_cmd::MapCommand),
     /// Convert a dataset (any format `run` reads) to another format: `--to mcap`.
     Convert(convert_cmd::ConvertArgs),
     /// Benchmarks (IPC hand-off, ...).
@@ -131,6 +135,14 @@ struct RunArgs {
     /// gaps), reproducible from SEED, e.g. `7:2.0`.
     #[arg(long, value_name = "SEED:PERIOD")]
     chaos: Option<launcher::faults::ChaosSpec>,
+    /// Start the server from this saved-map file (`shoal map info FILE` shows what it
+    /// holds); a truncated, corrupted or other-version file is refused before any service
+    /// starts.
+    #[arg(long, value_name = "FILE")]
+    load_map: Option<PathBuf>,
+    /// Save the server's maps to this file at the end of the run (atomically).
+    #[arg(long, value_name = "FILE")]
+    save_map: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -227,6 +239,12 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     if args.chaos.is_some() {
         cfg.chaos = args.chaos;
     }
+    if args.load_map.is_some() {
+        cfg.load_map = args.load_map;
+    }
+    if args.save_map.is_some() {
+        cfg.save_map = args.save_map;
+    }
     if args.quiet {
         cfg.progress = false;
     }
@@ -274,7 +292,7 @@ fn main() -> ExitCode {
             init_tracing();
             let result = match command {
                 Command::Demo(a) => demo::run(a),
-                Command::Run(a) => run_cmd(a),
+                Command::Run(a) => run_cmd(*a),
                 Command::Calibrate(a) => calibrate_cmd::run(&a),
                 Command::Config(a) => config_cmd(&a),
                 Command::Sim(a) => sim_cmd::run(&a),
@@ -283,6 +301,7 @@ fn main() -> ExitCode {
                 Command::Vocab(v) => vocab_cmd::run(&v),
                 Command::Bench(b) => bench::run(b),
                 Command::Convert(a) => convert_cmd::run(&a),
+                Command::Map(m) => map_cmd::run(&m),
                 Command::Service(_) => Ok(()),
             };
             match result {

@@ -12,6 +12,7 @@ use crate::rolling_shutter::ReadoutDirection;
 /// `x_d = x_n (1 + k1 r² + k2 r⁴ + k3 r⁶) + [2 p1 x y + p2 (r² + 2x²); 2 p2 x y + p1 (r² + 2y²)]`,
 /// `u = fx x_d + cx`, `v = fy y_d + cy`.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct PinholeRadtan {
     /// Image width in pixels.
     pub width: u32,

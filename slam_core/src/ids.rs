@@ -289,6 +289,7 @@ const MAP_INDEX_BITS: u32 = 32;
 /// reported before the merge.
 #[repr(transparent)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct MapId(u64);
 
 impl MapId {

@@ -17,6 +17,8 @@ pub mod place;
 pub mod pnp;
 pub mod ransac;
 pub mod rolling_shutter;
+#[cfg(feature = "serde")]
+pub mod serde_sorted;
 pub mod server;
 pub mod sessions;
 pub mod twoview;

@@ -26,6 +26,7 @@ use crate::camera::PinholeRadtan;
 /// formulas of this module then apply to the line coordinate of
 /// [`ReadoutDirection::line`] (and [`PinholeRadtan::readout_line`]) instead of `v`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum ReadoutDirection {
     /// Rows, first row (`v = 0`) first: the default.
     #[default]

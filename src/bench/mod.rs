@@ -1,6 +1,7 @@
 //! `shoal bench ...`: benchmarks whose figures go to BENCHMARKS.md (never asserted in tests).
 pub mod calibrate;
 pub mod ipc;
+pub mod map;
 pub mod read;
 pub mod tracking;
 
@@ -19,6 +20,9 @@ pub enum BenchCommand {
     /// Frame read-and-decode throughput of a dataset (the camera ingest's work per frame),
     /// its opening time and the peak memory: an MCAP recording against its folder.
     Read(read::ReadArgs),
+    /// Save and load times and size of a saved-map file, per 1,000 keyframes (`--copies`
+    /// makes a large file of copies of a small one).
+    Map(map::MapArgs),
     /// The subscriber side of `bench ipc` (started by it as a child process).
     #[command(hide = true)]
     IpcPeer(ipc::PeerArgs),
@@ -32,5 +36,6 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::IpcPeer(a) => ipc::peer(&a),
         BenchCommand::Tracking(a) => tracking::run(&a),
         BenchCommand::Read(a) => read::run(&a),
+        BenchCommand::Map(a) => map::run(&a),
     }
 }

@@ -9,6 +9,7 @@
 //! memory.
 pub mod child;
 pub mod faults;
+pub mod map_file;
 pub mod modes;
 pub mod provenance;
 pub mod recorder;
@@ -160,8 +161,18 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             args.extend(["--clients".to_string(), cfg.datasets.len().to_string()]);
             args.extend(["--journal".to_string(), path_arg(&out.join(MAPPER_JOURNAL))]);
             args.extend(["--out".to_string(), path_arg(out)]);
+            if let Some(p) = &cfg.load_map {
+                args.extend(["--load-map".to_string(), path_arg(p)]);
+            }
+            if let Some(p) = &cfg.save_map {
+                args.extend(["--save-map".to_string(), path_arg(p)]);
+            }
         }
-        Kind::LoopCloser => {}
+        Kind::LoopCloser => {
+            if let Some(p) = &cfg.load_map {
+                args.extend(["--load-map".to_string(), path_arg(p)]);
+            }
+        }
         Kind::Tracker => {
             let spool = out.join(TRACKER_SPOOL).join(format!("c{c}"));
             args.extend(["--client".to_string(), c.clone()]);
@@ -238,12 +249,22 @@ fn put_client_modes(rep: &mut report::RunReport, setups: &[modes::ClientSetup]) 
 /// Runs the pipeline; returns the report (also written to `OUT/report.json`).
 pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
+    // A saved map is read whole (checksum, decode, validation) before anything is started
+    // or written: a bad file ends the command here.
+    let loaded = match &cfg.load_map {
+        Some(p) => Some(map_file::check(p)?),
+        None => None,
+    };
     // Hashing the datasets overlaps the start-up.
     let checksums = {
         let paths = cfg.datasets.clone();
         std::thread::spawn(move || provenance::dataset_checksums(&paths))
     };
     prepare_out_dir(&cfg.out)?;
+    // After the output folder is made: the map is often saved in it.
+    if let Some(p) = &cfg.save_map {
+        map_file::check_save_path(p)?;
+    }
     let datasets = match open_datasets(cfg) {
         Ok(d) => d,
         Err((e, errors)) => {
@@ -322,6 +343,8 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     rep.faults = watch.injector.events;
     rep.faults_unfired = unfired;
     rep.provenance = provenance_of(cfg, checksums);
+    rep.map_loaded = loaded;
+    rep.add_map_files(cfg);
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
 }

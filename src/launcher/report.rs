@@ -312,6 +312,14 @@ pub struct RunReport {
     /// What produced the run: command line, version and commit, configuration, dataset
     /// checksums.
     pub provenance: super::provenance::Provenance,
+    /// The saved-map file the server started from (`--load-map`).
+    pub map_loaded: Option<super::map_file::MapLoadReport>,
+    /// The saved-map file written at the end (`--save-map`).
+    pub map_saved: Option<super::map_file::MapSaveReport>,
+    /// Status values of the mapper and loop closer about saved maps (`map_*`), read at
+    /// the end (for [`RunReport::add_map_files`]).
+    #[serde(skip)]
+    map_values: BTreeMap<String, BTreeMap<String, f64>>,
 }
 
 /// What a report is made of besides the recorder, read from disk and the system once the
@@ -862,6 +870,36 @@ impl RunReport {
             .map(|d| d.maps)
             .unwrap_or_default();
         self.corrections_applied = m.corrections_applied();
+        for svc in [mapper::SERVICE_NAME, loop_closer::SERVICE_NAME] {
+            if let Some(f) = st.facts(svc) {
+                let v = &f.status.values;
+                let map_values = v.iter().filter(|(k, _)| k.starts_with("map_"));
+                let map_values = map_values.map(|(k, x)| (k.clone(), *x)).collect();
+                self.map_values.insert(svc.to_string(), map_values);
+            }
+        }
+    }
+
+    /// Completes `map_loaded` with the services' load figures and sets `map_saved` from
+    /// the mapper's status.
+    pub fn add_map_files(&mut self, cfg: &RunConfig) {
+        let empty = BTreeMap::new();
+        let m = self.map_values.get(mapper::SERVICE_NAME).unwrap_or(&empty);
+        let l = self
+            .map_values
+            .get(loop_closer::SERVICE_NAME)
+            .unwrap_or(&empty);
+        if let Some(r) = self.map_loaded.as_mut() {
+            r.mapper_load_ms = m.get("map_load_ms").copied();
+            r.loop_closer_keyframes = l.get("map_loaded_keyframes").map(|v| *v as u64);
+            r.loop_closer_load_ms = l.get("map_load_ms").copied();
+            let from_file = l.get("map_loaded_vectors_from_file");
+            r.loop_closer_vectors_from_file = from_file.map(|v| *v > 0.0);
+        }
+        self.map_saved = cfg
+            .save_map
+            .as_deref()
+            .map(|p| super::map_file::saved(p, m));
     }
 
     /// Every service's errors, restarts, outcome, CPU time and counters.

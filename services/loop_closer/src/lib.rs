@@ -14,6 +14,7 @@
 #![deny(missing_docs)]
 
 pub mod config;
+pub mod saved;
 
 pub use config::{LoopCloserConfig, LoopCloserFlags};
 
@@ -69,6 +70,10 @@ pub struct Params {
     /// at the same point of the keyframe stream on every run.
     #[arg(long, default_value = "realtime")]
     pub mode: ReplayMode,
+    /// A saved-map file whose keyframes are inserted before the first live one
+    /// ([`saved::load`]; the launcher has checked it).
+    #[arg(long)]
+    pub load_map: Option<PathBuf>,
     /// Configuration file (TOML, the keys of `[loop_closer]` in `shoal config --print`).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -259,6 +264,21 @@ impl Closer {
     /// Stores a keyframe re-sent by the mapper after a restart (no loop search).
     pub fn insert(&mut self, kf: KeptKeyframe) {
         self.detector.insert(kf);
+    }
+
+    /// Stores a keyframe of a saved map with its BoW and feature vectors (no loop search).
+    pub fn insert_with_vectors(
+        &mut self,
+        kf: KeptKeyframe,
+        bow: slam_core::place::BowVector,
+        fv: slam_core::place::FeatureVector,
+    ) {
+        self.detector.insert_with_vectors(kf, bow, fv);
+    }
+
+    /// The detector's feature-vector level ([`LoopDetectorParams::feature_level`]).
+    pub fn feature_level(&self) -> Option<usize> {
+        self.detector.params().feature_level
     }
 
     /// Adds a keyframe: a verified loop gives the correction to send. With
@@ -741,6 +761,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let cfg = params.config()?;
     let mut closer = Closer::new(vocabulary(&cfg)?, cfg.method);
     closer.set_debug_queries(cfg.debug_loop);
+    let loaded = match &params.load_map {
+        Some(path) => Some(saved::load(&mut closer, path, saved::vocabulary_id(&cfg))?),
+        None => None,
+    };
     let mut start = ServiceStart::open(
         SERVICE_NAME,
         "loop_closer",
@@ -759,6 +783,14 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let resync = topics::publisher(&topics::resync_service(node)?)?;
     let status = std::mem::take(&mut start.status);
     let (mut core, out) = LoopCloserCore::new(closer, params, &cfg, status, monotonic_ns());
+    if let Some(l) = loaded {
+        core.status
+            .set_value("map_loaded_keyframes", l.keyframes as f64);
+        core.status.set_value("map_load_ms", l.ms);
+        let from_file = f64::from(u8::from(l.vectors_from_file));
+        core.status
+            .set_value("map_loaded_vectors_from_file", from_file);
+    }
     publish(&corrections, &resync, out)?;
     shoal_runtime::signal_ready();
     loop {

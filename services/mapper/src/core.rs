@@ -78,6 +78,9 @@ pub struct Mapper {
     lockstep: bool,
     /// Messages to publish, in order.
     out: Vec<Out>,
+    /// The worker hosting the maps of each client of a loaded map file (clients without a
+    /// handler, [`map_store::remap`]).
+    saved_hosts: BTreeMap<u32, usize>,
 }
 
 impl Mapper {
@@ -121,7 +124,46 @@ impl Mapper {
             sync: sync.then(|| lockstep::LockstepSync::new(lockstep::LOOP_SYNC_TIMEOUT)),
             lockstep: params.mode == ReplayMode::Lockstep,
             out: Vec::new(),
+            saved_hosts: BTreeMap::new(),
         }
+    }
+
+    /// Hosts the maps of a loaded map file on a worker of their own (before any keyframe
+    /// and before the journal's replay, whose corrections may name them): they have no
+    /// handler; live clients' maps merge into them through the usual corrections.
+    pub fn host_loaded(&mut self, maps: Vec<slam_core::server::ServerMap>) -> anyhow::Result<()> {
+        let Some(first) = maps.first() else {
+            return Ok(());
+        };
+        let worker = Worker::spawn(
+            first.client_id,
+            self.handler_params.clone(),
+            self.out_dir.clone(),
+            self.results_tx.clone(),
+            self.lockstep,
+        )
+        .context("starting the loaded maps' thread")?;
+        self.workers.push(worker);
+        let w = self.workers.len() - 1;
+        let sizes: Vec<MapSize> = maps.iter().map(crate::worker::map_size).collect();
+        for m in &maps {
+            self.saved_hosts.insert(m.id.client().raw(), w);
+        }
+        let maps = maps.into_iter().map(|m| (m.id, m)).collect();
+        if !self.workers[w].send(Job::Host { maps }) {
+            anyhow::bail!("the loaded maps' thread is gone");
+        }
+        self.set_map_sizes(&sizes);
+        Ok(())
+    }
+
+    /// The final maps of every worker (after the drain joined them), by map id.
+    pub fn take_final_maps(&mut self) -> slam_core::server::ServerMaps {
+        let mut all = slam_core::server::ServerMaps::new();
+        for w in &mut self.workers {
+            all.extend(w.take_maps());
+        }
+        all
     }
 
     /// Opens the journal at `path` and rebuilds the maps from it (before any new keyframe).
@@ -181,9 +223,13 @@ impl Mapper {
     }
 
     /// The worker hosting map `m`: the one hosting the client that created it (groups only
-    /// ever join, so a map stays with its creator's handler).
+    /// ever join, so a map stays with its creator's handler), or for a loaded map the one
+    /// hosting it.
     fn host_of(&self, m: MapId) -> Option<usize> {
-        self.clients.get(m.client().index())?.worker
+        match self.clients.get(m.client().index()) {
+            Some(c) => c.worker,
+            None => self.saved_hosts.get(&m.client().raw()).copied(),
+        }
     }
 
     /// Sends a correction to the worker hosting its map(s); for a merge of maps hosted by
@@ -213,6 +259,11 @@ impl Mapper {
                     for cl in &mut self.clients {
                         if cl.worker == Some(wf) {
                             cl.worker = Some(wi);
+                        }
+                    }
+                    for w in self.saved_hosts.values_mut() {
+                        if *w == wf {
+                            *w = wi;
                         }
                     }
                     self.counters.handler_groups_joined += 1;

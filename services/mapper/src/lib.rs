@@ -32,6 +32,7 @@ pub mod core;
 pub mod counters;
 pub mod lockstep;
 pub mod ports;
+pub mod saved;
 pub mod worker;
 
 use std::path::PathBuf;
@@ -69,6 +70,13 @@ pub struct Params {
     /// every run.
     #[arg(long, default_value = "realtime")]
     pub mode: ReplayMode,
+    /// A saved-map file to start from ([`map_store`]; the launcher has checked it): its
+    /// maps are hosted with their clients renamed to the saved-clients range.
+    #[arg(long)]
+    pub load_map: Option<PathBuf>,
+    /// Where to save the server's maps at the end of the run (atomically).
+    #[arg(long)]
+    pub save_map: Option<PathBuf>,
     /// Configuration file (TOML, the keys of `[mapper]` in `shoal config --print`).
     #[arg(long)]
     pub config: Option<PathBuf>,

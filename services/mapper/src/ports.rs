@@ -134,13 +134,14 @@ impl Ports {
 }
 
 /// At the stop: the handlers finish what they have queued (at most `drain_seconds`) and
-/// write their files; their outcomes are still published.
+/// write their files; their outcomes are still published. Returns whether every handler
+/// thread ended and was joined (its final maps kept, for `--save-map`).
 fn drain(
     m: &mut Mapper,
     ports: &Ports,
     rx: &crossbeam_channel::Receiver<Report>,
     drain_seconds: f64,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<bool> {
     let queued: usize = m.workers.iter().map(|w| w.queued()).sum();
     m.status.set_value("queued_at_stop", queued as f64);
     for w in m.workers.iter_mut() {
@@ -156,13 +157,17 @@ fn drain(
         std::thread::sleep(Duration::from_millis(5));
     }
     ports.outcomes(m, rx)?;
+    let mut all_joined = true;
     for (i, w) in m.workers.iter_mut().enumerate() {
-        if w.is_finished() && !w.join() {
+        if !w.is_finished() {
+            all_joined = false;
+        } else if !w.join() {
+            all_joined = false;
             let detail = format!("handler thread {i} panicked");
             m.status.error(ErrorKind::Handler, detail);
         }
     }
-    Ok(())
+    Ok(all_joined)
 }
 
 /// Serves keyframes until SIGINT/SIGTERM, then lets the handlers finish their queues.
@@ -176,6 +181,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     )?;
     let (results_tx, results_rx) = crossbeam_channel::unbounded();
     let mut m = Mapper::new(params, &cfg, std::mem::take(&mut start.status), results_tx);
+    // The loaded maps first (the journal's corrections may name them), then the journal.
+    if let Some(path) = &params.load_map {
+        crate::saved::load(&mut m, path)?;
+    }
     // Rebuild the maps from the journal before taking new keyframes.
     if let Some(path) = &params.journal {
         m.open_journal(path)?;
@@ -198,7 +207,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
             }
         }
     }
-    drain(&mut m, &ports, &results_rx, cfg.drain_seconds)?;
+    let all_joined = drain(&mut m, &ports, &results_rx, cfg.drain_seconds)?;
+    if let Some(path) = &params.save_map {
+        crate::saved::save(&mut m, path, all_joined);
+    }
     m.status.finished = true;
     start.file.write(m.status_now())?;
     Ok(std::mem::take(&mut m.status))

@@ -72,6 +72,12 @@ pub enum Job {
         /// Where they go.
         reply: Sender<Vec<KeptKeyframe>>,
     },
+    /// Host maps loaded from a saved-map file (maps without a live client's handler; a
+    /// live client's map merges into them through the usual corrections).
+    Host {
+        /// The maps.
+        maps: ServerMaps,
+    },
     /// Wait for a group handed over by another worker and host it too.
     TakeOver {
         /// Where it comes from.
@@ -185,7 +191,9 @@ pub enum Report {
 #[derive(Debug)]
 pub struct Worker {
     tx: Option<Sender<Job>>,
-    thread: Option<JoinHandle<()>>,
+    thread: Option<JoinHandle<ServerMaps>>,
+    /// The group's maps at the thread's end (none when it handed them over), once joined.
+    final_maps: ServerMaps,
 }
 
 impl Worker {
@@ -209,6 +217,7 @@ impl Worker {
         Ok(Self {
             tx: Some(tx),
             thread: Some(thread),
+            final_maps: ServerMaps::new(),
         })
     }
 
@@ -232,9 +241,23 @@ impl Worker {
         self.thread.as_ref().is_none_or(|t| t.is_finished())
     }
 
-    /// Joins an ended thread; false if it panicked.
+    /// Joins an ended thread (keeping its final maps, [`Worker::take_maps`]); false if it
+    /// panicked.
     pub fn join(&mut self) -> bool {
-        self.thread.take().is_none_or(|t| t.join().is_ok())
+        match self.thread.take().map(|t| t.join()) {
+            Some(Ok(maps)) => {
+                self.final_maps = maps;
+                true
+            }
+            Some(Err(_)) => false,
+            None => true,
+        }
+    }
+
+    /// The maps the group held when its thread ended (after [`Worker::join`]; empty for a
+    /// group handed over to another).
+    pub fn take_maps(&mut self) -> ServerMaps {
+        std::mem::take(&mut self.final_maps)
     }
 }
 
@@ -263,25 +286,27 @@ pub struct Group {
     pacing: IdlePacing,
 }
 
+/// Size and kind of server map `m`.
+pub fn map_size(m: &slam_core::server::ServerMap) -> MapSize {
+    MapSize {
+        id: m.id,
+        keyframes: m.map.keyframes.len(),
+        points: m.map.points.len(),
+        clients: m
+            .map
+            .keyframes
+            .keys()
+            .map(|k| KeyframeId::from_raw(*k).client().raw())
+            .collect::<std::collections::BTreeSet<u32>>()
+            .into_iter()
+            .collect(),
+        frame: m.frame,
+    }
+}
+
 impl Group {
     fn sizes(&self) -> Vec<MapSize> {
-        self.maps
-            .values()
-            .map(|m| MapSize {
-                id: m.id,
-                keyframes: m.map.keyframes.len(),
-                points: m.map.points.len(),
-                clients: m
-                    .map
-                    .keyframes
-                    .keys()
-                    .map(|k| KeyframeId::from_raw(*k).client().raw())
-                    .collect::<std::collections::BTreeSet<u32>>()
-                    .into_iter()
-                    .collect(),
-                frame: m.frame,
-            })
-            .collect()
+        self.maps.values().map(map_size).collect()
     }
 
     fn figures(&self, c: u32) -> MapFigures {
@@ -438,7 +463,7 @@ fn serve(
     results: Sender<Report>,
     mut gba: GlobalBaRunner,
     lockstep: bool,
-) {
+) -> ServerMaps {
     let mut g = Group::default();
     let mut dirty = false;
     let mut last_write = Instant::now();
@@ -473,7 +498,11 @@ fn serve(
             Some(Job::HandOver { to }) => {
                 write_files(out.as_deref(), &g);
                 let _ = to.send(std::mem::take(&mut g));
-                return;
+                return ServerMaps::new();
+            }
+            Some(Job::Host { maps }) => {
+                g.maps.extend(maps);
+                continue;
             }
             Some(Job::Snapshot { reply }) => {
                 let _ = reply.send(g.snapshot());
@@ -518,6 +547,7 @@ fn serve(
     }
     gba.stop();
     write_files(out.as_deref(), &g);
+    g.maps
 }
 
 /// A keyframe job as [`handle`] takes it.

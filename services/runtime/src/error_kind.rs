@@ -88,6 +88,8 @@ error_kinds! {
     Handler = "handler",
     /// The mapper journal is damaged or holds what cannot be replayed.
     Journal = "journal",
+    /// A saved-map file could not be read or written (`--load-map`, `--save-map`).
+    MapFile = "map_file",
     /// A correction that could not be applied (mapper) or sent (loop closer).
     Correction = "correction",
     /// A loop the loop closer found and could not verify or optimise.

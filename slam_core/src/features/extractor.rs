@@ -52,6 +52,7 @@ impl Default for OrbParams {
 
 /// A keypoint in level-0 pixel coordinates.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct KeyPoint {
     /// Column (level-0 pixels).
     pub x: f32,
@@ -85,6 +86,7 @@ impl KeyPoint {
 /// Keypoints and their 256-bit descriptors (`descriptors[i]` belongs to `keypoints[i]`),
 /// with the scale of the pyramid they were detected on.
 #[derive(Debug, Clone, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct OrbFeatures {
     /// Keypoints, grouped by level (level 0 first).
     pub keypoints: Vec<KeyPoint>,

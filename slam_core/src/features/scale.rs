@@ -32,6 +32,11 @@ pub const MAX_LEVELS: usize = 32;
 /// back to computing the same formulas. The tables are shared (cloning is a reference-count
 /// increment, no allocation).
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(into = "ScaleParams", from = "ScaleParams")
+)]
 pub struct PyramidScale {
     /// Scale between consecutive levels.
     factor: f64,
@@ -141,6 +146,31 @@ impl Default for PyramidScale {
     /// [`ORB_SCALE_FACTOR`] and [`ORB_N_LEVELS`].
     fn default() -> Self {
         Self::new(ORB_SCALE_FACTOR, ORB_N_LEVELS)
+    }
+}
+
+/// What a saved [`PyramidScale`] holds: the tables are rebuilt from it.
+#[cfg(feature = "serde")]
+#[derive(serde::Serialize, serde::Deserialize)]
+struct ScaleParams {
+    factor: f64,
+    n_levels: usize,
+}
+
+#[cfg(feature = "serde")]
+impl From<PyramidScale> for ScaleParams {
+    fn from(s: PyramidScale) -> Self {
+        Self {
+            factor: s.factor,
+            n_levels: s.n_levels,
+        }
+    }
+}
+
+#[cfg(feature = "serde")]
+impl From<ScaleParams> for PyramidScale {
+    fn from(p: ScaleParams) -> Self {
+        Self::new(p.factor, p.n_levels)
     }
 }
 

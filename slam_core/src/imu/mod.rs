@@ -41,6 +41,7 @@ pub fn gravity_w() -> Vector3<f64> {
 
 /// Continuous-time IMU noise densities (EuRoC / Kalibr `imu.yaml` keys in brackets).
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ImuNoise {
     /// Gyro white noise density σ_g, rad/s/√Hz (`gyroscope_noise_density`).
     pub gyro_noise_density: f64,
@@ -99,6 +100,7 @@ impl ImuNoise {
 /// IMU intrinsics of seed eq. 2.53-2.54: `T_a`, `T_g` (scale and misalignment, close to I)
 /// and `T_s` (gyro g-sensitivity).
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ImuIntrinsics {
     /// Accelerometer scale/misalignment `T_a` (identity by default).
     pub t_a: Matrix3<f64>,
@@ -127,6 +129,7 @@ impl ImuIntrinsics {
 
 /// IMU biases, body frame.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ImuBiases {
     /// Gyro bias b_g, rad/s.
     pub gyro: Vector3<f64>,

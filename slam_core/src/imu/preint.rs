@@ -95,6 +95,7 @@ pub trait TimedImuSample {
 
 /// A plain timestamped IMU measurement.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ImuMeasurement {
     /// Time, ns on the IMU clock.
     pub t_ns: i64,
@@ -119,6 +120,7 @@ impl TimedImuSample for ImuMeasurement {
 /// The inverted IMU intrinsics applied to every measurement:
 /// `ã = T_a⁻¹ a_m`, `ω̃ = T_g⁻¹ (ω_m - T_s ã)`.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct MeasurementCorrection {
     t_a_inv: Matrix3<f64>,
     t_g_inv: Matrix3<f64>,
@@ -196,6 +198,7 @@ impl MeasurementCorrection {
 
 /// Fixed settings of a preintegration: noise densities and the intrinsics correction.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct PreintegrationParams {
     /// The measurement correction (inverted intrinsics).
     pub correction: MeasurementCorrection,

@@ -22,6 +22,7 @@ pub type Matrix7 = SMatrix<f64, 7, 7>;
 
 /// A similarity `x ↦ s R x + t` with `s > 0`.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Sim3 {
     /// Rotation `R`.
     pub r: UnitQuaternion<f64>,

@@ -281,7 +281,23 @@ impl LoopDetector {
         self.store(kf, false);
     }
 
-    fn store(&mut self, mut kf: KeptKeyframe, query: bool) -> Option<LoopMatch> {
+    /// [`LoopDetector::insert`] with the keyframe's BoW and feature vectors already made
+    /// (a saved map's, with this detector's vocabulary and
+    /// [`LoopDetectorParams::feature_level`]).
+    pub fn insert_with_vectors(&mut self, kf: KeptKeyframe, bow: BowVector, fv: FeatureVector) {
+        self.store_vectors(kf, Some((bow, fv)), false);
+    }
+
+    fn store(&mut self, kf: KeptKeyframe, query: bool) -> Option<LoopMatch> {
+        self.store_vectors(kf, None, query)
+    }
+
+    fn store_vectors(
+        &mut self,
+        mut kf: KeptKeyframe,
+        vectors: Option<(BowVector, FeatureVector)>,
+        query: bool,
+    ) -> Option<LoopMatch> {
         // A keyframe of a map merged away: into the map it joined (a chain of merges is
         // followed; map ids are never reused, so it ends).
         let mut hops = 0;
@@ -296,11 +312,12 @@ impl LoopDetector {
         if self.kfs.contains_key(&id) {
             self.remove(id);
         }
-        let (bow, fv) = match self.params.feature_level {
-            Some(level) => self
+        let (bow, fv) = match (vectors, self.params.feature_level) {
+            (Some(v), _) => v,
+            (None, Some(level)) => self
                 .vocabulary
                 .transform_with_features(&kf.features.descriptors, level),
-            None => (
+            (None, None) => (
                 self.vocabulary.transform(&kf.features.descriptors),
                 FeatureVector::default(),
             ),

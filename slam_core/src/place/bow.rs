@@ -3,6 +3,7 @@
 /// A sparse bag-of-words vector: `(word, weight)` sorted by word, one entry per word,
 /// L1-normalised (weights sum to 1) unless empty.
 #[derive(Debug, Clone, Default, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct BowVector {
     entries: Vec<(u32, f32)>,
 }
@@ -82,6 +83,7 @@ pub fn score(a: &BowVector, b: &BowVector) -> f32 {
 /// Feature indices grouped by vocabulary node at one level (for guided matching between two
 /// images: only features under the same node are compared). Sorted by node.
 #[derive(Debug, Clone, Default, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct FeatureVector {
     groups: Vec<(u32, Vec<u32>)>,
 }

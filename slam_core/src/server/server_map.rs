@@ -18,6 +18,7 @@ const MAX_PENDING_PER_POINT: usize = 4;
 
 /// One server map: keyframes posed in the server frame (`Keyframe::t_cw` = `T_sk⁻¹`).
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ServerMap {
     /// Map id.
     pub id: MapId,
@@ -31,7 +32,9 @@ pub struct ServerMap {
     pub frame: MapFrame,
     /// Per owner (client, VO session): client map-point id → server point id, and client
     /// map-point id → kept-keyframe observations not yet triangulated. A merged map holds
-    /// the associations of every session that was merged into it.
+    /// the associations of every session that was merged into it. Not saved: they only
+    /// mean something to live clients (a loaded map starts without any).
+    #[cfg_attr(feature = "serde", serde(skip))]
     assoc: BTreeMap<Owner, Associations>,
 }
 

@@ -117,6 +117,7 @@ impl ServerKeyframe {
 /// inertial initialisation), a monocular client's map is neither (arbitrary unit and
 /// orientation, seed ch. 3).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct MapFrame {
     /// Lengths are metres.
     pub metric: bool,

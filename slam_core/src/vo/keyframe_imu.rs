@@ -22,6 +22,7 @@ use crate::imu::{ImuMeasurement, PreintegrationParams};
 
 /// The fixed IMU calibration of a visual-inertial client.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ImuCalibration {
     /// Noise densities and intrinsics of the preintegration.
     pub preint: PreintegrationParams,
@@ -33,6 +34,7 @@ pub struct ImuCalibration {
 
 /// A keyframe's IMU segment ([`crate::vo::Keyframe::imu`]).
 #[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct KeyframeImu {
     /// IMU-clock time of the previous keyframe of the session when this one was made (or
     /// of the keyframe it replaced by a join), ns; `None` for a session's first keyframe.

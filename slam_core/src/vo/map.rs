@@ -17,6 +17,7 @@ pub type PointId = u64;
 
 /// A keyframe: a frame kept in the map with its features and pose.
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Keyframe {
     /// Id.
     pub id: KfId,
@@ -42,6 +43,7 @@ pub struct Keyframe {
 
 /// The inertial state of a keyframe ([`Keyframe::inertial`]).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct KeyframeInertial {
     /// Velocity of the body (IMU) in the world, m/s.
     pub v_wb: Vector3<f64>,
@@ -66,6 +68,7 @@ impl Keyframe {
 
 /// A 3D point of the map with its observations.
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct MapPoint {
     /// Id.
     pub id: PointId,
@@ -98,14 +101,20 @@ impl MapPoint {
 
 /// The client map of one VO session.
 #[derive(Debug, Clone, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct ClientMap {
     /// VO session this map belongs to.
     pub session_id: u32,
     /// Keyframes by id (ordered: oldest first).
     pub keyframes: BTreeMap<KfId, Keyframe>,
     /// Map points by id.
+    #[cfg_attr(feature = "serde", serde(serialize_with = "crate::serde_sorted::map"))]
     pub points: HashMap<PointId, MapPoint>,
     /// Covisibility weights: shared points between two keyframes.
+    #[cfg_attr(
+        feature = "serde",
+        serde(serialize_with = "crate::serde_sorted::nested")
+    )]
     covis: HashMap<KfId, HashMap<KfId, u32>>,
     next_point_id: PointId,
     /// A similarity of the world the visual-inertial window found (its gravity and scale
@@ -272,6 +281,36 @@ impl ClientMap {
             self.covis.entry(k).or_default().extend(nb);
         }
         self.next_point_id = self.next_point_id.max(other.next_point_id);
+    }
+
+    /// Renames every keyframe id by `kf` and every point id by `pt` (keys, keyframe → point
+    /// links, observations, first keyframes, covisibility, the point-id counter): a map read
+    /// from a file whose ids would collide with the live run's (`map_store::remap`). Both
+    /// functions must be injective.
+    pub fn rename_ids(&mut self, kf: impl Fn(KfId) -> KfId, pt: impl Fn(PointId) -> PointId) {
+        let kfs = std::mem::take(&mut self.keyframes);
+        for (_, mut k) in kfs {
+            k.id = kf(k.id);
+            for p in k.points.iter_mut().flatten() {
+                *p = pt(*p);
+            }
+            self.keyframes.insert(k.id, k);
+        }
+        let points = std::mem::take(&mut self.points);
+        for (_, mut p) in points {
+            p.id = pt(p.id);
+            p.first_kf = kf(p.first_kf);
+            for o in &mut p.observations {
+                o.0 = kf(o.0);
+            }
+            self.points.insert(p.id, p);
+        }
+        let covis = std::mem::take(&mut self.covis);
+        for (k, nb) in covis {
+            let nb = nb.into_iter().map(|(n, w)| (kf(n), w)).collect();
+            self.covis.insert(kf(k), nb);
+        }
+        self.next_point_id = pt(self.next_point_id);
     }
 
     /// Fuses point `from` into point `into` (the same 3-D point found twice, e.g. on both

@@ -1,0 +1,165 @@
+//! Saved maps end to end (issue 20), real processes: a run saves its server maps, `shoal
+//! map info` / `export` read the file, a second run starts from it, relocalises into it
+//! (its map merges into the loaded one) and saves both; a bad file is refused before any
+//! service starts.
+mod common;
+
+use std::path::Path;
+
+use common::*;
+use loop_closer::LoopCloserCounters;
+
+fn u(v: &serde_json::Value) -> u64 {
+    v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
+}
+
+/// `shoal <args>`: (exit success, stdout, stderr).
+fn shoal_cmd(args: &[&str], paths: &[&Path]) -> (bool, String, String) {
+    let mut cmd = shoal();
+    cmd.args(args);
+    cmd.args(paths);
+    let o = cmd.output().expect("run shoal");
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    (o.status.success(), text(&o.stdout), text(&o.stderr))
+}
+
+/// Session A on the synthetic `loop` (200 frames) saves its map; session B replays the same
+/// frames from it: B's map merges into the loaded one (B relocalises where A started), and
+/// B's file holds one map with A's keyframes and B's, both clients named.
+#[test]
+fn a_saved_map_is_loaded_merged_into_and_saved_again() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "loop", 200, None);
+    let (out_a, out_b) = (dir.path().join("a"), dir.path().join("b"));
+    let (file_a, file_b) = (dir.path().join("a.shoalmap"), dir.path().join("b.shoalmap"));
+    let save_a = ["--lockstep", "--save-map", file_a.to_str().unwrap()];
+    assert!(run_pipeline(&[&ds[0]], &out_a, "map_a", &save_a)
+        .status
+        .success());
+    let ra = report(&out_a);
+    let saved_a = &ra["map_saved"];
+    assert_eq!(saved_a["saved"], true, "{saved_a}");
+    let kfs_a = u(&ra["mapper"]["keyframes"]);
+    assert!(kfs_a >= 8, "session A's server map: {kfs_a} keyframes");
+    assert_eq!(u(&saved_a["keyframes"]), kfs_a);
+    assert_eq!(
+        u(&saved_a["bytes"]),
+        std::fs::metadata(&file_a).unwrap().len()
+    );
+
+    let (ok, info, err) = shoal_cmd(&["map", "info"], &[&file_a]);
+    assert!(ok, "{err}");
+    assert!(info.contains("format version 1"), "{info}");
+    assert!(
+        info.contains(&format!("1 maps, {kfs_a} keyframes")),
+        "{info}"
+    );
+    assert!(
+        info.contains("map 0x0: ") && info.contains("clients [0]"),
+        "{info}"
+    );
+    let ply = dir.path().join("a.ply");
+    let (ok, _, err) = shoal_cmd(&["map", "export"], &[&file_a, Path::new("--ply"), &ply]);
+    assert!(ok, "{err}");
+    let text = std::fs::read_to_string(&ply).unwrap();
+    let points_a = u(&ra["mapper"]["points"]);
+    assert!(
+        text.contains(&format!("element vertex {points_a}\n")),
+        "{}",
+        &text[..200]
+    );
+
+    let load_b = [
+        "--lockstep",
+        "--load-map",
+        file_a.to_str().unwrap(),
+        "--save-map",
+        file_b.to_str().unwrap(),
+    ];
+    assert!(run_pipeline(&[&ds[0]], &out_b, "map_b", &load_b)
+        .status
+        .success());
+    let rb = report(&out_b);
+    let loaded = &rb["map_loaded"];
+    assert_eq!(u(&loaded["keyframes"]), kfs_a, "{loaded}");
+    assert_eq!(u(&loaded["loop_closer_keyframes"]), kfs_a, "{loaded}");
+    assert_eq!(loaded["loop_closer_vectors_from_file"], true, "{loaded}");
+    let lc: LoopCloserCounters = service_counters(&rb, "loop_closer");
+    assert!(lc.merges >= 1, "B did not relocalise into A's map: {lc:?}");
+    let maps = rb["maps"].as_array().expect("maps");
+    assert_eq!(maps.len(), 1, "B merged into the loaded map: {maps:?}");
+    let saved = 1u64 << 23;
+    assert_eq!(
+        u(&maps[0]["id"]),
+        saved << 32,
+        "the loaded map is the reference"
+    );
+    assert_eq!(maps[0]["clients"], serde_json::json!([0, saved]));
+    let kfs_b = u(&rb["map_saved"]["keyframes"]);
+    assert!(
+        kfs_b > kfs_a,
+        "B's file holds A's {kfs_a} keyframes and B's: {kfs_b}"
+    );
+    let (ok, info, err) = shoal_cmd(&["map", "info"], &[&file_b]);
+    assert!(ok, "{err}");
+    assert!(
+        info.contains(&format!("1 maps, {kfs_b} keyframes")),
+        "{info}"
+    );
+    assert!(info.contains("clients [0, 8388608]"), "{info}");
+}
+
+/// A map file that is corrupted (one flipped byte), truncated, of another format version or
+/// not a map: `shoal run --load-map` exits non-zero with a message naming the file and the
+/// problem, and nothing is started (no service log, no report).
+#[test]
+fn a_bad_map_file_is_refused_before_any_service_starts() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "loop", 20, None);
+    let good = dir.path().join("good.shoalmap");
+    let file = map_store::MapFile::default();
+    map_store::write(&good, &file, 0, "0.1.0").expect("an empty map file");
+    let bytes = std::fs::read(&good).unwrap();
+    let mut flipped = bytes.clone();
+    let last = flipped.len() - 1;
+    flipped[last] ^= 1;
+    let mut version = bytes.clone();
+    version[8..12].copy_from_slice(&9u32.to_le_bytes());
+    let cases: [(&str, Vec<u8>, &str); 4] = [
+        ("flipped", flipped, "corrupted"),
+        ("truncated", bytes[..bytes.len() - 1].to_vec(), "truncated"),
+        ("version", version, "format version 9"),
+        ("not_a_map", b"hello".to_vec(), "not a shoal map file"),
+    ];
+    for (name, content, message) in cases {
+        let path = dir.path().join(format!("{name}.shoalmap"));
+        std::fs::write(&path, content).unwrap();
+        let out = dir.path().join(format!("out_{name}"));
+        let o = shoal()
+            .args([
+                "run",
+                "--quiet",
+                "--lockstep",
+                "--mode",
+                "mono",
+                "--dataset",
+            ])
+            .arg(&ds[0])
+            .arg("--out")
+            .arg(&out)
+            .args(["--ipc-prefix", &prefix(&format!("map_bad_{name}"))])
+            .arg("--load-map")
+            .arg(&path)
+            .output()
+            .expect("run shoal");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{name}: accepted");
+        assert!(err.contains(message), "{name}: {err}");
+        assert!(err.contains(&path.display().to_string()), "{name}: {err}");
+        assert!(!out.join("logs").exists(), "{name}: a service was started");
+        assert!(
+            !out.join("report.json").exists(),
+            "{name}: a report was written"
+        );
+    }
+}
