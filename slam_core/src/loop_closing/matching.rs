@@ -144,6 +144,9 @@ pub struct NeighbourhoodPoint {
     pub descriptor: Descriptor,
     /// Pyramid octave of that keypoint (sets the search radius).
     pub octave: u8,
+    /// Which keyframe gave it: 0 for the candidate itself, `n` for its `n`-th best
+    /// covisible neighbour.
+    pub rank: u16,
 }
 
 /// The points of `m` and of its `neighbours` (each given with `T_mn`, its camera frame →
@@ -155,7 +158,7 @@ pub fn neighbourhood_points<'a>(
 ) -> Vec<NeighbourhoodPoint> {
     let mut seen = HashSet::new();
     let mut out = Vec::with_capacity(m.points.len() * 4);
-    let mut push = |kf: &KeptKeyframe, t_mn: &Isometry3<f64>| {
+    let mut push = |kf: &KeptKeyframe, t_mn: &Isometry3<f64>, rank: u16| {
         for p in &kf.points {
             let kp = p.keypoint as usize;
             let (Some(k), Some(d)) = (
@@ -169,6 +172,7 @@ pub fn neighbourhood_points<'a>(
                 continue;
             }
             out.push(NeighbourhoodPoint {
+                rank,
                 point: p.point,
                 p_m,
                 descriptor: *d,
@@ -176,15 +180,16 @@ pub fn neighbourhood_points<'a>(
             });
         }
     };
-    push(m, &Isometry3::identity());
-    for (n, t_mn) in neighbours {
-        push(n, &t_mn);
+    push(m, &Isometry3::identity(), 0);
+    for (i, (n, t_mn)) in neighbours.into_iter().enumerate() {
+        push(n, &t_mn, u16::try_from(i + 1).unwrap_or(u16::MAX));
     }
     out
 }
 
 /// Descriptor matches of `q`'s points against a candidate's neighbourhood points
-/// ([`neighbourhood_points`]), brute force: each query point's nearest neighbourhood point
+/// ([`neighbourhood_points`]) from its first `window` keyframes (the candidate and its
+/// best covisible ones), brute force: each query point's nearest neighbourhood point
 /// at Hamming distance `<= max_distance` passing the `ratio` test, each neighbourhood point
 /// kept by its closest query point. `PointMatch::m` indexes `points`. Matching the whole
 /// covisible window instead of the one candidate keyframe (ORB-SLAM3's place recognition)
@@ -193,6 +198,7 @@ pub fn neighbourhood_points<'a>(
 pub fn match_neighbourhood(
     q: &KeptKeyframe,
     points: &[NeighbourhoodPoint],
+    window: usize,
     max_distance: u32,
     ratio: f32,
 ) -> Vec<PointMatch> {
@@ -202,7 +208,8 @@ pub fn match_neighbourhood(
             continue;
         };
         let (mut best, mut best_j, mut second) = (NONE, NONE, NONE);
-        for (j, np) in points.iter().enumerate() {
+        let in_window = points.iter().enumerate().filter(|(_, np)| usize::from(np.rank) < window);
+        for (j, np) in in_window {
             let d = hamming(dq, &np.descriptor);
             if d < best {
                 (second, best, best_j) = (best, d, j as u32);

@@ -50,11 +50,13 @@ pub struct Sim3Params {
     pub min_inliers: usize,
     /// Seed of the RANSAC sampler (runs are reproducible).
     pub seed: u64,
-    /// Match the query's points against the candidate's whole neighbourhood
-    /// ([`match_neighbourhood`], brute force) instead of the candidate keyframe's own
-    /// points: used for merges, where the two sessions' keyframes hold different subsets of
-    /// the scene's points.
-    pub window_matching: bool,
+    /// When not 0, match the query's points against the points of the candidate and its
+    /// best covisible keyframes, this many keyframes in all ([`match_neighbourhood`], brute
+    /// force), instead of the candidate keyframe's own points: used for merges, where the
+    /// two sessions' keyframes hold different subsets of the scene's points. A larger
+    /// window holds more look-alikes of each point (a checkerboard's corners), which the
+    /// ratio test then refuses.
+    pub window_keyframes: usize,
     /// Repeated structure test: the verification is refused when a RANSAC hypothesis that
     /// puts the candidate's camera elsewhere (by more than 5% of the query points' median
     /// depth) has at least this fraction of the best one's inliers, e.g. a checkerboard
@@ -87,7 +89,7 @@ impl Default for Sim3Params {
             guided_max_distance: TH_LOW,
             min_inliers: 40,
             seed: 0x005e_ed1c,
-            window_matching: false,
+            window_keyframes: 0,
             rival_ratio: f32::INFINITY,
         }
     }
@@ -315,7 +317,13 @@ fn neighbourhood_correspondences(
     neighbourhood: &[NeighbourhoodPoint],
     params: &Sim3Params,
 ) -> Correspondences {
-    let matches = match_neighbourhood(q, neighbourhood, params.max_distance, params.ratio);
+    let matches = match_neighbourhood(
+        q,
+        neighbourhood,
+        params.window_keyframes,
+        params.max_distance,
+        params.ratio,
+    );
     let keypoint_in_m: std::collections::HashMap<PointId, usize> = m
         .points
         .iter()
@@ -337,8 +345,8 @@ fn neighbourhood_correspondences(
 ///
 /// 1. Descriptor matches between the two keyframes' points ([`match_kept_points`]; guided
 ///    by vocabulary node when `guides = Some((fv_q, fv_m))`, brute force otherwise), or,
-///    with [`Sim3Params::window_matching`], between the query's points and the whole
-///    `neighbourhood` ([`match_neighbourhood`]; a point `m` does not observe is tested by
+///    with [`Sim3Params::window_keyframes`], between the query's points and those of the
+///    first keyframes of `neighbourhood` ([`match_neighbourhood`]; a point `m` does not observe is tested by
 ///    its reprojection into the query only).
 /// 2. RANSAC over 3-point samples with [`umeyama`] (with scale), inliers when both
 ///    reprojections (`S p_m` into `q`, `S⁻¹ p_q` into `m`) pass `χ² <= chi2` at the
@@ -390,7 +398,7 @@ pub fn verify_sim3(
     neighbourhood: &[NeighbourhoodPoint],
     params: &Sim3Params,
 ) -> Result<Sim3Result, Sim3Reject> {
-    let (corrs, ids) = if !params.window_matching || neighbourhood.is_empty() {
+    let (corrs, ids) = if params.window_keyframes == 0 || neighbourhood.is_empty() {
         keyframe_correspondences(q, m, guides, params)
     } else {
         neighbourhood_correspondences(q, m, neighbourhood, params)
