@@ -208,7 +208,10 @@ pub fn match_neighbourhood(
             continue;
         };
         let (mut best, mut best_j, mut second) = (NONE, NONE, NONE);
-        let in_window = points.iter().enumerate().filter(|(_, np)| usize::from(np.rank) < window);
+        let in_window = points
+            .iter()
+            .enumerate()
+            .filter(|(_, np)| usize::from(np.rank) < window);
         for (j, np) in in_window {
             let d = hamming(dq, &np.descriptor);
             if d < best {

@@ -221,12 +221,8 @@ fn ransac(
         if best.is_none_or(|b| count > b.1) {
             best = Some((s, count));
             if !rivals {
-                needed = adaptive_iterations(
-                    count as f64 / n as f64,
-                    3,
-                    p.confidence,
-                    p.max_iterations,
-                );
+                needed =
+                    adaptive_iterations(count as f64 / n as f64, 3, p.confidence, p.max_iterations);
             }
         }
     }
@@ -303,7 +299,11 @@ fn keyframe_correspondences(
         let km = Some(pmm.keypoint as usize);
         if let Some(c) = correspondence(q, pm.q as usize, m, pmm.p_k, km) {
             out.0.push(c);
-            out.1.push((q.points[pm.q as usize].point, pmm.point, q.points[pm.q as usize].keypoint));
+            out.1.push((
+                q.points[pm.q as usize].point,
+                pmm.point,
+                q.points[pm.q as usize].keypoint,
+            ));
         }
     }
     out
@@ -335,7 +335,11 @@ fn neighbourhood_correspondences(
         let km = keypoint_in_m.get(&np.point).copied();
         if let Some(c) = correspondence(q, pm.q as usize, m, np.p_m, km) {
             out.0.push(c);
-            out.1.push((q.points[pm.q as usize].point, np.point, q.points[pm.q as usize].keypoint));
+            out.1.push((
+                q.points[pm.q as usize].point,
+                np.point,
+                q.points[pm.q as usize].keypoint,
+            ));
         }
     }
     out
@@ -535,14 +539,20 @@ mod rival_tests {
         };
         // Two equally supported placements: the rival has as many inliers as the best.
         let (_, best, rival) = ransac(&corrs(40, 40, &cam), &cam, &cam, &on).unwrap();
-        assert!(best >= 40 && rival as f32 >= 0.9 * best as f32, "{best} {rival}");
+        assert!(
+            best >= 40 && rival as f32 >= 0.9 * best as f32,
+            "{best} {rival}"
+        );
         // One clear placement (a few stray one-off matches): no rival worth the name.
         let (s, best, rival) = ransac(&corrs(60, 8, &cam), &cam, &cam, &on).unwrap();
-        assert!(best >= 60 && (rival as f32) < 0.7 * best as f32, "{best} {rival}");
+        assert!(
+            best >= 60 && (rival as f32) < 0.7 * best as f32,
+            "{best} {rival}"
+        );
         assert!(s.t.norm() < 0.05 && (s.s - 1.0).abs() < 0.01);
         // Off: RANSAC stops early and reports no rival.
-        let (_, _, rival) = ransac(&corrs(40, 40, &cam), &cam, &cam, &Sim3Params::default())
-            .unwrap();
+        let (_, _, rival) =
+            ransac(&corrs(40, 40, &cam), &cam, &cam, &Sim3Params::default()).unwrap();
         assert_eq!(rival, 0);
     }
 }
