@@ -539,7 +539,16 @@ impl ClientOutputs {
         let plot_spec = |name: &str| PlotSpec::new(out, ds, name, c, events);
         // Backfilled poses arrive after later frames: ordered by time, every VO session in
         // one frame (the server's merges tie them), and in the server map.
-        let one = super::sessions::one_frame(out, c, &rec.trajectory, &rec.trajectory_sessions);
+        let mut one = super::sessions::one_frame(out, c, &rec.trajectory, &rec.trajectory_sessions);
+        let mapper: MapperCounters = st.counters(mapper::SERVICE_NAME);
+        let final_map = mapper.client(c as u32).map_id;
+        // A client that relocalised into a loaded map (`--load-map`: the merge keeps the
+        // loaded map's frame) has every frame of its linked sessions, before the merge too,
+        // written in that map's frame: the frame of the session that saved it.
+        if let (true, Some(server)) = (in_loaded_map(final_map), one.server.as_ref()) {
+            one.trajectory = server.clone();
+            one.report.in_loaded_map = true;
+        }
         let (mut trajectory, mut ate) = (None, [None, None, None]);
         if !one.trajectory.is_empty() {
             let (est_t, est_p) = split_wire(&one.trajectory);
@@ -559,8 +568,6 @@ impl ClientOutputs {
             let path = out.join(format!("orientation_c{c}.txt"));
             write_orientations(&path, &rec.orientations)?;
         }
-        let mapper: MapperCounters = st.counters(mapper::SERVICE_NAME);
-        let final_map = mapper.client(c as u32).map_id;
         let (live, other_maps) = live_server_poses(rec, final_map);
         // Every frame relative to its session's keyframes' final server poses when the
         // server map has them (the live poses cover only frames tracked after feedback).
@@ -592,6 +599,14 @@ impl ClientOutputs {
             sessions: one.report,
         })
     }
+}
+
+/// Whether server map `map_id` is one loaded by `--load-map` (its id names a saved client,
+/// [`map_store::remap::SAVED_CLIENT_BASE`] and up; a live map merged into it takes its id).
+fn in_loaded_map(map_id: Option<u64>) -> bool {
+    map_id.is_some_and(|m| {
+        slam_core::ids::MapId::from_raw(m).client().raw() >= map_store::remap::SAVED_CLIENT_BASE
+    })
 }
 
 /// Writes `orientation_c{i}.txt`: `t qx qy qz qw state` per frame with only a

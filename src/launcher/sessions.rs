@@ -50,6 +50,10 @@ pub struct SessionsReport {
     pub frames_server_from_keyframes: u64,
     /// Per session, oldest first.
     pub sessions: Vec<SessionEntry>,
+    /// `trajectory_c{i}.txt` is in the frame of a map loaded by `--load-map` (the client's
+    /// map merged into it): every frame of the linked sessions, as in
+    /// `trajectory_server_c{i}.txt`.
+    pub in_loaded_map: bool,
 }
 
 /// The outputs for one client.
