@@ -293,20 +293,28 @@ fn keyframe_correspondences(
     let matches = match_kept_points(q, m, guides, params.max_distance, params.ratio);
     let mut out = (Vec::with_capacity(matches.len()), Vec::new());
     for pm in &matches {
-        let Some(pmm) = m.points.get(pm.m as usize) else {
-            continue;
-        };
-        let km = Some(pmm.keypoint as usize);
-        if let Some(c) = correspondence(q, pm.q as usize, m, pmm.p_k, km) {
-            out.0.push(c);
-            out.1.push((
-                q.points[pm.q as usize].point,
-                pmm.point,
-                q.points[pm.q as usize].keypoint,
-            ));
+        if let Some(pmm) = m.points.get(pm.m as usize) {
+            let matched = (pmm.point, pmm.p_k, Some(pmm.keypoint as usize));
+            push_correspondence(&mut out, q, pm.q as usize, m, matched);
         }
     }
     out
+}
+
+/// Appends the correspondence of query point `iq` with the matched point `(id, p_m, its
+/// keypoint in m)` and their ids, when it is finite ([`correspondence`]).
+fn push_correspondence(
+    out: &mut Correspondences,
+    q: &KeptKeyframe,
+    iq: usize,
+    m: &KeptKeyframe,
+    (point, p_m, km): (PointId, Vector3<f64>, Option<usize>),
+) {
+    if let Some(c) = correspondence(q, iq, m, p_m, km) {
+        let pq = &q.points[iq];
+        out.0.push(c);
+        out.1.push((pq.point, point, pq.keypoint));
+    }
 }
 
 /// Correspondences from descriptor matches of the query's points against `m`'s
@@ -332,15 +340,8 @@ fn neighbourhood_correspondences(
     let mut out = (Vec::with_capacity(matches.len()), Vec::new());
     for pm in &matches {
         let np = &neighbourhood[pm.m as usize];
-        let km = keypoint_in_m.get(&np.point).copied();
-        if let Some(c) = correspondence(q, pm.q as usize, m, np.p_m, km) {
-            out.0.push(c);
-            out.1.push((
-                q.points[pm.q as usize].point,
-                np.point,
-                q.points[pm.q as usize].keypoint,
-            ));
-        }
+        let matched = (np.point, np.p_m, keypoint_in_m.get(&np.point).copied());
+        push_correspondence(&mut out, q, pm.q as usize, m, matched);
     }
     out
 }
