@@ -251,10 +251,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
     // A saved map is read whole (checksum, decode, validation) before anything is started
     // or written: a bad file ends the command here.
-    let loaded = match &cfg.load_map {
-        Some(p) => Some(map_file::check(p)?),
-        None => None,
-    };
+    let loaded = cfg.load_map.as_deref().map(map_file::check).transpose()?;
     // Hashing the datasets overlaps the start-up.
     let checksums = {
         let paths = cfg.datasets.clone();

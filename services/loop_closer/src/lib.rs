@@ -761,10 +761,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let cfg = params.config()?;
     let mut closer = Closer::new(vocabulary(&cfg)?, cfg.method);
     closer.set_debug_queries(cfg.debug_loop);
-    let loaded = match &params.load_map {
-        Some(path) => Some(saved::load(&mut closer, path, saved::vocabulary_id(&cfg))?),
-        None => None,
-    };
+    let loaded = (params.load_map.as_deref())
+        .map(|path| saved::load(&mut closer, path, saved::vocabulary_id(&cfg)))
+        .transpose()?;
     let mut start = ServiceStart::open(
         SERVICE_NAME,
         "loop_closer",
