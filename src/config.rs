@@ -74,6 +74,9 @@ pub struct RunConfig {
     pub load_map: Option<PathBuf>,
     /// Where the server's maps are saved at the end of the run (`--save-map`, atomically).
     pub save_map: Option<PathBuf>,
+    /// Localise in the loaded map without adding to it (`--localize-only`; needs
+    /// `load_map`, excludes `save_map`).
+    pub localize_only: bool,
     /// Every tracker (`{c}` in `frame_log` is the client index).
     pub tracker: tracker::TrackerConfig,
     /// The mapper.
@@ -108,6 +111,7 @@ impl Default for RunConfig {
             chaos: None,
             load_map: None,
             save_map: None,
+            localize_only: false,
             tracker: Default::default(),
             mapper: Default::default(),
             loop_closer: Default::default(),

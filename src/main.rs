@@ -143,6 +143,11 @@ struct RunArgs {
     /// Save the server's maps to this file at the end of the run (atomically).
     #[arg(long, value_name = "FILE")]
     save_map: Option<PathBuf>,
+    /// Localise in the `--load-map` map without adding to it: the server keeps it frozen,
+    /// each client's keyframes are localised in it once the client's map matches it, and
+    /// its poses are written in the map's frame.
+    #[arg(long)]
+    localize_only: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -245,6 +250,7 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     if args.save_map.is_some() {
         cfg.save_map = args.save_map;
     }
+    cfg.localize_only |= args.localize_only;
     if args.quiet {
         cfg.progress = false;
     }

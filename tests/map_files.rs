@@ -25,7 +25,8 @@ fn shoal_cmd(args: &[&str], paths: &[&Path]) -> (bool, String, String) {
 
 /// Session A on the synthetic `loop` (200 frames) saves its map; session B replays the same
 /// frames from it: B's map merges into the loaded one (B relocalises where A started), and
-/// B's file holds one map with A's keyframes and B's, both clients named.
+/// B's file holds one map with A's keyframes and B's, both clients named. C replays them
+/// with `--localize-only`: localised in A's map, which ends as it was loaded.
 #[test]
 fn a_saved_map_is_loaded_merged_into_and_saved_again() {
     let dir = tempdir();
@@ -107,6 +108,52 @@ fn a_saved_map_is_loaded_merged_into_and_saved_again() {
         "{info}"
     );
     assert!(info.contains("clients [0, 8388608]"), "{info}");
+
+    // `--localize-only` on A's file: the same frames relocalise and are localised in it,
+    // which ends as it was loaded; with `--save-map` it is refused before the start.
+    let out_c = dir.path().join("c");
+    let file = file_a.to_str().unwrap();
+    let localize = ["--lockstep", "--load-map", file, "--localize-only"];
+    assert!(run_pipeline(&[&ds[0]], &out_c, "map_c", &localize)
+        .status
+        .success());
+    let rc = report(&out_c);
+    assert_localised_in(&rc, kfs_a, points_a);
+    let ate = rc["clients"][0]["ate"]["rmse_m"].as_f64().expect("ATE");
+    assert!(ate < 0.05, "frames localised in A's map: ATE {ate} m");
+    let both = [&localize[..], &["--save-map", file_b.to_str().unwrap()]].concat();
+    let o = run_pipeline(&[&ds[0]], &dir.path().join("d"), "map_d", &both);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("would only copy it"),
+        "{err}"
+    );
+}
+
+/// A `--localize-only` run's report: client 0 relocalised in the loaded map (which ends
+/// with the file's `keyframes` and `points`, checked unchanged by the mapper), its
+/// keyframes were localised there and none kept, and its trajectory is in that map's frame.
+fn assert_localised_in(r: &serde_json::Value, keyframes: u64, points: u64) {
+    let loaded = &r["map_loaded"];
+    assert_eq!(loaded["localize_only"], true, "{loaded}");
+    assert_eq!(loaded["maps_unchanged"], true, "{loaded}");
+    let maps = r["maps"].as_array().expect("maps");
+    assert_eq!(maps.len(), 1, "only the loaded map is left: {maps:?}");
+    assert_eq!(
+        maps[0]["clients"],
+        serde_json::json!([8_388_608]),
+        "{maps:?}"
+    );
+    assert_eq!(
+        (u(&maps[0]["keyframes"]), u(&maps[0]["points"])),
+        (keyframes, points)
+    );
+    let m: mapper::MapperCounters = service_counters(r, "mapper");
+    let c0 = m.client(0);
+    assert_eq!(c0.relocalisations, 1, "{c0:?}");
+    assert!(c0.keyframes_localised >= 5, "{c0:?}");
+    let c = &r["clients"][0];
+    assert_eq!(c["sessions"]["in_loaded_map"], true, "{}", c["sessions"]);
 }
 
 /// A map file that is corrupted (one flipped byte), truncated, of another format version or
@@ -178,7 +225,8 @@ fn positions(path: &Path, fps: f64) -> Vec<(i64, nalgebra::Vector3<f64>)> {
 /// ground truth on A's keyframes alone, B's frames lie within 10 cm of theirs. The board
 /// moves on the desk between the passes (`benches/vamr_board_motion.py`), so the
 /// board-relative ground truth cannot say better than a few centimetres across sessions;
-/// in B's own frame (not in A's) they would be decimetres off.
+/// in B's own frame (not in A's) they would be decimetres off. B again with
+/// `--localize-only`: localised in A's map (left as saved), within 10 cm of the truth too.
 #[cfg_attr(
     not(shoal_data),
     ignore = "needs ../shared/data/vamr_checkerboard (set SHOAL_DATA)"
@@ -225,4 +273,20 @@ fn vamr_second_session_relocalises_into_the_saved_first() {
     eprintln!("vamr A/B: A's keyframes fit to {fit_a:.4} m; B's frames in A's frame {b_in_a:.4} m");
     assert!(fit_a < 0.005, "session A's own keyframes: {fit_a} m");
     assert!(b_in_a < 0.10, "B's frames in A's frame: {b_in_a} m");
+
+    // B again with `--localize-only`: localised in A's map, which stays as saved.
+    let out_l = dir.path().join("l");
+    let l = [&b[..], &["--localize-only"]].concat();
+    assert!(run_pipeline(&[&ds], &out_l, "vamr_l", &l).status.success());
+    let rl = report(&out_l);
+    let ra = report(&out_a);
+    let (kfs, pts) = (u(&ra["mapper"]["keyframes"]), u(&ra["mapper"]["points"]));
+    assert_localised_in(&rl, kfs, pts);
+    assert_eq!(u(&rl["clients"][0]["frames_posed"]), 279);
+    let l_in_a = rmse(&positions(&out_l.join("trajectory_c0.txt"), 20.0));
+    eprintln!("vamr A/B --localize-only: B's frames in A's frame {l_in_a:.4} m");
+    assert!(
+        l_in_a < 0.10,
+        "B's frames localised in A's frame: {l_in_a} m"
+    );
 }

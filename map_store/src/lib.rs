@@ -43,6 +43,13 @@ pub fn vocabulary_id(bytes: &[u8]) -> u32 {
     crc32fast::hash(bytes)
 }
 
+/// A digest of a server map's saved content (CRC-32 of its postcard encoding): what
+/// `--localize-only` compares at the end with the loaded map's to show nothing was added
+/// to it or moved. `None` when it cannot be encoded.
+pub fn map_digest(map: &ServerMap) -> Option<u32> {
+    postcard::to_stdvec(map).ok().map(|b| crc32fast::hash(&b))
+}
+
 /// One saved server map with what place recognition needs of its keyframes.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SavedMap {

@@ -93,7 +93,7 @@ pub fn run(a: &MapArgs) -> anyhow::Result<()> {
     let vocab = loop_closer::saved::vocabulary_id(&cfg);
     let closer_ms = timed(a.repeat, || {
         let mut closer = loop_closer::Closer::new(loop_closer::vocabulary(&cfg)?, cfg.method);
-        loop_closer::saved::load(&mut closer, &out, vocab)?;
+        loop_closer::saved::load(&mut closer, &out, vocab, false)?;
         Ok(())
     })?;
     if a.out.is_none() {

@@ -32,6 +32,12 @@ pub struct MapLoadReport {
     /// The loop closer used the file's BoW and feature vectors (same vocabulary and
     /// feature level), rather than computing them again.
     pub loop_closer_vectors_from_file: Option<bool>,
+    /// `--localize-only`: the clients localised in its maps without adding to them.
+    pub localize_only: bool,
+    /// `--localize-only`: the mapper found every loaded map as it was loaded at the end
+    /// (same digest, [`map_store::map_digest`]); `None` without `--localize-only` or when
+    /// the mapper did not say.
+    pub maps_unchanged: Option<bool>,
 }
 
 /// A `--save-map` file as the report lists it (from the mapper's status).
@@ -69,6 +75,30 @@ pub fn check(path: &Path) -> anyhow::Result<MapLoadReport> {
         check_ms: t0.elapsed().as_secs_f64() * 1e3,
         ..MapLoadReport::default()
     })
+}
+
+/// `--localize-only` needs a map to localise in (`--load-map`) and leaves it as it was, so a
+/// `--save-map` of the same run would only copy it: both are refused before the start.
+pub fn check_localize_only(
+    localize_only: bool,
+    load_map: Option<&Path>,
+    save_map: Option<&Path>,
+) -> anyhow::Result<()> {
+    if !localize_only {
+        return Ok(());
+    }
+    anyhow::ensure!(
+        load_map.is_some(),
+        "--localize-only localises in a saved map: give it with --load-map FILE"
+    );
+    if let Some(p) = save_map {
+        anyhow::bail!(
+            "--localize-only leaves the loaded map unchanged: --save-map {} would only copy it \
+             (run without --localize-only to extend the map and save it)",
+            p.display()
+        );
+    }
+    Ok(())
 }
 
 /// Checks that the `--save-map` file can be created where it is asked: its folder exists
@@ -121,6 +151,19 @@ mod tests {
         assert!(e.to_string().contains("is a folder"), "{e}");
         check_save_path(&dir.path().join("m.shoalmap")).expect("existing folder");
         check_save_path(Path::new("m.shoalmap")).expect("current folder");
+    }
+
+    /// `--localize-only` without a map, or with `--save-map`, is refused; with a map it is
+    /// accepted, and without the flag anything goes.
+    #[test]
+    fn localize_only_needs_a_map_and_saves_none() {
+        let (map, out) = (Some(Path::new("a.shoalmap")), Some(Path::new("b.shoalmap")));
+        let e = check_localize_only(true, None, None).expect_err("no map");
+        assert!(e.to_string().contains("--load-map"), "{e}");
+        let e = check_localize_only(true, map, out).expect_err("saved");
+        assert!(e.to_string().contains("b.shoalmap"), "{e}");
+        check_localize_only(true, map, None).expect("a map to localise in");
+        check_localize_only(false, None, out).expect("no localisation");
     }
 
     /// The save report comes from the mapper's status values; without them the map was not

@@ -167,10 +167,16 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             if let Some(p) = &cfg.save_map {
                 args.extend(["--save-map".to_string(), path_arg(p)]);
             }
+            if cfg.localize_only {
+                args.push("--localize-only".to_string());
+            }
         }
         Kind::LoopCloser => {
             if let Some(p) = &cfg.load_map {
                 args.extend(["--load-map".to_string(), path_arg(p)]);
+            }
+            if cfg.localize_only {
+                args.push("--localize-only".to_string());
             }
         }
         Kind::Tracker => {
@@ -251,6 +257,11 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
     // A saved map is read whole (checksum, decode, validation) before anything is started
     // or written: a bad file ends the command here.
+    map_file::check_localize_only(
+        cfg.localize_only,
+        cfg.load_map.as_deref(),
+        cfg.save_map.as_deref(),
+    )?;
     let loaded = cfg.load_map.as_deref().map(map_file::check).transpose()?;
     // Hashing the datasets overlaps the start-up.
     let checksums = {

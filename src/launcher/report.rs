@@ -910,6 +910,9 @@ impl RunReport {
             r.loop_closer_load_ms = l.get("map_load_ms").copied();
             let from_file = l.get("map_loaded_vectors_from_file");
             r.loop_closer_vectors_from_file = from_file.map(|v| *v > 0.0);
+            r.localize_only = cfg.localize_only;
+            let unchanged = m.get("map_localize_only_unchanged");
+            r.maps_unchanged = unchanged.map(|v| *v > 0.0);
         }
         self.map_saved = cfg
             .save_map

@@ -18,7 +18,7 @@ pub mod saved;
 
 pub use config::{LoopCloserConfig, LoopCloserFlags};
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -74,6 +74,10 @@ pub struct Params {
     /// ([`saved::load`]; the launcher has checked it).
     #[arg(long)]
     pub load_map: Option<PathBuf>,
+    /// Localise in the loaded maps without adding to them: they are frozen, and a live map
+    /// that matches one relocalises in it ([`Closer::freeze`]).
+    #[arg(long)]
+    pub localize_only: bool,
     /// Configuration file (TOML, the keys of `[loop_closer]` in `shoal config --print`).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -221,6 +225,9 @@ pub struct Closer {
     next_id: u64,
     /// Print every query's statistics on stderr.
     debug_queries: bool,
+    /// Maps frozen by `--localize-only` (the loaded ones): a live map that matches one
+    /// relocalises in it; they never move.
+    frozen: BTreeSet<MapId>,
 }
 
 /// A correction ready to send.
@@ -248,6 +255,7 @@ impl Closer {
             },
             next_id: 1,
             debug_queries: false,
+            frozen: BTreeSet::new(),
         }
     }
 
@@ -306,6 +314,12 @@ impl Closer {
         let Some(m) = found else {
             return Ok(None);
         };
+        if self.frozen.contains(&m.query_map) {
+            return Err(format!(
+                "loop {:#x}-{:#x}: map {:#x} is frozen (--localize-only)",
+                m.query, m.matched, m.query_map
+            ));
+        }
         if m.query_map != m.matched_map {
             Ok(Some(self.merge(client, &m)?))
         } else {
@@ -368,9 +382,11 @@ impl Closer {
         // `VI_NOTES.md` §4 "Loops and merges": two metric, gravity-aligned maps differ by
         // x, y, z and yaw; a visual map joins an inertial one by a similarity, and it is the
         // visual map that moves, so the merged map stays metric and gravity-aligned.
+        // A frozen map (`--localize-only`) never moves: the query's map relocalises in it.
+        let frozen = self.frozen.contains(&m.matched_map);
         let (from, into, s, dof) = match (q_inertial, m_inertial) {
             (true, true) => (m.query_map, m.matched_map, four_dof(&s_mq, &c_q), "4-DoF"),
-            (true, false) => (m.matched_map, m.query_map, s_mq.inverse(), "Sim(3)"),
+            (true, false) if !frozen => (m.matched_map, m.query_map, s_mq.inverse(), "Sim(3)"),
             _ => (m.query_map, m.matched_map, s_mq, "Sim(3)"),
         };
         let mut header = self.header(client, CORRECTION_MERGE, m, &s);
@@ -396,6 +412,11 @@ impl Closer {
             records,
             four_dof: q_inertial && m_inertial,
         })
+    }
+
+    /// Freezes map `map` (`--localize-only`): see [`Closer::merge`].
+    pub fn freeze(&mut self, map: MapId) {
+        self.frozen.insert(map);
     }
 
     /// Whether map `map` is metric and gravity-aligned (one of its keyframes says so: a
@@ -762,7 +783,10 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let mut closer = Closer::new(vocabulary(&cfg)?, cfg.method);
     closer.set_debug_queries(cfg.debug_loop);
     let loaded = (params.load_map.as_deref())
-        .map(|path| saved::load(&mut closer, path, saved::vocabulary_id(&cfg)))
+        .map(|path| {
+            let vocabulary_id = saved::vocabulary_id(&cfg);
+            saved::load(&mut closer, path, vocabulary_id, params.localize_only)
+        })
         .transpose()?;
     let mut start = ServiceStart::open(
         SERVICE_NAME,

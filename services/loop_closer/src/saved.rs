@@ -32,11 +32,13 @@ pub fn vocabulary_id(cfg: &LoopCloserConfig) -> Option<u32> {
 /// [`map_store::remap`]) and inserts every keyframe's summary into `closer` without a loop
 /// search. The file's BoW and feature vectors are used when they were made with the
 /// vocabulary of identity `vocabulary_id` at the closer's feature level; else they are
-/// computed again ([`Closer::insert`]).
+/// computed again ([`Closer::insert`]). With `freeze` (`--localize-only`) its maps are
+/// frozen ([`Closer::freeze`]).
 pub fn load(
     closer: &mut Closer,
     path: &Path,
     vocabulary_id: Option<u32>,
+    freeze: bool,
 ) -> anyhow::Result<LoadedKeyframes> {
     let t0 = Instant::now();
     let loaded = map_store::load(path)?;
@@ -47,6 +49,9 @@ pub fn load(
     let mut keyframes = 0;
     for saved in loaded.file.maps {
         let m = &saved.map;
+        if freeze {
+            closer.freeze(m.id);
+        }
         let mut vectors: std::collections::HashMap<u64, _> = saved
             .bow
             .into_iter()

@@ -81,6 +81,10 @@ pub struct Mapper {
     /// The worker hosting the maps of each client of a loaded map file (clients without a
     /// handler, [`map_store::remap`]).
     saved_hosts: BTreeMap<u32, usize>,
+    /// `--localize-only`: the loaded maps are frozen.
+    pub localize_only: bool,
+    /// `--localize-only`: the digest of each frozen map as loaded ([`crate::saved::check_frozen`]).
+    pub frozen_digests: BTreeMap<MapId, Option<u32>>,
 }
 
 impl Mapper {
@@ -125,6 +129,8 @@ impl Mapper {
             lockstep: params.mode == ReplayMode::Lockstep,
             out: Vec::new(),
             saved_hosts: BTreeMap::new(),
+            localize_only: params.localize_only,
+            frozen_digests: BTreeMap::new(),
         }
     }
 
@@ -489,6 +495,8 @@ impl Mapper {
         n.keyframes_culled = f.stats.culled;
         n.revisit_global_ba = f.stats.revisit_global_ba;
         n.kept_at_session_end = f.stats.kept_at_session_end;
+        n.keyframes_localised = f.stats.localised;
+        n.relocalisations = f.stats.relocalisations;
         n.global_bas = f.stats.global_bas;
         n.vi_windows = f.stats.vi_windows;
         n.vi_windows_skipped = f.stats.vi_windows_skipped;

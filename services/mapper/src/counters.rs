@@ -157,6 +157,10 @@ pub struct MapperClientCounters {
     pub revisit_global_ba: u64,
     /// Gauge (handler): keyframes inserted at their session's end.
     pub kept_at_session_end: u64,
+    /// Gauge (handler): keyframes localised in a frozen map (`--localize-only`).
+    pub keyframes_localised: u64,
+    /// Gauge (handler): its maps relocalised in a frozen map (`--localize-only`).
+    pub relocalisations: u64,
     /// Gauge (handler): global BAs of its current map applied (after loops, merges,
     /// revisits).
     pub global_bas: u64,

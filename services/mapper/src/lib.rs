@@ -74,6 +74,11 @@ pub struct Params {
     /// maps are hosted with their clients renamed to the saved-clients range.
     #[arg(long)]
     pub load_map: Option<PathBuf>,
+    /// Localise in the loaded maps without adding to them (`--localize-only`): they are
+    /// frozen; a client's map that matches one is dropped and the client's keyframes are
+    /// localised in it, never inserted.
+    #[arg(long)]
+    pub localize_only: bool,
     /// Where to save the server's maps at the end of the run (atomically).
     #[arg(long)]
     pub save_map: Option<PathBuf>,

@@ -210,6 +210,8 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     let all_joined = drain(&mut m, &ports, &results_rx, cfg.drain_seconds)?;
     if let Some(path) = &params.save_map {
         crate::saved::save(&mut m, path, all_joined);
+    } else if m.localize_only {
+        crate::saved::check_frozen(&mut m);
     }
     m.status.finished = true;
     start.file.write(m.status_now())?;

@@ -6,6 +6,7 @@ use std::time::Instant;
 use anyhow::Context;
 use shoal_runtime::ErrorKind;
 use slam_core::place::Vocabulary;
+use slam_core::server::ServerMap;
 
 use crate::core::Mapper;
 
@@ -21,7 +22,14 @@ pub fn load(m: &mut Mapper, path: &Path) -> anyhow::Result<()> {
         loaded.file.keyframes(),
         loaded.file.points(),
     );
-    m.host_loaded(loaded.file.maps.into_iter().map(|s| s.map).collect())
+    let mut hosted: Vec<ServerMap> = loaded.file.maps.into_iter().map(|s| s.map).collect();
+    if m.localize_only {
+        for map in &mut hosted {
+            map.freeze();
+            m.frozen_digests.insert(map.id, map_store::map_digest(map));
+        }
+    }
+    m.host_loaded(hosted)
         .with_context(|| format!("hosting the maps of {}", path.display()))?;
     let s = &mut m.status;
     s.set_value("map_loaded_maps", maps as f64);
@@ -33,6 +41,27 @@ pub fn load(m: &mut Mapper, path: &Path) -> anyhow::Result<()> {
         path.display()
     );
     Ok(())
+}
+
+/// `--localize-only`, at the end (after the drain): compares each frozen map with what was
+/// loaded ([`map_store::map_digest`]); the status gets `map_localize_only_unchanged` (1 when
+/// every one is the same) and an error names a map that changed or is gone.
+pub fn check_frozen(m: &mut Mapper) {
+    let maps = m.take_final_maps();
+    let mut unchanged = true;
+    for (id, digest) in std::mem::take(&mut m.frozen_digests) {
+        let now = maps.get(&id).map(map_store::map_digest);
+        if now != Some(digest) {
+            unchanged = false;
+            let what = if now.is_none() { "is gone" } else { "changed" };
+            let detail = format!("--localize-only: the loaded map {:#x} {what}", id.raw());
+            m.status.error(ErrorKind::MapFile, detail);
+        }
+    }
+    m.status.set_value(
+        "map_localize_only_unchanged",
+        f64::from(u8::from(unchanged)),
+    );
 }
 
 /// The feature-vector level the file's keyframes get: the loop detector's default (a loop

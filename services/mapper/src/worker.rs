@@ -22,10 +22,13 @@ use crossbeam_channel::{Receiver, Sender};
 use datasets::trajectory::{write_tum_file, TumDigits, TumRow};
 use nalgebra::Isometry3;
 use slam_core::ids::KeyframeId;
+use slam_core::lie::Sim3;
 use slam_core::server::{
-    apply_pose_corrections, merge_maps, HandleReport, HandlerParams, HandlerStats, KeptKeyframe,
-    KeyframeHandler, KeyframeStatus, MapFrame, MapId, ServerFeedback, ServerKeyframe, ServerMaps,
+    apply_pose_corrections, merge_maps, relocalise_in_frozen, HandleReport, HandlerParams,
+    HandlerStats, KeptKeyframe, KeyframeHandler, KeyframeStatus, MapFrame, MapId, ServerFeedback,
+    ServerKeyframe, ServerMaps,
 };
+use slam_core::vo::PointId;
 
 use crate::convert::Correction;
 
@@ -272,6 +275,9 @@ struct ClientState {
     session: Option<u32>,
     /// Keyframes handled since the last idle step.
     since_idle: usize,
+    /// `--localize-only`: (time, `T_sk`) of the client's keyframes in a frozen map: those
+    /// localised in it, and those of its maps that relocalised there (moved into its frame).
+    localised: Vec<(i64, Isometry3<f64>)>,
 }
 
 /// The maps and handlers a worker hosts.
@@ -338,6 +344,15 @@ impl Group {
                 pairs,
                 ..
             } => {
+                let frozen = |m: &MapId| self.maps.get(m).is_some_and(|m| m.is_frozen());
+                if frozen(into) {
+                    return self.relocalise(*from, *into, s_into_from, pairs);
+                }
+                if frozen(from) {
+                    return Err(format!(
+                        "map {from:#x} is frozen (--localize-only): it does not merge into {into:#x}"
+                    ));
+                }
                 let r = merge_maps(&mut self.maps, *from, *into, s_into_from, pairs)
                     .map_err(|e| e.to_string())?;
                 for m in [from, into] {
@@ -364,6 +379,11 @@ impl Group {
                 let Some(m) = self.maps.get_mut(map) else {
                     return Err(format!("pose-graph correction of unknown map {map:#x}"));
                 };
+                if m.is_frozen() {
+                    return Err(format!(
+                        "map {map:#x} is frozen (--localize-only): no pose-graph correction"
+                    ));
+                }
                 let r = apply_pose_corrections(&mut m.map, deltas, fallback);
                 *self.generations.entry(*map).or_insert(0) += 1;
                 let fused = slam_core::server::correction::fuse_points(m, pairs);
@@ -388,6 +408,35 @@ impl Group {
 }
 
 impl Group {
+    /// A live map matched a frozen one (`--localize-only`): it leaves the store and its
+    /// clients localise in the frozen map, which stays as it is
+    /// ([`slam_core::server::relocalise_in_frozen`]).
+    fn relocalise(
+        &mut self,
+        from: MapId,
+        into: MapId,
+        s: &Sim3,
+        pairs: &[(PointId, PointId)],
+    ) -> Result<String, String> {
+        let r = relocalise_in_frozen(&mut self.maps, from, into, s, pairs)
+            .map_err(|e| e.to_string())?;
+        *self.generations.entry(from).or_insert(0) += 1;
+        for (c, cs) in &mut self.clients {
+            cs.h.apply_relocalisation(from, into, s, &r.dropped, r.reference);
+            let kfs = r.dropped.map.keyframes.iter();
+            let mine = kfs.filter(|(k, _)| KeyframeId::from_raw(**k).client().raw() == *c);
+            cs.localised
+                .extend(mine.map(|(_, kf)| (kf.t_ns, kf.t_cw.inverse())));
+        }
+        Ok(format!(
+            "map {from:#x} relocalised in frozen map {into:#x} (scale {:.4}): its {} keyframes \
+             left out, reference keyframe {}",
+            s.s,
+            r.dropped.map.keyframes.len(),
+            r.reference.map_or("none".into(), |k| format!("{k:#x}"))
+        ))
+    }
+
     /// Every kept keyframe of the group's maps (a restarted loop closer's resync).
     fn snapshot(&self) -> Vec<slam_core::server::KeptKeyframe> {
         self.maps
@@ -581,6 +630,7 @@ fn handle(
         growth: Vec::new(),
         session: None,
         since_idle: 0,
+        localised: Vec::new(),
     });
     let (kf_session, kf_id, t_ns, t_ck) = (kf.session_id, kf.id, kf.t_ns, kf.t_ck);
     let t0 = Instant::now();
@@ -593,6 +643,12 @@ fn handle(
                 cs.session = Some(kf_session);
             }
             cs.client_kfs.push((t_ns, t_ck));
+        }
+        let in_frozen = |m: MapId| g.maps.get(&m).is_some_and(|m| m.is_frozen());
+        if let (Some(m), Some(t_sk)) = (r.map_id, r.t_sk) {
+            if in_frozen(m) {
+                cs.localised.push((t_ns, t_sk));
+            }
         }
     }
     // Idle when the queue is empty, and at least every MAX_WITHOUT_IDLE keyframes even
@@ -656,6 +712,9 @@ fn handle(
 /// merged) in `..._m{n}.txt`; `OUT/keyframes_client_c{c}.txt`, the client poses `T_ck` of
 /// every keyframe of the current session as received (the client VO's keyframes, for
 /// comparison); `OUT/map_growth_c{c}.txt`, the size of its map after each keyframe;
+/// `--localize-only`: while the client localises in a frozen map, `keyframes_server_c{c}.txt`
+/// holds the poses its keyframes were localised at there, and those of its maps that
+/// relocalised there (in `..._localised.txt` once it is in a map of its own again);
 /// `OUT/imu_segments_server_c{c}.txt` for a visual-inertial client ([`imu_segments_text`]).
 /// (Pose-graph corrections also leave `OUT/correction_{id}_before.txt` / `_after.txt`: the
 /// corrected map's keyframes right before and after the correction and its global BA.)
@@ -674,9 +733,23 @@ fn write_files(out: Option<&Path>, g: &Group) {
         {
             let _ = std::fs::write(out.join(format!("imu_segments_server_c{c}.txt")), text);
         }
+        let in_frozen = current
+            .and_then(|m| g.maps.get(&m))
+            .is_some_and(|m| m.is_frozen());
+        if !cs.localised.is_empty() {
+            let name = if in_frozen {
+                format!("keyframes_server_c{c}.txt")
+            } else {
+                format!("keyframes_server_c{c}_localised.txt")
+            };
+            let mut poses = cs.localised.clone();
+            poses.sort_by_key(|p| p.0);
+            poses.dedup_by_key(|p| p.0);
+            let _ = write_tum(&out.join(name), &poses);
+        }
         for (id, m) in &g.maps {
             let mine = |k: &u64| KeyframeId::from_raw(*k).client().raw() == *c;
-            let name = if Some(*id) == current {
+            let name = if Some(*id) == current && !in_frozen {
                 format!("keyframes_server_c{c}.txt")
             } else if id.client().raw() == *c && m.map.keyframes.keys().any(mine) {
                 format!("keyframes_server_c{c}_m{}.txt", id.index())

@@ -78,25 +78,7 @@ pub fn merge_maps(
     s_into_from: &Sim3,
     point_pairs: &[(PointId, PointId)],
 ) -> Result<MergeReport, CoreError> {
-    if from == into {
-        return Err(CoreError::InvalidArgument(format!(
-            "merge of map {from} into itself"
-        )));
-    }
-    if !(s_into_from.s.is_finite()
-        && s_into_from.s > 0.0
-        && s_into_from.t.iter().all(|v| v.is_finite()))
-    {
-        return Err(CoreError::InvalidArgument(format!(
-            "merge of map {from} into {into}: invalid similarity (scale {})",
-            s_into_from.s
-        )));
-    }
-    if !maps.contains_key(&into) {
-        return Err(CoreError::InvalidArgument(format!(
-            "merge into unknown map {into}"
-        )));
-    }
+    check_merge(maps, from, into, s_into_from)?;
     let Some(mut other) = maps.remove(&from) else {
         return Err(CoreError::InvalidArgument(format!(
             "merge of unknown map {from}"
@@ -116,6 +98,98 @@ pub fn merge_maps(
         keyframes_moved,
         points_fused,
     })
+}
+
+/// The checks of a merge of `from` into `into` (both exist and differ, a usable similarity).
+fn check_merge(
+    maps: &BTreeMap<MapId, ServerMap>,
+    from: MapId,
+    into: MapId,
+    s_into_from: &Sim3,
+) -> Result<(), CoreError> {
+    if from == into {
+        return Err(CoreError::InvalidArgument(format!(
+            "merge of map {from} into itself"
+        )));
+    }
+    if !(s_into_from.s.is_finite()
+        && s_into_from.s > 0.0
+        && s_into_from.t.iter().all(|v| v.is_finite()))
+    {
+        return Err(CoreError::InvalidArgument(format!(
+            "merge of map {from} into {into}: invalid similarity (scale {})",
+            s_into_from.s
+        )));
+    }
+    if !maps.contains_key(&into) {
+        return Err(CoreError::InvalidArgument(format!(
+            "merge into unknown map {into}"
+        )));
+    }
+    if !maps.contains_key(&from) {
+        return Err(CoreError::InvalidArgument(format!(
+            "merge of unknown map {from}"
+        )));
+    }
+    Ok(())
+}
+
+/// What [`relocalise_in_frozen`] did.
+#[derive(Debug, Clone)]
+pub struct Relocalisation {
+    /// The map that matched the frozen one, out of the store, moved into its frame.
+    pub dropped: ServerMap,
+    /// The frozen map's keyframe observing most of the matched points (`None`: no pair
+    /// names one of its points).
+    pub reference: Option<KfId>,
+}
+
+/// Map `from` matched the frozen map `into` (`--localize-only`; seed §3.4.2 with the merge
+/// replaced by a relocalisation): `into` is left as it is; `from` leaves the store, moved
+/// into `into`'s frame by `s_into_from` so that its clients' poses (and the files written
+/// of them) follow. Its clients then localise in `into`
+/// ([`super::KeyframeHandler::apply_relocalisation`]). Errors (maps unchanged) as
+/// [`merge_maps`] does, and when `into` is not frozen or `from` is.
+pub fn relocalise_in_frozen(
+    maps: &mut BTreeMap<MapId, ServerMap>,
+    from: MapId,
+    into: MapId,
+    s_into_from: &Sim3,
+    point_pairs: &[(PointId, PointId)],
+) -> Result<Relocalisation, CoreError> {
+    check_merge(maps, from, into, s_into_from)?;
+    let frozen = |m: MapId| maps.get(&m).is_some_and(ServerMap::is_frozen);
+    if !frozen(into) || frozen(from) {
+        return Err(CoreError::InvalidArgument(format!(
+            "relocalisation of map {from} in {into}: only a live map relocalises in a frozen one"
+        )));
+    }
+    let Some(target) = maps.get(&into).map(|m| &m.map) else {
+        return Err(CoreError::InvalidArgument(format!(
+            "merge into unknown map {into}"
+        )));
+    };
+    let mut counts: BTreeMap<KfId, usize> = BTreeMap::new();
+    for (_, b) in point_pairs {
+        for (k, _) in target
+            .points
+            .get(b)
+            .map_or(&[][..], |p| &p.observations[..])
+        {
+            *counts.entry(*k).or_insert(0) += 1;
+        }
+    }
+    let reference = counts
+        .into_iter()
+        .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
+        .map(|(k, _)| k);
+    let Some(mut dropped) = maps.remove(&from) else {
+        return Err(CoreError::InvalidArgument(format!(
+            "merge of unknown map {from}"
+        )));
+    };
+    transform_map(&mut dropped.map, s_into_from);
+    Ok(Relocalisation { dropped, reference })
 }
 
 /// Fuses each pair `(a, b)` of `pairs` into `b` (both must be points of `map`); returns how

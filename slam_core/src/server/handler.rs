@@ -166,6 +166,10 @@ pub struct HandlerStats {
     pub vi_windows_skipped: u64,
     /// Keyframes discarded when handled and inserted when their session ended (its last).
     pub kept_at_session_end: u64,
+    /// Keyframes localised in a frozen map (`--localize-only`: refined, never inserted).
+    pub localised: u64,
+    /// Times its map relocalised in a frozen map ([`KeyframeHandler::apply_relocalisation`]).
+    pub relocalisations: u64,
 }
 
 /// What an idle step did.
@@ -597,8 +601,11 @@ impl KeyframeHandler {
             let min_obs = if map.map.keyframes.len() <= 2 { 2 } else { 3 };
             map.map.tracked_points(r, min_obs)
         });
-        let keep = refined.inliers < self.params.keep_min_points
-            || (refined.inliers as f64) < self.params.keep_ref_ratio * ref_points as f64;
+        // A frozen map (`--localize-only`) only localises: nothing is inserted.
+        let frozen = map.is_frozen();
+        let keep = !frozen
+            && (refined.inliers < self.params.keep_min_points
+                || (refined.inliers as f64) < self.params.keep_ref_ratio * ref_points as f64);
         let mut report = HandleReport {
             client_kf_id: kf.id,
             status: KeyframeStatus::Discarded,
@@ -638,6 +645,7 @@ impl KeyframeHandler {
             }
         } else {
             self.stats.discarded += 1;
+            self.stats.localised += u64::from(frozen);
             self.discarded_imu = kf.imu.clone();
             if reference.is_some() {
                 self.reference = reference;
@@ -653,6 +661,7 @@ impl KeyframeHandler {
         });
         self.held = match server_kf {
             Some(_) => None,
+            None if frozen => None,
             None => Some(Held {
                 kf,
                 map: map_id,
@@ -737,6 +746,10 @@ impl KeyframeHandler {
         self.converged = true;
         let k = self.latest_kept?;
         let map = maps.get_mut(&self.current?)?;
+        if map.is_frozen() {
+            self.global_ba = false;
+            return None;
+        }
         if std::mem::take(&mut self.global_ba) {
             // Seed §3.4.2: global BA after a loop correction, here the handler's next idle
             // step when nobody took it to run elsewhere ([`Self::take_global_ba`]; the
@@ -829,6 +842,42 @@ impl KeyframeHandler {
         }
         self.current = Some(into);
         self.after_correction(s_into_from, global_ba);
+        true
+    }
+
+    /// Map `from` relocalised in the frozen map `into` (`--localize-only`,
+    /// [`super::correction::relocalise_in_frozen`]; `dropped` is `from` moved into `into`'s
+    /// frame by `s_into_from`): if this client's current map was `from`, it localises its
+    /// keyframes in `into` from now on, starting from the pose of its last keyframe carried
+    /// into that frame and from `reference`; its scale ratio follows eq. 3.6. Nothing is
+    /// inserted, no BA runs. Returns whether this handler was affected.
+    pub fn apply_relocalisation(
+        &mut self,
+        from: MapId,
+        into: MapId,
+        s_into_from: &Sim3,
+        dropped: &ServerMap,
+        reference: Option<KfId>,
+    ) -> bool {
+        if self.current != Some(from) {
+            return false;
+        }
+        self.current = Some(into);
+        self.held = None;
+        if let Some(l) = self.last.as_mut() {
+            l.t_sk = l
+                .server_kf
+                .and_then(|k| dropped.pose(k))
+                .unwrap_or_else(|| transform_pose(s_into_from, &l.t_sk));
+            l.server_kf = None;
+            l.lambda = scale_ratio_after_loop(l.lambda, s_into_from.s, self.params.beta);
+        }
+        self.reference = reference;
+        self.latest_kept = None;
+        self.converged = true;
+        self.global_ba = false;
+        self.discarded_imu = None;
+        self.stats.relocalisations += 1;
         true
     }
 

@@ -390,3 +390,105 @@ fn a_global_ba_solved_elsewhere_carries_its_correction_to_what_came_meanwhile() 
     assert!((p1 - p0).norm() < 1e-9, "and so did the new point");
     assert!(applied.client_deltas.contains_key(&CLIENT));
 }
+
+/// `--localize-only`: client 3 maps the scene (keyframes 0-6, true poses) and its map is
+/// frozen; client 4, whose VO frame is the world moved by a similarity (half the scale),
+/// makes a map of its own from keyframes 2-3, which then relocalises in the frozen map by
+/// the true similarity. Its next keyframes are localised there on the true poses and
+/// never inserted; no idle step runs; the frozen map is exactly as it was.
+#[test]
+fn a_map_relocalised_in_a_frozen_map_localises_in_it_without_changing_it() {
+    use crate::server::correction::relocalise_in_frozen;
+    let mut maps = ServerMaps::new();
+    let mut a = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    for k in 0..7 {
+        let t = true_pose(k);
+        a.handle(&mut maps, keyframe(k as u64, 1, &t, &t)).unwrap();
+        a.idle_step(&mut maps);
+    }
+    let frozen_id = a.current_map_id().unwrap();
+    maps.get_mut(&frozen_id).unwrap().freeze();
+    let before = maps[&frozen_id].clone();
+    let s_cw = Sim3::new(
+        nalgebra::UnitQuaternion::from_euler_angles(0.05, -0.1, 0.3),
+        Vector3::new(0.4, -0.2, 0.1),
+        0.5,
+    );
+    let client = CLIENT + 1;
+    let mut b = KeyframeHandler::new(client, HandlerParams::default());
+    let kf_b = |k: usize| {
+        let t_wk = true_pose(k);
+        let mut kf = keyframe(k as u64, 1, &t_wk, &transform_pose(&s_cw, &t_wk));
+        kf.client_id = client;
+        kf
+    };
+    for k in 2..4 {
+        b.handle(&mut maps, kf_b(k)).unwrap();
+    }
+    let from = b.current_map_id().unwrap();
+    // Point pairs (point of b's map, the same scene point in the frozen map).
+    let pairs: Vec<(PointId, PointId)> = (0..1200u64)
+        .filter_map(|i| {
+            let p = maps[&from].server_point((client, 1), i)?;
+            Some((p, maps[&frozen_id].server_point((CLIENT, 1), i)?))
+        })
+        .collect();
+    assert!(pairs.len() > 100, "{} pairs", pairs.len());
+    let s = s_cw.inverse();
+    let e = relocalise_in_frozen(&mut maps, frozen_id, from, &s, &pairs).unwrap_err();
+    assert!(e.to_string().contains("frozen"), "{e}");
+    let r = relocalise_in_frozen(&mut maps, from, frozen_id, &s, &pairs).unwrap();
+    assert!(
+        !maps.contains_key(&from),
+        "the relocalised map leaves the store"
+    );
+    let reference = r.reference.expect("a frozen keyframe sees the pairs");
+    assert!(maps[&frozen_id].map.keyframes.contains_key(&reference));
+    for (k, kf) in &r.dropped.map.keyframes {
+        let truth = true_pose(KeyframeId::from_raw(*k).client_kf() as usize);
+        let err = (kf.t_cw.inverse().translation.vector - truth.translation.vector).norm();
+        assert!(
+            err < 1e-6,
+            "dropped keyframe {k:#x} moved into the frozen frame: {err}"
+        );
+    }
+    assert!(b.apply_relocalisation(from, frozen_id, &s, &r.dropped, r.reference));
+    assert!(!a.apply_relocalisation(from, frozen_id, &s, &r.dropped, r.reference));
+    for k in 4..10 {
+        let rep = b.handle(&mut maps, kf_b(k)).unwrap();
+        assert_eq!(rep.status, KeyframeStatus::Discarded, "keyframe {k}");
+        assert_eq!(rep.map_id, Some(frozen_id));
+        let err = (rep.t_sk.unwrap().translation.vector - true_pose(k).translation.vector).norm();
+        assert!(err < 2e-3, "keyframe {k}: localised {err} off the truth");
+        assert!(rep.inliers > 100, "keyframe {k}: {} inliers", rep.inliers);
+        assert!(b.idle_step(&mut maps).is_none(), "no BA in a frozen map");
+    }
+    assert_eq!((b.stats().localised, b.stats().relocalisations), (6, 1));
+    let after = &maps[&frozen_id];
+    assert_eq!(after.map.keyframes.len(), before.map.keyframes.len());
+    for (k, kf) in &before.map.keyframes {
+        assert_eq!(
+            after.map.keyframes[k].t_cw, kf.t_cw,
+            "keyframe {k:#x} moved"
+        );
+    }
+    assert_eq!(after.map.points.len(), before.map.points.len());
+    for (p, mp) in &before.map.points {
+        let now = &after.map.points[p];
+        assert_eq!(
+            (now.p_w, now.observations.len()),
+            (mp.p_w, mp.observations.len())
+        );
+    }
+    // The session's end inserts nothing either.
+    b.handle(&mut maps, {
+        let mut kf = kf_b(0);
+        kf.session_id = 2;
+        kf
+    })
+    .unwrap();
+    assert_eq!(
+        maps[&frozen_id].map.keyframes.len(),
+        before.map.keyframes.len()
+    );
+}

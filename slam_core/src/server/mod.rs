@@ -20,8 +20,8 @@ pub mod server_map;
 pub mod types;
 
 pub use correction::{
-    apply_pose_corrections, merge_maps, scale_ratio_after_loop, transform_map, transform_pose,
-    CorrectionReport, MergeReport,
+    apply_pose_corrections, merge_maps, relocalise_in_frozen, scale_ratio_after_loop,
+    transform_map, transform_pose, CorrectionReport, MergeReport, Relocalisation,
 };
 pub use global_ba::{GlobalBa, GlobalBaApplied};
 pub use handler::{HandlerParams, HandlerStats, IdleReport, KeyframeHandler, ServerMaps};

@@ -36,6 +36,10 @@ pub struct ServerMap {
     /// mean something to live clients (a loaded map starts without any).
     #[cfg_attr(feature = "serde", serde(skip))]
     assoc: BTreeMap<Owner, Associations>,
+    /// Frozen (`--localize-only`): clients localise in it, nothing is added to it and
+    /// nothing moves it. A property of the run, not of the saved map.
+    #[cfg_attr(feature = "serde", serde(skip))]
+    frozen: bool,
 }
 
 /// A VO session of a client: `(client_id, session_id)`. Client map-point ids are only
@@ -80,7 +84,20 @@ impl ServerMap {
             map: ClientMap::new(session_id, first_point_id),
             frame,
             assoc: BTreeMap::new(),
+            frozen: false,
         }
+    }
+
+    /// Freezes the map (`--localize-only`): handlers localise keyframes in it without
+    /// inserting them, run no BA on it, and corrections do not move it
+    /// ([`super::correction::relocalise_in_frozen`]).
+    pub fn freeze(&mut self) {
+        self.frozen = true;
+    }
+
+    /// Whether the map is frozen ([`Self::freeze`]).
+    pub fn is_frozen(&self) -> bool {
+        self.frozen
     }
 
     /// The server point associated with client point `c` of `owner`, if it still exists.
