@@ -331,3 +331,74 @@ fn a_payload_with_bytes_after_the_maps_is_refused() {
     assert!(matches!(e, MapFileError::Decode { .. }), "{e}");
     assert!(e.to_string().contains("2 bytes left after the maps"), "{e}");
 }
+
+/// Issue 20: a map kept in memory and the same map saved and loaded give the same results.
+/// Client 3 maps the constructed scene (keyframes 0-6). Its maps are renamed as a load
+/// renames them twice: straight from memory (with the handler's client-point associations
+/// still in them) and through an encoded file. In each, client 4 then maps keyframes 2-3
+/// in a frame of its own (half the scale, turned and shifted), its map merges into the
+/// loaded one by the true similarity, and keyframes 4-9 follow: every handler report and
+/// the final maps are the same, byte for byte, and the poses are on the truth.
+#[test]
+fn a_map_through_a_file_gives_the_results_of_the_map_in_memory() {
+    use slam_core::lie::Sim3;
+    use slam_core::server::test_scene::{keyframe, true_pose, CLIENT};
+    use slam_core::server::{merge_maps, transform_pose, HandlerParams, KeyframeHandler};
+    let mut maps = slam_core::server::ServerMaps::new();
+    let mut a = KeyframeHandler::new(CLIENT, HandlerParams::default());
+    for k in 0..7 {
+        let t = true_pose(k);
+        a.handle(&mut maps, keyframe(k as u64, 1, &t, &t)).unwrap();
+        a.idle_step(&mut maps);
+    }
+    let vocab = slam_core::place::Vocabulary::from_bytes(SHIPPED_VOCABULARY).expect("vocabulary");
+    let file = MapFile::from_maps(maps.values(), &vocab, 4);
+    let bytes = encode(&file, 0, "0.1.0").expect("encodes");
+    let (_, mut through_file) = read_bytes(&bytes, Path::new("a.shoalmap")).expect("decodes");
+    let mut in_memory = file;
+    remap::remap_clients(&mut in_memory);
+    remap::remap_clients(&mut through_file);
+    let s_cw = Sim3::new(
+        nalgebra::UnitQuaternion::from_euler_angles(0.05, -0.1, 0.3),
+        Vector3::new(0.4, -0.2, 0.1),
+        0.5,
+    );
+    let session_b = |loaded: MapFile| {
+        let mut maps: slam_core::server::ServerMaps =
+            loaded.maps.into_iter().map(|s| (s.map.id, s.map)).collect();
+        let into = *maps.keys().next().expect("one loaded map");
+        let mut b = KeyframeHandler::new(CLIENT + 1, HandlerParams::default());
+        let mut reports = Vec::new();
+        for k in 2..10 {
+            if k == 4 {
+                let from = b.current_map_id().expect("b's own map");
+                let s = s_cw.inverse();
+                merge_maps(&mut maps, from, into, &s, &[]).expect("merged");
+                assert!(b.apply_merge(from, into, &s, true));
+            }
+            let t_wk = true_pose(k);
+            let mut kf = keyframe(k as u64, 1, &t_wk, &transform_pose(&s_cw, &t_wk));
+            kf.client_id = CLIENT + 1;
+            let r = b.handle(&mut maps, kf).expect("handled");
+            if k >= 4 {
+                let err = (r.t_sk.unwrap().translation.vector - t_wk.translation.vector).norm();
+                assert!(err < 2e-3, "keyframe {k} is {err} off the truth");
+            }
+            // The idle step's BA report without its timing.
+            let idle = b.idle_step(&mut maps);
+            let ba = idle.as_ref().and_then(|i| i.ba.as_ref());
+            let ba = ba.map(|b| (b.final_cost, b.iterations, b.n_inliers));
+            let idle = idle.map(|i| (ba, i.culled, i.global));
+            reports.push(format!("{r:?} {idle:?}"));
+        }
+        let encoded: Vec<Vec<u8>> = maps
+            .values()
+            .map(|m| postcard::to_stdvec(m).unwrap())
+            .collect();
+        (reports, encoded)
+    };
+    let (reports_memory, maps_memory) = session_b(in_memory);
+    let (reports_file, maps_file) = session_b(through_file);
+    assert_eq!(reports_memory, reports_file);
+    assert!(maps_memory == maps_file, "the final maps differ");
+}

@@ -1,75 +1,9 @@
 //! Handler tests on a constructed scene (no rendering): exact projections of a textured
 //! plane, the client's point ids, and client poses whose scale drifts.
-use nalgebra::{Isometry3, Point3, Vector3};
+use nalgebra::{Isometry3, Vector3};
 
 use super::*;
-use crate::camera::PinholeRadtan;
-use crate::features::{KeyPoint, OrbFeatures};
-
-const CLIENT: u32 = 3;
-
-fn camera() -> PinholeRadtan {
-    PinholeRadtan::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0)
-}
-
-/// World points on the plane z = 5 (a 40 x 30 grid), each with its own descriptor.
-fn scene() -> Vec<(Vector3<f64>, [u8; 32])> {
-    let mut out = Vec::new();
-    let mut h = 0x9e37_79b9_7f4a_7c15u64;
-    for i in 0..40 {
-        for j in 0..30 {
-            let mut d = [0u8; 32];
-            for b in d.iter_mut() {
-                h ^= h << 13;
-                h ^= h >> 7;
-                h ^= h << 17;
-                *b = h as u8;
-            }
-            let p = Vector3::new(-6.0 + 0.3 * i as f64, -3.0 + 0.2 * j as f64, 5.0);
-            out.push((p, d));
-        }
-    }
-    out
-}
-
-/// Keyframe `id` seen from the true pose `t_wk` (camera → world); its client pose is
-/// `t_ck`; every visible point carries its index as client point id.
-fn keyframe(id: u64, session: u32, t_wk: &Isometry3<f64>, t_ck: &Isometry3<f64>) -> ServerKeyframe {
-    let cam = camera();
-    let mut features = OrbFeatures::default();
-    let mut client_points = Vec::new();
-    for (i, (p, d)) in scene().iter().enumerate() {
-        let p_k = t_wk.inverse() * Point3::from(*p);
-        let Some(uv) = cam.project(&p_k.coords) else {
-            continue;
-        };
-        if !cam.contains(&uv) {
-            continue;
-        }
-        features
-            .keypoints
-            .push(KeyPoint::at_level0(uv.x as f32, uv.y as f32));
-        features.descriptors.push(*d);
-        client_points.push(Some(i as u64));
-    }
-    ServerKeyframe {
-        client_id: CLIENT,
-        session_id: session,
-        id,
-        t_ns: id as i64 * 50_000_000,
-        t_ck: *t_ck,
-        camera: cam,
-        readout_ns: 0,
-        features,
-        client_points,
-        inertial: None,
-        imu: None,
-    }
-}
-
-fn true_pose(k: usize) -> Isometry3<f64> {
-    Isometry3::translation(0.25 * k as f64, 0.02 * k as f64, 0.0)
-}
+use crate::server::test_scene::{keyframe, true_pose, CLIENT};
 
 /// From keyframe 3 on, the client's translations shrink to 80% (scale drift): the handler
 /// measures λ~ = 1 / 0.8 (eq. 3.2), smooths λ by eq. 3.3 with α = 0.2, and its refined

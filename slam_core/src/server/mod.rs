@@ -17,6 +17,8 @@ pub mod handler;
 mod refine;
 pub mod scale;
 pub mod server_map;
+#[cfg(any(test, feature = "testing"))]
+pub mod test_scene;
 pub mod types;
 
 pub use correction::{
