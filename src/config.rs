@@ -77,6 +77,9 @@ pub struct RunConfig {
     /// Localise in the loaded map without adding to it (`--localize-only`; needs
     /// `load_map`, excludes `save_map`).
     pub localize_only: bool,
+    /// Record what crosses shared memory to this MCAP file (`--record`; one file per
+    /// client, `STEM_c{i}.mcap`, with several).
+    pub record: Option<PathBuf>,
     /// Every tracker (`{c}` in `frame_log` is the client index).
     pub tracker: tracker::TrackerConfig,
     /// The mapper.
@@ -112,6 +115,7 @@ impl Default for RunConfig {
             load_map: None,
             save_map: None,
             localize_only: false,
+            record: None,
             tracker: Default::default(),
             mapper: Default::default(),
             loop_closer: Default::default(),

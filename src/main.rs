@@ -148,6 +148,11 @@ struct RunArgs {
     /// its poses are written in the map's frame.
     #[arg(long)]
     localize_only: bool,
+    /// Record the frames, IMU samples and poses that cross shared memory, with the
+    /// calibration, to this MCAP file (ROS 2 messages; `shoal run --dataset FILE` replays
+    /// it); with several clients, one file each (`STEM_c{i}.mcap`).
+    #[arg(long, value_name = "FILE.mcap")]
+    record: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -251,6 +256,9 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
         cfg.save_map = args.save_map;
     }
     cfg.localize_only |= args.localize_only;
+    if args.record.is_some() {
+        cfg.record = args.record;
+    }
     if args.quiet {
         cfg.progress = false;
     }

@@ -104,17 +104,23 @@ pub fn check_localize_only(
 /// Checks that the `--save-map` file can be created where it is asked: its folder exists
 /// (the mapper writes it at the end of the run; finding out then would lose the maps).
 pub fn check_save_path(path: &Path) -> anyhow::Result<()> {
+    check_file_path("--save-map", path)
+}
+
+/// Checks that the file `path` of option `flag` can be created: its folder exists and it
+/// is not a folder.
+pub fn check_file_path(flag: &str, path: &Path) -> anyhow::Result<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
     anyhow::ensure!(
         dir.is_dir(),
-        "--save-map {}: the folder {} does not exist",
+        "{flag} {}: the folder {} does not exist",
         path.display(),
         dir.display()
     );
-    anyhow::ensure!(!path.is_dir(), "--save-map {}: is a folder", path.display());
+    anyhow::ensure!(!path.is_dir(), "{flag} {}: is a folder", path.display());
     Ok(())
 }
 

@@ -12,6 +12,7 @@ pub mod faults;
 pub mod map_file;
 pub mod modes;
 pub mod provenance;
+pub mod record;
 pub mod recorder;
 pub mod report;
 pub mod sessions;
@@ -273,6 +274,9 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     if let Some(p) = &cfg.save_map {
         map_file::check_save_path(p)?;
     }
+    if let Some(p) = &cfg.record {
+        map_file::check_file_path("--record", p)?;
+    }
     let datasets = match open_datasets(cfg) {
         Ok(d) => d,
         Err((e, errors)) => {
@@ -297,6 +301,12 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         .map(|(c, ds)| modes::client_setup(cfg.mode_of(c), ds, cfg.calib_of(c)))
         .collect();
     write_configs(cfg, &topology, &setups)?;
+    // Subscribed before any service publishes.
+    let recording = cfg
+        .record
+        .as_deref()
+        .map(|path| start_recording(cfg, path, &datasets))
+        .transpose()?;
     let mut services = services_for(cfg, &topology);
     start_services(&mut services, &topology, &exe)?;
     tracing::info!("all {} services ready", services.len());
@@ -324,6 +334,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         wait_server_quiet(&watch.services, SERVER_QUIET_TIMEOUT);
     }
     stop_services(&mut watch.services, &topology, &mut recorder)?;
+    let records = recording.map(record::Recording::finish).unwrap_or_default();
     progress.finish();
     let elapsed_s = watch.ready_at.elapsed().as_secs_f64();
     let unfired = watch.injector.unfired(elapsed_s, &recorder.frames_posed());
@@ -353,8 +364,25 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     rep.provenance = provenance_of(cfg, checksums);
     rep.map_loaded = loaded;
     rep.add_map_files(cfg);
+    rep.record = records;
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
+}
+
+/// Starts `--record path`: every client's calibration record and ground truth, then the
+/// recording threads.
+fn start_recording(
+    cfg: &RunConfig,
+    path: &Path,
+    datasets: &[datasets::Dataset],
+) -> anyhow::Result<record::Recording> {
+    let metas = (datasets.iter().enumerate())
+        .map(|(c, ds)| record::meta_of(ds, cfg.calib_of(c)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let truth = (datasets.iter())
+        .map(|ds| ds.ground_truth.clone().unwrap_or_default())
+        .collect();
+    record::Recording::start(path, &cfg.ipc_prefix, metas, truth)
 }
 
 /// The provenance of the run of `cfg`, with the dataset checksums the thread computed.

@@ -316,6 +316,8 @@ pub struct RunReport {
     pub map_loaded: Option<super::map_file::MapLoadReport>,
     /// The saved-map file written at the end (`--save-map`).
     pub map_saved: Option<super::map_file::MapSaveReport>,
+    /// The recording of each client (`--record`).
+    pub record: Vec<super::record::RecordReport>,
     /// Status values of the mapper and loop closer about saved maps (`map_*`), read at
     /// the end (for [`RunReport::add_map_files`]).
     #[serde(skip)]

@@ -17,7 +17,7 @@
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use mcap::records::{MessageHeader, Metadata};
 
@@ -81,6 +81,177 @@ struct Channels {
     gt: Option<u16>,
 }
 
+/// An MCAP file of ROS 2 messages being written: the `shoal` metadata record first, then
+/// messages as they come (per-channel sequence numbers), to a temporary name renamed by
+/// [`StreamWriter::finish`]. [`write_dataset`] writes a whole dataset through it; a run's
+/// recording (`shoal run --record`) writes what crosses shared memory as it comes.
+pub struct StreamWriter {
+    w: mcap::Writer<BufWriter<File>>,
+    tmp: PathBuf,
+    out: PathBuf,
+    ch: Channels,
+    seq: BTreeMap<u16, u32>,
+    /// Counts of what was written.
+    pub summary: WriteSummary,
+}
+
+impl StreamWriter {
+    /// Starts the file `out` (written as `out.tmp` until [`Self::finish`]) with `meta`
+    /// (the camera, middle-row stamps, the IMU model) and the image, camera-info and IMU
+    /// channels (and the ground-truth one when `meta` names it).
+    pub fn create(
+        out: &Path,
+        meta: &ShoalMeta,
+        settings: &WriteSettings,
+    ) -> Result<Self, DatasetError> {
+        let mut tmp = out.as_os_str().to_owned();
+        tmp.push(".tmp");
+        let tmp = PathBuf::from(tmp);
+        let file = File::create(&tmp).map_err(|source| DatasetError::Io {
+            path: tmp.clone(),
+            source,
+        })?;
+        let mcap_err = |e: mcap::McapError| io_error(out, e);
+        let mut w = options(settings)
+            .create(BufWriter::with_capacity(1 << 20, file))
+            .map_err(mcap_err)?;
+        w.write_metadata(&Metadata {
+            name: meta::RECORD.into(),
+            metadata: meta::to_map(meta),
+        })
+        .map_err(mcap_err)?;
+        let ch = add_channels(&mut w, meta.ground_truth_topic.is_some()).map_err(mcap_err)?;
+        Ok(Self {
+            w,
+            tmp,
+            out: out.to_path_buf(),
+            ch,
+            seq: BTreeMap::new(),
+            summary: WriteSummary::default(),
+        })
+    }
+
+    /// Adds a channel of `schema_name` (`ros2msg` text `schema`, CDR messages) on `topic`;
+    /// its id for [`Self::put`].
+    pub fn add_channel(
+        &mut self,
+        schema_name: &str,
+        schema: &str,
+        topic: &str,
+    ) -> Result<u16, DatasetError> {
+        let none = BTreeMap::new();
+        let id = (self.w.add_schema(schema_name, "ros2msg", schema.as_bytes()))
+            .map_err(|e| io_error(&self.out, e))?;
+        (self.w.add_channel(id, topic, "cdr", &none)).map_err(|e| io_error(&self.out, e))
+    }
+
+    /// Writes an encoded message on `channel` at log time `t_ns`.
+    pub fn put(&mut self, channel: u16, t_ns: i64, data: &[u8]) -> Result<(), DatasetError> {
+        let log_time = u64::try_from(t_ns).map_err(|_| DatasetError::InvalidConfig {
+            detail: format!(
+                "{}: time {t_ns} ns is negative; MCAP log times are unsigned",
+                self.out.display()
+            ),
+        })?;
+        let seq = self.seq.entry(channel).or_insert(0);
+        *seq += 1;
+        let header = MessageHeader {
+            channel_id: channel,
+            sequence: *seq,
+            log_time,
+            publish_time: log_time,
+        };
+        (self.w.write_to_known_channel(&header, data)).map_err(|e| io_error(&self.out, e))
+    }
+
+    /// The camera's `sensor_msgs/msg/CameraInfo` at `t_ns`.
+    pub fn camera_info(&mut self, camera: &crate::CameraCalib, t_ns: i64) -> Result<(), DatasetError> {
+        let info = camera_info(camera, ros_time(t_ns, &self.out)?);
+        let data = encode(&info, 512, &self.out)?;
+        self.put(self.ch.info, t_ns, &data)
+    }
+
+    /// A `mono8` image of `width` x `height` (rows of `width` bytes) at `t_ns`.
+    pub fn image(
+        &mut self,
+        t_ns: i64,
+        width: u32,
+        height: u32,
+        pixels: &[u8],
+    ) -> Result<(), DatasetError> {
+        let img = msgs::Image {
+            header: Header {
+                stamp: ros_time(t_ns, &self.out)?,
+                frame_id: CAMERA_FRAME.into(),
+            },
+            height,
+            width,
+            encoding: "mono8".into(),
+            is_bigendian: 0,
+            step: width,
+            data: Bytes(pixels),
+        };
+        let data = encode(&img, pixels.len() + 128, &self.out)?;
+        self.put(self.ch.image, t_ns, &data)?;
+        self.summary.frames += 1;
+        Ok(())
+    }
+
+    /// An IMU sample.
+    pub fn imu(&mut self, s: &crate::ImuSample) -> Result<(), DatasetError> {
+        let data = encode(&imu_msg(s, ros_time(s.t_ns, &self.out)?), 400, &self.out)?;
+        self.put(self.ch.imu, s.t_ns, &data)?;
+        self.summary.imu_samples += 1;
+        Ok(())
+    }
+
+    /// A `geometry_msgs/msg/PoseStamped` of `pose` in `frame_id` at `t_ns` on `channel`
+    /// (`None`: the ground-truth channel).
+    pub fn pose(
+        &mut self,
+        channel: Option<u16>,
+        t_ns: i64,
+        pose: &nalgebra::Isometry3<f64>,
+        frame_id: &str,
+    ) -> Result<(), DatasetError> {
+        let Some(channel) = channel.or(self.ch.gt) else {
+            return Ok(());
+        };
+        let m = pose_msg(pose, frame_id, ros_time(t_ns, &self.out)?);
+        let data = encode(&m, 128, &self.out)?;
+        self.put(channel, t_ns, &data)?;
+        self.summary.poses += usize::from(Some(channel) == self.ch.gt);
+        Ok(())
+    }
+
+    /// Ends the file (summary, index) and renames it to its name; returns what was
+    /// written.
+    pub fn finish(mut self) -> Result<WriteSummary, DatasetError> {
+        self.w.finish().map_err(|e| io_error(&self.out, e))?;
+        drop(self.w);
+        std::fs::rename(&self.tmp, &self.out).map_err(|source| DatasetError::Io {
+            path: self.out.clone(),
+            source,
+        })?;
+        self.summary.bytes = std::fs::metadata(&self.out).map(|m| m.len()).unwrap_or(0);
+        Ok(self.summary)
+    }
+
+    /// Drops the unfinished file.
+    pub fn abandon(self) {
+        let tmp = self.tmp.clone();
+        drop(self);
+        let _ = std::fs::remove_file(tmp);
+    }
+}
+
+fn io_error(out: &Path, e: mcap::McapError) -> DatasetError {
+    DatasetError::Io {
+        path: out.to_path_buf(),
+        source: std::io::Error::other(e.to_string()),
+    }
+}
+
 /// Writes `ds` (with its IMU calibration `imu`, if known) to the MCAP file `out`.
 pub fn write_dataset(
     ds: &Dataset,
@@ -96,58 +267,28 @@ pub fn write_dataset(
             ),
         });
     }
-    let mcap_err = |e: mcap::McapError| DatasetError::Io {
-        path: out.to_path_buf(),
-        source: std::io::Error::other(e.to_string()),
-    };
-    let mut tmp = out.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = std::path::PathBuf::from(tmp);
-    let file = File::create(&tmp).map_err(|source| DatasetError::Io {
-        path: tmp.clone(),
-        source,
-    })?;
-    let mut w = options(settings)
-        .create(BufWriter::with_capacity(1 << 20, file))
-        .map_err(mcap_err)?;
     let meta = ShoalMeta {
         camera: ds.camera.clone(),
         imu: imu.copied(),
         middle_row: true,
         ground_truth_topic: ds.ground_truth.as_ref().map(|_| GROUND_TRUTH_TOPIC.into()),
     };
-    w.write_metadata(&Metadata {
-        name: meta::RECORD.into(),
-        metadata: meta::to_map(&meta),
-    })
-    .map_err(mcap_err)?;
-    let ch = add_channels(&mut w, ds.ground_truth.is_some()).map_err(mcap_err)?;
-    let mut summary = WriteSummary::default();
-    let mut writer = MessageWriter {
-        w: &mut w,
-        out,
-        seq: BTreeMap::new(),
-    };
-    write_messages(ds, &ch, &mut writer, &mut summary)?;
-    w.finish().map_err(mcap_err)?;
-    drop(w);
-    if summary.frames == 0 && !ds.frames.is_empty() {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(DatasetError::InvalidConfig {
-            detail: format!(
-                "{}: not written: none of the {} frames could be read (first: {})",
-                out.display(),
-                ds.frames.len(),
-                summary.skipped_frames.first().map_or("", String::as_str)
-            ),
-        });
+    let mut w = StreamWriter::create(out, &meta, settings)?;
+    if let Err(e) = write_messages(ds, &mut w) {
+        w.abandon();
+        return Err(e);
     }
-    std::fs::rename(&tmp, out).map_err(|source| DatasetError::Io {
-        path: out.to_path_buf(),
-        source,
-    })?;
-    summary.bytes = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
-    Ok(summary)
+    if w.summary.frames == 0 && !ds.frames.is_empty() {
+        let detail = format!(
+            "{}: not written: none of the {} frames could be read (first: {})",
+            out.display(),
+            ds.frames.len(),
+            w.summary.skipped_frames.first().map_or("", String::as_str)
+        );
+        w.abandon();
+        return Err(DatasetError::InvalidConfig { detail });
+    }
+    w.finish()
 }
 
 fn options(settings: &WriteSettings) -> mcap::WriteOptions {
@@ -197,38 +338,6 @@ fn add_channels<W: std::io::Write + std::io::Seek>(
     })
 }
 
-/// Writes encoded messages with per-channel sequence numbers.
-struct MessageWriter<'a, W: std::io::Write + std::io::Seek> {
-    w: &'a mut mcap::Writer<W>,
-    out: &'a Path,
-    seq: BTreeMap<u16, u32>,
-}
-
-impl<W: std::io::Write + std::io::Seek> MessageWriter<'_, W> {
-    fn put(&mut self, channel: u16, t_ns: i64, data: &[u8]) -> Result<(), DatasetError> {
-        let log_time = u64::try_from(t_ns).map_err(|_| DatasetError::InvalidConfig {
-            detail: format!(
-                "{}: time {t_ns} ns is negative; MCAP log times are unsigned",
-                self.out.display()
-            ),
-        })?;
-        let seq = self.seq.entry(channel).or_insert(0);
-        *seq += 1;
-        let header = MessageHeader {
-            channel_id: channel,
-            sequence: *seq,
-            log_time,
-            publish_time: log_time,
-        };
-        self.w
-            .write_to_known_channel(&header, data)
-            .map_err(|e| DatasetError::Io {
-                path: self.out.to_path_buf(),
-                source: std::io::Error::other(e.to_string()),
-            })
-    }
-}
-
 fn ros_time(t_ns: i64, out: &Path) -> Result<Time, DatasetError> {
     Time::from_ns(t_ns).ok_or_else(|| DatasetError::InvalidConfig {
         detail: format!(
@@ -245,13 +354,7 @@ fn encode<T: serde::Serialize>(m: &T, hint: usize, out: &Path) -> Result<Vec<u8>
 }
 
 /// The camera info, then frames, IMU samples and poses merged in time order.
-fn write_messages<W: std::io::Write + std::io::Seek>(
-    ds: &Dataset,
-    ch: &Channels,
-    w: &mut MessageWriter<W>,
-    summary: &mut WriteSummary,
-) -> Result<(), DatasetError> {
-    let out = w.out;
+fn write_messages(ds: &Dataset, w: &mut StreamWriter) -> Result<(), DatasetError> {
     let t0 = [
         ds.frames.first().map(|f| f.t_ns),
         ds.imu.first().map(|s| s.t_ns),
@@ -260,8 +363,7 @@ fn write_messages<W: std::io::Write + std::io::Seek>(
     .flatten()
     .min()
     .unwrap_or(0);
-    let info = camera_info(ds, ros_time(t0, out)?);
-    w.put(ch.info, t0, &encode(&info, 512, out)?)?;
+    w.camera_info(&ds.camera, t0)?;
     let (width, height) = (ds.camera.model.width, ds.camera.model.height);
     let mut pixels = vec![0u8; width as usize * height as usize];
     let mut reader = FrameReader::default();
@@ -277,46 +379,24 @@ fn write_messages<W: std::io::Write + std::io::Seek>(
             return Ok(());
         }
         if ti == t {
-            let s = &ds.imu[i];
-            w.put(
-                ch.imu,
-                t,
-                &encode(&imu_msg(s, ros_time(t, out)?), 400, out)?,
-            )?;
-            (i, summary.imu_samples) = (i + 1, summary.imu_samples + 1);
+            w.imu(&ds.imu[i])?;
+            i += 1;
         } else if tf == t {
             let frame = &ds.frames[f];
             f += 1;
-            if let Err(e) = reader.read_gray_into(frame, &mut pixels, width, height) {
-                summary.skipped_frames.push(e.to_string());
-                continue;
+            match reader.read_gray_into(frame, &mut pixels, width, height) {
+                Ok(()) => w.image(t, width, height, &pixels)?,
+                Err(e) => w.summary.skipped_frames.push(e.to_string()),
             }
-            let img = msgs::Image {
-                header: Header {
-                    stamp: ros_time(t, out)?,
-                    frame_id: CAMERA_FRAME.into(),
-                },
-                height,
-                width,
-                encoding: "mono8".into(),
-                is_bigendian: 0,
-                step: width,
-                data: Bytes(&pixels),
-            };
-            w.put(ch.image, t, &encode(&img, pixels.len() + 128, out)?)?;
-            summary.frames += 1;
-        } else if let Some(gt) = ch.gt {
-            let m = pose_msg(&poses[p], ros_time(t, out)?);
-            w.put(gt, t, &encode(&m, 128, out)?)?;
-            (p, summary.poses) = (p + 1, summary.poses + 1);
         } else {
+            w.pose(None, t, &poses[p].pose, "world")?;
             p += 1;
         }
     }
 }
 
-fn camera_info(ds: &Dataset, stamp: Time) -> msgs::CameraInfo<'static> {
-    let m = &ds.camera.model;
+fn camera_info(camera: &crate::CameraCalib, stamp: Time) -> msgs::CameraInfo<'static> {
+    let m = &camera.model;
     msgs::CameraInfo {
         header: Header {
             stamp,
@@ -359,12 +439,16 @@ fn imu_msg(s: &crate::ImuSample, stamp: Time) -> msgs::Imu<'static> {
     }
 }
 
-fn pose_msg(p: &crate::StampedPose, stamp: Time) -> msgs::PoseStamped<'static> {
-    let (t, q) = (p.pose.translation.vector, p.pose.rotation.quaternion());
+fn pose_msg(
+    pose: &nalgebra::Isometry3<f64>,
+    frame_id: &str,
+    stamp: Time,
+) -> msgs::PoseStamped<'static> {
+    let (t, q) = (pose.translation.vector, pose.rotation.quaternion());
     msgs::PoseStamped {
         header: Header {
             stamp,
-            frame_id: "world".into(),
+            frame_id: frame_id.to_string().into(),
         },
         pose: msgs::Pose {
             position: msgs::Vector3 {
