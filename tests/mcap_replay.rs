@@ -56,7 +56,10 @@ fn mcap_replay_matches_folder_in_lockstep() {
     let rec = &ra["record"][0];
     assert_eq!(rec["frames"], FRAMES as u64, "{rec}");
     assert_eq!(rec["frames_missed"], 0, "{rec}");
-    assert_eq!(rec["imu_samples"], ra["clients"][0]["imu_samples_published"], "{rec}");
+    assert_eq!(
+        rec["imu_samples"], ra["clients"][0]["imu_samples_published"],
+        "{rec}"
+    );
     assert_eq!(rec["poses"], ra["clients"][0]["frames_posed"], "{rec}");
     assert!(rec["error"].is_null(), "{rec}");
     let (ra, rb) = (report(&a), report(&b));

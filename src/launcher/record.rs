@@ -14,8 +14,9 @@
 //!
 //! One file per client (`FILE` with one client; `STEM_c{i}.mcap` with several). Per client,
 //! a receiving thread takes the messages from shared memory as soon as they come (it copies
-//! the pixels and nothing else) and a writing thread encodes and compresses them, so a slow
-//! disk or compression never holds a frame in the subscriber's buffer. A frame the recorder
+//! the pixels and nothing else) and a writing thread, at a lower priority, encodes them and
+//! compresses them with LZ4, so a slow disk or compression never holds a frame in the
+//! subscriber's buffer nor takes the trackers' CPU. A frame the recorder
 //! missed (a gap in the frames' sequence numbers) is counted in the report.
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -87,7 +88,9 @@ pub fn file_of(path: &Path, c: usize, n: usize) -> PathBuf {
     if n <= 1 {
         return path.to_path_buf();
     }
-    let stem = path.file_stem().map_or("record".into(), |s| s.to_string_lossy());
+    let stem = path
+        .file_stem()
+        .map_or("record".into(), |s| s.to_string_lossy());
     path.with_file_name(format!("{stem}_c{c}.mcap"))
 }
 
@@ -241,7 +244,13 @@ fn write(
         file: file.display().to_string(),
         ..RecordReport::default()
     };
-    let settings = WriteSettings::default();
+    // LZ4 and a lower priority: the recording must not take the trackers' CPU
+    // (BENCHMARKS.md "Recording": zstd at normal priority cost ~10% of tracking p50).
+    lower_priority();
+    let settings = WriteSettings {
+        compression: datasets::mcap_bag::write::Compression::Lz4,
+        chunk_bytes: None,
+    };
     let result = (|| -> Result<_, datasets::DatasetError> {
         let mut w = StreamWriter::create(file, meta, &settings)?;
         let poses = w.add_channel(
@@ -290,6 +299,16 @@ fn write(
         }
     }
     r
+}
+
+/// Lowers the calling thread's scheduling priority (nice +10; Linux threads have their
+/// own): best effort, a failure leaves it as it was.
+fn lower_priority() {
+    // SAFETY: plain system calls on the calling thread, no memory handed over.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        libc::setpriority(libc::PRIO_PROCESS, tid, 10);
+    }
 }
 
 /// Client `c`'s calibration record for the recording: the dataset's camera (with

@@ -165,7 +165,11 @@ impl StreamWriter {
     }
 
     /// The camera's `sensor_msgs/msg/CameraInfo` at `t_ns`.
-    pub fn camera_info(&mut self, camera: &crate::CameraCalib, t_ns: i64) -> Result<(), DatasetError> {
+    pub fn camera_info(
+        &mut self,
+        camera: &crate::CameraCalib,
+        t_ns: i64,
+    ) -> Result<(), DatasetError> {
         let info = camera_info(camera, ros_time(t_ns, &self.out)?);
         let data = encode(&info, 512, &self.out)?;
         self.put(self.ch.info, t_ns, &data)
