@@ -61,6 +61,11 @@ fn mcap_replay_matches_folder_in_lockstep() {
         "{rec}"
     );
     assert_eq!(rec["poses"], ra["clients"][0]["frames_posed"], "{rec}");
+    assert_eq!(
+        rec["keyframes"], ra["clients"][0]["keyframes_sent"],
+        "{rec}"
+    );
+    assert_eq!(rec["map_points"], ra["mapper"]["points"], "{rec}");
     assert!(rec["error"].is_null(), "{rec}");
     let (ra, rb) = (report(&a), report(&b));
     for key in [

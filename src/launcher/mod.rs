@@ -165,7 +165,10 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             if let Some(p) = &cfg.load_map {
                 args.extend(["--load-map".to_string(), path_arg(p)]);
             }
-            if let Some(p) = &cfg.save_map {
+            // A recording takes the server map's points from a saved map.
+            let for_record = || record::map_file(cfg).filter(|_| !cfg.localize_only);
+            let save = cfg.save_map.clone().or_else(for_record);
+            if let Some(p) = &save {
                 args.extend(["--save-map".to_string(), path_arg(p)]);
             }
             if cfg.localize_only {
@@ -334,7 +337,8 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         wait_server_quiet(&watch.services, SERVER_QUIET_TIMEOUT);
     }
     stop_services(&mut watch.services, &topology, &mut recorder)?;
-    let records = recording.map(record::Recording::finish).unwrap_or_default();
+    let map_file = record::map_file(cfg);
+    let records = (recording.map(|r| r.finish(map_file.as_deref()))).unwrap_or_default();
     progress.finish();
     let elapsed_s = watch.ready_at.elapsed().as_secs_f64();
     let unfired = watch.injector.unfired(elapsed_s, &recorder.frames_posed());

@@ -7,8 +7,14 @@
 //!   (`/imu0`), with the camera (`/cam0/camera_info`) and the `shoal` metadata record (the
 //!   calibration ROS messages lack: `T_BS`, t_r, t_d, the IMU model), so that a replay
 //!   re-runs the estimation on the same input;
-//! - the tracker's poses (`/shoal/pose`, `geometry_msgs/msg/PoseStamped`, camera-to-map of
-//!   its VO session, frames it tracked), which a replay ignores;
+//! - for viewers (Foxglove, RViz; a replay ignores them): the tracker's poses
+//!   (`/shoal/pose`, `geometry_msgs/msg/PoseStamped`, camera-to-map of its VO session, and
+//!   the same as `/tf` `map` → `cam0`), the keyframes it sends (`/shoal/keyframe`), its
+//!   poses in the server map from the feedback (`/shoal/server_pose`, frame `server_map`),
+//!   each frame's publish-to-pose latency (`/shoal/latency_ms`, `std_msgs/msg/Float64`), and
+//!   at the end the points of its server map (`/shoal/map`, `sensor_msgs/msg/PointCloud2`,
+//!   from the saved-map file: `--save-map`'s, the loaded one under `--localize-only`, else
+//!   `OUT/record_map.shoalmap`, which the mapper then writes);
 //! - the dataset's ground truth, when it has one (`/cam0/ground_truth`), for the replay's
 //!   evaluation.
 //!
@@ -39,12 +45,16 @@ pub const POSE_TOPIC: &str = "/shoal/pose";
 pub struct RecordReport {
     /// The file.
     pub file: String,
-    /// Frames, IMU samples and tracker poses written.
+    /// Frames written.
     pub frames: u64,
     /// IMU samples written.
     pub imu_samples: u64,
-    /// Tracker poses written.
+    /// Tracker poses written (frames it tracked; `/shoal/pose`).
     pub poses: u64,
+    /// Keyframes the tracker sent (`/shoal/keyframe`).
+    pub keyframes: u64,
+    /// Points of the client's final server map (`/shoal/map`, at the end).
+    pub map_points: u64,
     /// Frames published that the recorder did not receive (gaps in their sequence).
     pub frames_missed: u64,
     /// Frames not written: not 8-bit gray (a feature-track dataset), or malformed.
@@ -66,8 +76,19 @@ enum Item {
     Imu(datasets::ImuSample),
     Pose {
         t_ns: i64,
+        /// Camera-to-map in the VO session's map, when tracked.
+        pose: Option<nalgebra::Isometry3<f64>>,
+        /// Camera-to-map in the server map, when the feedback gave one.
+        server: Option<nalgebra::Isometry3<f64>>,
+        /// Frame publish to pose publish, ms (a live pose's).
+        latency_ms: Option<f64>,
+    },
+    Keyframe {
+        t_ns: i64,
         pose: nalgebra::Isometry3<f64>,
     },
+    /// The points of the client's final server map (end of the run).
+    Map(Vec<[f32; 3]>),
     Skipped,
 }
 
@@ -75,6 +96,8 @@ enum Item {
 struct ClientRecording {
     receiver: JoinHandle<anyhow::Result<u64>>,
     writer: JoinHandle<RecordReport>,
+    /// For what comes after the services: the map's points.
+    tx: mpsc::Sender<Item>,
 }
 
 /// The run's recording: started before the services, stopped after them.
@@ -110,6 +133,7 @@ impl Recording {
         for (c, (meta, truth)) in metas.into_iter().zip(truth).enumerate() {
             let file = file_of(path, c, n);
             let (tx, rx) = mpsc::channel();
+            let tx_end = tx.clone();
             let writer = std::thread::Builder::new()
                 .name(format!("record-write-{c}"))
                 .spawn(move || write(&file, &meta, &truth, &rx))
@@ -125,17 +149,27 @@ impl Recording {
                 Ok(Err(e)) => anyhow::bail!("--record: client {c}: {e}"),
                 Err(_) => anyhow::bail!("--record: client {c}: the recorder did not subscribe"),
             }
-            clients.push(ClientRecording { receiver, writer });
+            clients.push(ClientRecording {
+                receiver,
+                writer,
+                tx: tx_end,
+            });
         }
         Ok(Self { stop, clients })
     }
 
-    /// Takes what is left in shared memory, ends the files; one report per client.
-    pub fn finish(self) -> Vec<RecordReport> {
+    /// Takes what is left in shared memory, adds each client's server map points from the
+    /// saved-map file `maps` ([`map_points`]), ends the files; one report per client.
+    pub fn finish(self, maps: Option<&Path>) -> Vec<RecordReport> {
         self.stop.store(true, Ordering::SeqCst);
+        let file = maps.and_then(|p| map_store::read(p).ok()).map(|(_, f)| f);
         let mut reports = Vec::new();
-        for c in self.clients {
+        for (i, c) in self.clients.into_iter().enumerate() {
             let received = c.receiver.join();
+            if let Some(f) = &file {
+                let _ = c.tx.send(Item::Map(map_points(f, i as u32)));
+            }
+            drop(c.tx);
             let mut r = c.writer.join().unwrap_or_else(|_| RecordReport {
                 error: Some("the recording thread panicked".into()),
                 ..RecordReport::default()
@@ -165,9 +199,10 @@ fn receive(
         let frames = topics::frame_subscriber(&topics::frames_service(&node, c)?, c)?;
         let imu = topics::subscriber(&topics::imu_service(&node, c)?)?;
         let poses = topics::subscriber(&topics::poses_service(&node, c)?)?;
-        Ok((node, frames, imu, poses))
+        let keyframes = topics::keyframe_subscriber(&topics::keyframes_service(&node, c)?)?;
+        Ok((node, frames, imu, poses, keyframes))
     };
-    let (node, frames, imu, poses) = match open() {
+    let (node, frames, imu, poses, keyframes) = match open() {
         Ok(p) => {
             let _ = ready.send(Ok(()));
             p
@@ -217,11 +252,15 @@ fn receive(
         }
         while let Some(s) = poses.receive()? {
             busy = true;
-            let p = s.payload();
-            let tracking = TrackState::from_u32(p.state) == Some(TrackState::Tracking);
-            let pose = shoal_runtime::wire::iso_from_wire(&p.pose).filter(|_| tracking);
-            if let Some(pose) = pose {
-                let _ = tx.send(Item::Pose { t_ns: p.t_ns, pose });
+            if let Some(item) = pose_item(s.payload()) {
+                let _ = tx.send(item);
+            }
+        }
+        while let Some(s) = keyframes.receive()? {
+            busy = true;
+            let h = s.user_header();
+            if let Some(pose) = shoal_runtime::wire::iso_from_wire(&h.pose_ck) {
+                let _ = tx.send(Item::Keyframe { t_ns: h.t_ns, pose });
             }
         }
         if last_round {
@@ -231,6 +270,118 @@ fn receive(
             return Ok(missed);
         }
     }
+}
+
+/// The frame of the VO session's map (`/shoal/pose`, `/shoal/keyframe`, `/tf`).
+const MAP_FRAME: &str = "map";
+/// The frame of the server map (`/shoal/server_pose`, `/shoal/map`).
+const SERVER_FRAME: &str = "server_map";
+
+/// The viewers' channels of a recording.
+struct ViewChannels {
+    pose: u16,
+    tf: u16,
+    keyframe: u16,
+    server_pose: u16,
+    latency: u16,
+    map: u16,
+}
+
+impl ViewChannels {
+    fn add(w: &mut StreamWriter) -> Result<Self, datasets::DatasetError> {
+        use datasets::mcap_bag::{msgs, view_msgs as v};
+        let pose = msgs::pose_stamped_schema();
+        Ok(Self {
+            pose: w.add_channel(msgs::names::POSE_STAMPED, &pose, POSE_TOPIC)?,
+            tf: w.add_channel(v::names::TF_MESSAGE, &v::tf_message_schema(), "/tf")?,
+            keyframe: w.add_channel(msgs::names::POSE_STAMPED, &pose, "/shoal/keyframe")?,
+            server_pose: w.add_channel(msgs::names::POSE_STAMPED, &pose, "/shoal/server_pose")?,
+            latency: w.add_channel(v::names::FLOAT64, &v::float64_schema(), "/shoal/latency_ms")?,
+            map: w.add_channel(
+                v::names::POINT_CLOUD2,
+                &v::point_cloud2_schema(),
+                "/shoal/map",
+            )?,
+        })
+    }
+
+    /// A tracked frame: its pose (and `/tf` map → cam0), its server-map pose, its latency.
+    fn pose(
+        &self,
+        w: &mut StreamWriter,
+        t_ns: i64,
+        pose: Option<&nalgebra::Isometry3<f64>>,
+        server: Option<&nalgebra::Isometry3<f64>>,
+        latency_ms: Option<f64>,
+    ) -> Result<(), datasets::DatasetError> {
+        use datasets::mcap_bag::view_msgs as v;
+        if let Some(p) = pose {
+            w.pose(Some(self.pose), t_ns, p, MAP_FRAME)?;
+            let m = datasets::mcap_bag::write::pose_msg(p, MAP_FRAME, w.ros_time(t_ns)?);
+            let tf = v::TfMessage {
+                transforms: vec![v::TransformStamped {
+                    header: m.header,
+                    child_frame_id: "cam0".into(),
+                    transform: v::Transform {
+                        translation: m.pose.position,
+                        rotation: m.pose.orientation,
+                    },
+                }],
+            };
+            w.put_msg(self.tf, t_ns, &tf, 160)?;
+        }
+        if let Some(p) = server {
+            w.pose(Some(self.server_pose), t_ns, p, SERVER_FRAME)?;
+        }
+        match latency_ms {
+            Some(data) => w.put_msg(self.latency, t_ns, &v::Float64 { data }, 16),
+            None => Ok(()),
+        }
+    }
+
+    /// The server map's points at `t_ns`.
+    fn map(
+        &self,
+        w: &mut StreamWriter,
+        t_ns: i64,
+        points: &[[f32; 3]],
+    ) -> Result<(), datasets::DatasetError> {
+        use datasets::mcap_bag::{msgs, view_msgs as v};
+        let data: Vec<u8> = points
+            .iter()
+            .flatten()
+            .flat_map(|c| c.to_le_bytes())
+            .collect();
+        let header = msgs::Header {
+            stamp: w.ros_time(t_ns)?,
+            frame_id: SERVER_FRAME.into(),
+        };
+        w.put_msg(
+            self.map,
+            t_ns,
+            &v::PointCloud2::xyz(header, &data),
+            data.len() + 256,
+        )
+    }
+}
+
+/// A pose message as the recording keeps it: not the end of the stream nor a move of the
+/// VO world (`FLAG_WORLD_MOVE`: its pose is a transform, not a camera's); a pose found
+/// later (`FLAG_BACKFILL`) has no latency.
+fn pose_item(p: &shm_schema::TrackedPose) -> Option<Item> {
+    if p.meta.is_end_of_stream() || p.meta.flags & shm_schema::FLAG_WORLD_MOVE != 0 {
+        return None;
+    }
+    let tracking = TrackState::from_u32(p.state) == Some(TrackState::Tracking);
+    let live = p.meta.flags & shm_schema::FLAG_BACKFILL == 0;
+    let wire = shoal_runtime::wire::iso_from_wire;
+    Some(Item::Pose {
+        t_ns: p.t_ns,
+        pose: wire(&p.pose).filter(|_| tracking),
+        server: wire(&p.server_pose).filter(|_| p.has_server_pose != 0),
+        latency_ms: (live && p.frame_publish_mono_ns > 0)
+            .then(|| (p.meta.publish_mono_ns - p.frame_publish_mono_ns) as f64 * 1e-6),
+    })
 }
 
 /// Writes what `rx` brings to `file` until every sender is gone.
@@ -253,12 +404,9 @@ fn write(
     };
     let result = (|| -> Result<_, datasets::DatasetError> {
         let mut w = StreamWriter::create(file, meta, &settings)?;
-        let poses = w.add_channel(
-            datasets::mcap_bag::msgs::names::POSE_STAMPED,
-            &datasets::mcap_bag::msgs::pose_stamped_schema(),
-            POSE_TOPIC,
-        )?;
+        let ch = ViewChannels::add(&mut w)?;
         let mut first = true;
+        let mut last_t = 0;
         for item in rx {
             match item {
                 Item::Frame {
@@ -274,11 +422,25 @@ fn write(
                         }
                     }
                     w.image(t_ns, width, height, &pixels)?;
+                    last_t = last_t.max(t_ns);
                 }
                 Item::Imu(s) => w.imu(&s)?,
-                Item::Pose { t_ns, pose } => {
-                    w.pose(Some(poses), t_ns, &pose, "map")?;
-                    r.poses += 1;
+                Item::Pose {
+                    t_ns,
+                    pose,
+                    server,
+                    latency_ms,
+                } => {
+                    r.poses += u64::from(pose.is_some());
+                    ch.pose(&mut w, t_ns, pose.as_ref(), server.as_ref(), latency_ms)?;
+                }
+                Item::Keyframe { t_ns, pose } => {
+                    w.pose(Some(ch.keyframe), t_ns, &pose, MAP_FRAME)?;
+                    r.keyframes += 1;
+                }
+                Item::Map(points) => {
+                    r.map_points = points.len() as u64;
+                    ch.map(&mut w, last_t, &points)?;
                 }
                 Item::Skipped => r.frames_skipped += 1,
             }
@@ -300,6 +462,38 @@ fn write(
     }
     r
 }
+
+/// The points of client `c`'s server map in `file`: the largest map holding keyframes of
+/// it, else (a `--localize-only` run, whose file is the loaded one) the largest map.
+pub fn map_points(file: &map_store::MapFile, c: u32) -> Vec<[f32; 3]> {
+    let size = |m: &&map_store::SavedMap| m.map.map.keyframes.len();
+    let mine = file
+        .maps
+        .iter()
+        .filter(|m| m.clients.contains(&c))
+        .max_by_key(size);
+    let Some(m) = mine.or_else(|| file.maps.iter().max_by_key(size)) else {
+        return Vec::new();
+    };
+    let p = m.map.map.points.values();
+    p.map(|p| [p.p_w.x as f32, p.p_w.y as f32, p.p_w.z as f32])
+        .collect()
+}
+
+/// The saved-map file a recording takes the server map's points from: `--save-map`'s,
+/// else the loaded one under `--localize-only` (unchanged), else one the mapper writes
+/// for it in the output folder.
+pub fn map_file(cfg: &crate::config::RunConfig) -> Option<PathBuf> {
+    cfg.record.as_ref()?;
+    match (&cfg.save_map, cfg.localize_only) {
+        (Some(p), _) => Some(p.clone()),
+        (None, true) => cfg.load_map.clone(),
+        (None, false) => Some(cfg.out.join(MAP_FILE)),
+    }
+}
+
+/// The saved-map file the mapper writes for a recording without `--save-map`.
+pub const MAP_FILE: &str = "record_map.shoalmap";
 
 /// Lowers the calling thread's scheduling priority (nice +10; Linux threads have their
 /// own): best effort, a failure leaves it as it was.

@@ -41,6 +41,7 @@ pub mod meta;
 pub mod msgs;
 pub mod pixels;
 mod scan;
+pub mod view_msgs;
 pub mod write;
 
 use std::collections::BTreeMap;

@@ -296,7 +296,8 @@ pub mod names {
 const SEP: &str =
     "================================================================================\n";
 
-fn with_deps(main: &str, deps: &[(&str, &str)]) -> String {
+/// A `ros2msg` schema text: `main`, then each dependency after a separator line.
+pub(crate) fn with_deps(main: &str, deps: &[(&str, &str)]) -> String {
     let mut s = main.to_string();
     for (name, body) in deps {
         s.push_str(SEP);
@@ -308,16 +309,17 @@ fn with_deps(main: &str, deps: &[(&str, &str)]) -> String {
     s
 }
 
-const HEADER: (&str, &str) = (
+pub(crate) const HEADER: (&str, &str) = (
     "std_msgs/Header",
     "builtin_interfaces/Time stamp\nstring frame_id\n",
 );
-const TIME: (&str, &str) = ("builtin_interfaces/Time", "int32 sec\nuint32 nanosec\n");
-const QUATERNION: (&str, &str) = (
+pub(crate) const TIME: (&str, &str) = ("builtin_interfaces/Time", "int32 sec\nuint32 nanosec\n");
+pub(crate) const QUATERNION: (&str, &str) = (
     "geometry_msgs/Quaternion",
     "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n",
 );
-const VECTOR3: (&str, &str) = ("geometry_msgs/Vector3", "float64 x\nfloat64 y\nfloat64 z\n");
+pub(crate) const VECTOR3: (&str, &str) =
+    ("geometry_msgs/Vector3", "float64 x\nfloat64 y\nfloat64 z\n");
 const POINT: (&str, &str) = ("geometry_msgs/Point", "float64 x\nfloat64 y\nfloat64 z\n");
 
 /// The `ros2msg` schema text of `sensor_msgs/msg/Image` (with its dependencies).

@@ -164,6 +164,23 @@ impl StreamWriter {
         (self.w.write_to_known_channel(&header, data)).map_err(|e| io_error(&self.out, e))
     }
 
+    /// Encodes `msg` (CDR, `hint` bytes expected) and writes it on `channel` at `t_ns`.
+    pub fn put_msg<T: serde::Serialize>(
+        &mut self,
+        channel: u16,
+        t_ns: i64,
+        msg: &T,
+        hint: usize,
+    ) -> Result<(), DatasetError> {
+        let data = encode(msg, hint, &self.out)?;
+        self.put(channel, t_ns, &data)
+    }
+
+    /// `t_ns` as a ROS time (an error names the file when it does not fit).
+    pub fn ros_time(&self, t_ns: i64) -> Result<Time, DatasetError> {
+        ros_time(t_ns, &self.out)
+    }
+
     /// The camera's `sensor_msgs/msg/CameraInfo` at `t_ns`.
     pub fn camera_info(
         &mut self,
@@ -443,7 +460,8 @@ fn imu_msg(s: &crate::ImuSample, stamp: Time) -> msgs::Imu<'static> {
     }
 }
 
-fn pose_msg(
+/// `pose` as a `geometry_msgs/msg/PoseStamped` in `frame_id` at `stamp`.
+pub fn pose_msg(
     pose: &nalgebra::Isometry3<f64>,
     frame_id: &str,
     stamp: Time,
