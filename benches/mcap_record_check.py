@@ -25,7 +25,7 @@ def summary(topic, m):
         return f"K {list(m.k)[:3]}..., D {list(m.d)}"
     if topic == "/imu0":
         return f"gyro {m.angular_velocity.x:.4f} ..., accel {m.linear_acceleration.z:.3f}"
-    if topic == "/tf":
+    if topic in ("/tf", "/tf_static"):
         t = m.transforms[0]
         return f"{t.header.frame_id} -> {t.child_frame_id}: {t.transform.translation.x:.4f} ..."
     if topic == "/shoal/map":

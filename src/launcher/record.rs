@@ -9,7 +9,8 @@
 //!   re-runs the estimation on the same input;
 //! - for viewers (Foxglove, RViz; a replay ignores them): the tracker's poses
 //!   (`/shoal/pose`, `geometry_msgs/msg/PoseStamped`, camera-to-map of its VO session, and
-//!   the same as `/tf` `map` → `cam0`), the keyframes it sends (`/shoal/keyframe`), its
+//!   the same as `/tf` `map` → `cam0`; the camera-IMU transform as `/tf_static` `imu0` →
+//!   `cam0` when the calibration has one), the keyframes it sends (`/shoal/keyframe`), its
 //!   poses in the server map from the feedback (`/shoal/server_pose`, frame `server_map`),
 //!   each frame's publish-to-pose latency (`/shoal/latency_ms`, `std_msgs/msg/Float64`), and
 //!   at the end the points of its server map (`/shoal/map`, `sensor_msgs/msg/PointCloud2`,
@@ -281,6 +282,7 @@ const SERVER_FRAME: &str = "server_map";
 struct ViewChannels {
     pose: u16,
     tf: u16,
+    tf_static: u16,
     keyframe: u16,
     server_pose: u16,
     latency: u16,
@@ -294,6 +296,11 @@ impl ViewChannels {
         Ok(Self {
             pose: w.add_channel(msgs::names::POSE_STAMPED, &pose, POSE_TOPIC)?,
             tf: w.add_channel(v::names::TF_MESSAGE, &v::tf_message_schema(), "/tf")?,
+            tf_static: (w.add_channel(
+                v::names::TF_MESSAGE,
+                &v::tf_message_schema(),
+                "/tf_static",
+            ))?,
             keyframe: w.add_channel(msgs::names::POSE_STAMPED, &pose, "/shoal/keyframe")?,
             server_pose: w.add_channel(msgs::names::POSE_STAMPED, &pose, "/shoal/server_pose")?,
             latency: w.add_channel(v::names::FLOAT64, &v::float64_schema(), "/shoal/latency_ms")?,
@@ -302,6 +309,43 @@ impl ViewChannels {
                 &v::point_cloud2_schema(),
                 "/shoal/map",
             )?,
+        })
+    }
+
+    /// `/tf_static`: the camera in the IMU body frame (`imu0` → `cam0`, `T_BS`), when the
+    /// calibration gives it.
+    fn camera_imu(
+        &self,
+        w: &mut StreamWriter,
+        t_ns: i64,
+        camera: &datasets::CameraCalib,
+    ) -> Result<(), datasets::DatasetError> {
+        if !camera.t_bs_given {
+            return Ok(());
+        }
+        let tf = Self::transform(w, t_ns, &camera.t_bs, "imu0", "cam0")?;
+        w.put_msg(self.tf_static, t_ns, &tf, 160)
+    }
+
+    /// A one-transform `/tf` message: `child` at `pose` in `parent`.
+    fn transform(
+        w: &StreamWriter,
+        t_ns: i64,
+        pose: &nalgebra::Isometry3<f64>,
+        parent: &str,
+        child: &str,
+    ) -> Result<datasets::mcap_bag::view_msgs::TfMessage<'static>, datasets::DatasetError> {
+        use datasets::mcap_bag::view_msgs as v;
+        let m = datasets::mcap_bag::write::pose_msg(pose, parent, w.ros_time(t_ns)?);
+        Ok(v::TfMessage {
+            transforms: vec![v::TransformStamped {
+                header: m.header,
+                child_frame_id: child.to_string().into(),
+                transform: v::Transform {
+                    translation: m.pose.position,
+                    rotation: m.pose.orientation,
+                },
+            }],
         })
     }
 
@@ -317,17 +361,7 @@ impl ViewChannels {
         use datasets::mcap_bag::view_msgs as v;
         if let Some(p) = pose {
             w.pose(Some(self.pose), t_ns, p, MAP_FRAME)?;
-            let m = datasets::mcap_bag::write::pose_msg(p, MAP_FRAME, w.ros_time(t_ns)?);
-            let tf = v::TfMessage {
-                transforms: vec![v::TransformStamped {
-                    header: m.header,
-                    child_frame_id: "cam0".into(),
-                    transform: v::Transform {
-                        translation: m.pose.position,
-                        rotation: m.pose.orientation,
-                    },
-                }],
-            };
+            let tf = Self::transform(w, t_ns, p, MAP_FRAME, "cam0")?;
             w.put_msg(self.tf, t_ns, &tf, 160)?;
         }
         if let Some(p) = server {
@@ -417,6 +451,7 @@ fn write(
                 } => {
                     if std::mem::take(&mut first) {
                         w.camera_info(&meta.camera, t_ns)?;
+                        ch.camera_imu(&mut w, t_ns, &meta.camera)?;
                         for p in truth {
                             w.pose(None, p.t_ns, &p.pose, "world")?;
                         }
