@@ -30,6 +30,8 @@ def summary(topic, m):
         return f"{t.header.frame_id} -> {t.child_frame_id}: {t.transform.translation.x:.4f} ..."
     if topic == "/shoal/map":
         return f"{m.width} points, fields {[f.name for f in m.fields]}, frame {m.header.frame_id}"
+    if topic == "/rosout":
+        return f"{m.name}: {m.msg}"
     if topic == "/shoal/latency_ms":
         return f"{m.data:.3f} ms"
     if hasattr(m, "pose"):

@@ -15,7 +15,9 @@
 //!   each frame's publish-to-pose latency (`/shoal/latency_ms`, `std_msgs/msg/Float64`), and
 //!   at the end the points of its server map (`/shoal/map`, `sensor_msgs/msg/PointCloud2`,
 //!   from the saved-map file: `--save-map`'s, the loaded one under `--localize-only`, else
-//!   `OUT/record_map.shoalmap`, which the mapper then writes);
+//!   `OUT/record_map.shoalmap`, which the mapper then writes); the loop closer's
+//!   corrections (merges and loops) as `/rosout` log lines (`rcl_interfaces/msg/Log`, at the
+//!   time of the last frame recorded; in client 0's file only, they are the host's);
 //! - the dataset's ground truth, when it has one (`/cam0/ground_truth`), for the replay's
 //!   evaluation.
 //!
@@ -56,6 +58,9 @@ pub struct RecordReport {
     pub keyframes: u64,
     /// Points of the client's final server map (`/shoal/map`, at the end).
     pub map_points: u64,
+    /// The loop closer's corrections (`/rosout`; client 0's recording only: they are the
+    /// host's).
+    pub corrections: u64,
     /// Frames published that the recorder did not receive (gaps in their sequence).
     pub frames_missed: u64,
     /// Frames not written: not 8-bit gray (a feature-track dataset), or malformed.
@@ -90,6 +95,8 @@ enum Item {
     },
     /// The points of the client's final server map (end of the run).
     Map(Vec<[f32; 3]>),
+    /// A loop closer's correction, as a log line.
+    Correction(String),
     Skipped,
 }
 
@@ -201,9 +208,16 @@ fn receive(
         let imu = topics::subscriber(&topics::imu_service(&node, c)?)?;
         let poses = topics::subscriber(&topics::poses_service(&node, c)?)?;
         let keyframes = topics::keyframe_subscriber(&topics::keyframes_service(&node, c)?)?;
-        Ok((node, frames, imu, poses, keyframes))
+        // Host-wide: client 0's recording takes them (the service has few subscriber slots).
+        let corrections = (c == 0)
+            .then(|| {
+                let service = topics::corrections_service(&node)?;
+                topics::slice_subscriber(&service, topics::CORRECTION_BUFFER)
+            })
+            .transpose()?;
+        Ok((node, frames, imu, poses, keyframes, corrections))
     };
-    let (node, frames, imu, poses, keyframes) = match open() {
+    let (node, frames, imu, poses, keyframes, corrections) = match open() {
         Ok(p) => {
             let _ = ready.send(Ok(()));
             p
@@ -264,6 +278,17 @@ fn receive(
                 let _ = tx.send(Item::Keyframe { t_ns: h.t_ns, pose });
             }
         }
+        while let Some(s) = corrections
+            .as_ref()
+            .map(|c| c.receive())
+            .transpose()?
+            .flatten()
+        {
+            busy = true;
+            if let Some(line) = correction_line(s.user_header()) {
+                let _ = tx.send(Item::Correction(line));
+            }
+        }
         if last_round {
             return Ok(missed);
         }
@@ -287,28 +312,27 @@ struct ViewChannels {
     server_pose: u16,
     latency: u16,
     map: u16,
+    log: u16,
 }
 
 impl ViewChannels {
     fn add(w: &mut StreamWriter) -> Result<Self, datasets::DatasetError> {
         use datasets::mcap_bag::{msgs, view_msgs as v};
-        let pose = msgs::pose_stamped_schema();
+        let (pose, tf) = (msgs::pose_stamped_schema(), v::tf_message_schema());
+        let mut ch = |name: &str, schema: &str, topic: &str| w.add_channel(name, schema, topic);
         Ok(Self {
-            pose: w.add_channel(msgs::names::POSE_STAMPED, &pose, POSE_TOPIC)?,
-            tf: w.add_channel(v::names::TF_MESSAGE, &v::tf_message_schema(), "/tf")?,
-            tf_static: (w.add_channel(
-                v::names::TF_MESSAGE,
-                &v::tf_message_schema(),
-                "/tf_static",
-            ))?,
-            keyframe: w.add_channel(msgs::names::POSE_STAMPED, &pose, "/shoal/keyframe")?,
-            server_pose: w.add_channel(msgs::names::POSE_STAMPED, &pose, "/shoal/server_pose")?,
-            latency: w.add_channel(v::names::FLOAT64, &v::float64_schema(), "/shoal/latency_ms")?,
-            map: w.add_channel(
+            pose: ch(msgs::names::POSE_STAMPED, &pose, POSE_TOPIC)?,
+            tf: ch(v::names::TF_MESSAGE, &tf, "/tf")?,
+            tf_static: ch(v::names::TF_MESSAGE, &tf, "/tf_static")?,
+            keyframe: ch(msgs::names::POSE_STAMPED, &pose, "/shoal/keyframe")?,
+            server_pose: ch(msgs::names::POSE_STAMPED, &pose, "/shoal/server_pose")?,
+            latency: ch(v::names::FLOAT64, &v::float64_schema(), "/shoal/latency_ms")?,
+            map: ch(
                 v::names::POINT_CLOUD2,
                 &v::point_cloud2_schema(),
                 "/shoal/map",
             )?,
+            log: ch(v::names::LOG, &v::log_schema(), "/rosout")?,
         })
     }
 
@@ -373,6 +397,26 @@ impl ViewChannels {
         }
     }
 
+    /// A log line of `name` at `t_ns` (`/rosout`).
+    fn log(
+        &self,
+        w: &mut StreamWriter,
+        t_ns: i64,
+        name: &str,
+        msg: &str,
+    ) -> Result<(), datasets::DatasetError> {
+        let line = datasets::mcap_bag::view_msgs::Log {
+            stamp: w.ros_time(t_ns)?,
+            level: 20,
+            name: name.into(),
+            msg: msg.into(),
+            file: "".into(),
+            function: "".into(),
+            line: 0,
+        };
+        w.put_msg(self.log, t_ns, &line, msg.len() + 64)
+    }
+
     /// The server map's points at `t_ns`.
     fn map(
         &self,
@@ -397,6 +441,22 @@ impl ViewChannels {
             data.len() + 256,
         )
     }
+}
+
+/// A correction as a log line: kind, keyframes, maps, scale, inliers (`None`: the loop
+/// closer's lock-step "done" message, or another schema's).
+fn correction_line(h: &shm_schema::CorrectionHeader) -> Option<String> {
+    let kind = match h.kind {
+        shm_schema::CORRECTION_MERGE => "merge",
+        shm_schema::CORRECTION_POSE_GRAPH => "loop (pose graph)",
+        _ => return None,
+    };
+    h.meta.check().ok()?;
+    Some(format!(
+        "correction {}: {kind}: keyframe {:#x} matches {:#x}, map {:#x} into {:#x}, scale {:.4}, \
+         {} inliers",
+        h.correction_id, h.query_kf, h.matched_kf, h.from_map, h.into_map, h.scale, h.inliers
+    ))
 }
 
 /// A pose message as the recording keeps it: not the end of the stream nor a move of the
@@ -476,6 +536,10 @@ fn write(
                 Item::Map(points) => {
                     r.map_points = points.len() as u64;
                     ch.map(&mut w, last_t, &points)?;
+                }
+                Item::Correction(line) => {
+                    ch.log(&mut w, last_t, "loop_closer", &line)?;
+                    r.corrections += 1;
                 }
                 Item::Skipped => r.frames_skipped += 1,
             }

@@ -19,6 +19,37 @@ pub mod names {
     pub const POINT_CLOUD2: &str = "sensor_msgs/msg/PointCloud2";
     /// A number.
     pub const FLOAT64: &str = "std_msgs/msg/Float64";
+    /// A log line (`/rosout`; Foxglove's Log panel).
+    pub const LOG: &str = "rcl_interfaces/msg/Log";
+}
+
+/// `rcl_interfaces/msg/Log`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Log<'a> {
+    /// When.
+    pub stamp: super::msgs::Time,
+    /// Severity (20: `INFO`).
+    pub level: u8,
+    /// The logger (the service).
+    pub name: Cow<'a, str>,
+    /// The line.
+    pub msg: Cow<'a, str>,
+    /// Source file (empty).
+    pub file: Cow<'a, str>,
+    /// Function (empty).
+    pub function: Cow<'a, str>,
+    /// Source line (0).
+    pub line: u32,
+}
+
+/// The `ros2msg` schema text of `rcl_interfaces/msg/Log`.
+pub fn log_schema() -> String {
+    with_deps(
+        "byte DEBUG=10\nbyte INFO=20\nbyte WARN=30\nbyte ERROR=40\nbyte FATAL=50\n\
+         builtin_interfaces/Time stamp\nuint8 level\nstring name\nstring msg\nstring file\n\
+         string function\nuint32 line\n",
+        &[TIME],
+    )
 }
 
 /// `geometry_msgs/msg/Transform`.
