@@ -29,10 +29,10 @@ pub struct RunConfig {
     /// Calibration files put in place of the datasets' own (`shoal run --calib`): none, one
     /// for every dataset, or one per dataset in the order of `datasets`.
     pub calib: Vec<PathBuf>,
-    /// Image topic of MCAP / ROS 2 bag datasets (`--image-topic`; default: found by
+    /// Image topic of MCAP / ROS 2 / ROS 1 bag datasets (`--image-topic`; default: found by
     /// message type).
     pub image_topic: Option<String>,
-    /// IMU topic of MCAP / ROS 2 bag datasets (`--imu-topic`; default: found by type).
+    /// IMU topic of MCAP / ROS 2 / ROS 1 bag datasets (`--imu-topic`; default: found by type).
     pub imu_topic: Option<String>,
     /// Per-client modes (`shoal run --mode` given once per dataset, issue 19: mixed
     /// monocular and visual-inertial clients), in the order of `datasets`; empty: every

@@ -38,10 +38,10 @@ pub struct ConvertArgs {
     /// Calibration file put in place of the dataset's own (as `shoal run --calib`).
     #[arg(long, value_name = "FILE")]
     pub calib: Option<PathBuf>,
-    /// Image topic of an MCAP / ROS 2 bag input (default: found by message type).
+    /// Image topic of an MCAP / ROS 2 / ROS 1 bag input (default: found by message type).
     #[arg(long)]
     pub image_topic: Option<String>,
-    /// IMU topic of an MCAP / ROS 2 bag input (default: found by message type).
+    /// IMU topic of an MCAP / ROS 2 / ROS 1 bag input (default: found by message type).
     #[arg(long)]
     pub imu_topic: Option<String>,
     /// Frame rate of an input without timestamps (an image folder: frame k at k / FPS s;

@@ -85,10 +85,10 @@ struct RunArgs {
     /// per `--dataset` in the same order. Replaces the file's `calib`.
     #[arg(long = "calib", value_name = "FILE")]
     calib: Vec<PathBuf>,
-    /// Image topic of MCAP / ROS 2 bag datasets (default: found by message type).
+    /// Image topic of MCAP / ROS 2 / ROS 1 bag datasets (default: found by message type).
     #[arg(long, value_name = "TOPIC")]
     image_topic: Option<String>,
-    /// IMU topic of MCAP / ROS 2 bag datasets (default: found by message type).
+    /// IMU topic of MCAP / ROS 2 / ROS 1 bag datasets (default: found by message type).
     #[arg(long, value_name = "TOPIC")]
     imu_topic: Option<String>,
     /// Lock-step replay: nothing dropped, deterministic (the default).

@@ -16,7 +16,8 @@
 use std::path::{Path, PathBuf};
 
 use crate::{
-    april, euroc, gopro, image_folder, kitti, mcap_bag, phone, Dataset, DatasetError, DatasetKind,
+    april, euroc, gopro, image_folder, kitti, mcap_bag, phone, ros1_bag, Dataset, DatasetError,
+    DatasetKind,
 };
 
 /// How to open a dataset ([`open_with`]).
@@ -45,10 +46,13 @@ pub fn detect(path: &Path) -> Result<DatasetKind, DatasetError> {
     if mcap_bag::is_mcap_file(path) {
         return Ok(DatasetKind::Mcap);
     }
+    if ros1_bag::is_ros1_bag(path) {
+        return Ok(DatasetKind::Ros1Bag);
+    }
     if !path.is_dir() {
         return Err(DatasetError::UnknownFormat {
             path: path.into(),
-            detail: "neither an MCAP file nor a folder (EuRoC, KITTI, phone logger, GoPro, \
+            detail: "neither an MCAP file, a ROS 1 bag nor a folder (EuRoC, KITTI, phone logger, GoPro, \
                      AprilGrid detections, rosbag2)"
                 .into(),
         });
@@ -91,6 +95,7 @@ pub fn open(path: &Path) -> Result<Dataset, DatasetError> {
 fn open_reader(path: &Path, options: &OpenOptions) -> Result<Dataset, DatasetError> {
     match detect(path)? {
         DatasetKind::Mcap => mcap_bag::read(path, &options.topics, options.calib.is_some()),
+        DatasetKind::Ros1Bag => ros1_bag::read(path, &options.topics, options.calib.is_some()),
         DatasetKind::Euroc => euroc::read(path),
         DatasetKind::Kitti => kitti::read(path),
         DatasetKind::Phone => phone::read(path),

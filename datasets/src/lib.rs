@@ -19,6 +19,7 @@ pub mod kalibr;
 pub mod kitti;
 pub mod mcap_bag;
 pub mod phone;
+pub mod ros1_bag;
 pub mod sim;
 mod text;
 pub mod trajectory;
@@ -52,6 +53,8 @@ pub enum DatasetKind {
     /// An MCAP recording or a rosbag2 folder with MCAP storage ([`mcap_bag`]); each frame
     /// is a message in the file ([`FrameSource::Mcap`]).
     Mcap,
+    /// A ROS 1 bag ([`ros1_bag`]); each frame is a message in it ([`FrameSource::Ros1`]).
+    Ros1Bag,
 }
 
 /// Camera calibration and timing of a dataset's camera.
@@ -95,6 +98,8 @@ pub enum FrameSource {
     File,
     /// An image message of the MCAP file [`FrameRecord::path`].
     Mcap(mcap_bag::McapFrameRef),
+    /// An image message of the ROS 1 bag [`FrameRecord::path`].
+    Ros1(ros1_bag::Ros1FrameRef),
 }
 
 /// Reads frames as 8-bit gray whatever their [`FrameSource`]; an MCAP frame is read from
@@ -102,6 +107,7 @@ pub enum FrameSource {
 #[derive(Debug, Default)]
 pub struct FrameReader {
     mcap: mcap_bag::McapFrameLoader,
+    ros1: ros1_bag::Ros1FrameLoader,
 }
 
 impl FrameReader {
@@ -118,6 +124,9 @@ impl FrameReader {
             FrameSource::File => decode_gray_into(&frame.path, dst, width, height),
             FrameSource::Mcap(at) => self
                 .mcap
+                .read_gray_into(&frame.path, at, dst, width, height),
+            FrameSource::Ros1(at) => self
+                .ros1
                 .read_gray_into(&frame.path, at, dst, width, height),
         }
     }

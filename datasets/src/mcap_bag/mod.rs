@@ -34,7 +34,7 @@
 //! message that does not decode, an unknown pixel encoding or compressed format, a
 //! non-increasing stamp or a frame of another size is skipped and kept as an issue (topic,
 //! message number, file offset); a damaged chunk is skipped whole; a file cut short is read
-//! up to the cut. Not read: ROS 1 bags, protobuf/JSON-encoded messages, `/tf_static` (give
+//! up to the cut. Not read here: ROS 1 bags ([`crate::ros1_bag`]), protobuf/JSON-encoded messages, `/tf_static` (give
 //! T_BS with `--calib`), per-frame exposure.
 
 pub mod meta;
@@ -53,6 +53,7 @@ use crate::{
     InputIssue, IssueKind, PinholeRadtan, StampedPose,
 };
 pub use pixels::ImageKind;
+pub use scan::CameraInfoValues;
 use scan::{ChannelInfo, FileIndex, ImageEntry};
 
 /// Where an image message is: the top-level record holding it (a chunk, or the message
@@ -507,7 +508,7 @@ fn camera_info_of<'a>(
 
 /// The camera model of a `CameraInfo` for images of `width` x `height`. Without one
 /// (or with an uncalibrated one) only a calibration file can give it.
-fn camera_model(
+pub(crate) fn camera_model(
     info: Option<&scan::CameraInfoValues>,
     width: u32,
     height: u32,
@@ -566,7 +567,7 @@ fn camera_model(
 }
 
 /// Frame rate from the median stamp difference (0 with fewer than two frames).
-fn rate_of(frames: &[FrameRecord]) -> f64 {
+pub(crate) fn rate_of(frames: &[FrameRecord]) -> f64 {
     let mut dt: Vec<i64> = frames.windows(2).map(|w| w[1].t_ns - w[0].t_ns).collect();
     if dt.is_empty() {
         return 0.0;

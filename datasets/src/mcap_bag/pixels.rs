@@ -21,6 +21,10 @@ pub enum ImageKind {
     RosCompressed,
     /// `foxglove_msgs/msg/CompressedImage`.
     FoxgloveCompressed,
+    /// ROS 1 `sensor_msgs/Image` ([`crate::ros1_bag`]).
+    Ros1Raw,
+    /// ROS 1 `sensor_msgs/CompressedImage`.
+    Ros1Compressed,
 }
 
 impl ImageKind {
@@ -120,6 +124,36 @@ fn parse(kind: ImageKind, bytes: &[u8]) -> Result<Decoded<'_>, String> {
                 data: m.data,
             })
         }
+        ImageKind::Ros1Raw => {
+            let m = crate::ros1_bag::msgs::image(bytes)?;
+            if m.is_bigendian > 1 {
+                return Err(format!("is_bigendian = {}", m.is_bigendian));
+            }
+            Decoded::Raw(Raw {
+                stamp: ros1_time(m.stamp)?,
+                width: m.width,
+                height: m.height,
+                encoding: m.encoding.into(),
+                step: m.step,
+                data: Bytes(m.data),
+            })
+        }
+        ImageKind::Ros1Compressed => {
+            let (stamp, _, data) = crate::ros1_bag::msgs::compressed_image(bytes)?;
+            Decoded::Compressed(Compressed {
+                stamp: ros1_time(stamp)?,
+                data: Bytes(data),
+            })
+        }
+    })
+}
+
+/// A ROS 1 stamp as a ROS 2 time (seconds beyond `i32` are an error).
+fn ros1_time(t: crate::ros1_bag::msgs::Time) -> Result<Time, String> {
+    let sec = i32::try_from(t.sec).map_err(|_| format!("stamp of {} s beyond 2038", t.sec))?;
+    Ok(Time {
+        sec,
+        nanosec: t.nsec,
     })
 }
 
