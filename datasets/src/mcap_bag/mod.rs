@@ -600,15 +600,9 @@ impl McapFrameLoader {
         width: u32,
         height: u32,
     ) -> Result<(), DatasetError> {
-        let err = |detail: String| DatasetError::Image {
-            path: path.to_path_buf(),
-            detail: format!(
-                "message in the record at byte {}: {detail}",
-                at.record_offset
-            ),
-        };
-        let bytes = self.message(path, at).map_err(err)?;
-        pixels::decode_gray_into(at.kind, bytes, dst, width, height).map_err(err)
+        let place = format!("message in the record at byte {}", at.record_offset);
+        let bytes = self.message(path, at);
+        pixels::decode_message_into(path, &place, at.kind, bytes, dst, (width, height))
     }
 
     /// The bytes of message `at`.

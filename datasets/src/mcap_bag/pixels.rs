@@ -272,6 +272,24 @@ pub fn decode_gray_into(
     Ok(())
 }
 
+/// [`decode_gray_into`] of the message `bytes` read from `path` (or why it could not be
+/// read); an error names the file and `place`, the message's place in it.
+pub(crate) fn decode_message_into(
+    path: &std::path::Path,
+    place: &str,
+    kind: ImageKind,
+    bytes: Result<&[u8], String>,
+    dst: &mut [u8],
+    (width, height): (u32, u32),
+) -> Result<(), crate::DatasetError> {
+    bytes
+        .and_then(|b| decode_gray_into(kind, b, dst, width, height))
+        .map_err(|detail| crate::DatasetError::Image {
+            path: path.to_path_buf(),
+            detail: format!("{place}: {detail}"),
+        })
+}
+
 /// A raw image's rows (without step padding) as gray into `dst`.
 fn raw_to_gray(r: &Raw, dst: &mut [u8]) -> Result<(), String> {
     let (enc, bpp) = raw_layout(r)?;

@@ -410,15 +410,12 @@ impl Ros1FrameLoader {
         width: u32,
         height: u32,
     ) -> Result<(), DatasetError> {
-        let err = |detail: String| DatasetError::Image {
-            path: path.to_path_buf(),
-            detail: format!(
-                "image in the chunk at byte {}, record {}: {detail}",
-                at.chunk_pos, at.index
-            ),
-        };
-        let bytes = self.message(path, at).map_err(err)?;
-        pixels::decode_gray_into(at.kind, bytes, dst, width, height).map_err(err)
+        let place = format!(
+            "image in the chunk at byte {}, record {}",
+            at.chunk_pos, at.index
+        );
+        let bytes = self.message(path, at);
+        pixels::decode_message_into(path, &place, at.kind, bytes, dst, (width, height))
     }
 
     fn message(&mut self, path: &Path, at: &Ros1FrameRef) -> Result<&[u8], String> {
