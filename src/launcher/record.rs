@@ -147,15 +147,20 @@ impl Recording {
                 .spawn(move || write(&file, &meta, &truth, &rx))
                 .context("starting a recording thread")?;
             let (ready_tx, ready_rx) = mpsc::sync_channel(1);
-            let (prefix, stop) = (prefix.to_string(), stop.clone());
+            let (prefix, stopped) = (prefix.to_string(), stop.clone());
             let receiver = std::thread::Builder::new()
                 .name(format!("record-recv-{c}"))
-                .spawn(move || receive(c as u32, &prefix, &stop, &tx, &ready_tx))
+                .spawn(move || receive(c as u32, &prefix, &stopped, &tx, &ready_tx))
                 .context("starting a recording thread")?;
-            match ready_rx.recv_timeout(Duration::from_secs(10)) {
-                Ok(Ok(())) => {}
-                Ok(Err(e)) => anyhow::bail!("--record: client {c}: {e}"),
-                Err(_) => anyhow::bail!("--record: client {c}: the recorder did not subscribe"),
+            let failed = match ready_rx.recv_timeout(Duration::from_secs(10)) {
+                Ok(Ok(())) => None,
+                Ok(Err(e)) => Some(e),
+                Err(_) => Some("the recorder did not subscribe".to_string()),
+            };
+            if let Some(e) = failed {
+                // The threads already started end (their files are left unfinished).
+                stop.store(true, Ordering::SeqCst);
+                anyhow::bail!("--record: client {c}: {e}");
             }
             clients.push(ClientRecording {
                 receiver,
