@@ -77,6 +77,26 @@ pub fn check(path: &Path) -> anyhow::Result<MapLoadReport> {
     })
 }
 
+/// Before anything is started or written: `--localize-only`'s combination, and the
+/// `--load-map` file read whole (checksum, decode, validation); a bad file ends the command.
+pub fn check_inputs(cfg: &crate::config::RunConfig) -> anyhow::Result<Option<MapLoadReport>> {
+    let (load, save) = (cfg.load_map.as_deref(), cfg.save_map.as_deref());
+    check_localize_only(cfg.localize_only, load, save)?;
+    load.map(check).transpose()
+}
+
+/// After the output folder is made (the map is often saved in it): the `--save-map` and
+/// `--record` files can be created.
+pub fn check_outputs(cfg: &crate::config::RunConfig) -> anyhow::Result<()> {
+    if let Some(p) = &cfg.save_map {
+        check_save_path(p)?;
+    }
+    if let Some(p) = &cfg.record {
+        check_file_path("--record", p)?;
+    }
+    Ok(())
+}
+
 /// `--localize-only` needs a map to localise in (`--load-map`) and leaves it as it was, so a
 /// `--save-map` of the same run would only copy it: both are refused before the start.
 pub fn check_localize_only(

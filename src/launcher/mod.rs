@@ -259,27 +259,14 @@ fn put_client_modes(rep: &mut report::RunReport, setups: &[modes::ClientSetup]) 
 /// Runs the pipeline; returns the report (also written to `OUT/report.json`).
 pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
-    // A saved map is read whole (checksum, decode, validation) before anything is started
-    // or written: a bad file ends the command here.
-    map_file::check_localize_only(
-        cfg.localize_only,
-        cfg.load_map.as_deref(),
-        cfg.save_map.as_deref(),
-    )?;
-    let loaded = cfg.load_map.as_deref().map(map_file::check).transpose()?;
+    let loaded = map_file::check_inputs(cfg)?;
     // Hashing the datasets overlaps the start-up.
     let checksums = {
         let paths = cfg.datasets.clone();
         std::thread::spawn(move || provenance::dataset_checksums(&paths))
     };
     prepare_out_dir(&cfg.out)?;
-    // After the output folder is made: the map is often saved in it.
-    if let Some(p) = &cfg.save_map {
-        map_file::check_save_path(p)?;
-    }
-    if let Some(p) = &cfg.record {
-        map_file::check_file_path("--record", p)?;
-    }
+    map_file::check_outputs(cfg)?;
     let datasets = match open_datasets(cfg) {
         Ok(d) => d,
         Err((e, errors)) => {

@@ -198,94 +198,79 @@ impl Recording {
     }
 }
 
-/// Takes client `c`'s frames, IMU samples and poses from shared memory until `stop` (then
-/// once more); returns the frames missed.
-fn receive(
-    c: u32,
-    prefix: &str,
-    stop: &AtomicBool,
-    tx: &mpsc::Sender<Item>,
-    ready: &mpsc::SyncSender<Result<(), String>>,
-) -> anyhow::Result<u64> {
-    let open = || -> anyhow::Result<_> {
+/// A subscriber of the run's shared memory.
+type Sub<T, H = ()> = iceoryx2::port::subscriber::Subscriber<topics::Ipc, T, H>;
+
+/// The recorder's subscriptions of one client.
+struct Subscriptions {
+    node: iceoryx2::node::Node<topics::Ipc>,
+    frames: Sub<[u8], shm_schema::FrameHeader>,
+    imu: Sub<shm_schema::ImuMsg>,
+    poses: Sub<shm_schema::TrackedPose>,
+    keyframes: Sub<[shm_schema::KeyframeRecord], shm_schema::KeyframeHeader>,
+    /// Host-wide: client 0's recording takes them (the service has few subscriber slots).
+    corrections: Option<Sub<[shm_schema::CorrectionRecord], shm_schema::CorrectionHeader>>,
+    /// The next frame's sequence number, and the frames missed so far.
+    next_seq: Option<u64>,
+    missed: u64,
+}
+
+impl Subscriptions {
+    fn open(c: u32, prefix: &str) -> anyhow::Result<Self> {
         let node = topics::create_node(&format!("recorder_c{c}"), prefix)?;
-        let frames = topics::frame_subscriber(&topics::frames_service(&node, c)?, c)?;
-        let imu = topics::subscriber(&topics::imu_service(&node, c)?)?;
-        let poses = topics::subscriber(&topics::poses_service(&node, c)?)?;
-        let keyframes = topics::keyframe_subscriber(&topics::keyframes_service(&node, c)?)?;
-        // Host-wide: client 0's recording takes them (the service has few subscriber slots).
         let corrections = (c == 0)
             .then(|| {
                 let service = topics::corrections_service(&node)?;
                 topics::slice_subscriber(&service, topics::CORRECTION_BUFFER)
             })
             .transpose()?;
-        Ok((node, frames, imu, poses, keyframes, corrections))
-    };
-    let (node, frames, imu, poses, keyframes, corrections) = match open() {
-        Ok(p) => {
-            let _ = ready.send(Ok(()));
-            p
-        }
-        Err(e) => {
-            let _ = ready.send(Err(e.to_string()));
-            return Err(e);
-        }
-    };
-    let (mut next_seq, mut missed) = (None::<u64>, 0u64);
-    loop {
-        let last_round = stop.load(Ordering::SeqCst);
+        Ok(Self {
+            frames: topics::frame_subscriber(&topics::frames_service(&node, c)?, c)?,
+            imu: topics::subscriber(&topics::imu_service(&node, c)?)?,
+            poses: topics::subscriber(&topics::poses_service(&node, c)?)?,
+            keyframes: topics::keyframe_subscriber(&topics::keyframes_service(&node, c)?)?,
+            corrections,
+            node,
+            next_seq: None,
+            missed: 0,
+        })
+    }
+
+    /// Takes everything waiting and sends it to the writer; whether anything was.
+    fn drain(&mut self, tx: &mpsc::Sender<Item>) -> anyhow::Result<bool> {
         let mut busy = false;
-        while let Some(s) = frames.receive()? {
+        while let Some(s) = self.frames.receive()? {
             busy = true;
             let h = s.user_header();
             if h.meta.is_end_of_stream() {
                 continue;
             }
-            missed += next_seq.map_or(0, |n| h.meta.seq.saturating_sub(n));
-            next_seq = Some(h.meta.seq + 1);
-            let gray = h.pixel_format == PixelFormat::Gray8 as u32;
-            let len = (h.width as usize) * (h.height as usize);
-            let item = match s.payload().get(..len) {
-                Some(px) if gray && h.stride == h.width => Item::Frame {
-                    t_ns: h.t_mid_ns,
-                    width: h.width,
-                    height: h.height,
-                    pixels: px.to_vec(),
-                },
-                _ => Item::Skipped,
-            };
-            let _ = tx.send(item);
+            self.missed += self.next_seq.map_or(0, |n| h.meta.seq.saturating_sub(n));
+            self.next_seq = Some(h.meta.seq + 1);
+            let _ = tx.send(frame_item(h, s.payload()));
         }
-        while let Some(s) = imu.receive()? {
+        while let Some(s) = self.imu.receive()? {
             busy = true;
             let m = *s.payload();
-            if m.meta.is_end_of_stream() {
-                continue;
+            if !m.meta.is_end_of_stream() {
+                let (t_ns, gyro, accel) = (m.t_ns, m.gyro, m.accel);
+                let _ = tx.send(Item::Imu(datasets::ImuSample { t_ns, gyro, accel }));
             }
-            let sample = datasets::ImuSample {
-                t_ns: m.t_ns,
-                gyro: m.gyro,
-                accel: m.accel,
-            };
-            let _ = tx.send(Item::Imu(sample));
         }
-        while let Some(s) = poses.receive()? {
+        while let Some(s) = self.poses.receive()? {
             busy = true;
             if let Some(item) = pose_item(s.payload()) {
                 let _ = tx.send(item);
             }
         }
-        while let Some(s) = keyframes.receive()? {
+        while let Some(s) = self.keyframes.receive()? {
             busy = true;
             let h = s.user_header();
             if let Some(pose) = shoal_runtime::wire::iso_from_wire(&h.pose_ck) {
                 let _ = tx.send(Item::Keyframe { t_ns: h.t_ns, pose });
             }
         }
-        while let Some(s) = corrections
-            .as_ref()
-            .map(|c| c.receive())
+        while let Some(s) = (self.corrections.as_ref().map(|c| c.receive()))
             .transpose()?
             .flatten()
         {
@@ -294,11 +279,49 @@ fn receive(
                 let _ = tx.send(Item::Correction(line));
             }
         }
-        if last_round {
-            return Ok(missed);
+        Ok(busy)
+    }
+}
+
+/// A frame as the recording keeps it: 8-bit gray rows of `width` bytes, else skipped.
+fn frame_item(h: &shm_schema::FrameHeader, payload: &[u8]) -> Item {
+    let gray = h.pixel_format == PixelFormat::Gray8 as u32;
+    let len = (h.width as usize) * (h.height as usize);
+    match payload.get(..len) {
+        Some(px) if gray && h.stride == h.width => Item::Frame {
+            t_ns: h.t_mid_ns,
+            width: h.width,
+            height: h.height,
+            pixels: px.to_vec(),
+        },
+        _ => Item::Skipped,
+    }
+}
+
+/// Takes client `c`'s messages from shared memory until `stop` (then once more); returns
+/// the frames missed. `ready` says whether it subscribed.
+fn receive(
+    c: u32,
+    prefix: &str,
+    stop: &AtomicBool,
+    tx: &mpsc::Sender<Item>,
+    ready: &mpsc::SyncSender<Result<(), String>>,
+) -> anyhow::Result<u64> {
+    let mut subs = match Subscriptions::open(c, prefix) {
+        Ok(s) => {
+            let _ = ready.send(Ok(()));
+            s
         }
-        if !busy && node.wait(Duration::from_millis(1)).is_err() {
-            return Ok(missed);
+        Err(e) => {
+            let _ = ready.send(Err(e.to_string()));
+            return Err(e);
+        }
+    };
+    loop {
+        let last_round = stop.load(Ordering::SeqCst);
+        let busy = subs.drain(tx)?;
+        if last_round || (!busy && subs.node.wait(Duration::from_millis(1)).is_err()) {
+            return Ok(subs.missed);
         }
     }
 }

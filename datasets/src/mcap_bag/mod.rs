@@ -234,15 +234,7 @@ pub fn read(path: &Path, topics: &Topics, calib_given: bool) -> Result<Dataset, 
             let (info, info_problem) = camera_info_of(&indexes, &all, &image_topic);
             let model = camera_model(info, width, height, calib_given)
                 .map_err(|e| bad(format!("{e}{}", info_problem.unwrap_or_default())))?;
-            let camera = CameraCalib {
-                model,
-                t_bs: nalgebra::Isometry3::identity(),
-                t_bs_given: false,
-                readout_ns: 0,
-                time_offset_ns: 0,
-                rate_hz: rate_of(&frames),
-            };
-            (camera, None, None)
+            (ros_camera(model, &frames), None, None)
         }
     };
     let frames = frames
@@ -567,7 +559,20 @@ pub(crate) fn camera_model(
 }
 
 /// Frame rate from the median stamp difference (0 with fewer than two frames).
-pub(crate) fn rate_of(frames: &[FrameRecord]) -> f64 {
+/// The camera of a ROS recording: `model` (from its `CameraInfo`), no T_BS, t_r or t_d
+/// (ROS messages carry none: `--calib` gives them), the frames' rate.
+pub(crate) fn ros_camera(model: PinholeRadtan, frames: &[FrameRecord]) -> CameraCalib {
+    CameraCalib {
+        model,
+        t_bs: nalgebra::Isometry3::identity(),
+        t_bs_given: false,
+        readout_ns: 0,
+        time_offset_ns: 0,
+        rate_hz: rate_of(frames),
+    }
+}
+
+fn rate_of(frames: &[FrameRecord]) -> f64 {
     let mut dt: Vec<i64> = frames.windows(2).map(|w| w[1].t_ns - w[0].t_ns).collect();
     if dt.is_empty() {
         return 0.0;

@@ -33,8 +33,7 @@ use rosbag::{ChunkRecord, IndexRecord, MessageRecord, RosBag};
 use crate::mcap_bag::pixels::{self, ImageKind};
 use crate::mcap_bag::CameraInfoValues;
 use crate::{
-    CameraCalib, Dataset, DatasetError, DatasetKind, FrameRecord, FrameSource, ImuSample,
-    InputIssue, IssueKind,
+    Dataset, DatasetError, DatasetKind, FrameRecord, FrameSource, ImuSample, InputIssue, IssueKind,
 };
 
 /// The first bytes of a ROS 1 bag (format 2.0).
@@ -361,14 +360,7 @@ fn dataset(
         c.issues.push(issue(path, IssueKind::MissingFile, detail));
     }
     let frames: Vec<FrameRecord> = c.frames.into_iter().map(|f| f.0).collect();
-    let camera = CameraCalib {
-        model,
-        t_bs: nalgebra::Isometry3::identity(),
-        t_bs_given: false,
-        readout_ns: 0,
-        time_offset_ns: 0,
-        rate_hz: crate::mcap_bag::rate_of(&frames),
-    };
+    let camera = crate::mcap_bag::ros_camera(model, &frames);
     Ok(Dataset {
         kind: DatasetKind::Ros1Bag,
         root: path.to_path_buf(),
