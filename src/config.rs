@@ -80,6 +80,10 @@ pub struct RunConfig {
     /// Record what crosses shared memory to this MCAP file (`--record`; one file per
     /// client, `STEM_c{i}.mcap`, with several).
     pub record: Option<PathBuf>,
+    /// Serve the run live to Foxglove's WebSocket protocol on this `HOST:PORT` (`--viz`).
+    pub viz: Option<String>,
+    /// With `viz`: wait up to this long for a viewer before the run starts, s (0: none).
+    pub viz_wait_s: f64,
     /// Every tracker (`{c}` in `frame_log` is the client index).
     pub tracker: tracker::TrackerConfig,
     /// The mapper.
@@ -116,6 +120,8 @@ impl Default for RunConfig {
             save_map: None,
             localize_only: false,
             record: None,
+            viz: None,
+            viz_wait_s: 0.0,
             tracker: Default::default(),
             mapper: Default::default(),
             loop_closer: Default::default(),

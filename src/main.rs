@@ -153,6 +153,15 @@ struct RunArgs {
     /// it); with several clients, one file each (`STEM_c{i}.mcap`).
     #[arg(long, value_name = "FILE.mcap")]
     record: Option<PathBuf>,
+    /// Serve the run live to Foxglove (its WebSocket protocol; "Open connection" →
+    /// `ws://HOST:PORT`): poses, paths, keyframes, image with tracked features, latency, and
+    /// at the end the map and its loops. Loopback port 8765 when no address is given.
+    #[arg(long, value_name = "HOST:PORT", num_args = 0..=1, default_missing_value = "127.0.0.1:8765")]
+    viz: Option<String>,
+    /// With `--viz`: wait up to this many seconds for a viewer to connect before the run
+    /// starts.
+    #[arg(long, value_name = "SECONDS")]
+    viz_wait: Option<f64>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -258,6 +267,12 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     cfg.localize_only |= args.localize_only;
     if args.record.is_some() {
         cfg.record = args.record;
+    }
+    if args.viz.is_some() {
+        cfg.viz = args.viz;
+    }
+    if let Some(s) = args.viz_wait {
+        cfg.viz_wait_s = s;
     }
     if args.quiet {
         cfg.progress = false;

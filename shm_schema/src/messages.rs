@@ -723,6 +723,35 @@ impl Default for KeypointRecord {
     }
 }
 
+/// Header of a frame's tracked features (tracker → viewers, `tracker.publish_features`);
+/// the payload is a slice of [`TrackedFeature`]s.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v4::TrackedFeaturesHeader")]
+#[repr(C)]
+pub struct TrackedFeaturesHeader {
+    /// Identity; `meta.seq` is the frame's sequence number.
+    pub meta: MsgMeta,
+    /// Frame time (`FrameHeader::t_mid_ns`).
+    pub t_ns: i64,
+    /// Number of features in the payload.
+    pub n_features: u32,
+    /// Reserved, zero.
+    pub reserved: u32,
+}
+
+/// A keypoint of a tracked frame matched to a map point (16 bytes).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("shoal::v4::TrackedFeature")]
+#[repr(C)]
+pub struct TrackedFeature {
+    /// Client map-point id.
+    pub map_point_id: u64,
+    /// Pixel u (distorted image), level-0 coordinates.
+    pub u: f32,
+    /// Pixel v.
+    pub v: f32,
+}
+
 /// Mapper → tracker: acknowledgement and pose feedback (seed §3.4.1).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[type_name("shoal::v4::Feedback")]
@@ -1076,6 +1105,8 @@ mod tests {
             type_name::<ImuRecord>(),
             type_name::<KeyframeRecord>(),
             type_name::<Feedback>(),
+            type_name::<TrackedFeaturesHeader>(),
+            type_name::<TrackedFeature>(),
             type_name::<LoopKeyframeHeader>(),
             type_name::<LoopKeypointRecord>(),
             type_name::<ResyncRequest>(),

@@ -11,7 +11,7 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFac
 
 use crate::{
     CorrectionHeader, CorrectionRecord, Feedback, LoopKeyframeHeader, LoopKeypointRecord,
-    ResyncRequest, TrackedPose,
+    ResyncRequest, TrackedFeature, TrackedFeaturesHeader, TrackedPose,
 };
 use crate::{FrameAck, FrameHeader, ImuMsg, KeyframeHeader, KeyframeRecord, SCHEMA_VERSION};
 
@@ -253,6 +253,18 @@ pub fn keyframes_service(
     client: u32,
 ) -> Result<PubSubFactory<Ipc, [KeyframeRecord], KeyframeHeader>, TopicError> {
     keyframe_topic(node, &client_topic(client, "keyframes"))
+}
+
+/// Most features in one [`features_service`] message.
+pub const MAX_TRACKED_FEATURES: usize = MAX_KEYPOINTS;
+
+/// A frame's tracked features, tracker → viewers (`tracker.publish_features`). Safe
+/// overflow: a slow viewer never blocks the tracker.
+pub fn features_service(
+    node: &Node<Ipc>,
+    client: u32,
+) -> Result<PubSubFactory<Ipc, [TrackedFeature], TrackedFeaturesHeader>, TopicError> {
+    slice_topic(node, &client_topic(client, "features"), POSE_BUFFER)
 }
 
 /// Keyframes the mapper kept, forwarded to the loop closer (host-wide, all clients).

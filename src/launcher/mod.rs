@@ -18,6 +18,7 @@ pub mod report;
 pub mod sessions;
 pub mod summary;
 pub mod topology;
+pub mod view;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -125,6 +126,8 @@ fn write_configs(
                 one.tracker.mode = s.mode;
                 one.tracker.imu = s.imu.clone();
                 one.tracker.readout_direction = s.readout;
+                // A recording or a live viewer draws the tracked features on the images.
+                one.tracker.publish_features |= cfg.record.is_some() || cfg.viz.is_some();
                 if s.mode == ClientMode::Calib && one.tracker.calib.log.is_none() {
                     one.tracker.calib.log = Some(cfg.out.join("calib_c{c}.csv"));
                 }
@@ -292,10 +295,9 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         .collect();
     write_configs(cfg, &topology, &setups)?;
     // Subscribed before any service publishes.
-    let recording = cfg
-        .record
-        .as_deref()
-        .map(|path| start_recording(cfg, path, &datasets))
+    let live = start_viz(cfg)?;
+    let recording = (cfg.record.is_some() || live.is_some())
+        .then(|| start_recording(cfg, live.clone(), &datasets))
         .transpose()?;
     let mut services = services_for(cfg, &topology);
     start_services(&mut services, &topology, &exe)?;
@@ -326,6 +328,13 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     stop_services(&mut watch.services, &topology, &mut recorder)?;
     let map_file = record::map_file(cfg);
     let records = (recording.map(|r| r.finish(map_file.as_deref()))).unwrap_or_default();
+    let records = records
+        .into_iter()
+        .filter(|_| cfg.record.is_some())
+        .collect();
+    if let Some(l) = &live {
+        l.stop();
+    }
     progress.finish();
     let elapsed_s = watch.ready_at.elapsed().as_secs_f64();
     let unfired = watch.injector.unfired(elapsed_s, &recorder.frames_posed());
@@ -360,11 +369,34 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     Ok(rep)
 }
 
-/// Starts `--record path`: every client's calibration record and ground truth, then the
-/// recording threads.
+/// Starts `--viz`'s server, and waits `viz_wait_s` for a viewer.
+fn start_viz(cfg: &RunConfig) -> anyhow::Result<Option<std::sync::Arc<view::Live>>> {
+    let Some(addr) = &cfg.viz else {
+        return Ok(None);
+    };
+    let (host, port) = (addr.rsplit_once(':'))
+        .and_then(|(h, p)| Some((h, p.parse::<u16>().ok()?)))
+        .with_context(|| format!("--viz {addr}: expected HOST:PORT"))?;
+    let live = view::Live::start(host, port)?;
+    eprintln!(
+        "viz: serving the run on ws://{} (Foxglove: Open connection)",
+        live.addr
+    );
+    let until = Instant::now() + Duration::from_secs_f64(cfg.viz_wait_s.max(0.0));
+    if cfg.viz_wait_s > 0.0 {
+        eprintln!("viz: waiting up to {} s for a viewer", cfg.viz_wait_s);
+    }
+    while live.clients() == 0 && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Ok(Some(live))
+}
+
+/// Starts `--record path` and/or `--viz`: every client's calibration record and ground
+/// truth, then the recording threads.
 fn start_recording(
     cfg: &RunConfig,
-    path: &Path,
+    live: Option<std::sync::Arc<view::Live>>,
     datasets: &[datasets::Dataset],
 ) -> anyhow::Result<record::Recording> {
     let metas = (datasets.iter().enumerate())
@@ -373,7 +405,7 @@ fn start_recording(
     let truth = (datasets.iter())
         .map(|ds| ds.ground_truth.clone().unwrap_or_default())
         .collect();
-    record::Recording::start(path, &cfg.ipc_prefix, metas, truth)
+    record::Recording::start(cfg.record.as_deref(), live, &cfg.ipc_prefix, metas, truth)
 }
 
 /// The provenance of the run of `cfg`, with the dataset checksums the thread computed.

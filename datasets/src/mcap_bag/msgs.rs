@@ -320,7 +320,7 @@ pub(crate) const QUATERNION: (&str, &str) = (
 );
 pub(crate) const VECTOR3: (&str, &str) =
     ("geometry_msgs/Vector3", "float64 x\nfloat64 y\nfloat64 z\n");
-const POINT: (&str, &str) = ("geometry_msgs/Point", "float64 x\nfloat64 y\nfloat64 z\n");
+pub(crate) const POINT: (&str, &str) = ("geometry_msgs/Point", "float64 x\nfloat64 y\nfloat64 z\n");
 
 /// The `ros2msg` schema text of `sensor_msgs/msg/Image` (with its dependencies).
 pub fn image_schema() -> String {

@@ -21,6 +21,8 @@ pub mod names {
     pub const FLOAT64: &str = "std_msgs/msg/Float64";
     /// A log line (`/rosout`; Foxglove's Log panel).
     pub const LOG: &str = "rcl_interfaces/msg/Log";
+    /// A pose and velocity (RViz's Odometry display).
+    pub const ODOMETRY: &str = "nav_msgs/msg/Odometry";
 }
 
 /// `rcl_interfaces/msg/Log`.
@@ -182,6 +184,94 @@ pub fn point_cloud2_schema() -> String {
                  uint8 UINT32=6\nuint8 FLOAT32=7\nuint8 FLOAT64=8\nstring name\nuint32 offset\n\
                  uint8 datatype\nuint32 count\n",
             ),
+        ],
+    )
+}
+
+/// A 6x6 covariance (`float64[36]`, row-major; all zeros: unknown, REP 103's convention).
+#[derive(Debug, Clone, Copy)]
+pub struct Covariance6(pub [f64; 36]);
+
+impl Serialize for Covariance6 {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        // A fixed-size array is laid out as a tuple (no length); serde's arrays stop at 32.
+        use serde::ser::SerializeTuple;
+        let mut t = s.serialize_tuple(36)?;
+        for v in &self.0 {
+            t.serialize_element(v)?;
+        }
+        t.end()
+    }
+}
+
+/// `geometry_msgs/msg/PoseWithCovariance`.
+#[derive(Debug, Clone, Serialize)]
+pub struct PoseWithCovariance {
+    /// The pose.
+    pub pose: super::msgs::Pose,
+    /// Its covariance (`[x y z rx ry rz]`).
+    pub covariance: Covariance6,
+}
+
+/// `geometry_msgs/msg/Twist`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Twist {
+    /// Linear velocity.
+    pub linear: Vector3,
+    /// Angular velocity.
+    pub angular: Vector3,
+}
+
+/// `geometry_msgs/msg/TwistWithCovariance`.
+#[derive(Debug, Clone, Serialize)]
+pub struct TwistWithCovariance {
+    /// The velocity.
+    pub twist: Twist,
+    /// Its covariance.
+    pub covariance: Covariance6,
+}
+
+/// `nav_msgs/msg/Odometry`: `child_frame_id`'s pose in `header.frame_id`, its velocity in
+/// `child_frame_id`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Odometry<'a> {
+    /// Stamp and parent frame.
+    pub header: Header<'a>,
+    /// The moving frame.
+    pub child_frame_id: Cow<'a, str>,
+    /// Its pose.
+    pub pose: PoseWithCovariance,
+    /// Its velocity.
+    pub twist: TwistWithCovariance,
+}
+
+/// The `ros2msg` schema text of `nav_msgs/msg/Odometry`.
+pub fn odometry_schema() -> String {
+    with_deps(
+        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\n\
+         geometry_msgs/TwistWithCovariance twist\n",
+        &[
+            HEADER,
+            TIME,
+            (
+                "geometry_msgs/PoseWithCovariance",
+                "geometry_msgs/Pose pose\nfloat64[36] covariance\n",
+            ),
+            (
+                "geometry_msgs/Pose",
+                "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation\n",
+            ),
+            super::msgs::POINT,
+            QUATERNION,
+            (
+                "geometry_msgs/TwistWithCovariance",
+                "geometry_msgs/Twist twist\nfloat64[36] covariance\n",
+            ),
+            (
+                "geometry_msgs/Twist",
+                "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular\n",
+            ),
+            VECTOR3,
         ],
     )
 }

@@ -145,6 +145,23 @@ impl StreamWriter {
         (self.w.add_channel(id, topic, "cdr", &none)).map_err(|e| io_error(&self.out, e))
     }
 
+    /// Adds a channel of another encoding (Foxglove's protobuf schemas in a recording):
+    /// `schema_name` with `schema_encoding` data `schema`, `message_encoding` messages on
+    /// `topic`; its id for [`Self::put`].
+    pub fn add_encoded_channel(
+        &mut self,
+        schema_name: &str,
+        schema_encoding: &str,
+        schema: &[u8],
+        message_encoding: &str,
+        topic: &str,
+    ) -> Result<u16, DatasetError> {
+        let none = BTreeMap::new();
+        let id = (self.w.add_schema(schema_name, schema_encoding, schema))
+            .map_err(|e| io_error(&self.out, e))?;
+        (self.w.add_channel(id, topic, message_encoding, &none)).map_err(|e| io_error(&self.out, e))
+    }
+
     /// Writes an encoded message on `channel` at log time `t_ns`.
     pub fn put(&mut self, channel: u16, t_ns: i64, data: &[u8]) -> Result<(), DatasetError> {
         let log_time = u64::try_from(t_ns).map_err(|_| DatasetError::InvalidConfig {

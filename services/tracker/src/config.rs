@@ -333,6 +333,9 @@ pub struct TrackerConfig {
     /// Print the initialiser's and the backward walk's diagnostics on stderr (also set by
     /// the environment variable `SHOAL_DEBUG_INIT`).
     pub debug_init: bool,
+    /// Publish each tracked frame's keypoints matched to map points (the `features` topic,
+    /// for a recording or a live viewer; the launcher sets it with `--record` / `--viz`).
+    pub publish_features: bool,
     /// A visual-inertial client anchors its world to its metric, gravity-aligned server
     /// map from the server's feedback (`slam_core::vio::anchor`).
     pub anchor: AnchorConfig,
@@ -390,6 +393,7 @@ impl Default for TrackerConfig {
             frame_log: None,
             work_ms: 0,
             debug_init: false,
+            publish_features: false,
             anchor: AnchorConfig::default(),
         }
     }

@@ -28,6 +28,7 @@ const END_WAIT_NS: i64 = 5_000_000_000;
 
 type FrameSub = Subscriber<Ipc, [u8], FrameHeader>;
 type KeyframePub = Publisher<Ipc, [KeyframeRecord], KeyframeHeader>;
+type FeaturesPub = Publisher<Ipc, [shm_schema::TrackedFeature], shm_schema::TrackedFeaturesHeader>;
 
 /// The tracker's shared-memory ports and files.
 struct Ports {
@@ -37,6 +38,8 @@ struct Ports {
     feedback: Subscriber<Ipc, Feedback, ()>,
     acks: Publisher<Ipc, FrameAck, ()>,
     poses: Publisher<Ipc, TrackedPose, ()>,
+    /// A frame's tracked features (`publish_features`).
+    features: Option<FeaturesPub>,
     keyframes: KeyframePub,
     log: Option<std::io::BufWriter<std::fs::File>>,
     /// The calibration mode's log (`tracker.calib.log`).
@@ -81,6 +84,12 @@ impl Ports {
             feedback: topics::subscriber(&topics::feedback_service(&node, c)?)?,
             acks: topics::publisher(&topics::frame_ack_service(&node, c)?)?,
             poses: topics::publisher(&topics::poses_service(&node, c)?)?,
+            features: (cfg.publish_features)
+                .then(|| {
+                    let service = topics::features_service(&node, c)?;
+                    topics::slice_publisher(&service, topics::MAX_TRACKED_FEATURES)
+                })
+                .transpose()?,
             keyframes: topics::keyframe_publisher(&topics::keyframes_service(&node, c)?)?,
             frames,
             node,
@@ -103,6 +112,11 @@ impl Ports {
                     self.poses.send_copy(p)?;
                 }
                 Out::Keyframe(m) => publish_keyframe(&self.keyframes, &m)?,
+                Out::Features(h, f) => {
+                    if let Some(p) = &self.features {
+                        publish_features(p, h, &f)?;
+                    }
+                }
                 Out::SpoolWrite(e) => self.spool_write(&e, status),
                 Out::CalibLog(line) => {
                     if let Some(l) = self.calib_log.as_mut() {
@@ -309,6 +323,23 @@ fn write_frame_log(l: &mut impl Write, h: &FrameHeader, pixels: &[u8]) -> std::i
 
 /// Publishes a keyframe message: header, keypoint records then IMU records into one loaned
 /// sample (`KeyframeHeader::keypoints`, `KeyframeHeader::imu_records`).
+/// Publishes a frame's tracked features (a full slice is cut at its capacity).
+fn publish_features(
+    publisher: &FeaturesPub,
+    h: shm_schema::TrackedFeaturesHeader,
+    f: &[shm_schema::TrackedFeature],
+) -> anyhow::Result<()> {
+    let f = &f[..f.len().min(topics::MAX_TRACKED_FEATURES)];
+    let sample = publisher.loan_slice_uninit(f.len())?;
+    let mut sample = sample.write_from_fn(|i| f[i]);
+    *sample.user_header_mut() = shm_schema::TrackedFeaturesHeader {
+        n_features: f.len() as u32,
+        ..h
+    };
+    sample.send()?;
+    Ok(())
+}
+
 fn publish_keyframe(publisher: &KeyframePub, m: &KeyframeMsg) -> anyhow::Result<()> {
     let (n_kp, n_imu) = (m.records.len(), m.imu.len());
     let sample = publisher.loan_slice_uninit(n_kp + n_imu)?;

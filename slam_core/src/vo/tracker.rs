@@ -455,6 +455,16 @@ impl VoTracker {
         self.session_id
     }
 
+    /// The last tracked frame's time and its keypoints matched to map points, `(point, x,
+    /// y)` in level-0 pixels as the VO used them (under a rolling shutter, rotated to the
+    /// middle row's time): what a viewer draws on the image.
+    pub fn last_matches(&self) -> Option<(i64, impl Iterator<Item = (PointId, f32, f32)> + '_)> {
+        let last = self.last.as_ref()?;
+        let kps = last.features.keypoints.iter();
+        let matched = (kps.zip(&last.points)).filter_map(|(k, p)| p.map(|p| (p, k.x, k.y)));
+        Some((last.t_ns, matched))
+    }
+
     /// Current state.
     pub fn state(&self) -> VoState {
         self.state

@@ -389,9 +389,37 @@ impl TrackerCore {
         }
         out.push(self.ack(h, now_ns));
         out.push(Out::Pose(self.tracked_pose(&t, now_ns)));
+        if self.cfg.publish_features {
+            out.extend(self.tracked_features(&t, now_ns));
+        }
         self.count_frame(&t);
         self.note_resumed_frame(now_ns);
         out
+    }
+
+    /// The frame's keypoints matched to map points (`publish_features`), when it was
+    /// tracked.
+    fn tracked_features(&self, t: &Tracked, now_ns: i64) -> Option<Out> {
+        let h = &t.header;
+        let (t_ns, matched) = self.client.as_ref()?.vo().last_matches()?;
+        if t.state != TrackState::Tracking || t_ns != h.t_mid_ns {
+            return None;
+        }
+        let features: Vec<_> = matched
+            .take(shm_schema::topics::MAX_TRACKED_FEATURES)
+            .map(|(p, u, v)| shm_schema::TrackedFeature {
+                map_point_id: p,
+                u,
+                v,
+            })
+            .collect();
+        let header = shm_schema::TrackedFeaturesHeader {
+            meta: MsgMeta::new(self.cfg.client, t.vo_session, h.meta.seq, now_ns),
+            t_ns,
+            n_features: features.len() as u32,
+            reserved: 0,
+        };
+        Some(Out::Features(header, features))
     }
 
     /// A backfilled, metric visual-inertial pose `t_cw` of the frame at `t_ns`, sent with

@@ -114,6 +114,11 @@ pub enum Out {
     Pose(TrackedPose),
     /// Publish a keyframe message to the mapper (first send or re-send).
     Keyframe(KeyframeMsg),
+    /// Publish a frame's tracked features (`publish_features`).
+    Features(
+        shm_schema::TrackedFeaturesHeader,
+        Vec<shm_schema::TrackedFeature>,
+    ),
     /// Append a line to the calibration log (`tracker.calib.log`; the first is its header).
     CalibLog(String),
     /// Write a keyframe of the VO map and its points' positions to the spool (it survives
@@ -142,6 +147,8 @@ pub struct CoreConfig {
     pub lockstep_sync: bool,
     /// A keyframe spool is kept (the core asks for spool writes).
     pub spool: bool,
+    /// Each tracked frame's matched keypoints are published.
+    pub publish_features: bool,
     /// What the client runs (`Auto` runs `Mono`: the launcher decides per client).
     pub mode: crate::ClientMode,
     /// The IMU calibration of the visual-inertial mode.
@@ -168,6 +175,7 @@ impl CoreConfig {
             inline_mapping: cfg.local_mapping == crate::LocalMapping::Inline,
             lockstep_sync: p.lockstep_sync(cfg),
             spool: p.spool.is_some(),
+            publish_features: cfg.publish_features,
             mode: cfg.mode,
             imu: cfg.imu.clone(),
             calib: cfg.calib.clone(),

@@ -24,6 +24,7 @@ fn config(no_vo: bool) -> CoreConfig {
         inline_mapping: true,
         lockstep_sync: true,
         spool: false,
+        publish_features: false,
         mode: crate::ClientMode::Mono,
         imu: Default::default(),
         calib: Default::default(),

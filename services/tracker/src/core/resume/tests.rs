@@ -31,6 +31,7 @@ fn config() -> CoreConfig {
         inline_mapping: true,
         lockstep_sync: true,
         spool: true,
+        publish_features: false,
         mode: crate::ClientMode::Vio,
         imu: crate::ImuCalibConfig {
             extrinsics_given: true,
