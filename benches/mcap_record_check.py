@@ -1,9 +1,11 @@
 #!/usr/bin/env python3
 """Decodes a `shoal run --record` file with an independent implementation (the `mcap` /
-`mcap-ros2-support` Python packages: pip install mcap mcap-ros2-support) and prints, per
-topic, the schema, the message count and what the first and last messages say, then checks
-that every topic a viewer needs is there and decodes: the frames, the IMU, the camera, the
-tracker's poses and `/tf`, the keyframes, the server-map poses and points, the latency.
+`mcap-ros2-support` and `mcap-protobuf-support` Python packages: pip install mcap
+mcap-ros2-support mcap-protobuf-support) and prints, per topic, the schema, the message
+count and what the first and last messages say, then checks that every topic a viewer needs
+is there and decodes: the frames, the IMU, the camera, the tracker's poses, `/tf` and
+odometry, the keyframes, the server-map poses and points, the latency (ROS 2 messages), and
+the Foxglove-schema topics (transforms, paths, keyframes, features, map points, loops).
 
 Usage: benches/mcap_record_check.py FILE.mcap
 Exit code 0 when every check passes.
@@ -13,9 +15,12 @@ from collections import defaultdict
 
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 
 EXPECTED = ["/cam0/image_raw", "/cam0/camera_info", "/shoal/pose", "/tf", "/shoal/keyframe",
-            "/shoal/latency_ms", "/shoal/map"]
+            "/shoal/latency_ms", "/shoal/map", "/shoal/odometry", "/shoal/transforms",
+            "/shoal/trajectory", "/shoal/keyframes", "/cam0/features", "/shoal/map_points",
+            "/shoal/loops"]
 
 
 def summary(topic, m):
@@ -32,6 +37,21 @@ def summary(topic, m):
         return f"{m.width} points, fields {[f.name for f in m.fields]}, frame {m.header.frame_id}"
     if topic == "/rosout":
         return f"{m.name}: {m.msg}"
+    if topic == "/shoal/odometry":
+        p = m.pose.pose.position
+        return f"{m.header.frame_id} -> {m.child_frame_id}: ({p.x:.4f}, {p.y:.4f}, {p.z:.4f})"
+    if topic == "/shoal/transforms":
+        t = m.transforms[0]
+        return f"{t.parent_frame_id} -> {t.child_frame_id}: {t.translation.x:.4f} ..."
+    if topic in ("/shoal/trajectory", "/shoal/server_trajectory", "/shoal/keyframes"):
+        return f"{len(m.poses)} poses in {m.frame_id}"
+    if topic == "/cam0/features":
+        return f"{len(m.points[0].points)} points" if m.points else "none"
+    if topic == "/shoal/map_points":
+        return f"{len(m.data) // m.point_stride} points in {m.frame_id}"
+    if topic == "/shoal/loops":
+        lines = m.entities[0].lines
+        return f"{len(lines[0].points) // 2 if lines else 0} edges in {m.entities[0].frame_id}"
     if topic == "/shoal/latency_ms":
         return f"{m.data:.3f} ms"
     if hasattr(m, "pose"):
@@ -44,7 +64,7 @@ def main():
     counts = defaultdict(int)
     first, last, schemas = {}, {}, {}
     with open(sys.argv[1], "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        reader = make_reader(f, decoder_factories=[DecoderFactory(), ProtobufDecoderFactory()])
         for schema, channel, message, decoded in reader.iter_decoded_messages():
             counts[channel.topic] += 1
             schemas[channel.topic] = schema.name
