@@ -536,7 +536,7 @@ impl ViewChannels {
             },
             twist: v::TwistWithCovariance {
                 twist: v::Twist {
-                    linear: zero.clone(),
+                    linear: zero,
                     angular: zero,
                 },
                 covariance: v::Covariance6([0.0; 36]),
@@ -802,7 +802,9 @@ fn write(
             });
             if let Err(e) = written {
                 r.error = Some(e.to_string());
-                out.take().map(FileOut::abandon);
+                if let Some(o) = out.take() {
+                    o.abandon();
+                }
             }
         }
         if let Item::Frame { t_ns, .. } = &item {

@@ -36,6 +36,7 @@ fn keyframes_of_the_tracker(mut answer: impl FnMut(&KeyframeMsg) -> Vec<Feedback
         inline_mapping: true,
         lockstep_sync: false,
         spool: false,
+        publish_features: false,
         mode: tracker::ClientMode::Mono,
         imu: Default::default(),
         calib: Default::default(),

@@ -457,7 +457,8 @@ impl VoTracker {
 
     /// The last tracked frame's time and its keypoints matched to map points, `(point, x,
     /// y)` in level-0 pixels as the VO used them (under a rolling shutter, rotated to the
-    /// middle row's time): what a viewer draws on the image.
+    /// middle row's time; a keyframe's include the points it made): what a viewer draws on
+    /// the image.
     pub fn last_matches(&self) -> Option<(i64, impl Iterator<Item = (PointId, f32, f32)> + '_)> {
         let last = self.last.as_ref()?;
         let kps = last.features.keypoints.iter();

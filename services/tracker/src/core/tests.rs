@@ -6,7 +6,7 @@ use std::collections::BTreeSet;
 use datasets::sim::{Scenario, SimParams, SimWorld};
 use shm_schema::{
     Feedback, FrameHeader, ImuMsg, MsgMeta, Pose, TrackState, FLAG_BACKFILL, FLAG_END_OF_STREAM,
-    FLAG_HANDLED, FLAG_RESEND,
+    FLAG_HANDLED, FLAG_RESEND, FLAG_WORLD_MOVE,
 };
 use shoal_runtime::{ErrorKind, Status};
 use slam_core::ids::SessionId;
@@ -201,6 +201,11 @@ fn answer(m: &crate::outbox::KeyframeMsg) -> Feedback {
 #[derive(Default)]
 struct Run {
     poses: Vec<shm_schema::TrackedPose>,
+    /// The tracked features of each frame (`publish_features`).
+    features: Vec<(
+        shm_schema::TrackedFeaturesHeader,
+        Vec<shm_schema::TrackedFeature>,
+    )>,
     backfilled: usize,
     sent: Vec<(u32, u64)>,
     spooled: BTreeSet<(u32, u64)>,
@@ -221,6 +226,7 @@ impl Run {
                 Out::Pose(p) => self.poses.push(p),
                 Out::SpoolWrite(e) => assert!(self.spooled.insert(e.msg.key())),
                 Out::SpoolSent(k) => assert!(self.spooled.remove(&k), "{k:?} was spooled"),
+                Out::Features(h, f) => self.features.push((h, f)),
                 Out::Ack(_) | Out::CalibLog(_) => {}
             }
         }
@@ -240,6 +246,7 @@ fn drive(frames: usize, blank: std::ops::Range<usize>) -> (Run, Status) {
     let cfg = CoreConfig {
         window: 6,
         spool: true,
+        publish_features: true,
         ..config(false)
     };
     let mut core = TrackerCore::new(cfg, Status::new("tracker:0"));
@@ -302,7 +309,38 @@ fn drive(frames: usize, blank: std::ops::Range<usize>) -> (Run, Status) {
 #[test]
 fn synthetic_frames_through_the_core_lose_no_keyframe() {
     let (run, status) = drive(120, 0..0);
+    check_features(&run);
     check_run(&run, status);
+}
+
+/// Every tracked frame's features follow its pose (same frame, same time), one per map
+/// point it matched, as many as the pose's inliers (a keyframe adds the points it made),
+/// inside the image; an untracked frame has none.
+fn check_features(run: &Run) {
+    let live = (run.poses.iter()).filter(|p| p.meta.flags & FLAG_WORLD_MOVE == 0);
+    let tracked: Vec<_> = live
+        .filter(|p| p.state == TrackState::Tracking as u32)
+        .collect();
+    assert_eq!(run.features.len(), tracked.len());
+    for (p, (h, f)) in tracked.iter().zip(&run.features) {
+        assert_eq!((h.meta.seq, h.t_ns), (p.meta.seq, p.t_ns));
+        assert_eq!(h.n_features as usize, f.len());
+        // A keyframe's own new points (inline local mapping) are matched too.
+        if p.is_keyframe == 0 {
+            assert_eq!(f.len(), p.tracked_points as usize, "frame {}", p.meta.seq);
+        } else {
+            assert!(
+                f.len() >= p.tracked_points as usize,
+                "keyframe {}",
+                p.meta.seq
+            );
+        }
+        let ids: BTreeSet<u64> = f.iter().map(|f| f.map_point_id).collect();
+        assert_eq!(ids.len(), f.len(), "a map point twice");
+        assert!(f
+            .iter()
+            .all(|f| (0.0..752.0).contains(&f.u) && (0.0..480.0).contains(&f.v)));
+    }
 }
 
 /// 30 black frames in the middle: the VO is lost, starts a new session after 10 failures
@@ -312,6 +350,7 @@ fn synthetic_frames_through_the_core_lose_no_keyframe() {
 #[test]
 fn a_session_change_sends_the_old_sessions_keyframes_first_and_loses_none() {
     let (run, status) = drive(180, 60..90);
+    check_features(&run);
     let sessions: Vec<u32> = run.sent.iter().map(|k| k.0).collect();
     let first_new = sessions
         .iter()

@@ -74,7 +74,7 @@ impl Ports {
                 Out::Ack(a) if a.meta.flags & FLAG_IMU_REPLAY != 0 => self.replays.push(a),
                 Out::Pose(p) if p.meta.flags & FLAG_WORLD_MOVE != 0 => self.world_moves += 1,
                 Out::Pose(p) if p.meta.flags == 0 => self.poses.push(p),
-                Out::Pose(_) | Out::Ack(_) | Out::CalibLog(_) => {}
+                Out::Pose(_) | Out::Ack(_) | Out::CalibLog(_) | Out::Features(..) => {}
             }
         }
     }
