@@ -84,6 +84,16 @@ pub struct RunConfig {
     pub viz: Option<String>,
     /// With `viz`: wait up to this long for a viewer before the run starts, s (0: none).
     pub viz_wait_s: f64,
+    /// The server of a remote client (`shoal client --connect tcp/HOST:PORT`): no mapper
+    /// nor loop closer run here; a bridge carries the keyframes and the feedback.
+    pub connect: Option<String>,
+    /// A remote client's name: the server keeps its slot across reconnects (default: the
+    /// host name and the dataset's folder name).
+    pub client_name: Option<String>,
+    /// `shoal serve`: the endpoint the server listens on (`tcp/HOST:PORT`).
+    pub listen: Option<String>,
+    /// `shoal serve`: how many remote clients the server takes.
+    pub server_clients: u32,
     /// Every tracker (`{c}` in `frame_log` is the client index).
     pub tracker: tracker::TrackerConfig,
     /// The mapper.
@@ -122,6 +132,10 @@ impl Default for RunConfig {
             record: None,
             viz: None,
             viz_wait_s: 0.0,
+            connect: None,
+            client_name: None,
+            listen: None,
+            server_clients: 4,
             tracker: Default::default(),
             mapper: Default::default(),
             loop_closer: Default::default(),
@@ -325,6 +339,8 @@ impl RunConfig {
             Kind::LoopCloser => to_toml(&self.loop_closer),
             Kind::CameraIngest => to_toml(&self.camera_ingest),
             Kind::ImuIngest => to_toml(&self.imu_ingest),
+            // The bridge's settings are on its command line.
+            Kind::Bridge => Ok(String::new()),
         }
     }
 }

@@ -33,6 +33,13 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Run the pipeline on one or more datasets (one client each).
     Run(Box<RunArgs>),
+    /// Run clients whose server is on another host (`shoal serve`): the ingests and the
+    /// tracker here, the keyframes and the feedback through a bridge (zenoh). The options
+    /// of `run`, with `--connect tcp/HOST:PORT`.
+    Client(Box<RunArgs>),
+    /// The server of clients on other hosts: the mapper, the loop closer and a bridge
+    /// listening for `shoal client`s, until Ctrl-C; `OUT/report.json` at the end.
+    Serve(ServeArgs),
     /// The run configuration: `config --print` shows every key with its default.
     Config(ConfigArgs),
     /// Online camera-IMU calibration of a dataset (t_d, t_r, intrinsics, lever arm, IMU
@@ -162,9 +169,43 @@ struct RunArgs {
     /// starts.
     #[arg(long, value_name = "SECONDS")]
     viz_wait: Option<f64>,
+    /// `shoal client`: the server's endpoint (`tcp/HOST:PORT`).
+    #[arg(long, value_name = "tcp/HOST:PORT")]
+    connect: Option<String>,
+    /// `shoal client`: this client's name, which keeps its slot (and map) on the server
+    /// across reconnects (default: the host name and the dataset's folder name).
+    #[arg(long)]
+    name: Option<String>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+}
+
+/// Arguments of `shoal serve`.
+#[derive(clap::Args, Debug)]
+struct ServeArgs {
+    /// Configuration file (TOML; its `[mapper]` and `[loop_closer]` apply).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Set one configuration key over the file (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    sets: Vec<String>,
+    /// Where to listen (`tcp/HOST:PORT`; loopback addresses only for now).
+    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    listen: String,
+    /// Output folder: the report, the maps' files, and what a restarted server resumes
+    /// from (the mapper's journal, the clients' slots).
+    #[arg(long, default_value = "out_server")]
+    out: PathBuf,
+    /// How many remote clients the server takes; more are refused.
+    #[arg(long, default_value_t = 4)]
+    clients: u32,
+    /// Save the server's maps to this file when it stops.
+    #[arg(long, value_name = "FILE")]
+    save_map: Option<PathBuf>,
+    /// iceoryx2 resource prefix of the server's host.
+    #[arg(long)]
+    ipc_prefix: Option<String>,
 }
 
 /// Arguments of `shoal config`.
@@ -194,6 +235,8 @@ enum ServiceCommand {
     Mapper(mapper::Params),
     /// Loop closer.
     LoopCloser(loop_closer::Params),
+    /// Bridge to another host.
+    Bridge(bridge::Params),
 }
 
 fn init_tracing() {
@@ -274,6 +317,12 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     if let Some(s) = args.viz_wait {
         cfg.viz_wait_s = s;
     }
+    if args.connect.is_some() {
+        cfg.connect = args.connect;
+    }
+    if args.name.is_some() {
+        cfg.client_name = args.name;
+    }
     if args.quiet {
         cfg.progress = false;
     }
@@ -297,6 +346,46 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn client_cmd(args: RunArgs) -> anyhow::Result<()> {
+    let cfg = run_config(args)?;
+    anyhow::ensure!(
+        cfg.connect.is_some(),
+        "shoal client needs --connect tcp/HOST:PORT (the server's `shoal serve --listen`)"
+    );
+    let rep = launcher::run(&cfg)?;
+    launcher::summary::print(&rep, &cfg.out);
+    Ok(())
+}
+
+fn serve_cmd(args: ServeArgs) -> anyhow::Result<()> {
+    let mut cfg = config::RunConfig::resolve(args.config.as_deref(), &args.sets)?;
+    cfg.listen = Some(args.listen);
+    cfg.out = args.out;
+    cfg.server_clients = args.clients;
+    cfg.mode = shoal_runtime::ReplayMode::Realtime;
+    if args.save_map.is_some() {
+        cfg.save_map = args.save_map;
+    }
+    if let Some(p) = args.ipc_prefix {
+        cfg.ipc_prefix = p;
+    }
+    let rep = launcher::serve::serve(&cfg)?;
+    for c in &rep.remote_clients {
+        println!(
+            "client {} (slot {}): {} keyframes received, {} applied, in {} map(s)",
+            c.name, c.slot, c.keyframes_received, c.keyframes_applied, c.maps
+        );
+    }
+    println!(
+        "server: {} map(s), {} merge(s), {} loop(s); report: {}",
+        rep.maps.len(),
+        rep.merges,
+        rep.loops,
+        cfg.out.join("report.json").display()
+    );
+    Ok(())
+}
+
 fn config_cmd(args: &ConfigArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.print,
@@ -316,12 +405,15 @@ fn main() -> ExitCode {
             ServiceCommand::Tracker(p) => tracker::main_with(p),
             ServiceCommand::Mapper(p) => mapper::main_with(p),
             ServiceCommand::LoopCloser(p) => loop_closer::main_with(p),
+            ServiceCommand::Bridge(p) => bridge::main_with(p),
         },
         command => {
             init_tracing();
             let result = match command {
                 Command::Demo(a) => demo::run(a),
                 Command::Run(a) => run_cmd(*a),
+                Command::Client(a) => client_cmd(*a),
+                Command::Serve(a) => serve_cmd(a),
                 Command::Calibrate(a) => calibrate_cmd::run(&a),
                 Command::Config(a) => config_cmd(&a),
                 Command::Sim(a) => sim_cmd::run(&a),

@@ -15,6 +15,7 @@ pub mod provenance;
 pub mod record;
 pub mod recorder;
 pub mod report;
+pub mod serve;
 pub mod sessions;
 pub mod summary;
 pub mod topology;
@@ -140,6 +141,7 @@ fn write_configs(
                 *l = (*l).max(CALIB_IMU_LOOKAHEAD_MS);
                 one.service_toml(desc)?
             }
+            (topology::Kind::Bridge, _) => continue,
             _ => cfg.service_toml(desc)?,
         };
         write(service_config_path(&cfg.out, desc), text)?;
@@ -162,7 +164,12 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
     let c = desc.client.unwrap_or(0).to_string();
     match desc.kind {
         Kind::Mapper => {
-            args.extend(["--clients".to_string(), cfg.datasets.len().to_string()]);
+            // A server of remote clients has a slot for each client it takes.
+            let clients = match cfg.listen {
+                Some(_) => cfg.server_clients as usize,
+                None => cfg.datasets.len(),
+            };
+            args.extend(["--clients".to_string(), clients.to_string()]);
             args.extend(["--journal".to_string(), path_arg(&out.join(MAPPER_JOURNAL))]);
             args.extend(["--out".to_string(), path_arg(out)]);
             if let Some(p) = &cfg.load_map {
@@ -215,11 +222,69 @@ fn service_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
                 args.extend(["--frames".to_string(), r.to_string()]);
             }
         }
+        // The bridge takes no configuration file nor replay mode.
+        Kind::Bridge => return bridge_args(cfg, desc),
     }
     args.extend(["--mode".to_string(), mode.to_string()]);
     let config = service_config_path(out, desc);
     args.extend(["--config".to_string(), path_arg(&config)]);
     args
+}
+
+/// The bridge's arguments: beside a client's tracker, the server to connect to and the
+/// client's name; beside the server's mapper, the endpoint, the capacity and the clients'
+/// table (kept in the output folder across restarts).
+fn bridge_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
+    let mut args = vec!["bridge".to_string()];
+    match desc.client {
+        Some(c) => {
+            let endpoint = cfg.connect.clone().unwrap_or_default();
+            args.extend(["--side", "client", "--endpoint", &endpoint].map(String::from));
+            args.extend(["--name".to_string(), client_name(cfg, c as usize)]);
+            args.extend(["--client".to_string(), c.to_string()]);
+        }
+        None => {
+            let endpoint = cfg.listen.clone().unwrap_or_default();
+            args.extend(["--side", "server", "--endpoint", &endpoint].map(String::from));
+            args.extend(["--capacity".to_string(), cfg.server_clients.to_string()]);
+            let table = cfg.out.join(REMOTE_CLIENTS);
+            args.extend(["--clients-file".to_string(), path_arg(&table)]);
+        }
+    }
+    args
+}
+
+/// The server's table of remote clients' slots, in its output folder.
+pub const REMOTE_CLIENTS: &str = "remote_clients.txt";
+
+/// Remote client `c`'s name: `client_name` (with `-c{c}` for the second client on),
+/// else the host name and the dataset's folder name.
+fn client_name(cfg: &RunConfig, c: usize) -> String {
+    let clean = |s: String| -> String {
+        s.chars()
+            .map(|ch| {
+                if ch.is_ascii_alphanumeric() || "-_.".contains(ch) {
+                    ch
+                } else {
+                    '_'
+                }
+            })
+            .collect()
+    };
+    if let Some(n) = &cfg.client_name {
+        return clean(if c == 0 {
+            n.clone()
+        } else {
+            format!("{n}-c{c}")
+        });
+    }
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_string())
+        .unwrap_or_else(|_| "host".into());
+    let data = (cfg.datasets.get(c))
+        .and_then(|d| d.file_name())
+        .map_or("data".into(), |n| n.to_string_lossy().to_string());
+    clean(format!("{host}-{data}"))
 }
 
 fn path_arg(p: &Path) -> String {
@@ -287,7 +352,11 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let node = topics::create_node("launcher", &cfg.ipc_prefix)?;
     let mut recorder = Recorder::new(&node, cfg.datasets.len() as u32)?;
 
-    let topology = topology::topology(cfg.datasets.len() as u32);
+    let n_clients = cfg.datasets.len() as u32;
+    let topology = match cfg.connect {
+        Some(_) => topology::client_topology(n_clients),
+        None => topology::topology(n_clients),
+    };
     let setups: Vec<modes::ClientSetup> = datasets
         .iter()
         .enumerate()
@@ -365,6 +434,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     rep.map_loaded = loaded;
     rep.add_map_files(cfg);
     rep.record = records;
+    rep.bridges = serve::bridges(&watch.services);
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
 }

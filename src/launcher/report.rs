@@ -318,6 +318,11 @@ pub struct RunReport {
     pub map_saved: Option<super::map_file::MapSaveReport>,
     /// The recording of each client (`--record`).
     pub record: Vec<super::record::RecordReport>,
+    /// `shoal serve`: the remote clients by slot, and what the mapper did with their
+    /// keyframes.
+    pub remote_clients: Vec<super::serve::RemoteClient>,
+    /// `shoal serve` / `shoal client`: the bridges' counters.
+    pub bridges: BTreeMap<String, ::bridge::BridgeCounters>,
     /// Status values of the mapper and loop closer about saved maps (`map_*`), read at
     /// the end (for [`RunReport::add_map_files`]).
     #[serde(skip)]

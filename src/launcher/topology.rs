@@ -36,13 +36,18 @@ pub enum Kind {
     ImuIngest,
     /// A client's camera ingest.
     CameraIngest,
+    /// The bridge to another host (issue 22): beside a remote client's tracker (its client
+    /// set) or beside the server's mapper (host-wide).
+    Bridge,
 }
 
 impl Kind {
     /// The role of this kind of service.
     pub fn role(self) -> Role {
         match self {
-            Kind::Mapper | Kind::LoopCloser => Role::Server,
+            // A bridge takes keyframes (client side) or feeds the mapper (server side): it
+            // starts before the trackers and stops after them.
+            Kind::Mapper | Kind::LoopCloser | Kind::Bridge => Role::Server,
             Kind::Tracker => Role::Tracker,
             Kind::ImuIngest | Kind::CameraIngest => Role::Sensor,
         }
@@ -56,6 +61,7 @@ impl Kind {
             Kind::Tracker => "tracker",
             Kind::ImuIngest => "imu_ingest",
             Kind::CameraIngest => "camera_ingest",
+            Kind::Bridge => "bridge",
         }
     }
 
@@ -67,6 +73,7 @@ impl Kind {
             Kind::Tracker => "tracker",
             Kind::ImuIngest => "imu-ingest",
             Kind::CameraIngest => "camera-ingest",
+            Kind::Bridge => "bridge",
         }
     }
 }
@@ -111,6 +118,37 @@ pub fn topology(clients: u32) -> Vec<ServiceDesc> {
         }
     }
     list
+}
+
+/// The services of `clients` clients whose server is on another host (`shoal client`): per
+/// client its tracker, sensors and bridge; no mapper nor loop closer here.
+pub fn client_topology(clients: u32) -> Vec<ServiceDesc> {
+    let mut list = Vec::new();
+    for c in 0..clients {
+        for kind in [
+            Kind::Bridge,
+            Kind::Tracker,
+            Kind::ImuIngest,
+            Kind::CameraIngest,
+        ] {
+            list.push(ServiceDesc {
+                kind,
+                client: Some(c),
+            });
+        }
+    }
+    list
+}
+
+/// The services of a server for remote clients (`shoal serve`): the mapper, the loop closer
+/// and the bridge.
+pub fn server_topology() -> Vec<ServiceDesc> {
+    let host = |kind| ServiceDesc { kind, client: None };
+    vec![
+        host(Kind::Mapper),
+        host(Kind::LoopCloser),
+        host(Kind::Bridge),
+    ]
 }
 
 /// Start phases, as indices into `services`: every consumer (server side, then trackers),

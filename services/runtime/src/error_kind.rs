@@ -94,6 +94,9 @@ error_kinds! {
     Correction = "correction",
     /// A loop the loop closer found and could not verify or optimise.
     Loop = "loop",
+    /// A message from a remote host that does not decode, or a client the server refused
+    /// (bridge, issue 22).
+    Remote = "remote",
     /// The crash-recovery state a killed predecessor left is of another format or
     /// unreadable: the service started afresh ([`crate::Status::take_resume`]).
     ResumeState = "resume_state",

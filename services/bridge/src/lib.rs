@@ -1,0 +1,136 @@
+//! The bridge service (issue 22): carries a client's keyframes from its host's shared
+//! memory to a server on another host, and the server's feedback back, over zenoh
+//! ([`wire`]). One runs beside each remote client's tracker (`--side client`: its keyframes
+//! topic out, its feedback topic in) and one beside the server's mapper (`--side server`:
+//! every slot's keyframes in, their feedback out), so neither the tracker nor the mapper
+//! knows the other is remote.
+//!
+//! Nothing is acknowledged here: the mapper's feedback crosses back and is the end-to-end
+//! acknowledgement; a keyframe the network lost is sent again by its tracker. A client's
+//! bridge never blocks its tracker: it drops what it cannot send (counted) while the server
+//! is away.
+pub mod client;
+pub mod server;
+pub mod slots;
+pub mod wire;
+
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+/// The service's name in reports.
+pub const SERVICE_NAME: &str = "bridge";
+
+/// Which end of the connection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Side {
+    /// Beside a client's tracker: connects to the server.
+    Client,
+    /// Beside the server's mapper: listens for clients.
+    Server,
+}
+
+/// Command line of the bridge service.
+#[derive(Debug, Clone, clap::Parser)]
+#[command(name = "bridge", about = "shoal bridge service (zenoh)")]
+pub struct Params {
+    /// Which end.
+    #[arg(long, value_enum)]
+    pub side: Side,
+    /// The zenoh endpoint (`tcp/HOST:PORT`): the server listens on it, a client connects to
+    /// it.
+    #[arg(long)]
+    pub endpoint: String,
+    /// Client: its name, which keeps its slot on the server across reconnects.
+    #[arg(long, default_value = "client")]
+    pub name: String,
+    /// Client: the local client index (its tracker's).
+    #[arg(long, default_value_t = 0)]
+    pub client: u32,
+    /// Server: how many clients it takes (the mapper's `--clients`).
+    #[arg(long, default_value_t = 4)]
+    pub capacity: u32,
+    /// Server: the file of the clients' slots (kept across restarts).
+    #[arg(long)]
+    pub clients_file: Option<PathBuf>,
+    /// Status file (JSON).
+    #[arg(long)]
+    pub status: Option<PathBuf>,
+    /// iceoryx2 resource prefix (default: $SHOAL_IPC_PREFIX or "shoal_").
+    #[arg(long)]
+    pub ipc_prefix: Option<String>,
+}
+
+/// Counters of a bridge (the status file's `counters`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct BridgeCounters {
+    /// Keyframe messages sent on (client: to the server; server: to the mapper).
+    pub keyframes_forwarded: u64,
+    /// Keyframe bytes sent on.
+    pub keyframe_bytes: u64,
+    /// Client: keyframes dropped while no server was reachable (the tracker sends them
+    /// again).
+    pub keyframes_unsent: u64,
+    /// Keyframes that could not be decoded or came for no known slot (dropped).
+    pub keyframes_refused: u64,
+    /// Feedback messages sent on (server: to the client; client: to the tracker).
+    pub feedback_forwarded: u64,
+    /// Feedback messages that could not be decoded (dropped).
+    pub feedback_refused: u64,
+    /// Server: hellos answered with a slot; client: 1 once it has its slot.
+    pub hellos: u64,
+    /// Server: hellos refused (full, another schema version, a bad name).
+    pub hellos_refused: u64,
+    /// Client: its slot on the server (gauge).
+    pub slot: Option<u64>,
+    /// Client: sessions opened to the server (the first one included).
+    pub connects: u64,
+}
+
+/// The server refused the client (full, another schema version, a bad name): for good, so
+/// the launcher does not restart the bridge.
+#[derive(Debug)]
+pub struct Refused(pub String);
+
+impl std::fmt::Display for Refused {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for Refused {}
+
+/// Runs the service; returns the process exit code.
+pub fn main_with(params: Params) -> i32 {
+    let result = match params.side {
+        Side::Client => client::run(&params),
+        Side::Server => server::run(&params),
+    };
+    if let Err(e) = &result {
+        if e.downcast_ref::<Refused>().is_some() {
+            eprintln!("[{SERVICE_NAME}] {e:#}");
+            return shoal_runtime::EXIT_CONFIG;
+        }
+    }
+    shoal_runtime::exit_code(SERVICE_NAME, result)
+}
+
+/// A zenoh configuration: `mode`, with `endpoint` to listen on (server) or connect to
+/// (client), no multicast scouting (only the given endpoint is used).
+pub fn zenoh_config(mode: &str, endpoint: &str, listen: bool) -> anyhow::Result<zenoh::Config> {
+    let mut c = zenoh::Config::default();
+    let set = |c: &mut zenoh::Config, k: &str, v: &str| {
+        c.insert_json5(k, v)
+            .map_err(|e| anyhow::anyhow!("zenoh configuration {k} = {v}: {e}"))
+    };
+    set(&mut c, "mode", &format!("{mode:?}"))?;
+    set(&mut c, "scouting/multicast/enabled", "false")?;
+    let key = if listen {
+        "listen/endpoints"
+    } else {
+        "connect/endpoints"
+    };
+    set(&mut c, key, &format!("[{endpoint:?}]"))?;
+    Ok(c)
+}
