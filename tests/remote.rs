@@ -99,7 +99,7 @@ fn two_clients_on_a_remote_server_lose_no_keyframe_and_merge() {
     let port = free_port();
     let server_out = dir.path().join("server");
     let server = serve(port, &server_out, "remote_srv", 2);
-    let sync_off = ["--lockstep", "--set", "tracker.lockstep_sync=false"];
+    let sync_off = ["--lockstep"];
     let outs = [dir.path().join("a"), dir.path().join("b")];
     let mut runs: Vec<Child> = (0..2)
         .map(|i| {
@@ -135,7 +135,14 @@ fn two_clients_on_a_remote_server_lose_no_keyframe_and_merge() {
             .expect("the client in the server's table");
         assert_eq!(u(&mine["keyframes_applied"]), sent, "{mine}");
         let bridge = &rep["bridges"]["bridge:0"];
+        eprintln!("client {i}: {sent} keyframes sent and acknowledged; bridge {bridge}");
         assert!(u(&bridge["keyframes_forwarded"]) >= sent, "{bridge}");
+        assert_eq!(
+            u(&bridge["roundtrips"]),
+            sent,
+            "every keyframe's round trip: {bridge}"
+        );
+        assert!(u(&bridge["roundtrip_us_p99"]) >= u(&bridge["roundtrip_us_p50"]));
         assert_eq!(u(&bridge["feedback_refused"]), 0, "{bridge}");
     }
     assert!(u(&srv["merges"]) >= 1, "no merge: {}", srv["maps"]);
@@ -154,7 +161,9 @@ fn a_server_killed_and_restarted_loses_no_keyframe() {
     let server_out = dir.path().join("server");
     let mut server = serve(port, &server_out, "remote_kill_srv", 2);
     let out = dir.path().join("c");
-    let mut run = client(&ds[0], &out, port, "walker", "remote_kill_c", &[])
+    // A small window: keyframes leave it (and go to the server) all along the run.
+    let window = ["--set", "tracker.window=6"];
+    let mut run = client(&ds[0], &out, port, "walker", "remote_kill_c", &window)
         .spawn()
         .expect("start shoal client");
     std::thread::sleep(Duration::from_secs(8));
@@ -175,6 +184,7 @@ fn a_server_killed_and_restarted_loses_no_keyframe() {
     assert_eq!(u(&me["keyframes_applied"]), sent, "{me}");
     assert_eq!(u(&me["maps"]), 1, "{me}");
     let bridge = &rep["bridges"]["bridge:0"];
+    eprintln!("{sent} keyframes sent and acknowledged; bridge {bridge}; server {me}");
     assert!(
         u(&bridge["keyframes_forwarded"]) + u(&bridge["keyframes_unsent"]) > sent,
         "{bridge}"

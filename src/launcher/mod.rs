@@ -129,6 +129,10 @@ fn write_configs(
                 one.tracker.readout_direction = s.readout;
                 // A recording or a live viewer draws the tracked features on the images.
                 one.tracker.publish_features |= cfg.record.is_some() || cfg.viz.is_some();
+                // A remote server is not lock-stepped with its clients (it serves several,
+                // each at its own pace): the tracker does not wait for it to finish each
+                // keyframe.
+                one.tracker.lockstep_sync &= cfg.connect.is_none();
                 if s.mode == ClientMode::Calib && one.tracker.calib.log.is_none() {
                     one.tracker.calib.log = Some(cfg.out.join("calib_c{c}.csv"));
                 }

@@ -77,6 +77,7 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
     let keyframes = topics::keyframe_subscriber(&topics::keyframes_service(node, c)?)?;
     let feedback = topics::publisher(&topics::feedback_service(node, c)?)?;
     let mut counters: BridgeCounters = start.status.counters_as();
+    let mut trips = crate::RoundTrips::default();
     shoal_runtime::signal_ready();
     let (mut link, mut next_try, mut written) = (None::<Link>, Instant::now(), Instant::now());
     loop {
@@ -113,7 +114,10 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
                 Ok(bytes) => {
                     counters.keyframe_bytes += bytes.len() as u64;
                     match l.keyframes.put(bytes).wait() {
-                        Ok(()) => counters.keyframes_forwarded += 1,
+                        Ok(()) => {
+                            counters.keyframes_forwarded += 1;
+                            trips.sent((h.meta.session_id, h.keyframe_id));
+                        }
                         Err(_) => counters.keyframes_unsent += 1,
                     }
                 }
@@ -130,6 +134,7 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
                 busy = true;
                 match wire::decode_feedback(&s.payload().to_bytes(), c) {
                     Ok(f) => {
+                        trips.acked((f.acked_session_id, f.acked_keyframe_id));
                         feedback.send_copy(f)?;
                         counters.feedback_forwarded += 1;
                     }
@@ -144,6 +149,7 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
         }
         if written.elapsed() >= STATUS_PERIOD {
             written = Instant::now();
+            trips.put(&mut counters);
             start.status.put_counters(&counters);
             let _ = start.file.write(&start.status);
         }
@@ -156,6 +162,7 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
             break;
         }
     }
+    trips.put(&mut counters);
     start.status.put_counters(&counters);
     let _ = start.file.write(&start.status);
     if let Some(l) = link {

@@ -86,6 +86,48 @@ pub struct BridgeCounters {
     pub slot: Option<u64>,
     /// Client: sessions opened to the server (the first one included).
     pub connects: u64,
+    /// Client: keyframes whose round trip was timed (sent here → the mapper's
+    /// acknowledgement back here; a re-sent keyframe from its last sending).
+    pub roundtrips: u64,
+    /// Client: median round trip, µs.
+    pub roundtrip_us_p50: Option<u64>,
+    /// Client: 99th percentile round trip, µs.
+    pub roundtrip_us_p99: Option<u64>,
+}
+
+/// Round trips of keyframes: when each was sent, and the times of those acknowledged.
+#[derive(Debug, Default)]
+pub struct RoundTrips {
+    sent: std::collections::BTreeMap<(u32, u64), std::time::Instant>,
+    us: Vec<u64>,
+}
+
+impl RoundTrips {
+    /// Keyframe `(session, id)` goes out now.
+    pub fn sent(&mut self, key: (u32, u64)) {
+        self.sent.insert(key, std::time::Instant::now());
+    }
+
+    /// The mapper acknowledged keyframe `(session, id)` (and the session's earlier ones).
+    pub fn acked(&mut self, key: (u32, u64)) {
+        if let Some(t) = self.sent.remove(&key) {
+            self.us.push(t.elapsed().as_micros() as u64);
+        }
+        self.sent.retain(|k, _| k.0 != key.0 || k.1 > key.1);
+    }
+
+    /// Puts the count and percentiles in `c`.
+    pub fn put(&self, c: &mut BridgeCounters) {
+        let mut v = self.us.clone();
+        v.sort_unstable();
+        let at = |q: f64| {
+            v.get(((v.len() as f64 - 1.0) * q).round() as usize)
+                .copied()
+        };
+        c.roundtrips = v.len() as u64;
+        c.roundtrip_us_p50 = at(0.5);
+        c.roundtrip_us_p99 = at(0.99);
+    }
 }
 
 /// The server refused the client (full, another schema version, a bad name): for good, so
