@@ -224,7 +224,7 @@ mod tests {
         assert!(decode_feedback(&b[1..], 0).is_err());
     }
 
-    /// A keyframe crosses whole; a damaged one is refused, never half-read.
+    /// A keyframe crosses whole; a damaged one is refused, never read as another.
     #[test]
     fn keyframe_round_trip_and_damage() {
         let mut h = KeyframeHeader {
@@ -246,11 +246,17 @@ mod tests {
         let b = encode_keyframe(&h, &payload).unwrap();
         let (h2, k2, i2) = decode_keyframe(&b).unwrap();
         assert_eq!((h2, k2, i2), (h, vec![kp, kp], vec![imu]));
-        for i in (0..b.len()).step_by(7) {
+        // A flipped byte is refused, or (in the entry head's unused bits) changes nothing.
+        let mut refused = 0;
+        for i in 0..b.len() {
             let mut bad = b.clone();
             bad[i] ^= 0x40;
-            assert!(decode_keyframe(&bad).is_err(), "byte {i} flipped");
+            match decode_keyframe(&bad) {
+                Err(_) => refused += 1,
+                Ok(back) => assert_eq!(back, (h, vec![kp, kp], vec![imu]), "byte {i} flipped"),
+            }
         }
+        assert!(refused >= b.len() - 3, "{refused} of {} refused", b.len());
         assert!(decode_keyframe(&b[..b.len() - 1]).is_err());
     }
 
