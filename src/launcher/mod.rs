@@ -356,11 +356,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let node = topics::create_node("launcher", &cfg.ipc_prefix)?;
     let mut recorder = Recorder::new(&node, cfg.datasets.len() as u32)?;
 
-    let n_clients = cfg.datasets.len() as u32;
-    let topology = match cfg.connect {
-        Some(_) => topology::client_topology(n_clients),
-        None => topology::topology(n_clients),
-    };
+    let topology = topology_of(cfg);
     let setups: Vec<modes::ClientSetup> = datasets
         .iter()
         .enumerate()
@@ -368,10 +364,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         .collect();
     write_configs(cfg, &topology, &setups)?;
     // Subscribed before any service publishes.
-    let live = start_viz(cfg)?;
-    let recording = (cfg.record.is_some() || live.is_some())
-        .then(|| start_recording(cfg, live.clone(), &datasets))
-        .transpose()?;
+    let taps = Taps::start(cfg, &datasets)?;
     let mut services = services_for(cfg, &topology);
     start_services(&mut services, &topology, &exe)?;
     tracing::info!("all {} services ready", services.len());
@@ -399,15 +392,7 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         wait_server_quiet(&watch.services, SERVER_QUIET_TIMEOUT);
     }
     stop_services(&mut watch.services, &topology, &mut recorder)?;
-    let map_file = record::map_file(cfg);
-    let records = (recording.map(|r| r.finish(map_file.as_deref()))).unwrap_or_default();
-    let records = records
-        .into_iter()
-        .filter(|_| cfg.record.is_some())
-        .collect();
-    if let Some(l) = &live {
-        l.stop();
-    }
+    let records = taps.finish(cfg);
     progress.finish();
     let elapsed_s = watch.ready_at.elapsed().as_secs_f64();
     let unfired = watch.injector.unfired(elapsed_s, &recorder.frames_posed());
@@ -441,6 +426,49 @@ pub fn run(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     rep.bridges = serve::bridges(&watch.services);
     rep.write(&cfg.out.join("report.json"))?;
     Ok(rep)
+}
+
+/// The services of the run: the whole pipeline, or (`--connect`) the clients' side with a
+/// bridge to their remote server.
+fn topology_of(cfg: &RunConfig) -> Vec<topology::ServiceDesc> {
+    let n_clients = cfg.datasets.len() as u32;
+    match cfg.connect {
+        Some(_) => topology::client_topology(n_clients),
+        None => topology::topology(n_clients),
+    }
+}
+
+/// What the launcher takes off shared memory for a file (`--record`) and live viewers
+/// (`--viz`).
+struct Taps {
+    live: Option<std::sync::Arc<view::Live>>,
+    recording: Option<record::Recording>,
+}
+
+impl Taps {
+    /// Starts the viewer's server and the recording threads (before any service
+    /// publishes).
+    fn start(cfg: &RunConfig, datasets: &[datasets::Dataset]) -> anyhow::Result<Self> {
+        let live = start_viz(cfg)?;
+        let recording = (cfg.record.is_some() || live.is_some())
+            .then(|| start_recording(cfg, live.clone(), datasets))
+            .transpose()?;
+        Ok(Self { live, recording })
+    }
+
+    /// Ends them once the services have stopped: the files' reports (none without
+    /// `--record`).
+    fn finish(self, cfg: &RunConfig) -> Vec<record::RecordReport> {
+        let map_file = record::map_file(cfg);
+        let records = (self.recording.map(|r| r.finish(map_file.as_deref()))).unwrap_or_default();
+        if let Some(l) = &self.live {
+            l.stop();
+        }
+        records
+            .into_iter()
+            .filter(|_| cfg.record.is_some())
+            .collect()
+    }
 }
 
 /// Starts `--viz`'s server, and waits `viz_wait_s` for a viewer.

@@ -47,11 +47,17 @@ pub fn text(rep: &RunReport, out: &Path) -> String {
         client_lines(&mut s, c, cl);
     }
     let m = &rep.mapper;
-    let _ = writeln!(
-        s,
-        "server: {} map(s), {} keyframes, {} points; {} loop(s), {} merge(s), {} correction(s) applied",
-        m.maps, m.keyframes, m.points, rep.loops, rep.merges, rep.corrections_applied
-    );
+    match remote_server_line(rep) {
+        Some(line) => s.push_str(&line),
+        None => {
+            let _ = writeln!(
+                s,
+                "server: {} map(s), {} keyframes, {} points; {} loop(s), {} merge(s), {} \
+                 correction(s) applied",
+                m.maps, m.keyframes, m.points, rep.loops, rep.merges, rep.corrections_applied
+            );
+        }
+    }
     faults_line(&mut s, rep);
     let restarts: u32 = rep.services.values().map(|s| s.restarts).sum();
     let _ = writeln!(
@@ -75,6 +81,36 @@ fn end_note(rep: &RunReport) -> &'static str {
 /// Replayed frames: those that got a pose, were dropped, or were corrupt.
 fn replayed(cl: &ClientReport) -> u64 {
     cl.frames_received + cl.frames_dropped + cl.frames_corrupt
+}
+
+/// `shoal client`: the remote server's acknowledgements and the round trips, in place of
+/// the (absent) local server's line.
+fn remote_server_line(rep: &RunReport) -> Option<String> {
+    let bridges: Vec<_> = (rep.bridges.iter())
+        .filter(|(name, _)| name.starts_with("bridge:"))
+        .collect();
+    if bridges.is_empty() {
+        return None;
+    }
+    let mut s = String::new();
+    for ((name, b), cl) in bridges.iter().zip(&rep.clients) {
+        let ms = |us: Option<u64>| us.map_or("-".into(), |u| format!("{:.1}", u as f64 * 1e-3));
+        let _ = writeln!(
+            s,
+            "server (remote, {name} slot {}): {} of {} keyframes acknowledged by its mapper; \
+             round trip p50 {} ms, p99 {} ms; {} keyframe messages sent ({:.1} kB each), {} \
+             dropped while no server answered",
+            b.slot.map_or("-".into(), |v| v.to_string()),
+            cl.keyframes_acked,
+            cl.keyframes_sent,
+            ms(b.roundtrip_us_p50),
+            ms(b.roundtrip_us_p99),
+            b.keyframes_forwarded,
+            b.keyframe_bytes as f64 / b.keyframes_forwarded.max(1) as f64 * 1e-3,
+            b.keyframes_unsent
+        );
+    }
+    Some(s)
 }
 
 fn client_lines(s: &mut String, c: usize, cl: &ClientReport) {

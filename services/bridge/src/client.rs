@@ -12,8 +12,6 @@ use crate::{zenoh_config, BridgeCounters, Params, SERVICE_NAME};
 const HELLO_TIMEOUT: Duration = Duration::from_secs(2);
 /// How often a client without a server tries again.
 const RETRY: Duration = Duration::from_millis(500);
-/// How often the status file is written.
-const STATUS_PERIOD: Duration = Duration::from_millis(200);
 
 /// A session to the server, with the client's slot.
 struct Link {
@@ -64,6 +62,113 @@ fn connect(endpoint: &str, name: &str) -> anyhow::Result<Option<Link>> {
     }))
 }
 
+type KeyframeSub = iceoryx2::port::subscriber::Subscriber<
+    topics::Ipc,
+    [shm_schema::KeyframeRecord],
+    shm_schema::KeyframeHeader,
+>;
+type FeedbackPub = iceoryx2::port::publisher::Publisher<topics::Ipc, shm_schema::Feedback, ()>;
+
+/// The client side's state: its counters and errors, the round trips.
+struct Client {
+    counters: BridgeCounters,
+    trips: crate::RoundTrips,
+    status: shoal_runtime::Status,
+}
+
+impl Client {
+    /// The tracker's keyframes to the server (dropped, and counted, without one: the
+    /// tracker sends them again); whether there were any.
+    fn keyframes_out(&mut self, sub: &KeyframeSub, link: Option<&Link>) -> anyhow::Result<bool> {
+        let mut busy = false;
+        while let Some(s) = sub.receive()? {
+            busy = true;
+            let h = *s.user_header();
+            let Some(l) = link else {
+                self.counters.keyframes_unsent += 1;
+                continue;
+            };
+            let bytes = match wire::encode_keyframe(&h, s.payload()) {
+                Ok(b) => b,
+                Err(e) => {
+                    self.counters.keyframes_refused += 1;
+                    self.status
+                        .error(ErrorKind::Remote, format!("keyframe: {e}"));
+                    continue;
+                }
+            };
+            self.counters.keyframe_bytes += bytes.len() as u64;
+            match l.keyframes.put(bytes).wait() {
+                Ok(()) => {
+                    self.counters.keyframes_forwarded += 1;
+                    self.trips.sent((h.meta.session_id, h.keyframe_id));
+                }
+                Err(_) => self.counters.keyframes_unsent += 1,
+            }
+        }
+        Ok(busy)
+    }
+
+    /// The server's feedback to the tracker (as local client `c`); whether there was any.
+    fn feedback_in(
+        &mut self,
+        link: &Link,
+        c: u32,
+        publisher: &FeedbackPub,
+    ) -> anyhow::Result<bool> {
+        let mut busy = false;
+        while let Ok(Some(s)) = link.feedback.try_recv() {
+            busy = true;
+            match wire::decode_feedback(&s.payload().to_bytes(), c) {
+                Ok(f) => {
+                    self.trips.acked((f.acked_session_id, f.acked_keyframe_id));
+                    publisher.send_copy(f)?;
+                    self.counters.feedback_forwarded += 1;
+                }
+                Err(e) => {
+                    self.counters.feedback_refused += 1;
+                    self.status
+                        .error(ErrorKind::Remote, format!("feedback: {e}"));
+                }
+            }
+        }
+        Ok(busy)
+    }
+
+    /// Writes the status file.
+    fn write(&mut self, file: &mut shoal_runtime::StatusFile) {
+        self.trips.put(&mut self.counters);
+        self.status.put_counters(&self.counters);
+        let _ = file.write(&self.status);
+    }
+
+    /// Tries to connect (a refusal is final: written and returned); the link, if any.
+    fn connect(
+        &mut self,
+        params: &Params,
+        file: &mut shoal_runtime::StatusFile,
+    ) -> anyhow::Result<Option<Link>> {
+        let link = match connect(&params.endpoint, &params.name) {
+            Ok(l) => l,
+            Err(e) => {
+                self.status.error(ErrorKind::Remote, format!("{e:#}"));
+                self.write(file);
+                return Err(e);
+            }
+        };
+        if let Some(l) = &link {
+            self.counters.connects += 1;
+            self.counters.hellos = 1;
+            self.counters.slot = Some(u64::from(l.slot));
+            eprintln!(
+                "[bridge:{}] connected to {} as slot {}",
+                params.client, params.endpoint, l.slot
+            );
+        }
+        Ok(link)
+    }
+}
+
 /// Runs the client side until SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<()> {
     let c = params.client;
@@ -76,95 +181,31 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
     let node = &start.node;
     let keyframes = topics::keyframe_subscriber(&topics::keyframes_service(node, c)?)?;
     let feedback = topics::publisher(&topics::feedback_service(node, c)?)?;
-    let mut counters: BridgeCounters = start.status.counters_as();
-    let mut trips = crate::RoundTrips::default();
+    let mut me = Client {
+        counters: start.status.counters_as(),
+        trips: crate::RoundTrips::default(),
+        status: std::mem::take(&mut start.status),
+    };
     shoal_runtime::signal_ready();
     let (mut link, mut next_try, mut written) = (None::<Link>, Instant::now(), Instant::now());
     loop {
         if link.is_none() && Instant::now() >= next_try {
-            link = match connect(&params.endpoint, &params.name) {
-                Ok(l) => l,
-                Err(e) => {
-                    start.status.error(ErrorKind::Remote, format!("{e:#}"));
-                    start.status.put_counters(&counters);
-                    let _ = start.file.write(&start.status);
-                    return Err(e);
-                }
-            };
+            link = me.connect(params, &mut start.file)?;
             next_try = Instant::now() + RETRY;
-            if let Some(l) = &link {
-                counters.connects += 1;
-                counters.hellos = 1;
-                counters.slot = Some(u64::from(l.slot));
-                eprintln!(
-                    "[bridge:{c}] connected to {} as slot {}",
-                    params.endpoint, l.slot
-                );
-            }
         }
-        let mut busy = false;
-        while let Some(s) = keyframes.receive()? {
-            busy = true;
-            let h = *s.user_header();
-            let Some(l) = &link else {
-                counters.keyframes_unsent += 1;
-                continue;
-            };
-            match wire::encode_keyframe(&h, s.payload()) {
-                Ok(bytes) => {
-                    counters.keyframe_bytes += bytes.len() as u64;
-                    match l.keyframes.put(bytes).wait() {
-                        Ok(()) => {
-                            counters.keyframes_forwarded += 1;
-                            trips.sent((h.meta.session_id, h.keyframe_id));
-                        }
-                        Err(_) => counters.keyframes_unsent += 1,
-                    }
-                }
-                Err(e) => {
-                    counters.keyframes_refused += 1;
-                    start
-                        .status
-                        .error(ErrorKind::Remote, format!("keyframe: {e}"));
-                }
-            }
-        }
+        let mut busy = me.keyframes_out(&keyframes, link.as_ref())?;
         if let Some(l) = &link {
-            while let Ok(Some(s)) = l.feedback.try_recv() {
-                busy = true;
-                match wire::decode_feedback(&s.payload().to_bytes(), c) {
-                    Ok(f) => {
-                        trips.acked((f.acked_session_id, f.acked_keyframe_id));
-                        feedback.send_copy(f)?;
-                        counters.feedback_forwarded += 1;
-                    }
-                    Err(e) => {
-                        counters.feedback_refused += 1;
-                        start
-                            .status
-                            .error(ErrorKind::Remote, format!("feedback: {e}"));
-                    }
-                }
-            }
+            busy |= me.feedback_in(l, c, &feedback)?;
         }
-        if written.elapsed() >= STATUS_PERIOD {
+        if written.elapsed() >= crate::STATUS_PERIOD {
             written = Instant::now();
-            trips.put(&mut counters);
-            start.status.put_counters(&counters);
-            let _ = start.file.write(&start.status);
+            me.write(&mut start.file);
         }
-        let pause = if busy {
-            Duration::ZERO
-        } else {
-            Duration::from_millis(1)
-        };
-        if node.wait(pause).is_err() {
+        if !crate::keep_going(node, busy) {
             break;
         }
     }
-    trips.put(&mut counters);
-    start.status.put_counters(&counters);
-    let _ = start.file.write(&start.status);
+    me.write(&mut start.file);
     if let Some(l) = link {
         let _ = l.session.close().wait();
     }

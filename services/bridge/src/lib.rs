@@ -158,6 +158,20 @@ pub fn main_with(params: Params) -> i32 {
     shoal_runtime::exit_code(SERVICE_NAME, result)
 }
 
+/// How often a bridge writes its status file.
+pub(crate) const STATUS_PERIOD: std::time::Duration = std::time::Duration::from_millis(200);
+
+/// Waits up to a millisecond for shared-memory events when the last pass did nothing (not
+/// at all when it did); false once SIGINT/SIGTERM came.
+pub(crate) fn keep_going(node: &iceoryx2::node::Node<shm_schema::topics::Ipc>, busy: bool) -> bool {
+    let pause = if busy {
+        std::time::Duration::ZERO
+    } else {
+        std::time::Duration::from_millis(1)
+    };
+    node.wait(pause).is_ok()
+}
+
 /// A zenoh configuration: `mode`, with `endpoint` to listen on (server) or connect to
 /// (client), no multicast scouting (only the given endpoint is used).
 pub fn zenoh_config(mode: &str, endpoint: &str, listen: bool) -> anyhow::Result<zenoh::Config> {

@@ -1,6 +1,6 @@
 //! The server side: every slot's keyframes from the network to the mapper, the mapper's
 //! feedback back to its client; the slots given by name ([`crate::slots`]).
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use shm_schema::topics;
 use shm_schema::{KeyframeHeader, KeyframeRecord};
@@ -23,6 +23,109 @@ struct Slot {
     remote: zenoh::pubsub::Publisher<'static>,
 }
 
+type Hellos = zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>;
+type Incoming =
+    zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+/// The server side's state: the clients' slots, its counters and errors.
+struct Server {
+    slots: Slots,
+    counters: BridgeCounters,
+    status: shoal_runtime::Status,
+}
+
+impl Server {
+    /// Answers the clients' hellos with their slots or a refusal; whether there were any.
+    fn hellos(&mut self, hellos: &Hellos) -> bool {
+        let mut busy = false;
+        while let Ok(Some(q)) = hellos.try_recv() {
+            busy = true;
+            let answer = match q.payload().map(|p| wire::parse_hello(&p.to_bytes())) {
+                Some(Ok((version, name))) => self.slots.welcome(version, &name),
+                Some(Err(e)) => Welcome::Refused(e),
+                None => Welcome::Refused("an empty hello".into()),
+            };
+            match &answer {
+                Welcome::Slot(_) => self.counters.hellos += 1,
+                Welcome::Refused(why) => {
+                    self.counters.hellos_refused += 1;
+                    let why = format!("hello refused: {why}");
+                    self.status.error(ErrorKind::Remote, why);
+                }
+            }
+            let _ = q.reply(wire::HELLO_KEY, answer.encode()).wait();
+        }
+        busy
+    }
+
+    /// The clients' keyframes to the mapper, each as its slot's (a keyframe for no known
+    /// slot, or that does not decode, is refused and counted); whether there were any.
+    fn keyframes_in(&mut self, incoming: &Incoming, ports: &[Slot]) -> bool {
+        let mut busy = false;
+        while let Ok(Some(sample)) = incoming.try_recv() {
+            busy = true;
+            let key = sample.key_expr().as_str();
+            let slot = wire::slot_of(key).filter(|s| self.slots.name_of(*s).is_some());
+            let Some((s, port)) = slot.and_then(|s| ports.get(s as usize).map(|p| (s, p))) else {
+                self.counters.keyframes_refused += 1;
+                let why = format!("{key}: no client has this slot");
+                self.status.error(ErrorKind::Remote, why);
+                continue;
+            };
+            let bytes = sample.payload().to_bytes();
+            match forward_keyframe(s, &port.keyframes, &bytes) {
+                Ok(()) => {
+                    self.counters.keyframes_forwarded += 1;
+                    self.counters.keyframe_bytes += bytes.len() as u64;
+                }
+                Err(e) => {
+                    self.counters.keyframes_refused += 1;
+                    self.status
+                        .error(ErrorKind::Remote, format!("slot {s}: {e}"));
+                }
+            }
+        }
+        busy
+    }
+
+    /// The mapper's feedback to each slot's client; whether there was any.
+    fn feedback_out(&mut self, ports: &[Slot]) -> anyhow::Result<bool> {
+        let mut busy = false;
+        for p in ports {
+            while let Some(f) = p.feedback.receive()? {
+                busy = true;
+                let _ = p.remote.put(wire::encode_feedback(f.payload())).wait();
+                self.counters.feedback_forwarded += 1;
+            }
+        }
+        Ok(busy)
+    }
+
+    fn write(&mut self, file: &mut shoal_runtime::StatusFile) {
+        self.status.put_counters(&self.counters);
+        let _ = file.write(&self.status);
+    }
+}
+
+/// Each slot's ports, and the feedback publishers on the network.
+fn slot_ports(
+    session: &zenoh::Session,
+    node: &iceoryx2::node::Node<topics::Ipc>,
+    capacity: u32,
+) -> anyhow::Result<Vec<Slot>> {
+    let mut ports = Vec::new();
+    for s in 0..capacity {
+        let remote = (session.declare_publisher(wire::feedback_key(s)).wait())
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        ports.push(Slot {
+            keyframes: topics::keyframe_publisher(&topics::keyframes_service(node, s)?)?,
+            feedback: topics::subscriber(&topics::feedback_service(node, s)?)?,
+            remote,
+        });
+    }
+    Ok(ports)
+}
+
 /// Runs the server side until SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<()> {
     let mut start = ServiceStart::open(
@@ -31,105 +134,40 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
         params.status.clone(),
         params.ipc_prefix.clone(),
     )?;
-    let mut slots = Slots::open(params.clients_file.as_deref(), params.capacity)?;
+    let slots = Slots::open(params.clients_file.as_deref(), params.capacity)?;
     let session = zenoh::open(zenoh_config("router", &params.endpoint, true)?)
         .wait()
         .map_err(|e| anyhow::anyhow!("listening on {}: {e}", params.endpoint))?;
-    let node = &start.node;
-    let mut ports = Vec::new();
-    for s in 0..params.capacity {
-        let remote = (session.declare_publisher(wire::feedback_key(s)))
-            .wait()
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-        ports.push(Slot {
-            keyframes: topics::keyframe_publisher(&topics::keyframes_service(node, s)?)?,
-            feedback: topics::subscriber(&topics::feedback_service(node, s)?)?,
-            remote,
-        });
-    }
-    let hello =
+    let ports = slot_ports(&session, &start.node, params.capacity)?;
+    let hellos =
         (session.declare_queryable(wire::HELLO_KEY).wait()).map_err(|e| anyhow::anyhow!("{e}"))?;
     let incoming = (session.declare_subscriber(wire::ALL_KEYFRAMES).wait())
         .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let mut counters: BridgeCounters = start.status.counters_as();
     eprintln!(
-        "[bridge] serving {} client slots on {} ({} known: {})",
+        "[bridge] serving {} client slots on {} (known: {})",
         params.capacity,
         params.endpoint,
-        slots.names().len(),
         slots.names().join(", ")
     );
+    let mut me = Server {
+        slots,
+        counters: start.status.counters_as(),
+        status: std::mem::take(&mut start.status),
+    };
     shoal_runtime::signal_ready();
     let mut written = Instant::now();
     loop {
-        let mut busy = false;
-        while let Ok(Some(q)) = hello.try_recv() {
-            busy = true;
-            let answer = match q.payload().map(|p| wire::parse_hello(&p.to_bytes())) {
-                Some(Ok((version, name))) => slots.welcome(version, &name),
-                Some(Err(e)) => Welcome::Refused(e),
-                None => Welcome::Refused("an empty hello".into()),
-            };
-            match &answer {
-                Welcome::Slot(_) => counters.hellos += 1,
-                Welcome::Refused(why) => {
-                    counters.hellos_refused += 1;
-                    start
-                        .status
-                        .error(ErrorKind::Remote, format!("hello refused: {why}"));
-                }
-            }
-            let _ = q.reply(wire::HELLO_KEY, answer.encode()).wait();
-        }
-        while let Ok(Some(sample)) = incoming.try_recv() {
-            busy = true;
-            let slot = wire::slot_of(sample.key_expr().as_str());
-            let known = slot.filter(|s| slots.name_of(*s).is_some());
-            let Some(port) = known.and_then(|s| ports.get(s as usize).map(|p| (s, p))) else {
-                counters.keyframes_refused += 1;
-                let key = sample.key_expr().as_str().to_string();
-                start
-                    .status
-                    .error(ErrorKind::Remote, format!("{key}: no client has this slot"));
-                continue;
-            };
-            let bytes = sample.payload().to_bytes();
-            match forward_keyframe(port.0, &port.1.keyframes, &bytes) {
-                Ok(()) => {
-                    counters.keyframes_forwarded += 1;
-                    counters.keyframe_bytes += bytes.len() as u64;
-                }
-                Err(e) => {
-                    counters.keyframes_refused += 1;
-                    start
-                        .status
-                        .error(ErrorKind::Remote, format!("slot {}: {e}", port.0));
-                }
-            }
-        }
-        for p in &ports {
-            while let Some(f) = p.feedback.receive()? {
-                busy = true;
-                let _ = p.remote.put(wire::encode_feedback(f.payload())).wait();
-                counters.feedback_forwarded += 1;
-            }
-        }
-        if written.elapsed() >= Duration::from_millis(200) {
+        let busy =
+            me.hellos(&hellos) | me.keyframes_in(&incoming, &ports) | me.feedback_out(&ports)?;
+        if written.elapsed() >= crate::STATUS_PERIOD {
             written = Instant::now();
-            start.status.put_counters(&counters);
-            let _ = start.file.write(&start.status);
+            me.write(&mut start.file);
         }
-        let pause = if busy {
-            Duration::ZERO
-        } else {
-            Duration::from_millis(1)
-        };
-        if node.wait(pause).is_err() {
+        if !crate::keep_going(&start.node, busy) {
             break;
         }
     }
-    start.status.put_counters(&counters);
-    let _ = start.file.write(&start.status);
+    me.write(&mut start.file);
     let _ = session.close().wait();
     Ok(())
 }
