@@ -90,10 +90,17 @@ pub struct RunConfig {
     /// A remote client's name: the server keeps its slot across reconnects (default: the
     /// host name and the dataset's folder name).
     pub client_name: Option<String>,
+    /// Only known clients (`--auth FILE`, `NAME:PASSWORD` lines): `shoal serve` takes only
+    /// the clients of the file, each under its own name, and may then listen on any address;
+    /// `shoal client` presents its one line (its name is the line's).
+    pub auth: Option<PathBuf>,
     /// `shoal serve`: the endpoint the server listens on (`tcp/HOST:PORT`).
     pub listen: Option<String>,
     /// `shoal serve`: how many remote clients the server takes.
     pub server_clients: u32,
+    /// `shoal serve`: the most keyframes a second its mapper is given, all remote clients
+    /// together (0: no limit); more are refused, and their trackers send them again.
+    pub server_max_keyframe_rate: f64,
     /// Every tracker (`{c}` in `frame_log` is the client index).
     pub tracker: tracker::TrackerConfig,
     /// The mapper.
@@ -105,6 +112,11 @@ pub struct RunConfig {
     /// Every IMU ingest.
     pub imu_ingest: imu_ingest::ImuIngestConfig,
 }
+
+/// `server_max_keyframe_rate`'s default: the mapper and loop closer took 11 and 24 ms per
+/// keyframe (BENCHMARKS.md), so 20 a second (eight clients' worth at 2.4 each) leaves a
+/// 2-core server room to spare.
+pub const DEFAULT_MAX_KEYFRAME_RATE: f64 = 20.0;
 
 impl Default for RunConfig {
     fn default() -> Self {
@@ -134,8 +146,10 @@ impl Default for RunConfig {
             viz_wait_s: 0.0,
             connect: None,
             client_name: None,
+            auth: None,
             listen: None,
             server_clients: 4,
+            server_max_keyframe_rate: DEFAULT_MAX_KEYFRAME_RATE,
             tracker: Default::default(),
             mapper: Default::default(),
             loop_closer: Default::default(),

@@ -176,6 +176,10 @@ struct RunArgs {
     /// across reconnects (default: the host name and the dataset's folder name).
     #[arg(long)]
     name: Option<String>,
+    /// `shoal client`: this client's credential, a file of one `NAME:PASSWORD` line, for a
+    /// server started with `--auth` (the name is the client's).
+    #[arg(long, value_name = "FILE")]
+    auth: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -190,9 +194,14 @@ struct ServeArgs {
     /// Set one configuration key over the file (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     sets: Vec<String>,
-    /// Where to listen (`tcp/HOST:PORT`; loopback addresses only for now).
+    /// Where to listen (`tcp/HOST:PORT`; loopback addresses only without `--auth`).
     #[arg(long, default_value = "tcp/127.0.0.1:7447")]
     listen: String,
+    /// Only known clients: a file of `NAME:PASSWORD` lines; each client presents its own
+    /// line (`shoal client --auth`) and may publish only under its name. Without it the
+    /// server listens on loopback addresses only.
+    #[arg(long, value_name = "FILE")]
+    auth: Option<PathBuf>,
     /// Output folder: the report, the maps' files, and what a restarted server resumes
     /// from (the mapper's journal, the clients' slots).
     #[arg(long, default_value = "out_server")]
@@ -200,6 +209,10 @@ struct ServeArgs {
     /// How many remote clients the server takes; more are refused.
     #[arg(long, default_value_t = 4)]
     clients: u32,
+    /// The most keyframes a second the server takes, all clients together (0: no limit;
+    /// default 20); more are refused and sent again by their clients.
+    #[arg(long, value_name = "HZ")]
+    max_keyframe_rate: Option<f64>,
     /// Save the server's maps to this file when it stops.
     #[arg(long, value_name = "FILE")]
     save_map: Option<PathBuf>,
@@ -323,6 +336,9 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     if args.name.is_some() {
         cfg.client_name = args.name;
     }
+    if args.auth.is_some() {
+        cfg.auth = args.auth;
+    }
     if args.quiet {
         cfg.progress = false;
     }
@@ -347,11 +363,27 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
 }
 
 fn client_cmd(args: RunArgs) -> anyhow::Result<()> {
-    let cfg = run_config(args)?;
+    let mut cfg = run_config(args)?;
     anyhow::ensure!(
         cfg.connect.is_some(),
         "shoal client needs --connect tcp/HOST:PORT (the server's `shoal serve --listen`)"
     );
+    if let Some(file) = &cfg.auth {
+        // The credential names the client: the server lets it publish under that name only.
+        let cred = bridge::auth::client_credential(file)?;
+        if let Some(n) = cfg.client_name.as_ref().filter(|n| **n != cred.name) {
+            anyhow::bail!(
+                "--name {n:?}, but {} is {:?}'s credential",
+                file.display(),
+                cred.name
+            );
+        }
+        anyhow::ensure!(
+            cfg.datasets.len() == 1,
+            "--auth: one credential is one client; run one `shoal client` per dataset"
+        );
+        cfg.client_name = Some(cred.name);
+    }
     let rep = launcher::run(&cfg)?;
     launcher::summary::print(&rep, &cfg.out);
     Ok(())
@@ -360,8 +392,14 @@ fn client_cmd(args: RunArgs) -> anyhow::Result<()> {
 fn serve_cmd(args: ServeArgs) -> anyhow::Result<()> {
     let mut cfg = config::RunConfig::resolve(args.config.as_deref(), &args.sets)?;
     cfg.listen = Some(args.listen);
+    if args.auth.is_some() {
+        cfg.auth = args.auth;
+    }
     cfg.out = args.out;
     cfg.server_clients = args.clients;
+    if let Some(r) = args.max_keyframe_rate {
+        cfg.server_max_keyframe_rate = r;
+    }
     cfg.mode = shoal_runtime::ReplayMode::Realtime;
     if args.save_map.is_some() {
         cfg.save_map = args.save_map;

@@ -5,6 +5,7 @@
 //! SIGKILLed in the middle of the run and started again; a client beyond the server's
 //! capacity is refused with the reason.
 mod common;
+mod net_proxy;
 
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -18,9 +19,9 @@ fn free_port() -> u16 {
     l.local_addr().unwrap().port()
 }
 
-/// Starts `shoal serve` on `port` into `out` (`clients` slots); waits until it accepts
-/// connections.
-fn serve(port: u16, out: &Path, test: &str, clients: u32) -> Child {
+/// Starts `shoal serve` on `port` into `out` (`clients` slots, `extra` arguments); waits
+/// until it accepts connections.
+fn serve(port: u16, out: &Path, test: &str, clients: u32, extra: &[&str]) -> Child {
     let child = shoal()
         .args(["serve", "--listen", &format!("tcp/127.0.0.1:{port}")])
         .arg("--out")
@@ -31,6 +32,7 @@ fn serve(port: u16, out: &Path, test: &str, clients: u32) -> Child {
             "--ipc-prefix",
             &prefix(test),
         ])
+        .args(extra)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -98,7 +100,7 @@ fn two_clients_on_a_remote_server_lose_no_keyframe_and_merge() {
     let ds = synthetic(&dir.path().join("data"), "two-agents", 480, None);
     let port = free_port();
     let server_out = dir.path().join("server");
-    let server = serve(port, &server_out, "remote_srv", 2);
+    let server = serve(port, &server_out, "remote_srv", 2, &[]);
     let sync_off = ["--lockstep"];
     let outs = [dir.path().join("a"), dir.path().join("b")];
     let mut runs: Vec<Child> = (0..2)
@@ -159,7 +161,7 @@ fn a_server_killed_and_restarted_loses_no_keyframe() {
     let ds = synthetic(&dir.path().join("data"), "loop", 500, None);
     let port = free_port();
     let server_out = dir.path().join("server");
-    let mut server = serve(port, &server_out, "remote_kill_srv", 2);
+    let mut server = serve(port, &server_out, "remote_kill_srv", 2, &[]);
     let out = dir.path().join("c");
     // A small window: keyframes leave it (and go to the server) all along the run.
     let window = ["--set", "tracker.window=6"];
@@ -170,7 +172,7 @@ fn a_server_killed_and_restarted_loses_no_keyframe() {
     server.kill().expect("SIGKILL the server");
     server.wait().unwrap();
     std::thread::sleep(Duration::from_secs(3));
-    let server = serve(port, &server_out, "remote_kill_srv", 2);
+    let server = serve(port, &server_out, "remote_kill_srv", 2, &[]);
     assert!(run.wait().unwrap().success(), "the client failed");
     stop(server);
     let srv = report(&server_out);
@@ -199,7 +201,7 @@ fn a_client_beyond_the_capacity_is_refused() {
     let ds = synthetic(&dir.path().join("data"), "two-agents", 120, None);
     let port = free_port();
     let server_out = dir.path().join("server");
-    let server = serve(port, &server_out, "remote_full_srv", 1);
+    let server = serve(port, &server_out, "remote_full_srv", 1, &[]);
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
     let ok = client(&ds[0], &a, port, "first", "remote_full_a", &["--lockstep"])
         .output()
@@ -227,4 +229,129 @@ fn a_client_beyond_the_capacity_is_refused() {
         srv["bridges"]
     );
     assert_eq!(srv["remote_clients"].as_array().unwrap().len(), 1);
+}
+
+/// The network between a client and its server fails twice in the middle of a real-time
+/// run (through [`net_proxy::Relay`]): every connection is cut, then a 30 s partition
+/// passes nothing. The client's local services never wait (every frame is posed), its
+/// bridge reconnects, the keyframes lost on the way come again from the tracker (which
+/// waits for the server after the end of its stream), and at the end every keyframe is
+/// applied and acknowledged once, in the one map the client started.
+#[test]
+fn a_cut_connection_and_a_30_s_partition_lose_no_keyframe() {
+    let dir = tempdir();
+    let frames = 500;
+    let ds = synthetic(&dir.path().join("data"), "loop", frames, None);
+    let port = free_port();
+    let server_out = dir.path().join("server");
+    let server = serve(port, &server_out, "remote_cut_srv", 1, &[]);
+    let relay = net_proxy::Relay::start(port, Duration::ZERO);
+    let out = dir.path().join("c");
+    let window = ["--set", "tracker.window=6"];
+    let mut run = client(&ds[0], &out, relay.port, "walker", "remote_cut_c", &window)
+        .spawn()
+        .expect("start shoal client");
+    std::thread::sleep(Duration::from_secs(6));
+    relay.cut();
+    std::thread::sleep(Duration::from_secs(4));
+    relay.partition(true);
+    std::thread::sleep(Duration::from_secs(30));
+    relay.partition(false);
+    assert!(run.wait().unwrap().success(), "the client failed");
+    stop(server);
+    let srv = report(&server_out);
+    let rep = report(&out);
+    let c = &rep["clients"][0];
+    assert_eq!(
+        u(&c["frames_posed"]),
+        frames as u64,
+        "every frame posed: {c:#}"
+    );
+    let sent = u(&c["keyframes_sent"]);
+    assert!(sent >= 10, "{sent} keyframes");
+    assert_eq!(u(&c["keyframes_acked"]), sent, "{c:#}");
+    let me = &srv["remote_clients"][0];
+    assert_eq!(u(&me["keyframes_applied"]), sent, "{me}");
+    assert_eq!(u(&me["maps"]), 1, "the client rejoined its map: {me}");
+    let bridge = &rep["bridges"]["bridge:0"];
+    eprintln!(
+        "{sent} keyframes sent and acknowledged over {} connections; bridge {bridge}; server \
+         {me}",
+        relay.connections()
+    );
+    assert!(
+        relay.connections() >= 3,
+        "{} connections",
+        relay.connections()
+    );
+    assert!(u(&bridge["link_losses"]) >= 1, "{bridge}");
+    assert!(u(&bridge["connects"]) >= 2, "{bridge}");
+}
+
+/// A server with `--auth` serves a known client (every keyframe acknowledged, also through
+/// its `--max-keyframe-rate` of 1 a second: the keyframes over it are refused, counted and
+/// sent again) and refuses one with a wrong password, which says so and goes on alone; the
+/// server counts the refusal. Which keys each known client may use is held by zenoh's
+/// access control (`bridge::auth`'s test).
+#[test]
+fn only_known_clients_with_their_credentials_are_served() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "two-agents", 120, None);
+    let port = free_port();
+    let known = dir.path().join("clients.txt");
+    std::fs::write(&known, "alice:correct horse\nbob:battery staple\n").unwrap();
+    let (alice_key, mallory_key) = (dir.path().join("alice.txt"), dir.path().join("m.txt"));
+    std::fs::write(&alice_key, "alice:correct horse\n").unwrap();
+    std::fs::write(&mallory_key, "bob:guess\n").unwrap();
+    let server_out = dir.path().join("server");
+    let auth = [
+        "--auth",
+        known.to_str().unwrap(),
+        "--max-keyframe-rate",
+        "1",
+    ];
+    let server = serve(port, &server_out, "remote_auth_srv", 2, &auth);
+    let (a, m) = (dir.path().join("a"), dir.path().join("m"));
+    let alice = ["--lockstep", "--auth", alice_key.to_str().unwrap()];
+    let ok = client(&ds[0], &a, port, "alice", "remote_auth_a", &alice)
+        .output()
+        .unwrap();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let mallory = [
+        "--lockstep",
+        "--auth",
+        mallory_key.to_str().unwrap(),
+        "--set",
+        "tracker.end_wait_s=12",
+    ];
+    let refused = client(&ds[1], &m, port, "bob", "remote_auth_m", &mallory)
+        .output()
+        .unwrap();
+    assert!(refused.status.success(), "the refused client still ran");
+    stop(server);
+    let rep = report(&a);
+    let c = &rep["clients"][0];
+    let sent = u(&c["keyframes_sent"]);
+    assert!(sent >= 3, "{c:#}");
+    assert_eq!(u(&c["keyframes_acked"]), sent, "{c:#}");
+    let rep = report(&m);
+    let text = serde_json::to_string(&rep["errors"]).unwrap();
+    assert!(
+        text.contains("refused the credential of \\\"bob\\\""),
+        "{text}"
+    );
+    assert_eq!(u(&rep["clients"][0]["keyframes_acked"]), 0);
+    assert_eq!(u(&rep["clients"][0]["frames_posed"]), 120, "went on alone");
+    let srv = report(&server_out);
+    let bridge = &srv["bridges"]["bridge"];
+    eprintln!("alice: {sent} keyframes acknowledged; server bridge {bridge}");
+    assert!(u(&bridge["auth_refused"]) >= 1, "{bridge}");
+    assert!(u(&bridge["keyframes_over_rate"]) >= 1, "{bridge}");
+    let clients = srv["remote_clients"].as_array().unwrap();
+    assert_eq!(clients.len(), 1, "{clients:?}");
+    assert_eq!(u(&clients[0]["keyframes_applied"]), sent);
 }

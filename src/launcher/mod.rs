@@ -133,6 +133,9 @@ fn write_configs(
                 // each at its own pace): the tracker does not wait for it to finish each
                 // keyframe.
                 one.tracker.lockstep_sync &= cfg.connect.is_none();
+                if cfg.connect.is_some() && one.tracker.end_wait_s.is_none() {
+                    one.tracker.end_wait_s = Some(::tracker::config::REMOTE_END_WAIT_S);
+                }
                 if s.mode == ClientMode::Calib && one.tracker.calib.log.is_none() {
                     one.tracker.calib.log = Some(cfg.out.join("calib_c{c}.csv"));
                 }
@@ -246,13 +249,21 @@ fn bridge_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             args.extend(["--side", "client", "--endpoint", &endpoint].map(String::from));
             args.extend(["--name".to_string(), client_name(cfg, c as usize)]);
             args.extend(["--client".to_string(), c.to_string()]);
+            if let Some(f) = &cfg.auth {
+                args.extend(["--auth".to_string(), path_arg(f)]);
+            }
         }
         None => {
             let endpoint = cfg.listen.clone().unwrap_or_default();
             args.extend(["--side", "server", "--endpoint", &endpoint].map(String::from));
             args.extend(["--capacity".to_string(), cfg.server_clients.to_string()]);
+            let rate = cfg.server_max_keyframe_rate.to_string();
+            args.extend(["--max-keyframe-rate".to_string(), rate]);
             let table = cfg.out.join(REMOTE_CLIENTS);
             args.extend(["--clients-file".to_string(), path_arg(&table)]);
+            if let Some(f) = &cfg.auth {
+                args.extend(["--auth".to_string(), path_arg(f)]);
+            }
         }
     }
     args

@@ -45,7 +45,7 @@ pub fn check_loopback(endpoint: &str) -> anyhow::Result<()> {
     if resolved.is_empty() || resolved.iter().any(|a| !a.ip().is_loopback()) {
         anyhow::bail!(
             "--listen {endpoint}: without authentication the server listens on loopback \
-             addresses only (127.0.0.1, ::1); client authentication is not implemented yet"
+             addresses only (127.0.0.1, ::1); give the known clients with --auth FILE"
         );
     }
     Ok(())
@@ -55,7 +55,18 @@ pub fn check_loopback(endpoint: &str) -> anyhow::Result<()> {
 pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
     let listen = cfg.listen.clone().context("shoal serve needs --listen")?;
-    check_loopback(&listen)?;
+    let rate = cfg.server_max_keyframe_rate;
+    anyhow::ensure!(
+        rate >= 0.0 && rate.is_finite(),
+        "server_max_keyframe_rate must be 0 (no limit) or positive (got {rate})"
+    );
+    let known = match &cfg.auth {
+        Some(file) => ::bridge::auth::read_credentials(file)?.len(),
+        None => {
+            check_loopback(&listen)?;
+            0
+        }
+    };
     std::fs::create_dir_all(&cfg.out)
         .with_context(|| format!("creating output folder {}", cfg.out.display()))?;
     let _ = std::fs::remove_dir_all(cfg.out.join(super::CONFIG_DIR));
@@ -68,9 +79,12 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     super::write_configs(cfg, &topology, &[])?;
     let mut services = super::services_for(cfg, &topology);
     super::start_services(&mut services, &topology, &exe)?;
+    let who = match known {
+        0 => "loopback only, no authentication".to_string(),
+        n => format!("only the {n} clients of --auth"),
+    };
     eprintln!(
-        "shoal serve: listening on {listen} (loopback only, no authentication) for up to {} \
-         clients; Ctrl-C stops",
+        "shoal serve: listening on {listen} ({who}) for up to {} clients; Ctrl-C stops",
         cfg.server_clients
     );
     let mut errors = Vec::new();

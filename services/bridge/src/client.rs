@@ -13,18 +13,35 @@ const HELLO_TIMEOUT: Duration = Duration::from_secs(2);
 /// How often a client without a server tries again.
 const RETRY: Duration = Duration::from_millis(500);
 
-/// A session to the server, with the client's slot.
+/// How often a client asks its session whether the server is reachable.
+const LIVENESS_PERIOD: Duration = Duration::from_millis(250);
+
+/// A session to the server, with the client's slot. zenoh reconnects a client session by
+/// itself when it loses its router (a cut connection, a partition once the lease expired, a
+/// restarted server); the declared publisher and subscriber come back with it.
 struct Link {
     session: zenoh::Session,
     slot: u32,
+    /// The session had a router when last asked ([`LIVENESS_PERIOD`]).
+    up: bool,
+    /// When it was last asked.
+    asked: Instant,
     keyframes: zenoh::pubsub::Publisher<'static>,
     feedback: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
 }
 
 /// Opens a session to `endpoint` and asks for the slot of `name`; `Ok(None)` while no server
 /// answers, an error when the server refuses the client (for good).
-fn connect(endpoint: &str, name: &str) -> anyhow::Result<Option<Link>> {
-    let Ok(session) = zenoh::open(zenoh_config("client", endpoint, false)?).wait() else {
+fn connect(
+    endpoint: &str,
+    name: &str,
+    auth: Option<&crate::auth::Credential>,
+) -> anyhow::Result<Option<Link>> {
+    let mut config = zenoh_config("client", endpoint, false)?;
+    if let Some(cred) = auth {
+        crate::auth::client_config(&mut config, cred)?;
+    }
+    let Ok(session) = zenoh::open(config).wait() else {
         return Ok(None);
     };
     let replies = session
@@ -47,16 +64,18 @@ fn connect(endpoint: &str, name: &str) -> anyhow::Result<Option<Link>> {
         }
         Err(e) => anyhow::bail!("{endpoint}: {e}"),
     };
-    let keyframes = (session.declare_publisher(wire::keyframe_key(slot)))
+    let keyframes = (session.declare_publisher(wire::keyframe_key(name)))
         .congestion_control(zenoh::qos::CongestionControl::Block)
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let feedback = (session.declare_subscriber(wire::feedback_key(slot)))
+    let feedback = (session.declare_subscriber(wire::feedback_key(name)))
         .wait()
         .map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(Some(Link {
         session,
         slot,
+        up: true,
+        asked: Instant::now(),
         keyframes,
         feedback,
     }))
@@ -74,9 +93,40 @@ struct Client {
     counters: BridgeCounters,
     trips: crate::RoundTrips,
     status: shoal_runtime::Status,
+    /// Its credential (`--auth`).
+    auth: Option<crate::auth::Credential>,
+    /// Since when no session opens (`None`: one is open).
+    failing_since: Option<Instant>,
+    /// The server's absence was written in the errors.
+    noted: bool,
 }
 
+/// After this long without a session the client says so in its errors (once).
+const UNREACHABLE_NOTE: Duration = Duration::from_secs(10);
+
 impl Client {
+    /// Asks the session whether it has its server now and then; counts the losses and the
+    /// reconnections.
+    fn liveness(&mut self, link: &mut Link, name: &str) {
+        if link.asked.elapsed() < LIVENESS_PERIOD {
+            return;
+        }
+        link.asked = Instant::now();
+        let up = (link.session.info().routers_zid().wait()).next().is_some();
+        match (link.up, up) {
+            (true, false) => {
+                self.counters.link_losses += 1;
+                eprintln!("[bridge:{name}] lost the server; zenoh reconnects");
+            }
+            (false, true) => {
+                self.counters.connects += 1;
+                eprintln!("[bridge:{name}] the server is back");
+            }
+            _ => {}
+        }
+        link.up = up;
+    }
+
     /// The tracker's keyframes to the server (dropped, and counted, without one: the
     /// tracker sends them again); whether there were any.
     fn keyframes_out(&mut self, sub: &KeyframeSub, link: Option<&Link>) -> anyhow::Result<bool> {
@@ -84,7 +134,7 @@ impl Client {
         while let Some(s) = sub.receive()? {
             busy = true;
             let h = *s.user_header();
-            let Some(l) = link else {
+            let Some(l) = link.filter(|l| l.up) else {
                 self.counters.keyframes_unsent += 1;
                 continue;
             };
@@ -135,6 +185,25 @@ impl Client {
         Ok(busy)
     }
 
+    /// A server that stays out of reach is named in the errors once, with the likely reasons.
+    fn note_unreachable(&mut self, params: &Params) {
+        let since = *self.failing_since.get_or_insert_with(Instant::now);
+        if !self.noted && self.counters.connects == 0 && since.elapsed() >= UNREACHABLE_NOTE {
+            self.noted = true;
+            let why = match &self.auth {
+                Some(c) => format!(
+                    "no server answers, or it refused the credential of {:?} (--auth)",
+                    c.name
+                ),
+                None => "no server answers there (the client goes on and keeps trying)".into(),
+            };
+            let s = UNREACHABLE_NOTE.as_secs();
+            let text = format!("no session to {} for {s} s: {why}", params.endpoint);
+            eprintln!("[bridge:{}] {text}", params.client);
+            self.status.error(ErrorKind::Remote, text);
+        }
+    }
+
     /// Writes the status file.
     fn write(&mut self, file: &mut shoal_runtime::StatusFile) {
         self.trips.put(&mut self.counters);
@@ -148,7 +217,7 @@ impl Client {
         params: &Params,
         file: &mut shoal_runtime::StatusFile,
     ) -> anyhow::Result<Option<Link>> {
-        let link = match connect(&params.endpoint, &params.name) {
+        let link = match connect(&params.endpoint, &params.name, self.auth.as_ref()) {
             Ok(l) => l,
             Err(e) => {
                 self.status.error(ErrorKind::Remote, format!("{e:#}"));
@@ -156,7 +225,11 @@ impl Client {
                 return Err(e);
             }
         };
+        if link.is_none() {
+            self.note_unreachable(params);
+        }
         if let Some(l) = &link {
+            self.failing_since = None;
             self.counters.connects += 1;
             self.counters.hellos = 1;
             self.counters.slot = Some(u64::from(l.slot));
@@ -181,17 +254,31 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
     let node = &start.node;
     let keyframes = topics::keyframe_subscriber(&topics::keyframes_service(node, c)?)?;
     let feedback = topics::publisher(&topics::feedback_service(node, c)?)?;
+    let auth = params.auth.as_deref().map(crate::auth::client_credential);
     let mut me = Client {
         counters: start.status.counters_as(),
         trips: crate::RoundTrips::default(),
         status: std::mem::take(&mut start.status),
+        auth: auth.transpose()?,
+        failing_since: None,
+        noted: false,
     };
+    if let Some(c) = me.auth.as_ref().filter(|c| c.name != params.name) {
+        anyhow::bail!(
+            "--name {:?} but the credential is {:?}'s: a client's name is its user",
+            params.name,
+            c.name
+        );
+    }
     shoal_runtime::signal_ready();
     let (mut link, mut next_try, mut written) = (None::<Link>, Instant::now(), Instant::now());
     loop {
         if link.is_none() && Instant::now() >= next_try {
             link = me.connect(params, &mut start.file)?;
             next_try = Instant::now() + RETRY;
+        }
+        if let Some(l) = &mut link {
+            me.liveness(l, &params.name);
         }
         let mut busy = me.keyframes_out(&keyframes, link.as_ref())?;
         if let Some(l) = &link {

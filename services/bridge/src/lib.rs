@@ -9,6 +9,7 @@
 //! acknowledgement; a keyframe the network lost is sent again by its tracker. A client's
 //! bridge never blocks its tracker: it drops what it cannot send (counted) while the server
 //! is away.
+pub mod auth;
 pub mod client;
 pub mod server;
 pub mod slots;
@@ -50,6 +51,15 @@ pub struct Params {
     /// Server: how many clients it takes (the mapper's `--clients`).
     #[arg(long, default_value_t = 4)]
     pub capacity: u32,
+    /// Server: the most keyframes per second it forwards to the mapper, all clients
+    /// together (0: no limit); beyond it a keyframe is refused and counted, and its tracker
+    /// sends it again later, rather than the server falling behind ([`RateLimit`]).
+    #[arg(long, default_value_t = 0.0)]
+    pub max_keyframe_rate: f64,
+    /// Only known clients ([`auth`]): server: their `NAME:PASSWORD` lines; client: its one
+    /// `NAME:PASSWORD` line (its name is the server's).
+    #[arg(long)]
+    pub auth: Option<PathBuf>,
     /// Server: the file of the clients' slots (kept across restarts).
     #[arg(long)]
     pub clients_file: Option<PathBuf>,
@@ -74,18 +84,27 @@ pub struct BridgeCounters {
     pub keyframes_unsent: u64,
     /// Keyframes that could not be decoded or came for no known slot (dropped).
     pub keyframes_refused: u64,
+    /// Server: keyframes refused beyond `--max-keyframe-rate` (their trackers send them
+    /// again).
+    pub keyframes_over_rate: u64,
     /// Feedback messages sent on (server: to the client; client: to the tracker).
     pub feedback_forwarded: u64,
     /// Feedback messages that could not be decoded (dropped).
     pub feedback_refused: u64,
     /// Server: hellos answered with a slot; client: 1 once it has its slot.
     pub hellos: u64,
-    /// Server: hellos refused (full, another schema version, a bad name).
+    /// Server: hellos refused (full, another schema version, a bad or unknown name).
     pub hellos_refused: u64,
+    /// Server with `--auth`: connections zenoh refused for their credentials (none, an
+    /// unknown name, a wrong password).
+    pub auth_refused: u64,
     /// Client: its slot on the server (gauge).
     pub slot: Option<u64>,
-    /// Client: sessions opened to the server (the first one included).
+    /// Client: times it reached its server: the first connection, and each time the server
+    /// came back after a loss.
     pub connects: u64,
+    /// Client: times its session lost the server (a cut, a partition, a server restart).
+    pub link_losses: u64,
     /// Client: keyframes whose round trip was timed (sent here → the mapper's
     /// acknowledgement back here; a re-sent keyframe from its last sending).
     pub roundtrips: u64,
@@ -106,14 +125,19 @@ impl RoundTrips {
     /// Keyframe `(session, id)` goes out now.
     pub fn sent(&mut self, key: (u32, u64)) {
         self.sent.insert(key, std::time::Instant::now());
+        if self.sent.len() > 4096 {
+            // Never acknowledged in ten minutes (its tracker gave up, or was restarted).
+            let old = std::time::Duration::from_secs(600);
+            self.sent.retain(|_, t| t.elapsed() < old);
+        }
     }
 
-    /// The mapper acknowledged keyframe `(session, id)` (and the session's earlier ones).
+    /// The mapper acknowledged keyframe `(session, id)` (acknowledgements are one per
+    /// keyframe, in the order the mapper applied them, not cumulative).
     pub fn acked(&mut self, key: (u32, u64)) {
         if let Some(t) = self.sent.remove(&key) {
             self.us.push(t.elapsed().as_micros() as u64);
         }
-        self.sent.retain(|k, _| k.0 != key.0 || k.1 > key.1);
     }
 
     /// Puts the count and percentiles in `c`.
@@ -127,6 +151,50 @@ impl RoundTrips {
         c.roundtrips = v.len() as u64;
         c.roundtrip_us_p50 = at(0.5);
         c.roundtrip_us_p99 = at(0.99);
+    }
+}
+
+/// Seconds' worth of keyframes a [`RateLimit`] lets through at once.
+const BURST_S: f64 = 10.0;
+
+/// A token bucket: at most `rate` keyframes a second on average, bursts of [`BURST_S`]
+/// seconds' worth (the end of a stream sends a client's whole window at once; a reconnected
+/// client re-sends what was lost): the limit is for a server that would fall behind for
+/// good, not for a moment.
+#[derive(Debug, Clone)]
+pub struct RateLimit {
+    rate: f64,
+    tokens: f64,
+    at: std::time::Instant,
+}
+
+impl RateLimit {
+    /// A full bucket for `rate` keyframes a second (0 or less: no limit).
+    pub fn new(rate: f64) -> Self {
+        Self {
+            rate,
+            tokens: Self::burst_of(rate),
+            at: std::time::Instant::now(),
+        }
+    }
+
+    fn burst_of(rate: f64) -> f64 {
+        (BURST_S * rate).max(1.0)
+    }
+
+    /// Whether one more keyframe may pass at `now` (and takes its token).
+    pub fn admit(&mut self, now: std::time::Instant) -> bool {
+        if self.rate <= 0.0 {
+            return true;
+        }
+        let dt = now.saturating_duration_since(self.at).as_secs_f64();
+        self.at = now;
+        self.tokens = (self.tokens + dt * self.rate).min(Self::burst_of(self.rate));
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            return true;
+        }
+        false
     }
 }
 
@@ -189,4 +257,26 @@ pub fn zenoh_config(mode: &str, endpoint: &str, listen: bool) -> anyhow::Result<
     };
     set(&mut c, key, &format!("[{endpoint:?}]"))?;
     Ok(c)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::RateLimit;
+    use std::time::{Duration, Instant};
+
+    /// A burst of ten seconds' worth passes, then one keyframe per `1/rate`; no limit at 0.
+    #[test]
+    fn rate_limit() {
+        let t0 = Instant::now();
+        let mut r = RateLimit::new(5.0);
+        let burst = (0..100).filter(|_| r.admit(t0)).count();
+        assert_eq!(burst, 50);
+        let mut passed = 0;
+        for i in 1..=100 {
+            passed += r.admit(t0 + Duration::from_millis(10 * i)) as usize;
+        }
+        assert_eq!(passed, 5, "one second at 5 a second");
+        let mut free = RateLimit::new(0.0);
+        assert!((0..1000).all(|_| free.admit(t0)));
+    }
 }

@@ -15,12 +15,10 @@ type KeyframePub =
     iceoryx2::port::publisher::Publisher<topics::Ipc, [KeyframeRecord], KeyframeHeader>;
 type FeedbackSub = iceoryx2::port::subscriber::Subscriber<topics::Ipc, shm_schema::Feedback, ()>;
 
-/// A slot's ports: its keyframes to the mapper, its feedback from it, and that feedback's
-/// zenoh publisher.
+/// A slot's ports: its keyframes to the mapper, its feedback from it.
 struct Slot {
     keyframes: KeyframePub,
     feedback: FeedbackSub,
-    remote: zenoh::pubsub::Publisher<'static>,
 }
 
 type Hellos = zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>;
@@ -30,6 +28,8 @@ type Incoming =
 /// The server side's state: the clients' slots, its counters and errors.
 struct Server {
     slots: Slots,
+    /// `--max-keyframe-rate`.
+    rate: crate::RateLimit,
     counters: BridgeCounters,
     status: shoal_runtime::Status,
 }
@@ -58,20 +58,29 @@ impl Server {
         busy
     }
 
-    /// The clients' keyframes to the mapper, each as its slot's (a keyframe for no known
-    /// slot, or that does not decode, is refused and counted); whether there were any.
+    /// The clients' keyframes to the mapper, each as its name's slot's (a keyframe of a
+    /// client without a slot, or that does not decode, is refused and counted); whether
+    /// there were any.
     fn keyframes_in(&mut self, incoming: &Incoming, ports: &[Slot]) -> bool {
         let mut busy = false;
         while let Ok(Some(sample)) = incoming.try_recv() {
             busy = true;
             let key = sample.key_expr().as_str();
-            let slot = wire::slot_of(key).filter(|s| self.slots.name_of(*s).is_some());
+            let slot = wire::name_of(key).and_then(|n| self.slots.slot_of(n));
             let Some((s, port)) = slot.and_then(|s| ports.get(s as usize).map(|p| (s, p))) else {
                 self.counters.keyframes_refused += 1;
-                let why = format!("{key}: no client has this slot");
+                let why = format!("{key}: no client of this name said hello");
                 self.status.error(ErrorKind::Remote, why);
                 continue;
             };
+            if !self.rate.admit(Instant::now()) {
+                if self.counters.keyframes_over_rate == 0 {
+                    let why = format!("{key}: over --max-keyframe-rate, refused (sent again)");
+                    self.status.error(ErrorKind::Remote, why);
+                }
+                self.counters.keyframes_over_rate += 1;
+                continue;
+            }
             let bytes = sample.payload().to_bytes();
             match forward_keyframe(s, &port.keyframes, &bytes) {
                 Ok(()) => {
@@ -89,12 +98,18 @@ impl Server {
     }
 
     /// The mapper's feedback to each slot's client; whether there was any.
-    fn feedback_out(&mut self, ports: &[Slot]) -> anyhow::Result<bool> {
+    fn feedback_out(&mut self, session: &zenoh::Session, ports: &[Slot]) -> anyhow::Result<bool> {
         let mut busy = false;
-        for p in ports {
+        for (s, p) in ports.iter().enumerate() {
             while let Some(f) = p.feedback.receive()? {
                 busy = true;
-                let _ = p.remote.put(wire::encode_feedback(f.payload())).wait();
+                // Feedback of a slot nobody has (a journal's from an earlier table) has no
+                // one to go to.
+                let Some(name) = self.slots.name_of(s as u32) else {
+                    continue;
+                };
+                let _ = (session.put(wire::feedback_key(name), wire::encode_feedback(f.payload())))
+                    .wait();
                 self.counters.feedback_forwarded += 1;
             }
         }
@@ -107,20 +122,16 @@ impl Server {
     }
 }
 
-/// Each slot's ports, and the feedback publishers on the network.
+/// Each slot's shared-memory ports.
 fn slot_ports(
-    session: &zenoh::Session,
     node: &iceoryx2::node::Node<topics::Ipc>,
     capacity: u32,
 ) -> anyhow::Result<Vec<Slot>> {
     let mut ports = Vec::new();
     for s in 0..capacity {
-        let remote = (session.declare_publisher(wire::feedback_key(s)).wait())
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
         ports.push(Slot {
             keyframes: topics::keyframe_publisher(&topics::keyframes_service(node, s)?)?,
             feedback: topics::subscriber(&topics::feedback_service(node, s)?)?,
-            remote,
         });
     }
     Ok(ports)
@@ -134,11 +145,18 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
         params.status.clone(),
         params.ipc_prefix.clone(),
     )?;
-    let slots = Slots::open(params.clients_file.as_deref(), params.capacity)?;
-    let session = zenoh::open(zenoh_config("router", &params.endpoint, true)?)
-        .wait()
+    let mut slots = Slots::open(params.clients_file.as_deref(), params.capacity)?;
+    let mut config = zenoh_config("router", &params.endpoint, true)?;
+    let refusals = match &params.auth {
+        Some(file) => {
+            slots = slots.only(crate::auth::server_config(&mut config, file)?);
+            Some(crate::auth::RefusalCounter::install())
+        }
+        None => None,
+    };
+    let session = (zenoh::open(config).wait())
         .map_err(|e| anyhow::anyhow!("listening on {}: {e}", params.endpoint))?;
-    let ports = slot_ports(&session, &start.node, params.capacity)?;
+    let ports = slot_ports(&start.node, params.capacity)?;
     let hellos =
         (session.declare_queryable(wire::HELLO_KEY).wait()).map_err(|e| anyhow::anyhow!("{e}"))?;
     let incoming = (session.declare_subscriber(wire::ALL_KEYFRAMES).wait())
@@ -151,22 +169,26 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
     );
     let mut me = Server {
         slots,
+        rate: crate::RateLimit::new(params.max_keyframe_rate),
         counters: start.status.counters_as(),
         status: std::mem::take(&mut start.status),
     };
     shoal_runtime::signal_ready();
     let mut written = Instant::now();
     loop {
-        let busy =
-            me.hellos(&hellos) | me.keyframes_in(&incoming, &ports) | me.feedback_out(&ports)?;
+        let busy = me.hellos(&hellos)
+            | me.keyframes_in(&incoming, &ports)
+            | me.feedback_out(&session, &ports)?;
         if written.elapsed() >= crate::STATUS_PERIOD {
             written = Instant::now();
+            me.counters.auth_refused = refusals.as_ref().map_or(0, |r| r.count());
             me.write(&mut start.file);
         }
         if !crate::keep_going(&start.node, busy) {
             break;
         }
     }
+    me.counters.auth_refused = refusals.as_ref().map_or(0, |r| r.count());
     me.write(&mut start.file);
     let _ = session.close().wait();
     Ok(())

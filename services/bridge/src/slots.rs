@@ -15,6 +15,8 @@ pub struct Slots {
     by_name: BTreeMap<String, u32>,
     capacity: u32,
     file: Option<PathBuf>,
+    /// With `--auth`: the only names given a slot.
+    known: Option<std::collections::BTreeSet<String>>,
 }
 
 impl Slots {
@@ -42,7 +44,14 @@ impl Slots {
             by_name,
             capacity,
             file: file.map(Path::to_path_buf),
+            known: None,
         })
+    }
+
+    /// Only `names` get a slot (the credentials of `--auth`).
+    pub fn only(mut self, names: std::collections::BTreeSet<String>) -> Self {
+        self.known = Some(names);
+        self
     }
 
     /// The answer to a hello of `name` speaking schema `version`: its slot (a new one when
@@ -53,6 +62,9 @@ impl Slots {
                 "schema version {version}, this server speaks {SCHEMA_VERSION}: run the same \
                  shoal version on both hosts"
             ));
+        }
+        if self.known.as_ref().is_some_and(|k| !k.contains(name)) {
+            return Welcome::Refused(format!("{name:?} is not a known client"));
         }
         if let Some(s) = self.by_name.get(name) {
             return Welcome::Slot(*s);
@@ -78,6 +90,11 @@ impl Slots {
         let mut v: Vec<_> = self.by_name.iter().map(|(n, s)| (*s, n.clone())).collect();
         v.sort();
         v.into_iter().map(|(_, n)| n).collect()
+    }
+
+    /// The slot of `name`, if it has one.
+    pub fn slot_of(&self, name: &str) -> Option<u32> {
+        self.by_name.get(name).copied()
     }
 
     /// The name of slot `slot`.
@@ -124,6 +141,14 @@ mod tests {
         let mut again = Slots::open(Some(&file), 2).unwrap();
         assert_eq!(again.welcome(SCHEMA_VERSION, "b"), Welcome::Slot(1));
         assert_eq!(again.name_of(0), Some("a"));
+        let mut known = Slots::open(Some(&file), 3)
+            .unwrap()
+            .only(["b".to_string()].into());
+        assert_eq!(known.welcome(SCHEMA_VERSION, "b"), Welcome::Slot(1));
+        let Welcome::Refused(why) = known.welcome(SCHEMA_VERSION, "z") else {
+            panic!("an unknown name");
+        };
+        assert!(why.contains("not a known client"), "{why}");
         std::fs::write(&file, "x a\n").unwrap();
         assert!(Slots::open(Some(&file), 2).is_err());
         std::fs::remove_dir_all(dir).unwrap();

@@ -3,10 +3,10 @@
 //! - `shoal/hello` (the server's queryable): a client asks for its slot with its name and
 //!   schema version ([`hello`]); the server answers with the slot, the same for the same
 //!   name across reconnects and server restarts, or a refusal with its reason ([`Welcome`]).
-//! - `shoal/kf/{slot}`: a keyframe message, client → server, as one journal entry
+//! - `shoal/kf/{name}`: a keyframe message, client → server, as one journal entry
 //!   ([`shoal_runtime::journal::encode_entry`]: framed and checksummed, the mapper journal's
 //!   and the tracker spool's own encoding).
-//! - `shoal/fb/{slot}`: the mapper's acknowledgement and pose feedback, server → client
+//! - `shoal/fb/{name}`: the mapper's acknowledgement and pose feedback, server → client
 //!   ([`encode_feedback`], little-endian, with the schema version).
 //!
 //! Nothing here acknowledges: the end-to-end acknowledgement is the mapper's feedback, and a
@@ -21,22 +21,40 @@ use shoal_runtime::journal::{encode_entry, parse, Entry};
 /// The server's queryable of slots.
 pub const HELLO_KEY: &str = "shoal/hello";
 
-/// Key of slot `slot`'s keyframes.
-pub fn keyframe_key(slot: u32) -> String {
-    format!("shoal/kf/{slot}")
+/// Key of client `name`'s keyframes (by name, not slot: with `--auth` the server's access
+/// control lets a client publish only under its own name, [`crate::auth`]).
+pub fn keyframe_key(name: &str) -> String {
+    format!("{KEYFRAMES}/{name}")
 }
 
-/// Key of slot `slot`'s feedback.
-pub fn feedback_key(slot: u32) -> String {
-    format!("shoal/fb/{slot}")
+/// Key of client `name`'s feedback.
+pub fn feedback_key(name: &str) -> String {
+    format!("{FEEDBACK}/{name}")
 }
 
-/// Every slot's keyframes (the server's subscription).
+/// Prefix of the keyframe keys.
+pub const KEYFRAMES: &str = "shoal/kf";
+
+/// Prefix of the feedback keys.
+pub const FEEDBACK: &str = "shoal/fb";
+
+/// Every client's keyframes (the server's subscription).
 pub const ALL_KEYFRAMES: &str = "shoal/kf/*";
 
-/// The slot of a keyframe or feedback key.
-pub fn slot_of(key: &str) -> Option<u32> {
-    key.rsplit('/').next()?.parse().ok()
+/// The client name of a keyframe or feedback key.
+pub fn name_of(key: &str) -> Option<&str> {
+    let name = key.rsplit_once('/')?.1;
+    valid_name(name).then_some(name)
+}
+
+/// A client name: non-empty, one key-expression chunk (no `/`, wildcards or verbatim
+/// markers), no spaces (the slot table is `SLOT NAME` lines) and no `:` (the credentials
+/// file is `NAME:PASSWORD` lines).
+pub fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && !name.contains(['/', '*', '$', '#', '?', ':', '@'])
+        && !name.chars().any(char::is_whitespace)
 }
 
 /// A client's request for a slot: `shoal-hello {schema version} {name}`.
@@ -55,7 +73,7 @@ pub fn parse_hello(bytes: &[u8]) -> Result<(u32, String), String> {
     let v = v
         .parse()
         .map_err(|_| format!("bad schema version in {text:?}"))?;
-    if name.is_empty() || name.contains(['/', '*', '$', '#', '?']) {
+    if !valid_name(name) {
         return Err(format!("bad client name {name:?}"));
     }
     Ok((v, name.to_string()))
@@ -269,6 +287,8 @@ mod tests {
         for w in [Welcome::Slot(3), Welcome::Refused("full".into())] {
             assert_eq!(Welcome::decode(&w.encode()).unwrap(), w);
         }
-        assert_eq!(slot_of(&keyframe_key(12)), Some(12));
+        assert_eq!(name_of(&keyframe_key("phone-1")), Some("phone-1"));
+        assert_eq!(name_of("shoal/kf/a b"), None);
+        assert!(parse_hello(b"shoal-hello 4 a:b").is_err());
     }
 }

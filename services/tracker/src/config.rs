@@ -339,7 +339,19 @@ pub struct TrackerConfig {
     /// A visual-inertial client anchors its world to its metric, gravity-aligned server
     /// map from the server's feedback (`slam_core::vio::anchor`).
     pub anchor: AnchorConfig,
+    /// After the end of the stream, wait at most this long (s) for the server's
+    /// acknowledgement of every keyframe; what is still unacknowledged then stays in the
+    /// spool and is sent by the next tracker started on the same output folder. Unset: 5 s,
+    /// or [`REMOTE_END_WAIT_S`] for a client of a remote server (the launcher's `connect`),
+    /// which may be away for a while (a partition, a restart).
+    pub end_wait_s: Option<f64>,
 }
+
+/// A remote client's default end wait, s ([`TrackerConfig::end_wait_s`]).
+pub const REMOTE_END_WAIT_S: f64 = 120.0;
+
+/// A local client's default end wait, s ([`TrackerConfig::end_wait_s`]).
+pub const LOCAL_END_WAIT_S: f64 = 5.0;
 
 /// The `anchor` table ([`slam_core::vio::anchor::AnchorParams`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -395,6 +407,7 @@ impl Default for TrackerConfig {
             debug_init: false,
             publish_features: false,
             anchor: AnchorConfig::default(),
+            end_wait_s: None,
         }
     }
 }

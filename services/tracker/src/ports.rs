@@ -23,9 +23,6 @@ use crate::{fnv1a, spool, Params, TrackerConfig};
 /// a longer wait is counted in `lockstep_server_timeouts` and the tracker goes on.
 const SERVER_SYNC_TIMEOUT: Duration = Duration::from_secs(30);
 
-/// After the frames' end of stream, wait this long at most for the IMU's, ns.
-const END_WAIT_NS: i64 = 5_000_000_000;
-
 type FrameSub = Subscriber<Ipc, [u8], FrameHeader>;
 type KeyframePub = Publisher<Ipc, [KeyframeRecord], KeyframeHeader>;
 type FeaturesPub = Publisher<Ipc, [shm_schema::TrackedFeature], shm_schema::TrackedFeaturesHeader>;
@@ -409,7 +406,9 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         }
         busy |= ports.frame(&mut core, &cfg)?;
         if core.ended() && end_deadline.is_none() {
-            end_deadline = Some(monotonic_ns() + END_WAIT_NS);
+            // After the frames' end of stream: the IMU's, and the server's acknowledgements.
+            let wait_s = (cfg.end_wait_s).unwrap_or(crate::config::LOCAL_END_WAIT_S);
+            end_deadline = Some(monotonic_ns() + (wait_s.max(0.0) * 1e9) as i64);
         }
         if !busy && ports.node.wait(Duration::from_micros(100)).is_err() {
             break;
