@@ -355,3 +355,51 @@ fn only_known_clients_with_their_credentials_are_served() {
     assert_eq!(clients.len(), 1, "{clients:?}");
     assert_eq!(u(&clients[0]["keyframes_applied"]), sent);
 }
+
+/// The client's tracker is SIGKILLed in the middle of a 30 s partition, holding keyframes
+/// it sent and never saw acknowledged: a remote client's spool keeps every keyframe until
+/// the mapper acknowledges it (`tracker.spool_until_ack`), so its successor sends them
+/// again from disk, and when the network is back every keyframe reaches the server once
+/// (the mapper's acknowledgements, and its count, agree); the spool is empty at the end.
+#[test]
+fn a_client_killed_during_a_partition_resends_from_its_spool() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "loop", 500, None);
+    let port = free_port();
+    let server_out = dir.path().join("server");
+    let server = serve(port, &server_out, "remote_spool_srv", 1, &[]);
+    let relay = net_proxy::Relay::start(port, Duration::ZERO);
+    let out = dir.path().join("c");
+    let args = ["--set", "tracker.window=6", "--kill", "tracker:0@14"];
+    let mut run = client(&ds[0], &out, relay.port, "walker", "remote_spool_c", &args)
+        .spawn()
+        .expect("start shoal client");
+    std::thread::sleep(Duration::from_secs(6));
+    relay.partition(true);
+    std::thread::sleep(Duration::from_secs(30));
+    relay.partition(false);
+    assert!(run.wait().unwrap().success(), "the client failed");
+    stop(server);
+    let rep = report(&out);
+    let c = &rep["clients"][0];
+    let at_crash = u(&c["keyframes_unacked_at_crash"]);
+    assert!(at_crash >= 1, "the kill found keyframes in flight: {c:#}");
+    assert!(u(&c["keyframes_recovered"]) >= at_crash, "{c:#}");
+    let srv = report(&server_out);
+    let me = &srv["remote_clients"][0];
+    eprintln!("{at_crash} in flight at the kill; client {c}; server {me}");
+    // Every acknowledgement is the mapper's; one the partition swallowed comes again for
+    // the keyframe re-sent from the spool (applied once).
+    let (applied, acked) = (u(&me["keyframes_applied"]), u(&c["keyframes_acked"]));
+    assert!(
+        applied <= acked && acked <= applied + at_crash,
+        "{me} {c:#}"
+    );
+    assert!(applied >= 10, "{me}");
+    // (The successor's new monocular session is a map of its own on the server until the
+    // loop closer finds where it overlaps the first: one or two maps, both this client's.)
+    let spool: Vec<_> = std::fs::read_dir(out.join("spool").join("c0"))
+        .map(|d| d.flatten().map(|e| e.path()).collect())
+        .unwrap_or_default();
+    assert!(spool.is_empty(), "left in the spool: {spool:?}");
+}

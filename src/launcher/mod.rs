@@ -133,8 +133,12 @@ fn write_configs(
                 // each at its own pace): the tracker does not wait for it to finish each
                 // keyframe.
                 one.tracker.lockstep_sync &= cfg.connect.is_none();
-                if cfg.connect.is_some() && one.tracker.end_wait_s.is_none() {
-                    one.tracker.end_wait_s = Some(::tracker::config::REMOTE_END_WAIT_S);
+                // A remote server may be away for a while: the tracker waits for it after its
+                // stream, and its spool holds every keyframe until the mapper acknowledged it.
+                if cfg.connect.is_some() {
+                    let wait = one.tracker.end_wait_s;
+                    one.tracker.end_wait_s = wait.or(Some(::tracker::config::REMOTE_END_WAIT_S));
+                    one.tracker.spool_until_ack = true;
                 }
                 if s.mode == ClientMode::Calib && one.tracker.calib.log.is_none() {
                     one.tracker.calib.log = Some(cfg.out.join("calib_c{c}.csv"));

@@ -94,6 +94,9 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
             break;
         }
     }
+    // Work already received is finished first: the loop closer may still be querying the
+    // last keyframes, and a merge found then is applied and counted.
+    super::wait_server_quiet(&services, super::SERVER_QUIET_TIMEOUT);
     let mut recorder = recorder;
     super::stop_services(&mut services, &topology, &mut recorder)?;
     let mut rep = report::RunReport::collect(

@@ -170,7 +170,9 @@ impl Client {
         while let Ok(Some(s)) = link.feedback.try_recv() {
             busy = true;
             match wire::decode_feedback(&s.payload().to_bytes(), c) {
-                Ok(f) => {
+                Ok(mut f) => {
+                    // Published on this host now: the server's clock is not this one.
+                    f.meta.publish_mono_ns = shm_schema::time::monotonic_ns();
                     self.trips.acked((f.acked_session_id, f.acked_keyframe_id));
                     publisher.send_copy(f)?;
                     self.counters.feedback_forwarded += 1;

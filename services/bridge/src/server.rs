@@ -198,6 +198,8 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
 fn forward_keyframe(slot: u32, publisher: &KeyframePub, bytes: &[u8]) -> anyhow::Result<()> {
     let (mut h, records, imu) = wire::decode_keyframe(bytes).map_err(anyhow::Error::msg)?;
     h.meta.client_id = slot;
+    // Published on this host now: the client's clock is not this one.
+    h.meta.publish_mono_ns = shm_schema::time::monotonic_ns();
     let n = records.len() + imu.len();
     let sample = publisher.loan_slice_uninit(n)?;
     let mut sample = sample.write_from_fn(|i| match i.checked_sub(records.len()) {

@@ -9,6 +9,10 @@
 //! - `shoal/fb/{name}`: the mapper's acknowledgement and pose feedback, server → client
 //!   ([`encode_feedback`], little-endian, with the schema version).
 //!
+//! Times: a message's `publish_mono_ns` is on the monotonic clock of the host that sent
+//! it, which means nothing on the other; each bridge stamps what it publishes into its
+//! host's shared memory with its own clock.
+//!
 //! Nothing here acknowledges: the end-to-end acknowledgement is the mapper's feedback, and a
 //! keyframe it has not acknowledged is sent again by the tracker (`RESEND_AFTER_NS`), so a
 //! keyframe lost on the way (a cut connection, a restarted server) comes again.

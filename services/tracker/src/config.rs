@@ -345,7 +345,18 @@ pub struct TrackerConfig {
     /// or [`REMOTE_END_WAIT_S`] for a client of a remote server (the launcher's `connect`),
     /// which may be away for a while (a partition, a restart).
     pub end_wait_s: Option<f64>,
+    /// Keep a keyframe's spool file until the mapper acknowledges it, not only until it is
+    /// sent: the spool is then the on-disk queue of every unacknowledged keyframe, which a
+    /// tracker started after a crash sends again (the mapper applies a keyframe once). The
+    /// launcher sets it for a client of a remote server, where a keyframe may stay
+    /// unacknowledged for as long as the network is down. At most [`SPOOL_MAX_FILES`]
+    /// files; beyond, a keyframe is kept in memory only and the spool error says so.
+    pub spool_until_ack: bool,
 }
+
+/// Most files in a spool that keeps keyframes until acknowledged (≈ 70 kB each: ≈ 280 MB,
+/// half an hour of one client's keyframes at 2.4 a second).
+pub const SPOOL_MAX_FILES: usize = 4096;
 
 /// A remote client's default end wait, s ([`TrackerConfig::end_wait_s`]).
 pub const REMOTE_END_WAIT_S: f64 = 120.0;
@@ -408,6 +419,7 @@ impl Default for TrackerConfig {
             publish_features: false,
             anchor: AnchorConfig::default(),
             end_wait_s: None,
+            spool_until_ack: false,
         }
     }
 }

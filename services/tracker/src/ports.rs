@@ -42,6 +42,8 @@ struct Ports {
     /// The calibration mode's log (`tracker.calib.log`).
     calib_log: Option<std::io::BufWriter<std::fs::File>>,
     spool: Option<spool::Spool>,
+    /// `tracker.spool_until_ack`.
+    spool_until_ack: bool,
     file: StatusFile,
     /// Keyframe traffic in the status file last written.
     written: (u64, u64, u64),
@@ -93,6 +95,7 @@ impl Ports {
             log,
             calib_log,
             spool: None,
+            spool_until_ack: cfg.spool_until_ack,
             file,
             written: (0, 0, 0),
         })
@@ -120,11 +123,11 @@ impl Ports {
                         writeln!(l, "{line}").context("write calibration log")?;
                     }
                 }
-                Out::SpoolSent((session, id)) => {
-                    if let Some(sp) = self.spool.as_mut() {
-                        sp.sent(session, id);
-                    }
-                }
+                Out::SpoolSent((session, id)) => match self.spool.as_mut() {
+                    Some(sp) if self.spool_until_ack => _ = sp.sent_keep(session, id),
+                    Some(sp) => _ = sp.sent(session, id),
+                    None => {}
+                },
             }
         }
         Ok(())
@@ -134,6 +137,16 @@ impl Ports {
         let (Some(sp), m) = (self.spool.as_mut(), &e.msg) else {
             return;
         };
+        if self.spool_until_ack && sp.len() >= crate::config::SPOOL_MAX_FILES {
+            let detail = format!(
+                "keyframe {}: the spool holds {} unacknowledged keyframes, its most; this one \
+                 is kept in memory only",
+                m.header.keyframe_id,
+                sp.len()
+            );
+            status.error(ErrorKind::Spool, detail);
+            return;
+        }
         let c = m.header.meta.client_id;
         if let Err(e) = sp.write(c, m, &e.points) {
             let detail = format!("keyframe {}: {e}", m.header.keyframe_id);
@@ -161,7 +174,11 @@ impl Ports {
         let mut n = 0;
         while let Some(fb) = self.feedback.receive()? {
             n += 1;
-            core.on_feedback(fb.payload());
+            let f = fb.payload();
+            core.on_feedback(f);
+            if let (true, Some(sp)) = (self.spool_until_ack, self.spool.as_mut()) {
+                sp.acked(f.acked_session_id, f.acked_keyframe_id);
+            }
         }
         Ok(n)
     }

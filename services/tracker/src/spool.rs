@@ -66,6 +66,8 @@ pub struct Spool {
     dir: PathBuf,
     /// (session, id) of the files this process knows of.
     files: BTreeSet<(u32, u64)>,
+    /// Those of keyframes sent and kept until acknowledged ([`Spool::sent_keep`]).
+    sent_kept: BTreeSet<(u32, u64)>,
     /// Keyframes written.
     pub written: u64,
     /// Bytes written.
@@ -79,6 +81,7 @@ impl Spool {
         Ok(Self {
             dir: dir.to_path_buf(),
             files: BTreeSet::new(),
+            sent_kept: BTreeSet::new(),
             written: 0,
             bytes_written: 0,
         })
@@ -217,6 +220,36 @@ impl Spool {
         gone.len()
     }
 
+    /// Keyframe `id` of `session` was sent, and its file stays until the mapper
+    /// acknowledges it (`tracker.spool_until_ack`, [`Spool::acked`]); the files of older
+    /// keyframes of the session never sent go (culled, as in [`Spool::sent`]). Returns the
+    /// files removed.
+    pub fn sent_keep(&mut self, session: u32, id: u64) -> usize {
+        let culled: Vec<(u32, u64)> = (self.files.range((session, 0)..(session, id)))
+            .filter(|k| !self.sent_kept.contains(k))
+            .copied()
+            .collect();
+        for k in &culled {
+            let _ = std::fs::remove_file(self.path(k.0, k.1));
+            self.files.remove(k);
+        }
+        if self.files.contains(&(session, id)) {
+            self.sent_kept.insert((session, id));
+        }
+        culled.len()
+    }
+
+    /// Drops keyframe `(session, id)`'s file once the mapper acknowledged it
+    /// (`tracker.spool_until_ack`); whether there was one.
+    pub fn acked(&mut self, session: u32, id: u64) -> bool {
+        self.sent_kept.remove(&(session, id));
+        let had = self.files.remove(&(session, id));
+        if had {
+            let _ = std::fs::remove_file(self.path(session, id));
+        }
+        had
+    }
+
     /// Keyframes on disk.
     pub fn len(&self) -> usize {
         self.files.len()
@@ -269,6 +302,31 @@ mod tests {
             imu: imu.into(),
             imu_cut: 0,
         }
+    }
+
+    /// Kept until acknowledged (`tracker.spool_until_ack`): a successor recovers the
+    /// unsent keyframes and the sent, unacknowledged ones, not the culled nor the
+    /// acknowledged ones.
+    #[test]
+    fn kept_until_acknowledged() {
+        let dir = std::env::temp_dir().join(format!("shoal_spool_ack_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut s = Spool::open(&dir).expect("spool");
+        for id in 1..=8 {
+            s.write(3, &message(65537, id), &[]).expect("write");
+        }
+        // 1 culled; 2, 3 and 5 sent (4 culled); 3 acknowledged; the network is down.
+        assert_eq!(s.sent_keep(65537, 2), 1);
+        assert_eq!(s.sent_keep(65537, 3), 0);
+        assert_eq!(s.sent_keep(65537, 5), 1);
+        assert!(s.acked(65537, 3));
+        assert!(!s.acked(65537, 3), "acknowledged twice");
+        assert_eq!(s.len(), 5);
+        drop(s);
+        let rec = Spool::open(&dir).expect("spool").recover(3);
+        let ids: Vec<u64> = rec.keyframes.iter().map(|k| k.header.keyframe_id).collect();
+        assert_eq!(ids, vec![2, 5, 6, 7, 8]);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
