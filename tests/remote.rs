@@ -403,3 +403,43 @@ fn a_client_killed_during_a_partition_resends_from_its_spool() {
         .unwrap_or_default();
     assert!(spool.is_empty(), "left in the spool: {spool:?}");
 }
+
+/// A client 50 ms of round trip away (25 ms each way through [`net_proxy::Relay`]; `tc
+/// netem` would also drop packets, but its kernel module is not on every test machine):
+/// the hello, every keyframe and every acknowledgement cross, and each round trip the
+/// bridge measured includes the network's 50 ms.
+#[test]
+fn a_client_50_ms_away_is_served() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "two-agents", 120, None);
+    let port = free_port();
+    let server_out = dir.path().join("server");
+    let server = serve(port, &server_out, "remote_far_srv", 1, &[]);
+    let relay = net_proxy::Relay::start(port, Duration::from_millis(25));
+    let out = dir.path().join("c");
+    let run = client(
+        &ds[0],
+        &out,
+        relay.port,
+        "far",
+        "remote_far_c",
+        &["--lockstep"],
+    )
+    .output()
+    .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    stop(server);
+    let rep = report(&out);
+    let c = &rep["clients"][0];
+    let sent = u(&c["keyframes_sent"]);
+    assert!(sent >= 3, "{c:#}");
+    assert_eq!(u(&c["keyframes_acked"]), sent, "{c:#}");
+    let bridge = &rep["bridges"]["bridge:0"];
+    eprintln!("{sent} keyframes 50 ms away; bridge {bridge}");
+    assert_eq!(u(&bridge["roundtrips"]), sent, "{bridge}");
+    assert!(u(&bridge["roundtrip_us_p50"]) >= 50_000, "{bridge}");
+}

@@ -375,9 +375,9 @@ impl Gathered {
 
 /// A client's keyframes in the mapper's journal, each distinct keyframe once.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-struct Journaled {
+pub(super) struct Journaled {
     /// Distinct keyframes (session, id).
-    applied: u64,
+    pub(super) applied: u64,
     /// Of those, the ones with IMU records.
     with_imu: u64,
     /// Their IMU records.
@@ -385,7 +385,7 @@ struct Journaled {
 }
 
 /// The keyframes of each client in the mapper journal at `path`.
-fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<Journaled>> {
+pub(super) fn journal_keyframes(path: &Path, clients: usize) -> Option<Vec<Journaled>> {
     let contents = shoal_runtime::journal::read_journal(path).ok()?;
     let mut seen: Vec<std::collections::HashMap<(u32, u64), u64>> =
         vec![Default::default(); clients];

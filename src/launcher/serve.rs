@@ -127,6 +127,11 @@ fn remote_clients(
     let counters: ::mapper::MapperCounters = mapper
         .map(|m| report::load_status(&m.status).counters_as())
         .unwrap_or_default();
+    // Applied keyframes from the journal, as `shoal run` counts them: a keyframe is
+    // journaled before it is acknowledged, and a SIGKILLed server's status file may lag.
+    let slot_of = |l: &str| l.split_once(' ')?.0.parse::<usize>().ok();
+    let slots = table.lines().filter_map(slot_of).max().map_or(0, |m| m + 1);
+    let journaled = report::journal_keyframes(&out.join(super::MAPPER_JOURNAL), slots);
     table
         .lines()
         .filter_map(|l| {
@@ -137,7 +142,9 @@ fn remote_clients(
                 name: name.to_string(),
                 slot,
                 keyframes_received: c.keyframes_received,
-                keyframes_applied: c.keyframes_applied,
+                keyframes_applied: (journaled.as_ref())
+                    .and_then(|j| j.get(slot as usize))
+                    .map_or(c.keyframes_applied, |j| j.applied),
                 maps: maps.iter().filter(|m| m.clients.contains(&slot)).count() as u64,
             })
         })
