@@ -81,7 +81,7 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     super::start_services(&mut services, &topology, &exe)?;
     let who = match known {
         0 => "loopback only, no authentication".to_string(),
-        n => format!("only the {n} clients of --auth"),
+        n => format!("only the clients of --auth, {n} known"),
     };
     eprintln!(
         "shoal serve: listening on {listen} ({who}) for up to {} clients; Ctrl-C stops",
