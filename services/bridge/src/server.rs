@@ -30,6 +30,8 @@ struct Server {
     slots: Slots,
     /// `--max-keyframe-rate`.
     rate: crate::RateLimit,
+    /// With `--auth`: zenoh's refused handshakes.
+    refusals: Option<crate::auth::RefusalCounter>,
     counters: BridgeCounters,
     status: shoal_runtime::Status,
 }
@@ -117,6 +119,7 @@ impl Server {
     }
 
     fn write(&mut self, file: &mut shoal_runtime::StatusFile) {
+        self.counters.auth_refused = self.refusals.as_ref().map_or(0, |r| r.count());
         self.status.put_counters(&self.counters);
         let _ = file.write(&self.status);
     }
@@ -170,6 +173,7 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
     let mut me = Server {
         slots,
         rate: crate::RateLimit::new(params.max_keyframe_rate),
+        refusals,
         counters: start.status.counters_as(),
         status: std::mem::take(&mut start.status),
     };
@@ -181,14 +185,12 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
             | me.feedback_out(&session, &ports)?;
         if written.elapsed() >= crate::STATUS_PERIOD {
             written = Instant::now();
-            me.counters.auth_refused = refusals.as_ref().map_or(0, |r| r.count());
             me.write(&mut start.file);
         }
         if !crate::keep_going(&start.node, busy) {
             break;
         }
     }
-    me.counters.auth_refused = refusals.as_ref().map_or(0, |r| r.count());
     me.write(&mut start.file);
     let _ = session.close().wait();
     Ok(())

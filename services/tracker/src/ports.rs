@@ -42,8 +42,6 @@ struct Ports {
     /// The calibration mode's log (`tracker.calib.log`).
     calib_log: Option<std::io::BufWriter<std::fs::File>>,
     spool: Option<spool::Spool>,
-    /// `tracker.spool_until_ack`.
-    spool_until_ack: bool,
     file: StatusFile,
     /// Keyframe traffic in the status file last written.
     written: (u64, u64, u64),
@@ -95,7 +93,6 @@ impl Ports {
             log,
             calib_log,
             spool: None,
-            spool_until_ack: cfg.spool_until_ack,
             file,
             written: (0, 0, 0),
         })
@@ -123,11 +120,11 @@ impl Ports {
                         writeln!(l, "{line}").context("write calibration log")?;
                     }
                 }
-                Out::SpoolSent((session, id)) => match self.spool.as_mut() {
-                    Some(sp) if self.spool_until_ack => _ = sp.sent_keep(session, id),
-                    Some(sp) => _ = sp.sent(session, id),
-                    None => {}
-                },
+                Out::SpoolSent((session, id)) => {
+                    if let Some(sp) = self.spool.as_mut() {
+                        sp.sent(session, id);
+                    }
+                }
             }
         }
         Ok(())
@@ -137,16 +134,6 @@ impl Ports {
         let (Some(sp), m) = (self.spool.as_mut(), &e.msg) else {
             return;
         };
-        if self.spool_until_ack && sp.len() >= crate::config::SPOOL_MAX_FILES {
-            let detail = format!(
-                "keyframe {}: the spool holds {} unacknowledged keyframes, its most; this one \
-                 is kept in memory only",
-                m.header.keyframe_id,
-                sp.len()
-            );
-            status.error(ErrorKind::Spool, detail);
-            return;
-        }
         let c = m.header.meta.client_id;
         if let Err(e) = sp.write(c, m, &e.points) {
             let detail = format!("keyframe {}: {e}", m.header.keyframe_id);
@@ -176,7 +163,7 @@ impl Ports {
             n += 1;
             let f = fb.payload();
             core.on_feedback(f);
-            if let (true, Some(sp)) = (self.spool_until_ack, self.spool.as_mut()) {
+            if let Some(sp) = self.spool.as_mut() {
                 sp.acked(f.acked_session_id, f.acked_keyframe_id);
             }
         }
@@ -370,11 +357,17 @@ fn publish_keyframe(publisher: &KeyframePub, m: &KeyframeMsg) -> anyhow::Result<
 /// VO window): sent before this process starts its own session, or held to resume the
 /// predecessor's visual-inertial session (`core/resume.rs`). A spool that cannot be opened
 /// is an error in the status, and the tracker runs without it.
-fn open_spool(params: &Params, ports: &mut Ports, core: &mut TrackerCore) -> anyhow::Result<()> {
+fn open_spool(
+    params: &Params,
+    cfg: &TrackerConfig,
+    ports: &mut Ports,
+    core: &mut TrackerCore,
+) -> anyhow::Result<()> {
     let Some(dir) = &params.spool else {
         return Ok(());
     };
     let mut sp = match spool::Spool::open(dir) {
+        Ok(s) if cfg.spool_until_ack => s.until_acked(),
         Ok(s) => s,
         Err(e) => {
             let detail = format!("{}: {e}", dir.display());
@@ -403,7 +396,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
     )?;
     let mut core = TrackerCore::new(CoreConfig::new(params, &cfg), start.status);
     let mut ports = Ports::open(params, &cfg, start.node, start.file)?;
-    open_spool(params, &mut ports, &mut core)?;
+    open_spool(params, &cfg, &mut ports, &mut core)?;
     ports.sync_status(&mut core);
     shoal_runtime::signal_ready();
     let mut end_deadline: Option<i64> = None;

@@ -68,6 +68,9 @@ pub struct Spool {
     files: BTreeSet<(u32, u64)>,
     /// Those of keyframes sent and kept until acknowledged ([`Spool::sent_keep`]).
     sent_kept: BTreeSet<(u32, u64)>,
+    /// A file stays until its keyframe is acknowledged, not only until it is sent
+    /// (`tracker.spool_until_ack`, [`Spool::until_acked`]).
+    until_ack: bool,
     /// Keyframes written.
     pub written: u64,
     /// Bytes written.
@@ -82,9 +85,17 @@ impl Spool {
             dir: dir.to_path_buf(),
             files: BTreeSet::new(),
             sent_kept: BTreeSet::new(),
+            until_ack: false,
             written: 0,
             bytes_written: 0,
         })
+    }
+
+    /// Keeps each file until its keyframe is acknowledged ([`Spool::acked`]), at most
+    /// [`crate::config::SPOOL_MAX_FILES`] of them (`tracker.spool_until_ack`).
+    pub fn until_acked(mut self) -> Self {
+        self.until_ack = true;
+        self
     }
 
     fn path(&self, session: u32, id: u64) -> PathBuf {
@@ -182,6 +193,13 @@ impl Spool {
         msg: &KeyframeMsg,
         points: &[SpooledPoint],
     ) -> std::io::Result<()> {
+        if self.until_ack && self.files.len() >= crate::config::SPOOL_MAX_FILES {
+            return Err(std::io::Error::other(format!(
+                "the spool holds {} unacknowledged keyframes, its most; this one is kept in \
+                 memory only",
+                self.files.len()
+            )));
+        }
         let header = &msg.header;
         let key = (header.meta.session_id, header.keyframe_id);
         let mut bytes = spool_file_header().to_vec();
@@ -204,10 +222,14 @@ impl Spool {
         Ok(())
     }
 
-    /// Keyframe `id` of `session` was sent: its file goes, with those of older keyframes of
-    /// the session (keyframes leave the window oldest first, so an older one still here was
-    /// culled by local mapping and will never be sent). Returns the files removed.
+    /// Keyframe `id` of `session` was sent: its file goes (or stays until acknowledged,
+    /// [`Spool::sent_keep`]), with those of older keyframes of the session (keyframes leave
+    /// the window oldest first, so an older one still here was culled by local mapping and
+    /// will never be sent). Returns the files removed.
     pub fn sent(&mut self, session: u32, id: u64) -> usize {
+        if self.until_ack {
+            return self.sent_keep(session, id);
+        }
         let gone: Vec<(u32, u64)> = self
             .files
             .range((session, 0)..=(session, id))
@@ -240,9 +262,12 @@ impl Spool {
     }
 
     /// Drops keyframe `(session, id)`'s file once the mapper acknowledged it
-    /// (`tracker.spool_until_ack`); whether there was one.
+    /// (`tracker.spool_until_ack`; without it the file went when the keyframe was sent);
+    /// whether there was one.
     pub fn acked(&mut self, session: u32, id: u64) -> bool {
-        self.sent_kept.remove(&(session, id));
+        if !self.sent_kept.remove(&(session, id)) {
+            return false;
+        }
         let had = self.files.remove(&(session, id));
         if had {
             let _ = std::fs::remove_file(self.path(session, id));
@@ -311,7 +336,7 @@ mod tests {
     fn kept_until_acknowledged() {
         let dir = std::env::temp_dir().join(format!("shoal_spool_ack_{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let mut s = Spool::open(&dir).expect("spool");
+        let mut s = Spool::open(&dir).expect("spool").until_acked();
         for id in 1..=8 {
             s.write(3, &message(65537, id), &[]).expect("write");
         }
