@@ -9,6 +9,36 @@ fn main() {
     // Real-data tests (`tests/`): `cfg(shoal_data)` when `../shared/data` (or $SHOAL_DATA) exists.
     shoal_data::emit_data_cfg(Path::new(env!("CARGO_MANIFEST_DIR")));
     git_provenance();
+    netns_cfg();
+}
+
+/// Emits `cfg(shoal_netns)` when this machine lets the tests make network namespaces joined
+/// by TUN devices (root, `/dev/net/tun`, `ip netns`): the lossy-link test of `tests/remote.rs`
+/// then runs, and is otherwise reported as ignored, with the reason.
+fn netns_cfg() {
+    println!("cargo::rustc-check-cfg=cfg(shoal_netns)");
+    let root = std::fs::read_to_string("/proc/self/status").is_ok_and(|s| {
+        s.lines()
+            .find_map(|l| l.strip_prefix("Uid:"))
+            .and_then(|l| l.split_whitespace().nth(1))
+            == Some("0")
+    });
+    let tun = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open("/dev/net/tun")
+        .is_ok();
+    let probe = format!("shoal-build-probe-{}", std::process::id());
+    let netns = root
+        && tun
+        && Command::new("ip")
+            .args(["netns", "add", &probe])
+            .output()
+            .is_ok_and(|o| o.status.success());
+    if netns {
+        let _ = Command::new("ip").args(["netns", "del", &probe]).output();
+        println!("cargo::rustc-cfg=shoal_netns");
+    }
 }
 
 /// Emits `SHOAL_GIT_COMMIT` (the commit the binary is built from, `unknown` without git or

@@ -19,11 +19,10 @@ fn free_port() -> u16 {
     l.local_addr().unwrap().port()
 }
 
-/// Starts `shoal serve` on `port` into `out` (`clients` slots, `extra` arguments); waits
-/// until it accepts connections.
-fn serve(port: u16, out: &Path, test: &str, clients: u32, extra: &[&str]) -> Child {
-    let child = shoal()
-        .args(["serve", "--listen", &format!("tcp/127.0.0.1:{port}")])
+/// `shoal serve` listening on `listen` into `out` (`clients` slots, `extra` arguments).
+fn serve_cmd(listen: &str, out: &Path, test: &str, clients: u32, extra: &[&str]) -> Command {
+    let mut cmd = shoal();
+    cmd.args(["serve", "--listen", listen])
         .arg("--out")
         .arg(out)
         .args([
@@ -32,7 +31,14 @@ fn serve(port: u16, out: &Path, test: &str, clients: u32, extra: &[&str]) -> Chi
             "--ipc-prefix",
             &prefix(test),
         ])
-        .args(extra)
+        .args(extra);
+    cmd
+}
+
+/// Starts `shoal serve` on `port` into `out` (`clients` slots, `extra` arguments); waits
+/// until it accepts connections.
+fn serve(port: u16, out: &Path, test: &str, clients: u32, extra: &[&str]) -> Child {
+    let child = serve_cmd(&format!("tcp/127.0.0.1:{port}"), out, test, clients, extra)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -56,7 +62,7 @@ fn stop(mut server: Child) {
     assert!(status.success(), "shoal serve exited with {status}");
 }
 
-/// `shoal client` on `dataset` into `out` with `extra` arguments.
+/// `shoal client` on `dataset` into `out` with `extra` arguments, to a server on loopback.
 fn client(
     dataset: &Path,
     out: &Path,
@@ -65,8 +71,21 @@ fn client(
     test: &str,
     extra: &[&str],
 ) -> Command {
+    let server = format!("tcp/127.0.0.1:{port}");
+    client_of(&server, dataset, out, name, test, extra)
+}
+
+/// `shoal client` of the server at `endpoint` on `dataset` into `out`.
+fn client_of(
+    endpoint: &str,
+    dataset: &Path,
+    out: &Path,
+    name: &str,
+    test: &str,
+    extra: &[&str],
+) -> Command {
     let mut cmd = shoal();
-    cmd.args(["client", "--connect", &format!("tcp/127.0.0.1:{port}")])
+    cmd.args(["client", "--connect", endpoint])
         .arg("--dataset")
         .arg(dataset)
         .arg("--out")
@@ -442,4 +461,86 @@ fn a_client_50_ms_away_is_served() {
     eprintln!("{sent} keyframes 50 ms away; bridge {bridge}");
     assert_eq!(u(&bridge["roundtrips"]), sent, "{bridge}");
     assert!(u(&bridge["roundtrip_us_p50"]) >= 50_000, "{bridge}");
+}
+
+/// A client 50 ms of round trip away on a link that also drops 1 % of the packets each way
+/// ([`net_proxy::lossy::LossyLink`]: the server and the client each in a network namespace
+/// of its own, so the server listens off loopback, which needs `--auth`). Every keyframe is
+/// applied and acknowledged end to end, once; the link really dropped packets on the way.
+#[test]
+#[cfg_attr(
+    not(shoal_netns),
+    ignore = "needs root, /dev/net/tun and `ip netns` (a lossy link between two namespaces)"
+)]
+fn a_client_over_a_slow_lossy_link_loses_no_keyframe() {
+    use net_proxy::lossy::{LossyLink, SERVER_ADDR};
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "two-agents", 240, None);
+    let link = LossyLink::start(Duration::from_millis(25), 0.01);
+    let (known, key) = (dir.path().join("clients.txt"), dir.path().join("far.txt"));
+    std::fs::write(&known, "far:over the hills\n").unwrap();
+    std::fs::write(&key, "far:over the hills\n").unwrap();
+    let server_out = dir.path().join("server");
+    let endpoint = format!("tcp/{SERVER_ADDR}:7447");
+    let auth = ["--auth", known.to_str().unwrap()];
+    let serve = serve_cmd(&endpoint, &server_out, "remote_lossy_srv", 1, &auth);
+    let server = LossyLink::exec_in(&link.server_ns, &serve)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start shoal serve in its namespace");
+    wait_listening(server.id(), 7447);
+    let out = dir.path().join("c");
+    let args = ["--lockstep", "--auth", key.to_str().unwrap()];
+    let run = client_of(&endpoint, &ds[0], &out, "far", "remote_lossy_c", &args);
+    let run = LossyLink::exec_in(&link.client_ns, &run)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    stop(server);
+    let rep = report(&out);
+    let c = &rep["clients"][0];
+    let sent = u(&c["keyframes_sent"]);
+    assert!(sent >= 5, "{c:#}");
+    assert_eq!(u(&c["keyframes_acked"]), sent, "{c:#}");
+    let me = &report(&server_out)["remote_clients"][0];
+    assert_eq!(u(&me["keyframes_applied"]), sent, "{me}");
+    let bridge = &rep["bridges"]["bridge:0"];
+    eprintln!(
+        "{sent} keyframes over the lossy link ({} packets carried, {} dropped); bridge {bridge}",
+        link.carried(),
+        link.dropped()
+    );
+    assert!(link.dropped() >= 5, "the link dropped {}", link.dropped());
+    assert_eq!(u(&bridge["roundtrips"]), sent, "{bridge}");
+    assert!(u(&bridge["roundtrip_us_p50"]) >= 50_000, "{bridge}");
+}
+
+/// Waits until process `pid` (in a namespace of its own) listens on TCP `port`, from its
+/// `/proc/PID/net/tcp` (which lists the sockets of the process's namespace).
+fn wait_listening(pid: u32, port: u16) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let local = format!(":{port:04X} ");
+    loop {
+        let table = std::fs::read_to_string(format!("/proc/{pid}/net/tcp")).unwrap_or_default();
+        // Columns: sl, local_address, rem_address, st (0A: LISTEN).
+        let listening = table.lines().any(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            f.len() > 3 && format!("{} ", f[1]).ends_with(&local) && f[3] == "0A"
+        });
+        if listening {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the server never listened on {port}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }

@@ -2,9 +2,12 @@
 //! network: it can cut every connection (both ends closed, as a reset would), stop carrying
 //! bytes for a while (a partition: nothing is lost on the sockets, nothing passes, new
 //! connections are refused) and delay every byte by a fixed time each way (a long round
-//! trip). `tc netem` would do the delay and loss in the kernel, but its `sch_netem` module
-//! is not on every test machine (not on this project's); packet loss cannot be made in user
-//! space under TCP, so this relay does not try.
+//! trip). Packet loss cannot be made under TCP by a relay; [`lossy::LossyLink`] makes it
+//! below TCP, between two network namespaces (`tc netem` would do both in the kernel, but
+//! its `sch_netem` module is not on every test machine, not on this project's).
+#[cfg_attr(not(shoal_netns), allow(dead_code))]
+pub mod lossy;
+
 use std::io::{Read, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
