@@ -198,8 +198,9 @@ struct ServeArgs {
     #[arg(long, default_value = "tcp/127.0.0.1:7447")]
     listen: String,
     /// Only known clients: a file of `NAME:PASSWORD` lines; each client presents its own
-    /// line (`shoal client --auth`) and may publish only under its name. Without it the
-    /// server listens on loopback addresses only.
+    /// line (`shoal client --auth`) and may publish only under its name. A client's first
+    /// slot (its index in the server's maps) is its line's rank, whatever the order of
+    /// arrival. Without it the server listens on loopback addresses only.
     #[arg(long, value_name = "FILE")]
     auth: Option<PathBuf>,
     /// Output folder: the report, the maps' files, and what a restarted server resumes

@@ -463,6 +463,55 @@ fn a_client_50_ms_away_is_served() {
     assert!(u(&bridge["roundtrip_us_p50"]) >= 50_000, "{bridge}");
 }
 
+/// The same client runs twice against one server (a phone's second session): the second
+/// run's tracker numbers its sessions and keyframes from 1 again, and the server keeps the
+/// runs apart (`bridge::run_ids`: each run a start base past the earlier ones). Every
+/// keyframe of both runs is applied, none is acknowledged as a re-send of the first run's
+/// without being applied, and the two runs' maps of the same place merge.
+#[test]
+fn a_second_run_of_a_client_is_applied_not_taken_for_re_sends() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "two-agents", 200, None);
+    let port = free_port();
+    let server_out = dir.path().join("server");
+    let server = serve(port, &server_out, "remote_runs_srv", 1, &[]);
+    let mut sent = 0;
+    for run in 0..2 {
+        let out = dir.path().join(format!("run{run}"));
+        let r = client(
+            &ds[0],
+            &out,
+            port,
+            "walker",
+            "remote_runs_c",
+            &["--lockstep"],
+        )
+        .output()
+        .unwrap();
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        let rep = report(&out);
+        let c = &rep["clients"][0];
+        let n = u(&c["keyframes_sent"]);
+        assert!(n >= 5, "{c:#}");
+        assert_eq!(u(&c["keyframes_acked"]), n, "{c:#}");
+        let bridge = &rep["bridges"]["bridge:0"];
+        let base = u(&bridge["start_base"]);
+        assert!((base == 0) == (run == 0), "run {run}: {bridge}");
+        sent += n;
+    }
+    stop(server);
+    let srv = report(&server_out);
+    let me = &srv["remote_clients"][0];
+    eprintln!(
+        "{sent} keyframes in two runs; server {me}; maps {}",
+        srv["maps"]
+    );
+    assert_eq!(me["name"], "walker");
+    assert_eq!(u(&me["keyframes_applied"]), sent, "{me}");
+    assert_eq!(u(&me["keyframes_received"]), sent, "{me}");
+    assert!(u(&srv["merges"]) >= 1, "the runs' maps: {}", srv["maps"]);
+}
+
 /// A client 50 ms of round trip away on a link that also drops 1 % of the packets each way
 /// ([`net_proxy::lossy::LossyLink`]: the server and the client each in a network namespace
 /// of its own, so the server listens off loopback, which needs `--auth`). Every keyframe is

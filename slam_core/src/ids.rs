@@ -110,6 +110,13 @@ impl SessionId {
     pub const fn vo_session(self) -> u32 {
         self.0 & SESSION_VO_MASK
     }
+
+    /// The same VO session of start `start + by` (a remote client's run on its server,
+    /// `bridge::run_ids`); `None` when that start is not in 1..2^16.
+    pub fn shift_start(self, by: i64) -> Option<Self> {
+        let start = u32::try_from(i64::from(self.start()) + by).ok()?;
+        (start > 0 && start <= SESSION_VO_MASK).then(|| Self::new(start, self.vo_session()))
+    }
 }
 
 /// `s{start}.{vo_session}`.
@@ -156,6 +163,15 @@ impl ClientKeyframeId {
     /// The tracker start that made it.
     pub const fn start(self) -> u32 {
         (self.0 >> START_KF_BITS) as u32
+    }
+
+    /// The same keyframe of start `start + by` (a remote client's run on its server,
+    /// `bridge::run_ids`); `None` when that start is not in 1..4096.
+    pub fn shift_start(self, by: i64) -> Option<Self> {
+        let start = u64::try_from(i64::from(self.start()) + by).ok()?;
+        let counter = self.0 & ((1 << START_KF_BITS) - 1);
+        let id = (start << START_KF_BITS) | counter;
+        (start > 0 && id <= Self::MAX).then_some(Self(id))
     }
 
     /// Its number within the start.
@@ -386,5 +402,25 @@ mod tests {
         let a = KeyframeId::new(ClientId::new(1), 5);
         let b = KeyframeId::new(ClientId::new(1), 6);
         assert!(a < b);
+    }
+
+    #[test]
+    fn starts_shift_and_keep_the_rest() {
+        let s = SessionId::new(2, 7).shift_start(5).unwrap();
+        assert_eq!((s.start(), s.vo_session()), (7, 7));
+        assert_eq!(s.shift_start(-5), Some(SessionId::new(2, 7)));
+        assert_eq!(
+            SessionId::new(2, 7).shift_start(-2),
+            None,
+            "start 0 is no start"
+        );
+        assert_eq!(SessionId::new(0xFFFF, 1).shift_start(1), None);
+        let k = ClientKeyframeId::from_raw(ClientKeyframeId::first_of_start(3).raw() + 9);
+        let moved = k.shift_start(10).unwrap();
+        assert_eq!((moved.start(), moved.counter()), (13, 9));
+        assert_eq!(moved.shift_start(-10), Some(k));
+        assert_eq!(k.shift_start(-3), None);
+        assert_eq!(k.shift_start(4093), None, "beyond 4096 starts");
+        assert_eq!(k.shift_start(4092).unwrap().start(), 4095);
     }
 }

@@ -253,6 +253,7 @@ fn bridge_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             args.extend(["--side", "client", "--endpoint", &endpoint].map(String::from));
             args.extend(["--name".to_string(), client_name(cfg, c as usize)]);
             args.extend(["--client".to_string(), c.to_string()]);
+            args.extend(["--run".to_string(), run_id().to_string()]);
             if let Some(f) = &cfg.auth {
                 args.extend(["--auth".to_string(), path_arg(f)]);
             }
@@ -271,6 +272,20 @@ fn bridge_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
         }
     }
     args
+}
+
+/// This run's id, the same for every start of its bridges: the server keeps the ids of a
+/// client's runs apart by it (`bridge::run_ids`). The wall clock's nanoseconds and the
+/// launcher's pid: two runs of one client differ in either.
+fn run_id() -> u64 {
+    static ID: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *ID.get_or_init(|| {
+        let ns = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        // Never 0 (the bridge's default when started by hand).
+        (ns ^ (u64::from(std::process::id()) << 44)).max(1)
+    })
 }
 
 /// The server's table of remote clients' slots, in its output folder.

@@ -122,23 +122,28 @@ fn remote_clients(
     services: &[Supervised],
     maps: &[::mapper::MapSummary],
 ) -> Vec<RemoteClient> {
-    let table = std::fs::read_to_string(out.join(super::REMOTE_CLIENTS)).unwrap_or_default();
+    // The bridge's own reader (a table it never wrote reads as empty here; the bridge
+    // itself refuses to start on a malformed one).
+    let table = bridge::slots::Slots::open(Some(&out.join(super::REMOTE_CLIENTS)), u32::MAX)
+        .unwrap_or_default();
+    let table = table.by_slot();
     let mapper = services.iter().find(|s| s.name == "mapper");
     let counters: ::mapper::MapperCounters = mapper
         .map(|m| report::load_status(&m.status).counters_as())
         .unwrap_or_default();
     // Applied keyframes from the journal, as `shoal run` counts them: a keyframe is
     // journaled before it is acknowledged, and a SIGKILLed server's status file may lag.
-    let slot_of = |l: &str| l.split_once(' ')?.0.parse::<usize>().ok();
-    let slots = table.lines().filter_map(slot_of).max().map_or(0, |m| m + 1);
+    let slots = table
+        .iter()
+        .map(|(s, _)| *s as usize + 1)
+        .max()
+        .unwrap_or(0);
     let journaled = report::journal_keyframes(&out.join(super::MAPPER_JOURNAL), slots);
     table
-        .lines()
-        .filter_map(|l| {
-            let (slot, name) = l.split_once(' ')?;
-            let slot: u32 = slot.parse().ok()?;
+        .into_iter()
+        .map(|(slot, name)| {
             let c = counters.client(slot);
-            Some(RemoteClient {
+            RemoteClient {
                 name: name.to_string(),
                 slot,
                 keyframes_received: c.keyframes_received,
@@ -146,7 +151,7 @@ fn remote_clients(
                     .and_then(|j| j.get(slot as usize))
                     .map_or(c.keyframes_applied, |j| j.applied),
                 maps: maps.iter().filter(|m| m.clients.contains(&slot)).count() as u64,
-            })
+            }
         })
         .collect()
 }

@@ -13,7 +13,6 @@
 //! - **Counted**: a refused connection is seen only inside zenoh's handshake, which logs it;
 //!   [`RefusalCounter`] counts those log events (the test of this module holds zenoh to the
 //!   message it matches).
-use std::collections::BTreeSet;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -92,8 +91,8 @@ pub fn client_config(c: &mut zenoh::Config, cred: &Credential) -> anyhow::Result
 }
 
 /// Sets the server's zenoh dictionary (`file`, checked by [`read_credentials`]) and its
-/// access control; the known names.
-pub fn server_config(c: &mut zenoh::Config, file: &Path) -> anyhow::Result<BTreeSet<String>> {
+/// access control; the known names, in the file's order.
+pub fn server_config(c: &mut zenoh::Config, file: &Path) -> anyhow::Result<Vec<String>> {
     let creds = read_credentials(file)?;
     let dict = file
         .to_str()
@@ -244,7 +243,7 @@ mod tests {
         let mut config =
             crate::zenoh_config("router", &format!("tcp/127.0.0.1:{port}"), true).unwrap();
         let names = server_config(&mut config, &file).unwrap();
-        assert_eq!(names, ["alice".to_string(), "bob".into()].into());
+        assert_eq!(names, ["alice", "bob"]);
         let server = zenoh::open(config).wait().unwrap();
         let kf = server
             .declare_subscriber(wire::ALL_KEYFRAMES)

@@ -22,6 +22,8 @@ const LIVENESS_PERIOD: Duration = Duration::from_millis(250);
 struct Link {
     session: zenoh::Session,
     slot: u32,
+    /// This run's start base on the server ([`crate::run_ids`]).
+    start_base: u32,
     /// The session had a router when last asked ([`LIVENESS_PERIOD`]).
     up: bool,
     /// When it was last asked.
@@ -35,6 +37,7 @@ struct Link {
 fn connect(
     endpoint: &str,
     name: &str,
+    run: u64,
     auth: Option<&crate::auth::Credential>,
 ) -> anyhow::Result<Option<Link>> {
     let mut config = zenoh_config("client", endpoint, false)?;
@@ -46,7 +49,7 @@ fn connect(
     };
     let replies = session
         .get(wire::HELLO_KEY)
-        .payload(wire::hello(name))
+        .payload(wire::hello(name, run))
         .timeout(HELLO_TIMEOUT)
         .wait()
         .map_err(|e| anyhow::anyhow!("hello to {endpoint}: {e}"))?;
@@ -57,8 +60,8 @@ fn connect(
         Ok(s) => s,
         Err(e) => anyhow::bail!("{endpoint}: the server's hello failed: {e:?}"),
     };
-    let slot = match Welcome::decode(&sample.payload().to_bytes()) {
-        Ok(Welcome::Slot(s)) => s,
+    let (slot, start_base) = match Welcome::decode(&sample.payload().to_bytes()) {
+        Ok(Welcome::Slot { slot, start_base }) => (slot, start_base),
         Ok(Welcome::Refused(why)) => {
             return Err(crate::Refused(format!("{endpoint} refused client {name:?}: {why}")).into())
         }
@@ -74,6 +77,7 @@ fn connect(
     Ok(Some(Link {
         session,
         slot,
+        start_base,
         up: true,
         asked: Instant::now(),
         keyframes,
@@ -138,7 +142,10 @@ impl Client {
                 self.counters.keyframes_unsent += 1;
                 continue;
             };
-            let bytes = match wire::encode_keyframe(&h, s.payload()) {
+            let mut on_server = h;
+            let bytes = crate::run_ids::keyframe_to_server(&mut on_server, l.start_base)
+                .and_then(|()| wire::encode_keyframe(&on_server, s.payload()));
+            let bytes = match bytes {
                 Ok(b) => b,
                 Err(e) => {
                     self.counters.keyframes_refused += 1;
@@ -169,8 +176,12 @@ impl Client {
         let mut busy = false;
         while let Ok(Some(s)) = link.feedback.try_recv() {
             busy = true;
-            match wire::decode_feedback(&s.payload().to_bytes(), c) {
-                Ok(mut f) => {
+            let mine =
+                |mut f| crate::run_ids::feedback_from_server(&mut f, link.start_base).then_some(f);
+            match wire::decode_feedback(&s.payload().to_bytes(), c).map(mine) {
+                // An earlier run's (its ids are below this run's base): not this tracker's.
+                Ok(None) => self.counters.feedback_other_runs += 1,
+                Ok(Some(mut f)) => {
                     // Published on this host now: the server's clock is not this one.
                     f.meta.publish_mono_ns = shm_schema::time::monotonic_ns();
                     self.trips.acked((f.acked_session_id, f.acked_keyframe_id));
@@ -219,7 +230,13 @@ impl Client {
         params: &Params,
         file: &mut shoal_runtime::StatusFile,
     ) -> anyhow::Result<Option<Link>> {
-        let link = match connect(&params.endpoint, &params.name, self.auth.as_ref()) {
+        let link = connect(
+            &params.endpoint,
+            &params.name,
+            params.run,
+            self.auth.as_ref(),
+        );
+        let link = match link {
             Ok(l) => l,
             Err(e) => {
                 self.status.error(ErrorKind::Remote, format!("{e:#}"));
@@ -235,9 +252,10 @@ impl Client {
             self.counters.connects += 1;
             self.counters.hellos = 1;
             self.counters.slot = Some(u64::from(l.slot));
+            self.counters.start_base = Some(u64::from(l.start_base));
             eprintln!(
-                "[bridge:{}] connected to {} as slot {}",
-                params.client, params.endpoint, l.slot
+                "[bridge:{}] connected to {} as slot {} (run {}, start base {})",
+                params.client, params.endpoint, l.slot, params.run, l.start_base
             );
         }
         Ok(link)

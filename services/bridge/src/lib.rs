@@ -11,6 +11,7 @@
 //! is away.
 pub mod auth;
 pub mod client;
+pub mod run_ids;
 pub mod server;
 pub mod slots;
 pub mod wire;
@@ -48,6 +49,10 @@ pub struct Params {
     /// Client: the local client index (its tracker's).
     #[arg(long, default_value_t = 0)]
     pub client: u32,
+    /// Client: this run's id (the launcher's, the same for every start of the bridge in
+    /// the run): the server keeps the ids of the client's runs apart by it ([`run_ids`]).
+    #[arg(long, default_value_t = 0)]
+    pub run: u64,
     /// Server: how many clients it takes (the mapper's `--clients`).
     #[arg(long, default_value_t = 4)]
     pub capacity: u32,
@@ -91,6 +96,9 @@ pub struct BridgeCounters {
     pub feedback_forwarded: u64,
     /// Feedback messages that could not be decoded (dropped).
     pub feedback_refused: u64,
+    /// Client: feedback for an earlier run of the client (ids below this run's start
+    /// base, [`run_ids`]; not passed to the tracker).
+    pub feedback_other_runs: u64,
     /// Server: hellos answered with a slot; client: 1 once it has its slot.
     pub hellos: u64,
     /// Server: hellos refused (full, another schema version, a bad or unknown name).
@@ -100,6 +108,9 @@ pub struct BridgeCounters {
     pub auth_refused: u64,
     /// Client: its slot on the server (gauge).
     pub slot: Option<u64>,
+    /// Client: this run's start base on the server ([`run_ids`]; gauge; 0 for a name's
+    /// first run).
+    pub start_base: Option<u64>,
     /// Client: times it reached its server: the first connection, and each time the server
     /// came back after a loss.
     pub connects: u64,

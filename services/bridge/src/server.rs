@@ -43,12 +43,12 @@ impl Server {
         while let Ok(Some(q)) = hellos.try_recv() {
             busy = true;
             let answer = match q.payload().map(|p| wire::parse_hello(&p.to_bytes())) {
-                Some(Ok((version, name))) => self.slots.welcome(version, &name),
+                Some(Ok(h)) => self.slots.welcome(h.version, &h.name, h.run),
                 Some(Err(e)) => Welcome::Refused(e),
                 None => Welcome::Refused("an empty hello".into()),
             };
             match &answer {
-                Welcome::Slot(_) => self.counters.hellos += 1,
+                Welcome::Slot { .. } => self.counters.hellos += 1,
                 Welcome::Refused(why) => {
                     self.counters.hellos_refused += 1;
                     let why = format!("hello refused: {why}");
@@ -68,7 +68,8 @@ impl Server {
         while let Ok(Some(sample)) = incoming.try_recv() {
             busy = true;
             let key = sample.key_expr().as_str();
-            let slot = wire::name_of(key).and_then(|n| self.slots.slot_of(n));
+            let name = wire::name_of(key).unwrap_or_default();
+            let slot = self.slots.slot_of(name);
             let Some((s, port)) = slot.and_then(|s| ports.get(s as usize).map(|p| (s, p))) else {
                 self.counters.keyframes_refused += 1;
                 let why = format!("{key}: no client of this name said hello");
@@ -85,7 +86,8 @@ impl Server {
             }
             let bytes = sample.payload().to_bytes();
             match forward_keyframe(s, &port.keyframes, &bytes) {
-                Ok(()) => {
+                Ok(start) => {
+                    self.slots.saw_start(name, start);
                     self.counters.keyframes_forwarded += 1;
                     self.counters.keyframe_bytes += bytes.len() as u64;
                 }
@@ -196,8 +198,9 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Publishes a keyframe from the network to the mapper as slot `slot`'s.
-fn forward_keyframe(slot: u32, publisher: &KeyframePub, bytes: &[u8]) -> anyhow::Result<()> {
+/// Publishes a keyframe from the network to the mapper as slot `slot`'s; the tracker start
+/// its ids carry ([`crate::run_ids::server_start`]).
+fn forward_keyframe(slot: u32, publisher: &KeyframePub, bytes: &[u8]) -> anyhow::Result<u32> {
     let (mut h, records, imu) = wire::decode_keyframe(bytes).map_err(anyhow::Error::msg)?;
     h.meta.client_id = slot;
     // Published on this host now: the client's clock is not this one.
@@ -210,5 +213,5 @@ fn forward_keyframe(slot: u32, publisher: &KeyframePub, bytes: &[u8]) -> anyhow:
     });
     *sample.user_header_mut() = h;
     sample.send()?;
-    Ok(())
+    Ok(crate::run_ids::server_start(&h))
 }

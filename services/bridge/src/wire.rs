@@ -61,33 +61,57 @@ pub fn valid_name(name: &str) -> bool {
         && !name.chars().any(char::is_whitespace)
 }
 
-/// A client's request for a slot: `shoal-hello {schema version} {name}`.
-pub fn hello(name: &str) -> Vec<u8> {
-    format!("shoal-hello {SCHEMA_VERSION} {name}").into_bytes()
+/// A client's request for a slot: `shoal-hello {schema version} {name} {run}` (`run`: the
+/// launcher's id of this run of the client, [`crate::run_ids`]).
+pub fn hello(name: &str, run: u64) -> Vec<u8> {
+    format!("shoal-hello {SCHEMA_VERSION} {name} {run}").into_bytes()
 }
 
-/// The schema version and name of a hello, or why it is not one.
-pub fn parse_hello(bytes: &[u8]) -> Result<(u32, String), String> {
+/// What a client says in its hello.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Hello {
+    pub version: u32,
+    pub name: String,
+    pub run: u64,
+}
+
+/// A hello's schema version, name and run, or why it is not one.
+pub fn parse_hello(bytes: &[u8]) -> Result<Hello, String> {
     let text = std::str::from_utf8(bytes).map_err(|_| "a hello that is not text".to_string())?;
-    let mut parts = text.splitn(3, ' ');
-    let (Some("shoal-hello"), Some(v), Some(name)) = (parts.next(), parts.next(), parts.next())
-    else {
+    let parts: Vec<&str> = text.split(' ').collect();
+    let ["shoal-hello", v, rest @ ..] = parts.as_slice() else {
         return Err(format!("not a shoal hello: {text:?}"));
     };
-    let v = v
+    let version = v
         .parse()
         .map_err(|_| format!("bad schema version in {text:?}"))?;
+    // The schema version first: another version's hello may be laid out otherwise.
+    if version != SCHEMA_VERSION {
+        return Ok(Hello {
+            version,
+            name: rest.first().unwrap_or(&"").to_string(),
+            run: 0,
+        });
+    }
+    let [name, run] = rest else {
+        return Err(format!("expected `shoal-hello VERSION NAME RUN`: {text:?}"));
+    };
     if !valid_name(name) {
         return Err(format!("bad client name {name:?}"));
     }
-    Ok((v, name.to_string()))
+    let run = run.parse().map_err(|_| format!("bad run id in {text:?}"))?;
+    Ok(Hello {
+        version,
+        name: name.to_string(),
+        run,
+    })
 }
 
 /// The server's answer to a hello.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Welcome {
-    /// The client's slot.
-    Slot(u32),
+    /// The client's slot, and its run's start base ([`crate::run_ids`]).
+    Slot { slot: u32, start_base: u32 },
     /// Refused, and why.
     Refused(String),
 }
@@ -96,7 +120,7 @@ impl Welcome {
     /// Its payload.
     pub fn encode(&self) -> Vec<u8> {
         match self {
-            Self::Slot(s) => format!("slot {s}").into_bytes(),
+            Self::Slot { slot, start_base } => format!("slot {slot} {start_base}").into_bytes(),
             Self::Refused(why) => format!("refused {why}").into_bytes(),
         }
     }
@@ -105,10 +129,11 @@ impl Welcome {
     pub fn decode(bytes: &[u8]) -> Result<Self, String> {
         let text = String::from_utf8_lossy(bytes);
         if let Some(s) = text.strip_prefix("slot ") {
-            return s
-                .parse()
-                .map(Self::Slot)
-                .map_err(|_| format!("bad slot {s:?}"));
+            let mut n = s.split(' ').map(str::parse::<u32>);
+            return match (n.next(), n.next(), n.next()) {
+                (Some(Ok(slot)), Some(Ok(start_base)), None) => Ok(Self::Slot { slot, start_base }),
+                _ => Err(format!("bad slot {s:?}")),
+            };
         }
         match text.strip_prefix("refused ") {
             Some(why) => Ok(Self::Refused(why.to_string())),
@@ -284,15 +309,27 @@ mod tests {
 
     #[test]
     fn hello_and_welcome() {
-        let (v, name) = parse_hello(&hello("phone-1")).unwrap();
-        assert_eq!((v, name.as_str()), (SCHEMA_VERSION, "phone-1"));
-        assert!(parse_hello(b"shoal-hello 4 a/b").is_err());
+        let h = parse_hello(&hello("phone-1", 77)).unwrap();
+        assert_eq!(
+            (h.version, h.name.as_str(), h.run),
+            (SCHEMA_VERSION, "phone-1", 77)
+        );
+        assert!(parse_hello(b"shoal-hello 4 a/b 1").is_err());
+        assert!(parse_hello(b"shoal-hello 4 phone").is_err(), "no run id");
         assert!(parse_hello(b"hello").is_err());
-        for w in [Welcome::Slot(3), Welcome::Refused("full".into())] {
+        // Another schema version is read only as far as its version and name (the refusal
+        // names them).
+        let old = parse_hello(b"shoal-hello 3 phone").unwrap();
+        assert_eq!((old.version, old.name.as_str()), (3, "phone"));
+        let slot = Welcome::Slot {
+            slot: 3,
+            start_base: 5,
+        };
+        for w in [slot, Welcome::Refused("full".into())] {
             assert_eq!(Welcome::decode(&w.encode()).unwrap(), w);
         }
         assert_eq!(name_of(&keyframe_key("phone-1")), Some("phone-1"));
         assert_eq!(name_of("shoal/kf/a b"), None);
-        assert!(parse_hello(b"shoal-hello 4 a:b").is_err());
+        assert!(parse_hello(b"shoal-hello 4 a:b 1").is_err());
     }
 }
