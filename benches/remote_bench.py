@@ -6,8 +6,9 @@ The link is the one of `tests/net_proxy/lossy.rs`, made here in Python for the b
 TUN device in each namespace, and a thread that carries every IP packet from one to the
 other `--one-way-ms` late, dropping a fraction `--loss` of them in each direction (this
 machine has no `sch_netem`; the packets are real TCP segments, so a drop costs a real
-retransmission). Needs root, /dev/net/tun and `ip netns`. Off loopback the server needs
-`--auth`, so the link runs use generated credentials.
+retransmission). Needs root, /dev/net/tun and `ip netns`. Every run uses generated
+credentials (`--auth`; off loopback the server needs them): client i is line i of the file,
+so its slot is i, the client index a single-host `shoal run` with the same datasets gives.
 
 Prints one table row per client: keyframes sent / acked / applied, round trip p50 / p99,
 bytes per keyframe, frames posed, tracking latency p50 / p99, and the server keyframes' ATE
@@ -129,19 +130,20 @@ def main():
     shutil.rmtree(a.out, ignore_errors=True)
     os.makedirs(a.out)
     tag = str(os.getpid() % 10000)
-    link = None
-    host, auth_srv, auth_cli = "127.0.0.1", [], lambda i: []
+    link, host = None, "127.0.0.1"
     if a.one_way_ms > 0 or a.loss > 0:
         link = Link(tag, a.one_way_ms / 1000.0, a.loss)
         host = link.addr[0]
-        with open(f"{a.out}/clients.txt", "w") as f:
-            for i in range(a.clients):
-                f.write(f"c{i}:secret {i}\n")
+    # Credentials always (off loopback the server needs them): client i is the file's line
+    # i, so it gets slot i whatever the order of arrival, as `shoal run` would number it.
+    with open(f"{a.out}/clients.txt", "w") as f:
         for i in range(a.clients):
-            with open(f"{a.out}/c{i}.txt", "w") as f:
-                f.write(f"c{i}:secret {i}\n")
-        auth_srv = ["--auth", f"{a.out}/clients.txt"]
-        auth_cli = lambda i: ["--auth", f"{a.out}/c{i}.txt"]
+            f.write(f"c{i}:secret {i}\n")
+    for i in range(a.clients):
+        with open(f"{a.out}/c{i}.txt", "w") as f:
+            f.write(f"c{i}:secret {i}\n")
+    auth_srv = ["--auth", f"{a.out}/clients.txt"]
+    auth_cli = lambda i: ["--auth", f"{a.out}/c{i}.txt"]
     srv_ns, cli_ns = (link.ns if link else (None, None))
     endpoint = f"tcp/{host}:{a.port}"
     server = subprocess.Popen(
