@@ -124,6 +124,12 @@ def main():
     ap.add_argument("--loss", type=float, default=0.0)
     ap.add_argument("--port", type=int, default=7610)
     ap.add_argument("--window", type=int, default=10)
+    ap.add_argument("--initcwnd", type=int, default=0,
+                    help="the link's route with this initcwnd and initrwnd, segments "
+                         "(0: the kernel's 10)")
+    ap.add_argument("--no-idle-restart", action="store_true",
+                    help="sysctl net.ipv4.tcp_slow_start_after_idle=0 in both namespaces "
+                         "(TCP keeps its window between keyframes)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
     shoal = os.path.abspath(a.shoal)
@@ -134,6 +140,14 @@ def main():
     if a.one_way_ms > 0 or a.loss > 0:
         link = Link(tag, a.one_way_ms / 1000.0, a.loss)
         host = link.addr[0]
+        if a.initcwnd:
+            for ns, side in zip(link.ns, "sc"):
+                sh("ip", "-n", ns, "route", "change", "10.78.0.0/24", "dev", f"rb{tag}{side}",
+                   "initcwnd", str(a.initcwnd), "initrwnd", str(a.initcwnd))
+        if a.no_idle_restart:
+            for ns in link.ns:
+                sh("ip", "netns", "exec", ns, "sysctl", "-qw",
+                   "net.ipv4.tcp_slow_start_after_idle=0")
     # Credentials always (off loopback the server needs them): client i is the file's line
     # i, so it gets slot i whatever the order of arrival, as `shoal run` would number it.
     with open(f"{a.out}/clients.txt", "w") as f:
