@@ -42,7 +42,7 @@ class Link:
 
     def __init__(self, tag, one_way, loss, seed=1):
         self.ns = (f"rb{tag}s", f"rb{tag}c")
-        self.addr = ("10.78.0.1", "10.78.0.2")
+        self.addr = ("10.77.0.1", "10.77.0.2")
         self.fds = []
         for ns, addr, side in zip(self.ns, self.addr, "sc"):
             subprocess.run(["ip", "netns", "del", ns], stderr=subprocess.DEVNULL)
@@ -124,6 +124,8 @@ def main():
     ap.add_argument("--loss", type=float, default=0.0)
     ap.add_argument("--port", type=int, default=7610)
     ap.add_argument("--window", type=int, default=10)
+    ap.add_argument("--tls", action="store_true",
+                    help="a tls/ endpoint with the test certificates of tests/tls")
     ap.add_argument("--initcwnd", type=int, default=0,
                     help="the link's route with this initcwnd and initrwnd, segments "
                          "(0: the kernel's 10)")
@@ -142,7 +144,7 @@ def main():
         host = link.addr[0]
         if a.initcwnd:
             for ns, side in zip(link.ns, "sc"):
-                sh("ip", "-n", ns, "route", "change", "10.78.0.0/24", "dev", f"rb{tag}{side}",
+                sh("ip", "-n", ns, "route", "change", "10.77.0.0/24", "dev", f"rb{tag}{side}",
                    "initcwnd", str(a.initcwnd), "initrwnd", str(a.initcwnd))
         if a.no_idle_restart:
             for ns in link.ns:
@@ -159,7 +161,13 @@ def main():
     auth_srv = ["--auth", f"{a.out}/clients.txt"]
     auth_cli = lambda i: ["--auth", f"{a.out}/c{i}.txt"]
     srv_ns, cli_ns = (link.ns if link else (None, None))
-    endpoint = f"tcp/{host}:{a.port}"
+    scheme = "tls" if a.tls else "tcp"
+    endpoint = f"{scheme}/{host}:{a.port}"
+    if a.tls:
+        certs = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "tls")
+        auth_srv += ["--tls-cert", f"{certs}/server.pem", "--tls-key", f"{certs}/server.key"]
+        plain_cli = auth_cli
+        auth_cli = lambda i: plain_cli(i) + ["--tls-ca", f"{certs}/ca.pem"]
     server = subprocess.Popen(
         in_ns(srv_ns, [shoal, "serve", "--listen", endpoint, "--out", f"{a.out}/server",
                        "--clients", str(a.clients), "--ipc-prefix", f"rb{tag}s_"] + auth_srv),

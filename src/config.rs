@@ -94,6 +94,13 @@ pub struct RunConfig {
     /// the clients of the file, each under its own name, and may then listen on any address;
     /// `shoal client` presents its one line (its name is the line's).
     pub auth: Option<PathBuf>,
+    /// `shoal serve` on a `tls/HOST:PORT` endpoint: its TLS certificate (chain), PEM.
+    pub tls_cert: Option<PathBuf>,
+    /// `shoal serve` on a `tls/HOST:PORT` endpoint: its TLS private key, PEM.
+    pub tls_key: Option<PathBuf>,
+    /// `shoal client` of a `tls/HOST:PORT` server: the CA certificate (PEM) the server's
+    /// certificate must chain to.
+    pub tls_ca: Option<PathBuf>,
     /// `shoal serve`: the endpoint the server listens on (`tcp/HOST:PORT`).
     pub listen: Option<String>,
     /// `shoal serve`: how many remote clients the server takes.
@@ -147,6 +154,9 @@ impl Default for RunConfig {
             connect: None,
             client_name: None,
             auth: None,
+            tls_cert: None,
+            tls_key: None,
+            tls_ca: None,
             listen: None,
             server_clients: 4,
             server_max_keyframe_rate: DEFAULT_MAX_KEYFRAME_RATE,

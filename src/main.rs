@@ -169,7 +169,8 @@ struct RunArgs {
     /// starts.
     #[arg(long, value_name = "SECONDS")]
     viz_wait: Option<f64>,
-    /// `shoal client`: the server's endpoint (`tcp/HOST:PORT`).
+    /// `shoal client`: the server's endpoint (`tcp/HOST:PORT`, or `tls/HOST:PORT` with
+    /// `--tls-ca`).
     #[arg(long, value_name = "tcp/HOST:PORT")]
     connect: Option<String>,
     /// `shoal client`: this client's name, which keeps its slot (and map) on the server
@@ -180,6 +181,10 @@ struct RunArgs {
     /// server started with `--auth` (the name is the client's).
     #[arg(long, value_name = "FILE")]
     auth: Option<PathBuf>,
+    /// `shoal client` of a `tls/HOST:PORT` server: the CA certificate (PEM) its TLS
+    /// certificate must chain to (the host connected to must be one of its names).
+    #[arg(long, value_name = "FILE")]
+    tls_ca: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -194,9 +199,17 @@ struct ServeArgs {
     /// Set one configuration key over the file (repeatable).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     sets: Vec<String>,
-    /// Where to listen (`tcp/HOST:PORT`; loopback addresses only without `--auth`).
+    /// Where to listen (`tcp/HOST:PORT`, or `tls/HOST:PORT` with `--tls-cert` and
+    /// `--tls-key`; loopback addresses only without `--auth`).
     #[arg(long, default_value = "tcp/127.0.0.1:7447")]
     listen: String,
+    /// With a `tls/` endpoint: the server's TLS certificate (chain), PEM. TLS encrypts what
+    /// crosses; who may use the server is `--auth`'s.
+    #[arg(long, value_name = "FILE")]
+    tls_cert: Option<PathBuf>,
+    /// With a `tls/` endpoint: the server's TLS private key, PEM.
+    #[arg(long, value_name = "FILE")]
+    tls_key: Option<PathBuf>,
     /// Only known clients: a file of `NAME:PASSWORD` lines; each client presents its own
     /// line (`shoal client --auth`) and may publish only under its name. A client's first
     /// slot (its index in the server's maps) is its line's rank, whatever the order of
@@ -340,6 +353,9 @@ fn run_config(args: RunArgs) -> anyhow::Result<config::RunConfig> {
     if args.auth.is_some() {
         cfg.auth = args.auth;
     }
+    if args.tls_ca.is_some() {
+        cfg.tls_ca = args.tls_ca;
+    }
     if args.quiet {
         cfg.progress = false;
     }
@@ -385,6 +401,12 @@ fn client_cmd(args: RunArgs) -> anyhow::Result<()> {
         );
         cfg.client_name = Some(cred.name);
     }
+    let connect = cfg.connect.as_deref().unwrap_or_default();
+    let ca = [("--tls-ca", cfg.tls_ca.is_some())];
+    bridge::tls::check_endpoint("--connect", connect, &ca)?;
+    if let Some(ca) = &cfg.tls_ca {
+        bridge::tls::check_pem(ca, "CERTIFICATE")?;
+    }
     let rep = launcher::run(&cfg)?;
     launcher::summary::print(&rep, &cfg.out);
     Ok(())
@@ -395,6 +417,12 @@ fn serve_cmd(args: ServeArgs) -> anyhow::Result<()> {
     cfg.listen = Some(args.listen);
     if args.auth.is_some() {
         cfg.auth = args.auth;
+    }
+    if args.tls_cert.is_some() {
+        cfg.tls_cert = args.tls_cert;
+    }
+    if args.tls_key.is_some() {
+        cfg.tls_key = args.tls_key;
     }
     cfg.out = args.out;
     cfg.server_clients = args.clients;

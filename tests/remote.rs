@@ -38,7 +38,14 @@ fn serve_cmd(listen: &str, out: &Path, test: &str, clients: u32, extra: &[&str])
 /// Starts `shoal serve` on `port` into `out` (`clients` slots, `extra` arguments); waits
 /// until it accepts connections.
 fn serve(port: u16, out: &Path, test: &str, clients: u32, extra: &[&str]) -> Child {
-    let child = serve_cmd(&format!("tcp/127.0.0.1:{port}"), out, test, clients, extra)
+    let listen = format!("tcp/127.0.0.1:{port}");
+    start_server(serve_cmd(&listen, out, test, clients, extra), port)
+}
+
+/// Starts the server `cmd` listening on loopback `port`; waits until it accepts
+/// connections.
+fn start_server(mut cmd: Command, port: u16) -> Child {
+    let child = cmd
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -510,6 +517,79 @@ fn a_second_run_of_a_client_is_applied_not_taken_for_re_sends() {
     assert_eq!(u(&me["keyframes_applied"]), sent, "{me}");
     assert_eq!(u(&me["keyframes_received"]), sent, "{me}");
     assert!(u(&srv["merges"]) >= 1, "the runs' maps: {}", srv["maps"]);
+}
+
+/// A server on a `tls/` endpoint (`--tls-cert`, `--tls-key`; with `--auth`): a client
+/// given the CA that signed its certificate (`--tls-ca`) is served, every keyframe
+/// acknowledged, and nothing it sends crosses in the clear: the relay between them sees
+/// neither its hello nor its name, which it does see from the same client of a `tcp/`
+/// server. A client given another CA does not trust the server, says so and goes on alone.
+#[test]
+fn tls_encrypts_what_crosses_and_a_client_checks_the_server() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "two-agents", 120, None);
+    let tls = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/tls");
+    let file = |n: &str| tls.join(n).to_str().unwrap().to_string();
+    let (known, key) = (dir.path().join("clients.txt"), dir.path().join("alice.txt"));
+    std::fs::write(&known, "alice:pa55\n").unwrap();
+    std::fs::write(&key, "alice:pa55\n").unwrap();
+    let (known, key) = (known.to_str().unwrap(), key.to_str().unwrap());
+    let (cert, pkey) = (file("server.pem"), file("server.key"));
+    // (scheme, the client's CA, whether it is served)
+    let cases = [
+        ("tcp", None, true),
+        ("tls", Some(file("ca.pem")), true),
+        ("tls", Some(file("other_ca.pem")), false),
+    ];
+    for (i, (scheme, ca, served)) in cases.into_iter().enumerate() {
+        let port = free_port();
+        let mut extra = vec!["--auth", known];
+        if scheme == "tls" {
+            extra.extend(["--tls-cert", &cert, "--tls-key", &pkey]);
+        }
+        let listen = format!("{scheme}/127.0.0.1:{port}");
+        let server_out = dir.path().join(format!("server{i}"));
+        let test = format!("remote_tls_srv{i}");
+        let server = start_server(serve_cmd(&listen, &server_out, &test, 1, &extra), port);
+        let relay = net_proxy::Relay::start(port, Duration::ZERO);
+        let mut args = vec![
+            "--lockstep",
+            "--auth",
+            key,
+            "--set",
+            "tracker.end_wait_s=12",
+        ];
+        if let Some(ca) = &ca {
+            args.extend(["--tls-ca", ca]);
+        }
+        let endpoint = format!("{scheme}/127.0.0.1:{}", relay.port);
+        let out = dir.path().join(format!("c{i}"));
+        let test = format!("remote_tls_c{i}");
+        let run = client_of(&endpoint, &ds[0], &out, "alice", &test, &args)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        stop(server);
+        let rep = report(&out);
+        let c = &rep["clients"][0];
+        let (sent, acked) = (u(&c["keyframes_sent"]), u(&c["keyframes_acked"]));
+        let clear = relay.saw(b"shoal-hello") || relay.saw(b"alice");
+        eprintln!("{scheme}, CA {ca:?}: {acked} of {sent} acknowledged; in the clear: {clear}");
+        if !served {
+            let text = serde_json::to_string(&rep["errors"]).unwrap();
+            assert!(text.contains("--tls-ca"), "{text}");
+            assert_eq!(acked, 0, "{c:#}");
+            assert_eq!(u(&c["frames_posed"]), 120, "went on alone");
+            continue;
+        }
+        assert!(sent >= 3, "{c:#}");
+        assert_eq!(acked, sent, "{c:#}");
+        assert_eq!(clear, scheme == "tcp", "what crossed {scheme} in the clear");
+    }
 }
 
 /// A client 50 ms of round trip away on a link that also drops 1 % of the packets each way

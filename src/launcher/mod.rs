@@ -254,8 +254,11 @@ fn bridge_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             args.extend(["--name".to_string(), client_name(cfg, c as usize)]);
             args.extend(["--client".to_string(), c.to_string()]);
             args.extend(["--run".to_string(), run_id().to_string()]);
-            if let Some(f) = &cfg.auth {
-                args.extend(["--auth".to_string(), path_arg(f)]);
+            let files = [("--auth", &cfg.auth), ("--tls-ca", &cfg.tls_ca)];
+            for (flag, f) in files {
+                if let Some(f) = f {
+                    args.extend([flag.to_string(), path_arg(f)]);
+                }
             }
         }
         None => {
@@ -266,8 +269,15 @@ fn bridge_args(cfg: &RunConfig, desc: &topology::ServiceDesc) -> Vec<String> {
             args.extend(["--max-keyframe-rate".to_string(), rate]);
             let table = cfg.out.join(REMOTE_CLIENTS);
             args.extend(["--clients-file".to_string(), path_arg(&table)]);
-            if let Some(f) = &cfg.auth {
-                args.extend(["--auth".to_string(), path_arg(f)]);
+            let files = [
+                ("--auth", &cfg.auth),
+                ("--tls-cert", &cfg.tls_cert),
+                ("--tls-key", &cfg.tls_key),
+            ];
+            for (flag, f) in files {
+                if let Some(f) = f {
+                    args.extend([flag.to_string(), path_arg(f)]);
+                }
             }
         }
     }

@@ -36,9 +36,9 @@ pub struct RemoteClient {
 /// Refuses an endpoint that is not on a loopback address: without authentication the
 /// server must not be reachable from other hosts.
 pub fn check_loopback(endpoint: &str) -> anyhow::Result<()> {
-    let addr = endpoint
-        .strip_prefix("tcp/")
-        .with_context(|| format!("--listen {endpoint}: expected tcp/HOST:PORT"))?;
+    let addr = (endpoint.strip_prefix("tcp/"))
+        .or_else(|| endpoint.strip_prefix(::bridge::tls::SCHEME))
+        .with_context(|| format!("--listen {endpoint}: expected tcp/HOST:PORT or tls/HOST:PORT"))?;
     let resolved: Vec<_> = (addr.to_socket_addrs())
         .with_context(|| format!("--listen {endpoint}: cannot resolve {addr}"))?
         .collect();
@@ -47,6 +47,20 @@ pub fn check_loopback(endpoint: &str) -> anyhow::Result<()> {
             "--listen {endpoint}: without authentication the server listens on loopback \
              addresses only (127.0.0.1, ::1); give the known clients with --auth FILE"
         );
+    }
+    Ok(())
+}
+
+/// A `tls/` endpoint has its certificate and key, a `tcp/` one none; the files are PEM.
+fn check_tls(cfg: &RunConfig, listen: &str) -> anyhow::Result<()> {
+    let files = [
+        ("--tls-cert", cfg.tls_cert.is_some()),
+        ("--tls-key", cfg.tls_key.is_some()),
+    ];
+    ::bridge::tls::check_endpoint("--listen", listen, &files)?;
+    if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
+        ::bridge::tls::check_pem(cert, "CERTIFICATE")?;
+        ::bridge::tls::check_pem(key, "PRIVATE KEY")?;
     }
     Ok(())
 }
@@ -60,6 +74,7 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         rate >= 0.0 && rate.is_finite(),
         "server_max_keyframe_rate must be 0 (no limit) or positive (got {rate})"
     );
+    check_tls(cfg, &listen)?;
     let known = match &cfg.auth {
         Some(file) => ::bridge::auth::read_credentials(file)?.len(),
         None => {
@@ -83,8 +98,12 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         0 => "loopback only, no authentication".to_string(),
         n => format!("only the clients of --auth, {n} known"),
     };
+    let wire = match cfg.tls_cert {
+        Some(_) => "encrypted (TLS)",
+        None => "not encrypted",
+    };
     eprintln!(
-        "shoal serve: listening on {listen} ({who}) for up to {} clients; Ctrl-C stops",
+        "shoal serve: listening on {listen} ({who}; {wire}) for up to {} clients; Ctrl-C stops",
         cfg.server_clients
     );
     let mut errors = Vec::new();

@@ -23,7 +23,12 @@ struct State {
     sockets: Mutex<Vec<TcpStream>>,
     /// Connections carried so far.
     connections: std::sync::atomic::AtomicU64,
+    /// The first [`CAPTURE_BYTES`] the clients sent (what an eavesdropper would see).
+    captured: Mutex<Vec<u8>>,
 }
+
+/// How much of the clients' bytes a relay keeps.
+const CAPTURE_BYTES: usize = 8 << 20;
 
 /// A relay from a local port to `127.0.0.1:upstream`.
 pub struct Relay {
@@ -53,8 +58,8 @@ impl Relay {
                     let _ = s.set_nodelay(true);
                     st.sockets.lock().unwrap().push(s.try_clone().unwrap());
                 }
-                pipe(&inbound, &outbound, one_way, &st);
-                pipe(&outbound, &inbound, one_way, &st);
+                pipe(&inbound, &outbound, one_way, &st, true);
+                pipe(&outbound, &inbound, one_way, &st, false);
             }
         });
         Self { port, state }
@@ -76,11 +81,17 @@ impl Relay {
     pub fn connections(&self) -> u64 {
         self.state.connections.load(Ordering::SeqCst)
     }
+
+    /// Whether the clients' bytes so far (the first 8 MB) contain `needle`.
+    pub fn saw(&self, needle: &[u8]) -> bool {
+        let bytes = self.state.captured.lock().unwrap();
+        bytes.windows(needle.len()).any(|w| w == needle)
+    }
 }
 
 /// Carries `from` → `to`, each chunk `delay` after it was read, holding (not reading) while
-/// partitioned.
-fn pipe(from: &TcpStream, to: &TcpStream, delay: Duration, st: &Arc<State>) {
+/// partitioned; keeps a copy of what it carries when `capture`.
+fn pipe(from: &TcpStream, to: &TcpStream, delay: Duration, st: &Arc<State>, capture: bool) {
     let (mut from, mut to) = (from.try_clone().unwrap(), to.try_clone().unwrap());
     let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
     let st = st.clone();
@@ -93,6 +104,11 @@ fn pipe(from: &TcpStream, to: &TcpStream, delay: Duration, st: &Arc<State>) {
             match from.read(&mut buf) {
                 Ok(0) | Err(_) => break,
                 Ok(n) => {
+                    if capture {
+                        let mut c = st.captured.lock().unwrap();
+                        let room = CAPTURE_BYTES.saturating_sub(c.len()).min(n);
+                        c.extend_from_slice(&buf[..room]);
+                    }
                     if tx
                         .send((Instant::now() + delay, buf[..n].to_vec()))
                         .is_err()

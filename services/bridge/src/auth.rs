@@ -86,8 +86,8 @@ pub fn client_credential(path: &Path) -> anyhow::Result<Credential> {
 
 /// Sets a client's zenoh user and password.
 pub fn client_config(c: &mut zenoh::Config, cred: &Credential) -> anyhow::Result<()> {
-    set(c, "transport/auth/usrpwd/user", &json(&cred.name))?;
-    set(c, "transport/auth/usrpwd/password", &json(&cred.password))
+    crate::set_config(c, "transport/auth/usrpwd/user", &json(&cred.name))?;
+    crate::set_config(c, "transport/auth/usrpwd/password", &json(&cred.password))
 }
 
 /// Sets the server's zenoh dictionary (`file`, checked by [`read_credentials`]) and its
@@ -97,8 +97,8 @@ pub fn server_config(c: &mut zenoh::Config, file: &Path) -> anyhow::Result<Vec<S
     let dict = file
         .to_str()
         .context("a credentials path that is not UTF-8")?;
-    set(c, "transport/auth/usrpwd/dictionary_file", &json(dict))?;
-    set(
+    crate::set_config(c, "transport/auth/usrpwd/dictionary_file", &json(dict))?;
+    crate::set_config(
         c,
         "access_control",
         &acl(creds.iter().map(|k| k.name.as_str())),
@@ -153,11 +153,6 @@ fn rule(id: &str, message: &str, flow: &str, key: &str) -> String {
 
 fn json(s: &str) -> String {
     format!("{s:?}")
-}
-
-fn set(c: &mut zenoh::Config, key: &str, value: &str) -> anyhow::Result<()> {
-    c.insert_json5(key, value)
-        .map_err(|e| anyhow::anyhow!("zenoh configuration {key}: {e}"))
 }
 
 /// Counts the connections zenoh refused for their credentials (no credential, an unknown

@@ -32,24 +32,27 @@ struct Link {
     feedback: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
 }
 
-/// Opens a session to `endpoint` and asks for the slot of `name`; `Ok(None)` while no server
-/// answers, an error when the server refuses the client (for good).
+/// Opens a session to the server of `params` and asks for the slot of its client (its
+/// name, its run); `Ok(None)` while no server answers, an error when the server refuses the
+/// client (for good).
 fn connect(
-    endpoint: &str,
-    name: &str,
-    run: u64,
+    params: &Params,
     auth: Option<&crate::auth::Credential>,
 ) -> anyhow::Result<Option<Link>> {
+    let (endpoint, name) = (params.endpoint.as_str(), params.name.as_str());
     let mut config = zenoh_config("client", endpoint, false)?;
     if let Some(cred) = auth {
         crate::auth::client_config(&mut config, cred)?;
+    }
+    if let Some(ca) = &params.tls_ca {
+        crate::tls::client_config(&mut config, ca)?;
     }
     let Ok(session) = zenoh::open(config).wait() else {
         return Ok(None);
     };
     let replies = session
         .get(wire::HELLO_KEY)
-        .payload(wire::hello(name, run))
+        .payload(wire::hello(name, params.run))
         .timeout(HELLO_TIMEOUT)
         .wait()
         .map_err(|e| anyhow::anyhow!("hello to {endpoint}: {e}"))?;
@@ -203,12 +206,22 @@ impl Client {
         let since = *self.failing_since.get_or_insert_with(Instant::now);
         if !self.noted && self.counters.connects == 0 && since.elapsed() >= UNREACHABLE_NOTE {
             self.noted = true;
-            let why = match &self.auth {
-                Some(c) => format!(
-                    "no server answers, or it refused the credential of {:?} (--auth)",
+            let mut why = vec!["no server answers".to_string()];
+            if let Some(c) = &self.auth {
+                why.push(format!(
+                    "it refused the credential of {:?} (--auth)",
                     c.name
-                ),
-                None => "no server answers there (the client goes on and keeps trying)".into(),
+                ));
+            }
+            if let Some(ca) = &params.tls_ca {
+                let ca = ca.display();
+                why.push(format!(
+                    "its TLS certificate is not one {ca} vouches for (--tls-ca)"
+                ));
+            }
+            let why = match why.len() {
+                1 => format!("{} there (the client goes on and keeps trying)", why[0]),
+                _ => why.join(", or "),
             };
             let s = UNREACHABLE_NOTE.as_secs();
             let text = format!("no session to {} for {s} s: {why}", params.endpoint);
@@ -230,13 +243,7 @@ impl Client {
         params: &Params,
         file: &mut shoal_runtime::StatusFile,
     ) -> anyhow::Result<Option<Link>> {
-        let link = connect(
-            &params.endpoint,
-            &params.name,
-            params.run,
-            self.auth.as_ref(),
-        );
-        let link = match link {
+        let link = match connect(params, self.auth.as_ref()) {
             Ok(l) => l,
             Err(e) => {
                 self.status.error(ErrorKind::Remote, format!("{e:#}"));

@@ -14,6 +14,7 @@ pub mod client;
 pub mod run_ids;
 pub mod server;
 pub mod slots;
+pub mod tls;
 pub mod wire;
 
 use std::path::PathBuf;
@@ -65,6 +66,15 @@ pub struct Params {
     /// `NAME:PASSWORD` line (its name is the server's).
     #[arg(long)]
     pub auth: Option<PathBuf>,
+    /// Server: its TLS certificate (chain, PEM; with `--tls-key`, for a `tls/` endpoint).
+    #[arg(long)]
+    pub tls_cert: Option<PathBuf>,
+    /// Server: its TLS private key (PEM).
+    #[arg(long)]
+    pub tls_key: Option<PathBuf>,
+    /// Client: the CA certificate (PEM) the server's TLS certificate must chain to.
+    #[arg(long)]
+    pub tls_ca: Option<PathBuf>,
     /// Server: the file of the clients' slots (kept across restarts).
     #[arg(long)]
     pub clients_file: Option<PathBuf>,
@@ -255,19 +265,22 @@ pub(crate) fn keep_going(node: &iceoryx2::node::Node<shm_schema::topics::Ipc>, b
 /// (client), no multicast scouting (only the given endpoint is used).
 pub fn zenoh_config(mode: &str, endpoint: &str, listen: bool) -> anyhow::Result<zenoh::Config> {
     let mut c = zenoh::Config::default();
-    let set = |c: &mut zenoh::Config, k: &str, v: &str| {
-        c.insert_json5(k, v)
-            .map_err(|e| anyhow::anyhow!("zenoh configuration {k} = {v}: {e}"))
-    };
-    set(&mut c, "mode", &format!("{mode:?}"))?;
-    set(&mut c, "scouting/multicast/enabled", "false")?;
+    set_config(&mut c, "mode", &format!("{mode:?}"))?;
+    set_config(&mut c, "scouting/multicast/enabled", "false")?;
     let key = if listen {
         "listen/endpoints"
     } else {
         "connect/endpoints"
     };
-    set(&mut c, key, &format!("[{endpoint:?}]"))?;
+    set_config(&mut c, key, &format!("[{endpoint:?}]"))?;
     Ok(c)
+}
+
+/// Sets one key of a zenoh configuration (`value` in JSON5); an error names the key, not
+/// the value (it may be a password).
+pub(crate) fn set_config(c: &mut zenoh::Config, key: &str, value: &str) -> anyhow::Result<()> {
+    c.insert_json5(key, value)
+        .map_err(|e| anyhow::anyhow!("zenoh configuration {key}: {e}"))
 }
 
 #[cfg(test)]

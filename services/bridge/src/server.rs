@@ -152,6 +152,9 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
     )?;
     let mut slots = Slots::open(params.clients_file.as_deref(), params.capacity)?;
     let mut config = zenoh_config("router", &params.endpoint, true)?;
+    if let (Some(cert), Some(key)) = (&params.tls_cert, &params.tls_key) {
+        crate::tls::server_config(&mut config, cert, key)?;
+    }
     let refusals = match &params.auth {
         Some(file) => {
             slots = slots.only(crate::auth::server_config(&mut config, file)?);
@@ -166,8 +169,13 @@ pub fn run(params: &Params) -> anyhow::Result<()> {
         (session.declare_queryable(wire::HELLO_KEY).wait()).map_err(|e| anyhow::anyhow!("{e}"))?;
     let incoming = (session.declare_subscriber(wire::ALL_KEYFRAMES).wait())
         .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let wire = if crate::tls::is_tls(&params.endpoint) {
+        "TLS"
+    } else {
+        "not encrypted"
+    };
     eprintln!(
-        "[bridge] serving {} client slots on {} (known: {})",
+        "[bridge] serving {} client slots on {} ({wire}; known: {})",
         params.capacity,
         params.endpoint,
         slots.names().join(", ")
