@@ -117,6 +117,26 @@ fn u(v: &serde_json::Value) -> u64 {
     v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
 }
 
+/// Asserts a finished `shoal client` succeeded (showing its stderr if not).
+fn succeeded(run: &std::process::Output) {
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+}
+
+/// The client report of `out`, whose client sent at least `min` keyframes and saw every
+/// one acknowledged by the server's mapper; the report and the count.
+fn all_acked(out: &Path, min: u64) -> (serde_json::Value, u64) {
+    let rep = report(out);
+    let c = &rep["clients"][0];
+    let sent = u(&c["keyframes_sent"]);
+    assert!(sent >= min, "{c:#}");
+    assert_eq!(u(&c["keyframes_acked"]), sent, "{c:#}");
+    (rep, sent)
+}
+
 /// Two clients of the `two-agents` scene on one server: each gets its own slot, every
 /// keyframe it sends is applied by the server's mapper and acknowledged back (the client
 /// counts only the mapper's acknowledgements), and the server merges the two maps.
@@ -342,11 +362,7 @@ fn only_known_clients_with_their_credentials_are_served() {
     let ok = client(&ds[0], &a, port, "alice", "remote_auth_a", &alice)
         .output()
         .unwrap();
-    assert!(
-        ok.status.success(),
-        "{}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
+    succeeded(&ok);
     let mallory = [
         "--lockstep",
         "--auth",
@@ -453,17 +469,9 @@ fn a_client_50_ms_away_is_served() {
     )
     .output()
     .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    succeeded(&run);
     stop(server);
-    let rep = report(&out);
-    let c = &rep["clients"][0];
-    let sent = u(&c["keyframes_sent"]);
-    assert!(sent >= 3, "{c:#}");
-    assert_eq!(u(&c["keyframes_acked"]), sent, "{c:#}");
+    let (rep, sent) = all_acked(&out, 3);
     let bridge = &rep["bridges"]["bridge:0"];
     eprintln!("{sent} keyframes 50 ms away; bridge {bridge}");
     assert_eq!(u(&bridge["roundtrips"]), sent, "{bridge}");
@@ -495,12 +503,8 @@ fn a_second_run_of_a_client_is_applied_not_taken_for_re_sends() {
         )
         .output()
         .unwrap();
-        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-        let rep = report(&out);
-        let c = &rep["clients"][0];
-        let n = u(&c["keyframes_sent"]);
-        assert!(n >= 5, "{c:#}");
-        assert_eq!(u(&c["keyframes_acked"]), n, "{c:#}");
+        succeeded(&r);
+        let (rep, n) = all_acked(&out, 5);
         let bridge = &rep["bridges"]["bridge:0"];
         let base = u(&bridge["start_base"]);
         assert!((base == 0) == (run == 0), "run {run}: {bridge}");
@@ -568,11 +572,7 @@ fn tls_encrypts_what_crosses_and_a_client_checks_the_server() {
         let run = client_of(&endpoint, &ds[0], &out, "alice", &test, &args)
             .output()
             .unwrap();
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
+        succeeded(&run);
         stop(server);
         let rep = report(&out);
         let c = &rep["clients"][0];
@@ -627,17 +627,9 @@ fn a_client_over_a_slow_lossy_link_loses_no_keyframe() {
         .stderr(Stdio::piped())
         .output()
         .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    succeeded(&run);
     stop(server);
-    let rep = report(&out);
-    let c = &rep["clients"][0];
-    let sent = u(&c["keyframes_sent"]);
-    assert!(sent >= 5, "{c:#}");
-    assert_eq!(u(&c["keyframes_acked"]), sent, "{c:#}");
+    let (rep, sent) = all_acked(&out, 5);
     let me = &report(&server_out)["remote_clients"][0];
     assert_eq!(u(&me["keyframes_applied"]), sent, "{me}");
     let bridge = &rep["bridges"]["bridge:0"];
