@@ -1,9 +1,12 @@
 //! Clients on other hosts (issue 22), as separate processes on this one: `shoal serve`
 //! (mapper, loop closer, zenoh bridge) and `shoal client`s (ingests, tracker, bridge), each
-//! with its own iceoryx2 prefix, talking only over TCP on loopback. Every keyframe a client
-//! sends is acknowledged end to end by the server's mapper, also across a server that is
-//! SIGKILLed in the middle of the run and started again; a client beyond the server's
-//! capacity is refused with the reason.
+//! with its own iceoryx2 prefix, talking only over the network: TCP or TLS on loopback,
+//! through a relay that cuts, partitions, delays and watches the bytes
+//! ([`net_proxy::Relay`]), or between two network namespaces over a slow link that drops
+//! packets ([`net_proxy::lossy::LossyLink`]). Every keyframe a client sends is acknowledged
+//! end to end by the server's mapper, also across a server that is SIGKILLed in the middle
+//! of the run and started again, and across a client's runs; a client beyond the server's
+//! capacity, or without the right credential, is refused with the reason.
 mod common;
 mod net_proxy;
 
