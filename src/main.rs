@@ -402,11 +402,8 @@ fn client_cmd(args: RunArgs) -> anyhow::Result<()> {
         cfg.client_name = Some(cred.name);
     }
     let connect = cfg.connect.as_deref().unwrap_or_default();
-    let ca = [("--tls-ca", cfg.tls_ca.is_some())];
-    bridge::tls::check_endpoint("--connect", connect, &ca)?;
-    if let Some(ca) = &cfg.tls_ca {
-        bridge::tls::check_pem(ca, "CERTIFICATE")?;
-    }
+    let ca = [("--tls-ca", cfg.tls_ca.as_deref(), "CERTIFICATE")];
+    bridge::tls::check("--connect", connect, &ca)?;
     let rep = launcher::run(&cfg)?;
     launcher::summary::print(&rep, &cfg.out);
     Ok(())

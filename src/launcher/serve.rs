@@ -51,20 +51,6 @@ pub fn check_loopback(endpoint: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A `tls/` endpoint has its certificate and key, a `tcp/` one none; the files are PEM.
-fn check_tls(cfg: &RunConfig, listen: &str) -> anyhow::Result<()> {
-    let files = [
-        ("--tls-cert", cfg.tls_cert.is_some()),
-        ("--tls-key", cfg.tls_key.is_some()),
-    ];
-    ::bridge::tls::check_endpoint("--listen", listen, &files)?;
-    if let (Some(cert), Some(key)) = (&cfg.tls_cert, &cfg.tls_key) {
-        ::bridge::tls::check_pem(cert, "CERTIFICATE")?;
-        ::bridge::tls::check_pem(key, "PRIVATE KEY")?;
-    }
-    Ok(())
-}
-
 /// Runs the server until SIGINT/SIGTERM; its report.
 pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
     let started = Instant::now();
@@ -74,7 +60,11 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         rate >= 0.0 && rate.is_finite(),
         "server_max_keyframe_rate must be 0 (no limit) or positive (got {rate})"
     );
-    check_tls(cfg, &listen)?;
+    let tls = [
+        ("--tls-cert", cfg.tls_cert.as_deref(), "CERTIFICATE"),
+        ("--tls-key", cfg.tls_key.as_deref(), "PRIVATE KEY"),
+    ];
+    ::bridge::tls::check("--listen", &listen, &tls)?;
     let known = match &cfg.auth {
         Some(file) => ::bridge::auth::read_credentials(file)?.len(),
         None => {

@@ -55,6 +55,24 @@ fn path(p: &Path) -> anyhow::Result<String> {
     Ok(format!("{s:?}"))
 }
 
+/// The launcher's check before any service starts: `endpoint` (of `flag`) is TLS exactly
+/// when the TLS files are given, and each given file holds its PEM block. `files`: each
+/// one's flag, path if given, and PEM block (`CERTIFICATE`, `PRIVATE KEY`).
+pub fn check(
+    flag: &str,
+    endpoint: &str,
+    files: &[(&str, Option<&Path>, &str)],
+) -> anyhow::Result<()> {
+    let given: Vec<(&str, bool)> = files.iter().map(|f| (f.0, f.1.is_some())).collect();
+    check_endpoint(flag, endpoint, &given)?;
+    for (_, path, what) in files {
+        if let Some(p) = path {
+            check_pem(p, what)?;
+        }
+    }
+    Ok(())
+}
+
 /// Checks that `endpoint` (of `flag`) is TLS exactly when TLS files (`files`, their flags)
 /// are given.
 pub fn check_endpoint(flag: &str, endpoint: &str, files: &[(&str, bool)]) -> anyhow::Result<()> {
