@@ -9,9 +9,7 @@ use slam_core::ids::{ClientId, KeyframeId, MapId, MapPointId};
 
 use crate::MapFile;
 
-/// The first client id of loaded maps (the top half of the 24-bit client field of
-/// keyframe and point ids).
-pub const SAVED_CLIENT_BASE: u32 = 1 << 23;
+pub use slam_core::ids::SAVED_CLIENT_BASE;
 
 /// Every client id `file` uses: in map ids, per-map client lists, keyframe ids, point ids.
 fn clients_of(file: &MapFile) -> BTreeSet<u32> {

@@ -128,6 +128,12 @@ impl fmt::Display for SessionId {
 
 raw_conversions!(SessionId, u32);
 
+/// The first client id of loaded maps (the top half of the 24-bit client field of server
+/// keyframe and point ids): a saved map's clients are renamed from it on when it is loaded
+/// (`map_store::remap`), so that its ids never collide with the live run's; live clients
+/// are numbered from 0 and never reach it.
+pub const SAVED_CLIENT_BASE: u32 = 1 << 23;
+
 /// Bits of the client's own keyframe id in a server [`KeyframeId`] (and of the counter in
 /// a [`MapPointId`]).
 const CLIENT_KF_BITS: u32 = 40;

@@ -127,6 +127,10 @@ fn write_configs(
                 one.tracker.mode = s.mode;
                 one.tracker.imu = s.imu.clone();
                 one.tracker.readout_direction = s.readout;
+                // A monocular client localises in the loaded map before its VO initialises.
+                if s.mode == ClientMode::Mono && one.tracker.prior_map.is_none() {
+                    one.tracker.prior_map = cfg.load_map.clone();
+                }
                 // A recording or a live viewer draws the tracked features on the images.
                 one.tracker.publish_features |= cfg.record.is_some() || cfg.viz.is_some();
                 // A remote server is not lock-stepped with its clients (it serves several,

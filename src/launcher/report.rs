@@ -7,7 +7,7 @@ use std::time::Duration;
 use camera_ingest::CameraCounters;
 use imu_ingest::ImuCounters;
 use loop_closer::LoopCloserCounters;
-use mapper::MapperCounters;
+use mapper::{MapperClientCounters, MapperCounters};
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 use shoal_runtime::{ErrorKind, ErrorRecord, Status};
@@ -24,6 +24,37 @@ use accuracy::{
 use super::child::Supervised;
 use super::recorder::{write_tum, Percentiles, Recorder};
 use super::RunConfig;
+
+/// A client's localisation in a saved map before its VO initialised (issue 20).
+#[derive(Debug, Clone, Default, Serialize, PartialEq)]
+pub struct PriorMapReport {
+    /// Keyframes and points of the map it tried (the file's largest).
+    pub keyframes: u64,
+    /// See `keyframes`.
+    pub points: u64,
+    /// Frames tried against it (until one relocalised, or the VO initialised first).
+    pub frames_tried: u64,
+    /// Time of the frame that relocalised in it, s (`None`: none did; the VO initialised
+    /// on its own and the loop closer had to find the map).
+    pub relocalised_t_s: Option<f64>,
+    /// The server took the session into the loaded map at its first keyframe, by the
+    /// map's points it names (mapper `sessions_joined`).
+    pub joined_by_server: bool,
+}
+
+impl PriorMapReport {
+    /// From the tracker's and the mapper's counters of the client; `None` without a prior.
+    fn of(t: &TrackerCounters, m: &MapperClientCounters) -> Option<Self> {
+        (t.prior_map_keyframes > 0).then(|| Self {
+            keyframes: t.prior_map_keyframes,
+            points: t.prior_map_points,
+            frames_tried: t.prior_map_frames_tried,
+            relocalised_t_s: (t.prior_map_relocalised > 0)
+                .then_some(t.prior_map_relocalised_t_ns as f64 * 1e-9),
+            joined_by_server: m.sessions_joined > 0,
+        })
+    }
+}
 
 /// Per-client figures.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -42,6 +73,9 @@ pub struct ClientReport {
     /// The calibration mode's estimate with 1σ, its figures, and the parameters that did
     /// not converge (`calib` only).
     pub calib: Option<tracker::core::CalibReport>,
+    /// The saved map the monocular client localised in before its VO initialised
+    /// (`--load-map`, `tracker.prior_map`); `None` without one.
+    pub prior_map: Option<PriorMapReport>,
     /// Posed frames (as tracked, backfilled ones not included) by where the pose came from:
     /// `visual` (monocular, up to scale), `visual_inertial`, `inertial` (IMU alone through
     /// a visual dropout).
@@ -695,6 +729,7 @@ fn client_report(
         dataset: ds.root.display().to_string(),
         vio: st.details_of::<tracker::VioReport>(&trk),
         calib: st.details_of::<tracker::core::CalibReport>(&trk),
+        prior_map: PriorMapReport::of(&t, &m),
         frames_by_source: frames_by_source(rec),
         frames_orientation_only: rec.orientations.len() as u64,
         world_moves: rec.world_moves,

@@ -201,10 +201,21 @@ impl Mapper {
         Ok(())
     }
 
-    /// Queues a keyframe for its client's handler, starting the handler on first use.
+    /// Queues a keyframe for its client's handler, starting the handler on first use: on
+    /// the loaded maps' worker when the keyframe names their points (its session may join
+    /// a loaded map, `slam_core::server::names_loaded_points`), else on a worker of its own.
     fn queue(&mut self, c: u32, job: Job) -> anyhow::Result<()> {
-        let w = match self.clients[c as usize].worker {
-            Some(w) => w,
+        let loaded_host = match &job {
+            Job::Keyframe { kf, .. } if slam_core::server::names_loaded_points(kf) => {
+                self.saved_hosts.values().next().copied()
+            }
+            _ => None,
+        };
+        let w = match self.clients[c as usize].worker.or(loaded_host) {
+            Some(w) => {
+                self.clients[c as usize].worker = Some(w);
+                w
+            }
             None => {
                 self.workers.push(
                     Worker::spawn(
@@ -497,6 +508,7 @@ impl Mapper {
         n.kept_at_session_end = f.stats.kept_at_session_end;
         n.keyframes_localised = f.stats.localised;
         n.relocalisations = f.stats.relocalisations;
+        n.sessions_joined = f.stats.joined;
         n.global_bas = f.stats.global_bas;
         n.vi_windows = f.stats.vi_windows;
         n.vi_windows_skipped = f.stats.vi_windows_skipped;

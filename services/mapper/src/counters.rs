@@ -159,8 +159,12 @@ pub struct MapperClientCounters {
     pub kept_at_session_end: u64,
     /// Gauge (handler): keyframes localised in a frozen map (`--localize-only`).
     pub keyframes_localised: u64,
-    /// Gauge (handler): its maps relocalised in a frozen map (`--localize-only`).
+    /// Gauge (handler): its maps relocalised in a frozen map (`--localize-only`), or
+    /// sessions that joined a loaded map by the points they name.
     pub relocalisations: u64,
+    /// Gauge (handler): sessions whose first keyframe joined the loaded map it names (its
+    /// VO started in that map, `tracker.prior_map`).
+    pub sessions_joined: u64,
     /// Gauge (handler): global BAs of its current map applied (after loops, merges,
     /// revisits).
     pub global_bas: u64,

@@ -352,6 +352,11 @@ pub struct TrackerConfig {
     /// unacknowledged for as long as the network is down. At most [`SPOOL_MAX_FILES`]
     /// files; beyond, a keyframe is kept in memory only and the spool error says so.
     pub spool_until_ack: bool,
+    /// A saved map (`shoal run --save-map`) to localise in before the monocular VO has
+    /// initialised: the client starts its session in that map at the first frame it
+    /// relocalises in it (`core/prior.rs`). `shoal run --load-map` sets it for its
+    /// monocular clients; unset, the client starts from nothing.
+    pub prior_map: Option<PathBuf>,
 }
 
 /// Most files in a spool that keeps keyframes until acknowledged (≈ 70 kB each: ≈ 280 MB,
@@ -420,6 +425,7 @@ impl Default for TrackerConfig {
             anchor: AnchorConfig::default(),
             end_wait_s: None,
             spool_until_ack: false,
+            prior_map: None,
         }
     }
 }

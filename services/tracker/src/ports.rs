@@ -384,6 +384,33 @@ fn open_spool(
     ports.exec(out, core.status_mut())
 }
 
+/// Gives the core the saved map of `tracker.prior_map` to localise in before its VO
+/// initialises (`core/prior.rs`): the file's map with the most keyframes. A file that
+/// cannot be used is an error in the status (`map_file`), and the client starts as without
+/// it (the launcher checked the file before any service started).
+fn load_prior_map(cfg: &TrackerConfig, core: &mut TrackerCore) {
+    let Some(path) = &cfg.prior_map else {
+        return;
+    };
+    match prior_from_file(path) {
+        Ok(map) => core.set_prior_map(map),
+        Err(e) => {
+            let detail = format!("{}: prior map not used: {e}", path.display());
+            core.status_mut().error(ErrorKind::MapFile, detail);
+        }
+    }
+}
+
+/// The client form of the largest map in saved-map file `path`.
+fn prior_from_file(path: &std::path::Path) -> Result<slam_core::vo::ClientMap, String> {
+    let loaded = map_store::load(path).map_err(|e| e.to_string())?;
+    let largest = (loaded.file.maps.iter())
+        .max_by_key(|m| m.map.map.keyframes.len())
+        .ok_or("the file holds no map")?;
+    let prior = slam_core::vo::prior_client_map(&largest.map.map).map_err(|e| e.to_string())?;
+    Ok(prior.map)
+}
+
 /// Consumes frames until the end of the stream or SIGINT/SIGTERM.
 pub fn run(params: &Params) -> anyhow::Result<Status> {
     let cfg = params.config()?;
@@ -395,6 +422,7 @@ pub fn run(params: &Params) -> anyhow::Result<Status> {
         params.ipc_prefix.clone(),
     )?;
     let mut core = TrackerCore::new(CoreConfig::new(params, &cfg), start.status);
+    load_prior_map(&cfg, &mut core);
     let mut ports = Ports::open(params, &cfg, start.node, start.file)?;
     open_spool(params, &cfg, &mut ports, &mut core)?;
     ports.sync_status(&mut core);

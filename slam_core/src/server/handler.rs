@@ -168,8 +168,11 @@ pub struct HandlerStats {
     pub kept_at_session_end: u64,
     /// Keyframes localised in a frozen map (`--localize-only`: refined, never inserted).
     pub localised: u64,
-    /// Times its map relocalised in a frozen map ([`KeyframeHandler::apply_relocalisation`]).
+    /// Times its map relocalised in a frozen map ([`KeyframeHandler::apply_relocalisation`]),
+    /// or a session's first keyframe joined a loaded map (`handler_join.rs`).
     pub relocalisations: u64,
+    /// Sessions whose first keyframe joined the loaded map it names (`handler_join.rs`).
+    pub joined: u64,
 }
 
 /// What an idle step did.
@@ -384,7 +387,14 @@ impl KeyframeHandler {
         }
         self.acked = Some((kf.id, kf.session_id));
         if self.session != Some(kf.session_id) || self.becomes_inertial(maps, &kf) {
-            return Ok(self.start_over(maps, kf));
+            let report = self.start_over(maps, kf);
+            if let Some(joined) = self.join_named_map(maps) {
+                return joined.map(|mut r| {
+                    r.kept.splice(0..0, report.kept);
+                    r
+                });
+            }
+            return Ok(report);
         }
         if self.current.is_none() {
             let Some(first) = self.first.take() else {
@@ -942,6 +952,10 @@ impl KeyframeHandler {
         KeyframeId::new(ClientId::new(self.client_id), kf_id).raw()
     }
 }
+
+#[path = "handler_join.rs"]
+mod join;
+pub use join::{names_loaded_points, MIN_JOIN_POINTS};
 
 #[cfg(test)]
 #[path = "handler_tests.rs"]

@@ -26,7 +26,10 @@ pub use correction::{
     transform_map, transform_pose, CorrectionReport, MergeReport, Relocalisation,
 };
 pub use global_ba::{GlobalBa, GlobalBaApplied};
-pub use handler::{HandlerParams, HandlerStats, IdleReport, KeyframeHandler, ServerMaps};
+pub use handler::{
+    names_loaded_points, HandlerParams, HandlerStats, IdleReport, KeyframeHandler, ServerMaps,
+    MIN_JOIN_POINTS,
+};
 pub use scale::{measured_scale_ratio, predict_server_pose, smooth_scale_ratio};
 pub use server_map::{Owner, ServerMap};
 pub use types::{

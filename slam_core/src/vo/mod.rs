@@ -15,6 +15,7 @@ pub mod keyframe_rule;
 pub mod kf_culling;
 pub mod local_mapping;
 pub mod map;
+pub mod prior;
 pub mod resume;
 pub mod search;
 pub mod tracker;
@@ -24,6 +25,7 @@ pub use keyframe_imu::{ImuCalibration, KeyframeImu};
 pub use keyframe_rule::{KeyframeRule, KeyframeRuleParams};
 pub use kf_culling::{cull_redundant_keyframes, KfCullingParams};
 pub use map::{ClientMap, Keyframe, KeyframeInertial, KfId, MapPoint, PointId};
+pub use prior::{is_prior_keyframe, prior_client_map};
 pub use resume::{restore_map, RestoredMap, StoredPoint};
 pub use tracker::{
     LocalMapper, LocalMappingRunner, LocalMappingStats, LocalMappingStep, MappedKeyframe, PoseHint,

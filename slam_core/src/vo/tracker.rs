@@ -364,6 +364,8 @@ pub struct VoTracker {
     inliers: Vec<bool>,
     /// Information of the last pose optimisation's result.
     last_information: nalgebra::Matrix6<f64>,
+    /// In a prior map, no frame posed yet ([`VoTracker::start_in_prior_map`]).
+    awaiting_prior: bool,
 }
 
 impl VoTracker {
@@ -423,6 +425,7 @@ impl VoTracker {
             obs_kp: Vec::new(),
             inliers: Vec::new(),
             last_information: nalgebra::Matrix6::zeros(),
+            awaiting_prior: false,
             params,
             camera,
         })

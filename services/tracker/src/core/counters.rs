@@ -96,6 +96,19 @@ pub struct TrackerCounters {
     /// Spooled keyframes a resumed session took back into its VO window (sent when they
     /// leave it, not at the start as `keyframes_recovered` are).
     pub keyframes_resumed: u64,
+    /// Keyframes and points of the saved map the client localises in before its VO
+    /// initialises (`tracker.prior_map`, `core/prior.rs`; this start's).
+    pub prior_map_keyframes: u64,
+    /// See `prior_map_keyframes`.
+    pub prior_map_points: u64,
+    /// Frames tried against the prior map.
+    pub prior_map_frames_tried: u64,
+    /// 1 when a frame relocalised in the prior map (the session continued there).
+    pub prior_map_relocalised: u64,
+    /// That frame's time (mid-row), ns.
+    pub prior_map_relocalised_t_ns: u64,
+    /// Prior keyframes that left the VO's window (never sent).
+    pub prior_keyframes_dropped: u64,
 }
 
 /// The visual-inertial client's state, in the tracker's status (`details`) and the run

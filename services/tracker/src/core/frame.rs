@@ -276,9 +276,9 @@ impl TrackerCore {
         }
         let angular_velocity = self.gyro_rate(h);
         self.first_frame_ns.get_or_insert(h.t_mid_ns);
-        let Some(v) = self.client.as_mut() else {
+        if self.client.is_none() {
             return Ok(());
-        };
+        }
         let (w, ht, stride) = (h.width as usize, h.height as usize, h.stride as usize);
         let result = GrayImage::new(f.pixels, w, ht, stride)
             .map_err(anyhow::Error::from)
@@ -289,8 +289,15 @@ impl TrackerCore {
                     readout_ns: h.readout_ns,
                     angular_velocity,
                 };
+                if let Some(o) = self.prior_step(&frame)? {
+                    return Ok(o);
+                }
+                let v = self.client.as_mut().expect("the client exists");
                 Ok(v.process(&frame)?)
             });
+        let Some(v) = self.client.as_mut() else {
+            return Ok(());
+        };
         let mut o = match result {
             Ok(o) => o,
             Err(e) => {
@@ -323,6 +330,8 @@ impl TrackerCore {
         }
         let client = self.cfg.client;
         let to_session = self.server.to_session(sess);
+        let mut o = o;
+        self.counters.prior_keyframes_dropped += super::prior::drop_prior_keyframes(&mut o.evicted);
         for kf in &o.evicted {
             let msg = keyframe_message(client, kf, sess, &to_session);
             t.out.extend(self.send_keyframe(msg, f.now_ns));
@@ -538,6 +547,7 @@ impl TrackerCore {
         let new: Vec<_> = v.with_map(|m| {
             m.keyframes
                 .range(after.map_or(0, |a| a + 1)..)
+                .filter(|(id, _)| !slam_core::vo::is_prior_keyframe(**id))
                 .map(|(id, kf)| (*id, spool_entry(m, client, kf, session, &to_session)))
                 .collect()
         });

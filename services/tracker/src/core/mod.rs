@@ -30,6 +30,7 @@ mod calib;
 mod client;
 mod counters;
 mod frame;
+mod prior;
 mod resume;
 mod server;
 #[cfg(test)]
@@ -239,6 +240,8 @@ pub struct TrackerCore {
     spool_resume: resume::SpoolResume,
     /// The predecessor's visual-inertial report (its initialisation, for a resumed one).
     predecessor_vio: Option<VioReport>,
+    /// A saved map to localise in before the VO initialises (`prior.rs`).
+    prior: Option<prior::Prior>,
 }
 
 impl TrackerCore {
@@ -277,6 +280,7 @@ impl TrackerCore {
             diagnostics: Vec::new(),
             spool_resume: Default::default(),
             predecessor_vio,
+            prior: None,
             cfg,
             status,
             counters,
@@ -532,9 +536,12 @@ impl TrackerCore {
     /// by one with [`TrackerCore::send_window_keyframe`] (in lock-step waiting for the
     /// server to finish each, so it handles them on the same schedule on every run).
     pub fn take_window(&mut self) -> Vec<slam_core::vo::Keyframe> {
-        self.client
+        let mut kfs = self
+            .client
             .as_mut()
-            .map_or_else(Vec::new, |v| v.vo_mut().drain_keyframes())
+            .map_or_else(Vec::new, |v| v.vo_mut().drain_keyframes());
+        self.counters.prior_keyframes_dropped += prior::drop_prior_keyframes(&mut kfs);
+        kfs
     }
 
     /// Sends keyframe `kf` of the VO window (of the VO's current session); returns its key
@@ -607,6 +614,9 @@ impl TrackerCore {
             }
         }
         let out = self.release_held(now_ns);
+        if params.is_err() {
+            self.start_prior(h);
+        }
         let vo = self.new_vo(h)?;
         let client = match params {
             Ok(p) => Client::Vio(Box::new(slam_core::vio::VioTracker::new(vo, p))),

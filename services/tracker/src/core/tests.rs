@@ -237,6 +237,18 @@ impl Run {
 /// each frame, lock-step waits, the mapper answering every keyframe, window sent and end of
 /// stream at the end), the frames of `blank` rendered black.
 fn drive(frames: usize, blank: std::ops::Range<usize>) -> (Run, Status) {
+    let (run, status, _) = drive_with(frames, blank, 6, None);
+    (run, status)
+}
+
+/// [`drive`] with a VO window of `window` keyframes and the saved map `prior`; also
+/// returns the VO map as it was after the last frame.
+fn drive_with(
+    frames: usize,
+    blank: std::ops::Range<usize>,
+    window: usize,
+    prior: Option<slam_core::vo::ClientMap>,
+) -> (Run, Status, slam_core::vo::ClientMap) {
     let mut p = SimParams::new(Scenario::Loop);
     p.frames = Some(frames);
     p.seed = 3;
@@ -244,12 +256,15 @@ fn drive(frames: usize, blank: std::ops::Range<usize>) -> (Run, Status) {
     p.readout_ms = Some(20.0);
     let world = SimWorld::new(p).expect("world");
     let cfg = CoreConfig {
-        window: 6,
+        window,
         spool: true,
         publish_features: true,
         ..config(false)
     };
     let mut core = TrackerCore::new(cfg, Status::new("tracker:0"));
+    if let Some(m) = prior {
+        core.set_prior_map(m);
+    }
     let (imu, mut next_imu) = (world.imu_samples(), 0);
     let mut run = Run::default();
     let c = world.calib().model;
@@ -285,6 +300,9 @@ fn drive(frames: usize, blank: std::ops::Range<usize>) -> (Run, Status) {
         let out = core.publish_frame(t, 0);
         run.take(&mut core, out);
     }
+    let map = (core.client.as_ref())
+        .map(|c| c.vo().with_map(|m| m.clone()))
+        .unwrap_or_default();
     for kf in core.take_window() {
         let (_, out) = core.send_window_keyframe(&kf, 0);
         run.take(&mut core, out);
@@ -300,7 +318,7 @@ fn drive(frames: usize, blank: std::ops::Range<usize>) -> (Run, Status) {
     let out = core.end_of_stream(&eos_h, 0);
     run.take(&mut core, out);
     assert!(core.drained(), "every keyframe acknowledged");
-    (run, core.finish())
+    (run, core.finish(), map)
 }
 
 /// The synthetic loop through the core with the gyro, a small VO window (keyframes leave it
@@ -341,6 +359,56 @@ fn check_features(run: &Run) {
             .iter()
             .all(|f| (0.0..752.0).contains(&f.u) && (0.0..480.0).contains(&f.v)));
     }
+}
+
+/// A client given the map of an earlier run of the same frames (as prior keyframes, a
+/// saved map's client form) localises in it at its first frames, before its own VO could
+/// initialise: its frames are posed where the earlier run posed them (the same world and
+/// scale), its keyframes are its own (its start's ids, never a prior keyframe's, each sent
+/// once and none left in the spool), and the prior keyframes that left its window are
+/// counted, not sent.
+#[test]
+fn a_client_given_a_saved_map_starts_in_it() {
+    let (run_a, _, map_a) = drive_with(120, 0..0, 100, None);
+    let prior = slam_core::vo::prior_client_map(&map_a).expect("prior").map;
+    let n_prior = prior.keyframes.len() as u64;
+    assert!(n_prior >= 8, "{n_prior} keyframes");
+    let (run_b, status, _) = drive_with(120, 0..0, 6, Some(prior));
+    let c: TrackerCounters = status.counters_as();
+    assert_eq!(
+        (c.prior_map_keyframes, c.prior_map_relocalised),
+        (n_prior, 1)
+    );
+    assert!(c.prior_map_frames_tried <= 2, "{c:?}");
+    assert_eq!(c.prior_keyframes_dropped, n_prior, "{c:?}");
+    let first_own = ClientKeyframeId::first_of_start(1).raw();
+    assert!(
+        run_b.sent.iter().all(|(_, k)| *k >= first_own),
+        "{:?}",
+        run_b.sent
+    );
+    assert!(run_b.sent.len() >= 4, "{:?}", run_b.sent);
+    let pose_of = |run: &Run, seq: u64| {
+        (run.poses.iter())
+            .find(|p| p.meta.seq == seq && p.state == TrackState::Tracking as u32)
+            .map(|p| to_iso(&p.pose).translation.vector)
+    };
+    let mut compared = 0;
+    for seq in 0..120 {
+        if let (Some(a), Some(b)) = (pose_of(&run_a, seq), pose_of(&run_b, seq)) {
+            let scene = 1.0 + a.norm();
+            assert!((a - b).norm() < 0.02 * scene, "frame {seq}: {a} vs {b}");
+            compared += 1;
+        }
+    }
+    assert!(compared >= 110, "{compared} frames posed by both");
+    let distinct: BTreeSet<_> = run_b.sent.iter().collect();
+    assert_eq!(distinct.len(), run_b.sent.len(), "each keyframe sent once");
+    assert!(
+        run_b.spooled.is_empty(),
+        "spool left with {:?}",
+        run_b.spooled
+    );
 }
 
 /// 30 black frames in the middle: the VO is lost, starts a new session after 10 failures

@@ -49,6 +49,31 @@ impl VoTracker {
         self.reloc_cursor = None;
         Ok(())
     }
+
+    /// Takes `map`, a map of another run made of prior keyframes
+    /// ([`crate::vo::prior_client_map`]), as this VO's session: the VO starts lost in it as
+    /// after [`VoTracker::resume_session`], but its keyframe ids stay its own (set by
+    /// [`VoTracker::start_keyframe_ids_at`], after the map's), and it stays lost, trying to
+    /// relocalise every frame, until a frame is posed: a prior that has not matched yet is no
+    /// reason to start a new session. From the first pose on, a loss counts as usual.
+    pub fn start_in_prior_map(&mut self, map: ClientMap) -> Result<(), CoreError> {
+        let own = self.next_kf_id;
+        if map.keyframes.keys().any(|&k| k >= own) {
+            return Err(CoreError::Resume(format!(
+                "a prior keyframe id is not below the VO's own ({own})"
+            )));
+        }
+        self.resume_session(map)?;
+        self.next_kf_id = own;
+        self.awaiting_prior = true;
+        Ok(())
+    }
+
+    /// Whether the VO is in a prior map and has not posed a frame in it yet
+    /// ([`VoTracker::start_in_prior_map`]).
+    pub fn awaiting_prior(&self) -> bool {
+        self.awaiting_prior
+    }
 }
 
 #[cfg(test)]

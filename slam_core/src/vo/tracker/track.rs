@@ -56,6 +56,7 @@ impl VoTracker {
             return Ok(());
         }
         self.failures = 0;
+        self.awaiting_prior = false;
         self.state = VoState::Tracking;
         self.update_motion_model(frame.t_ns, &t_cw, first.relocalized);
         out.t_cw = Some(t_cw);
@@ -281,7 +282,7 @@ impl VoTracker {
     fn count_failure(&mut self, out: &mut VoOutput) {
         self.failures += 1;
         self.state = VoState::Lost;
-        let hold = self.hint.is_some_and(|h| h.hold_session);
+        let hold = self.awaiting_prior || self.hint.is_some_and(|h| h.hold_session);
         if self.failures >= self.params.max_failures && !hold {
             self.start_new_session(out);
         }
