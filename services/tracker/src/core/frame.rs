@@ -292,8 +292,10 @@ impl TrackerCore {
                 if let Some(o) = self.prior_step(&frame)? {
                     return Ok(o);
                 }
-                let v = self.client.as_mut().expect("the client exists");
-                Ok(v.process(&frame)?)
+                match self.client.as_mut() {
+                    Some(v) => Ok(v.process(&frame)?),
+                    None => Err(anyhow::anyhow!("no client")),
+                }
             });
         let Some(v) = self.client.as_mut() else {
             return Ok(());
@@ -324,13 +326,12 @@ impl TrackerCore {
         if let Some(nav) = o.nav {
             self.last_biases = Some(nav.biases);
         }
-        let o = o.vo;
+        let mut o = o.vo;
         if o.new_session {
             self.counters.vo_sessions_started += 1;
         }
         let client = self.cfg.client;
         let to_session = self.server.to_session(sess);
-        let mut o = o;
         self.counters.prior_keyframes_dropped += super::prior::drop_prior_keyframes(&mut o.evicted);
         for kf in &o.evicted {
             let msg = keyframe_message(client, kf, sess, &to_session);
