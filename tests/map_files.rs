@@ -44,38 +44,7 @@ fn a_saved_map_is_loaded_merged_into_and_saved_again() {
     assert!(run_pipeline(&[&ds[0]], &out_a, "map_a", &save_a)
         .status
         .success());
-    let ra = report(&out_a);
-    let saved_a = &ra["map_saved"];
-    assert_eq!(saved_a["saved"], true, "{saved_a}");
-    let kfs_a = u(&ra["mapper"]["keyframes"]);
-    assert!(kfs_a >= 5, "session A's server map: {kfs_a} keyframes");
-    assert_eq!(u(&saved_a["keyframes"]), kfs_a);
-    assert_eq!(
-        u(&saved_a["bytes"]),
-        std::fs::metadata(&file_a).unwrap().len()
-    );
-
-    let (ok, info, err) = shoal_cmd(&["map", "info"], &[&file_a]);
-    assert!(ok, "{err}");
-    assert!(info.contains("format version 1"), "{info}");
-    assert!(
-        info.contains(&format!("1 maps, {kfs_a} keyframes")),
-        "{info}"
-    );
-    assert!(
-        info.contains("map 0x0: ") && info.contains("clients [0]"),
-        "{info}"
-    );
-    let ply = dir.path().join("a.ply");
-    let (ok, _, err) = shoal_cmd(&["map", "export"], &[&file_a, Path::new("--ply"), &ply]);
-    assert!(ok, "{err}");
-    let text = std::fs::read_to_string(&ply).unwrap();
-    let points_a = u(&ra["mapper"]["points"]);
-    assert!(
-        text.contains(&format!("element vertex {points_a}\n")),
-        "{}",
-        &text[..200]
-    );
+    let (kfs_a, points_a) = check_saved_a(&report(&out_a), &file_a, &dir.path().join("a.ply"));
 
     let load_b = [
         "--lockstep",
@@ -88,24 +57,7 @@ fn a_saved_map_is_loaded_merged_into_and_saved_again() {
         .status
         .success());
     let rb = report(&out_b);
-    let loaded = &rb["map_loaded"];
-    assert_eq!(u(&loaded["keyframes"]), kfs_a, "{loaded}");
-    assert_eq!(u(&loaded["loop_closer_keyframes"]), kfs_a, "{loaded}");
-    assert_eq!(loaded["loop_closer_vectors_from_file"], true, "{loaded}");
-    let prior = &rb["clients"][0]["prior_map"];
-    assert_eq!(u(&prior["keyframes"]), kfs_a, "{prior}");
-    let t0 = first_frame_s(&ds[0]);
-    let t_reloc = prior["relocalised_t_s"]
-        .as_f64()
-        .expect("B relocalised in A's map");
-    assert!(
-        t_reloc - t0 < 0.2,
-        "relocalised {} s in: {prior}",
-        t_reloc - t0
-    );
-    assert_eq!(prior["joined_by_server"], true, "{prior}");
-    let lc: LoopCloserCounters = service_counters(&rb, "loop_closer");
-    assert_eq!(lc.merges, 0, "joined, not merged: {lc:?}");
+    check_joined_at_once(&rb, kfs_a, first_frame_s(&ds[0]));
     let maps = rb["maps"].as_array().expect("maps");
     assert_eq!(maps.len(), 1, "B merged into the loaded map: {maps:?}");
     let saved = 1u64 << 23;
@@ -151,6 +103,64 @@ fn a_saved_map_is_loaded_merged_into_and_saved_again() {
         !o.status.success() && err.contains("would only copy it"),
         "{err}"
     );
+}
+
+/// Session A's report and file: saved whole (`map info`), its points exported as PLY to
+/// `ply`; returns its keyframes and points.
+fn check_saved_a(ra: &serde_json::Value, file_a: &Path, ply: &Path) -> (u64, u64) {
+    let saved_a = &ra["map_saved"];
+    assert_eq!(saved_a["saved"], true, "{saved_a}");
+    let kfs_a = u(&ra["mapper"]["keyframes"]);
+    assert!(kfs_a >= 5, "session A's server map: {kfs_a} keyframes");
+    assert_eq!(u(&saved_a["keyframes"]), kfs_a);
+    assert_eq!(
+        u(&saved_a["bytes"]),
+        std::fs::metadata(file_a).unwrap().len()
+    );
+    let (ok, info, err) = shoal_cmd(&["map", "info"], &[file_a]);
+    assert!(ok, "{err}");
+    assert!(info.contains("format version 1"), "{info}");
+    assert!(
+        info.contains(&format!("1 maps, {kfs_a} keyframes")),
+        "{info}"
+    );
+    assert!(
+        info.contains("map 0x0: ") && info.contains("clients [0]"),
+        "{info}"
+    );
+    let (ok, _, err) = shoal_cmd(&["map", "export"], &[file_a, Path::new("--ply"), ply]);
+    assert!(ok, "{err}");
+    let text = std::fs::read_to_string(ply).unwrap();
+    let points_a = u(&ra["mapper"]["points"]);
+    assert!(
+        text.contains(&format!("element vertex {points_a}\n")),
+        "{}",
+        &text[..200]
+    );
+    (kfs_a, points_a)
+}
+
+/// B's report on A's file (`kfs_a` keyframes; B's first frame at `t0` s): the map loaded
+/// by mapper and loop closer, B's client relocalised in it within 0.2 s, and the server
+/// took B's session into it at once (no merge).
+fn check_joined_at_once(rb: &serde_json::Value, kfs_a: u64, t0: f64) {
+    let loaded = &rb["map_loaded"];
+    assert_eq!(u(&loaded["keyframes"]), kfs_a, "{loaded}");
+    assert_eq!(u(&loaded["loop_closer_keyframes"]), kfs_a, "{loaded}");
+    assert_eq!(loaded["loop_closer_vectors_from_file"], true, "{loaded}");
+    let prior = &rb["clients"][0]["prior_map"];
+    assert_eq!(u(&prior["keyframes"]), kfs_a, "{prior}");
+    let t_reloc = prior["relocalised_t_s"]
+        .as_f64()
+        .expect("B relocalised in A's map");
+    assert!(
+        t_reloc - t0 < 0.2,
+        "relocalised {} s in: {prior}",
+        t_reloc - t0
+    );
+    assert_eq!(prior["joined_by_server"], true, "{prior}");
+    let lc: LoopCloserCounters = service_counters(rb, "loop_closer");
+    assert_eq!(lc.merges, 0, "joined, not merged: {lc:?}");
 }
 
 /// A `--localize-only` run's report: client 0 relocalised in the loaded map (which ends
