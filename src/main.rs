@@ -144,7 +144,9 @@ struct RunArgs {
     chaos: Option<launcher::faults::ChaosSpec>,
     /// Start the server from this saved-map file (`shoal map info FILE` shows what it
     /// holds); a truncated, corrupted or other-version file is refused before any service
-    /// starts.
+    /// starts. Monocular clients localise in it before their VO initialises
+    /// (`tracker.prior_map`); with `shoal client` that is all it does (give the server the
+    /// same file: `shoal serve --load-map`).
     #[arg(long, value_name = "FILE")]
     load_map: Option<PathBuf>,
     /// Save the server's maps to this file at the end of the run (atomically).
@@ -230,6 +232,15 @@ struct ServeArgs {
     /// Save the server's maps to this file when it stops.
     #[arg(long, value_name = "FILE")]
     save_map: Option<PathBuf>,
+    /// Start the server from this saved-map file (refused before anything starts when
+    /// truncated, corrupted or of another version). A monocular `shoal client --load-map`
+    /// of the same file localises in it before its own VO initialises, and the server takes
+    /// its session into it at once.
+    #[arg(long, value_name = "FILE")]
+    load_map: Option<PathBuf>,
+    /// Localise the clients in the `--load-map` map without adding to it.
+    #[arg(long)]
+    localize_only: bool,
     /// iceoryx2 resource prefix of the server's host.
     #[arg(long)]
     ipc_prefix: Option<String>,
@@ -430,6 +441,10 @@ fn serve_cmd(args: ServeArgs) -> anyhow::Result<()> {
     if args.save_map.is_some() {
         cfg.save_map = args.save_map;
     }
+    if args.load_map.is_some() {
+        cfg.load_map = args.load_map;
+    }
+    cfg.localize_only |= args.localize_only;
     if let Some(p) = args.ipc_prefix {
         cfg.ipc_prefix = p;
     }

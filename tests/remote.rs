@@ -6,7 +6,8 @@
 //! packets ([`net_proxy::lossy::LossyLink`]). Every keyframe a client sends is acknowledged
 //! end to end by the server's mapper, also across a server that is SIGKILLed in the middle
 //! of the run and started again, and across a client's runs; a client beyond the server's
-//! capacity, or without the right credential, is refused with the reason.
+//! capacity, or without the right credential, is refused with the reason. A server started
+//! from a saved map takes a client that localised in the same file into it at once.
 mod common;
 mod net_proxy;
 
@@ -524,6 +525,54 @@ fn a_second_run_of_a_client_is_applied_not_taken_for_re_sends() {
     assert_eq!(u(&me["keyframes_applied"]), sent, "{me}");
     assert_eq!(u(&me["keyframes_received"]), sent, "{me}");
     assert!(u(&srv["merges"]) >= 1, "the runs' maps: {}", srv["maps"]);
+}
+
+/// A saved map served remotely: the server starts from A's file (`shoal serve --load-map`),
+/// a monocular client given the same file (`shoal client --load-map`) relocalises in it
+/// within its first frames, and the server takes its session into the loaded map at its
+/// first keyframe: one map with both clients, no merge, every keyframe acknowledged.
+#[test]
+fn a_client_of_a_server_with_a_saved_map_starts_in_it() {
+    let dir = tempdir();
+    let ds = synthetic(&dir.path().join("data"), "loop", 200, None);
+    let file = dir.path().join("a.shoalmap");
+    let f = file.to_str().unwrap();
+    let a = ["--lockstep", "--frames", "0..60", "--save-map", f];
+    let out_a = dir.path().join("a");
+    assert!(run_pipeline(&[&ds[0]], &out_a, "remote_map_a", &a)
+        .status
+        .success());
+    let port = free_port();
+    let server_out = dir.path().join("server");
+    let server = serve(port, &server_out, "remote_map_srv", 1, &["--load-map", f]);
+    let out = dir.path().join("b");
+    let extra = ["--lockstep", "--load-map", f];
+    let r = client(&ds[0], &out, port, "b", "remote_map_c", &extra)
+        .output()
+        .unwrap();
+    succeeded(&r);
+    let (rep, _) = all_acked(&out, 3);
+    stop(server);
+    let prior = &rep["clients"][0]["prior_map"];
+    let t_reloc = prior["relocalised_t_s"].as_f64().expect("relocalised");
+    let t0 = datasets::open(&ds[0]).unwrap().frames[0].t_ns as f64 * 1e-9;
+    assert!(
+        t_reloc - t0 < 0.2,
+        "relocalised {} s in: {prior}",
+        t_reloc - t0
+    );
+    let srv = report(&server_out);
+    let m: mapper::MapperCounters = service_counters(&srv, "mapper");
+    assert_eq!(m.client(0).sessions_joined, 1, "{:?}", m.client(0));
+    assert_eq!(u(&srv["merges"]), 0);
+    let maps = srv["maps"].as_array().unwrap();
+    assert_eq!(maps.len(), 1, "{maps:?}");
+    assert_eq!(maps[0]["clients"], serde_json::json!([0, 8_388_608]));
+    assert!(
+        srv["map_loaded"]["keyframes"].as_u64().unwrap() >= 5,
+        "{}",
+        srv["map_loaded"]
+    );
 }
 
 /// A server on a `tls/` endpoint (`--tls-cert`, `--tls-key`; with `--auth`): a client

@@ -38,20 +38,22 @@ pub struct PriorMapReport {
     /// on its own and the loop closer had to find the map).
     pub relocalised_t_s: Option<f64>,
     /// The server took the session into the loaded map at its first keyframe, by the
-    /// map's points it names (mapper `sessions_joined`).
-    pub joined_by_server: bool,
+    /// map's points it names (mapper `sessions_joined`); `None` for a client of a remote
+    /// server (the server's report says it).
+    pub joined_by_server: Option<bool>,
 }
 
 impl PriorMapReport {
-    /// From the tracker's and the mapper's counters of the client; `None` without a prior.
-    fn of(t: &TrackerCounters, m: &MapperClientCounters) -> Option<Self> {
+    /// From the tracker's and the mapper's counters of the client (the mapper's when it is
+    /// `local`); `None` without a prior.
+    fn of(t: &TrackerCounters, m: &MapperClientCounters, local: bool) -> Option<Self> {
         (t.prior_map_keyframes > 0).then(|| Self {
             keyframes: t.prior_map_keyframes,
             points: t.prior_map_points,
             frames_tried: t.prior_map_frames_tried,
             relocalised_t_s: (t.prior_map_relocalised > 0)
                 .then_some(t.prior_map_relocalised_t_ns as f64 * 1e-9),
-            joined_by_server: m.sessions_joined > 0,
+            joined_by_server: local.then_some(m.sessions_joined > 0),
         })
     }
 }
@@ -729,7 +731,7 @@ fn client_report(
         dataset: ds.root.display().to_string(),
         vio: st.details_of::<tracker::VioReport>(&trk),
         calib: st.details_of::<tracker::core::CalibReport>(&trk),
-        prior_map: PriorMapReport::of(&t, &m),
+        prior_map: PriorMapReport::of(&t, &m, cfg.connect.is_none()),
         frames_by_source: frames_by_source(rec),
         frames_orientation_only: rec.orientations.len() as u64,
         world_moves: rec.world_moves,

@@ -65,6 +65,7 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         ("--tls-key", cfg.tls_key.as_deref(), "PRIVATE KEY"),
     ];
     ::bridge::tls::check("--listen", &listen, &tls)?;
+    let loaded = super::map_file::check_inputs(cfg)?;
     let known = match &cfg.auth {
         Some(file) => ::bridge::auth::read_credentials(file)?.len(),
         None => {
@@ -118,6 +119,7 @@ pub fn serve(cfg: &RunConfig) -> anyhow::Result<report::RunReport> {
         true,
         false,
     )?;
+    rep.map_loaded = loaded;
     rep.remote_clients = remote_clients(&cfg.out, &services, &rep.maps);
     rep.bridges = bridges(&services);
     rep.add_map_files(cfg);
