@@ -44,8 +44,8 @@ impl KeyframeHandler {
             .map(|m| (m.id, named_points(m, first)))
             .filter(|(_, n)| n.len() >= MIN_JOIN_POINTS)
             .max_by_key(|(id, n)| (n.len(), std::cmp::Reverse(*id)))?;
-        let kf = self.first.take()?;
         let map = maps.get_mut(&map_id)?;
+        let kf = self.first.take()?;
         let owner = (kf.client_id, kf.session_id);
         map.touch(owner, kf.id, &kf.client_points);
         for &p in &named {
