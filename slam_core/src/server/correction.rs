@@ -169,20 +169,7 @@ pub fn relocalise_in_frozen(
             "merge into unknown map {into}"
         )));
     };
-    let mut counts: BTreeMap<KfId, usize> = BTreeMap::new();
-    for (_, b) in point_pairs {
-        for (k, _) in target
-            .points
-            .get(b)
-            .map_or(&[][..], |p| &p.observations[..])
-        {
-            *counts.entry(*k).or_insert(0) += 1;
-        }
-    }
-    let reference = counts
-        .into_iter()
-        .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
-        .map(|(k, _)| k);
+    let reference = target.keyframe_sharing_most(point_pairs.iter().map(|(_, b)| b));
     let Some(mut dropped) = maps.remove(&from) else {
         return Err(CoreError::InvalidArgument(format!(
             "merge of unknown map {from}"

@@ -11,7 +11,7 @@
 //! `idle_step` calls on a fresh handler gives the same maps bit for bit (so a mapper can
 //! rebuild from a journal; calling `idle_step` once after each `handle` is a schedule that
 //! a journal of keyframes alone reproduces).
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 
 use nalgebra::Isometry3;
 
@@ -595,18 +595,9 @@ impl KeyframeHandler {
             }
         }
         // Reference keyframe: the one sharing most of the matched points.
-        let mut counts: HashMap<KfId, u32> = HashMap::new();
-        for p in self.frame_points.iter().flatten() {
-            if let Some(mp) = map.map.points.get(p) {
-                for (k, _) in &mp.observations {
-                    *counts.entry(*k).or_insert(0) += 1;
-                }
-            }
-        }
-        let reference = counts
-            .into_iter()
-            .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
-            .map(|(k, _)| k);
+        let reference = map
+            .map
+            .keyframe_sharing_most(self.frame_points.iter().flatten());
         let ref_points = reference.map_or(0, |r| {
             let min_obs = if map.map.keyframes.len() <= 2 { 2 } else { 3 };
             map.map.tracked_points(r, min_obs)

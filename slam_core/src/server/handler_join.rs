@@ -12,15 +12,13 @@
 //! projects it onto its keypoint (a loose gate, [`JOIN_GATE_CHI2`]: the client's pose
 //! is its own estimate), and [`MIN_JOIN_POINTS`] must pass. A client that loaded another
 //! file than this server, whose ids name other points, starts a map of its own.
-use std::collections::HashMap;
-
 use nalgebra::Isometry3;
 
 use super::{HandleReport, KeyframeHandler, Last, ServerMaps};
 use crate::ids::{MapPointId, SAVED_CLIENT_BASE};
 use crate::server::server_map::ServerMap;
 use crate::server::types::ServerKeyframe;
-use crate::vo::map::{KfId, PointId};
+use crate::vo::map::PointId;
 use crate::CoreError;
 
 /// Fewest named points of one loaded map, checked by reprojection, for a first keyframe to
@@ -52,7 +50,7 @@ impl KeyframeHandler {
             map.associate(owner, p, p);
         }
         self.current = Some(map_id);
-        self.reference = reference_of(map, &named);
+        self.reference = map.map.keyframe_sharing_most(&named);
         self.last = Some(joined_last(&kf));
         self.converged = true;
         self.stats.relocalisations += 1;
@@ -123,20 +121,6 @@ fn projects_onto(
     e2 * kf.features.scale.inv_sigma2(kp.octave) < JOIN_GATE_CHI2
 }
 
-/// The map's keyframe observing most of `named` (lowest id on ties).
-fn reference_of(map: &ServerMap, named: &[PointId]) -> Option<KfId> {
-    let mut counts: HashMap<KfId, usize> = HashMap::new();
-    for p in named {
-        for (k, _) in map.map.points.get(p).map_or(&[][..], |p| &p.observations) {
-            *counts.entry(*k).or_insert(0) += 1;
-        }
-    }
-    counts
-        .into_iter()
-        .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
-        .map(|(k, _)| k)
-}
-
 #[cfg(test)]
 mod tests {
     use nalgebra::Isometry3;
@@ -166,7 +150,8 @@ mod tests {
                     .map(|p| base + MapPointId::from_raw(p).counter())
             })
             .collect();
-        let kf = |k: KfId| KeyframeId::new(saved, KeyframeId::from_raw(k).client_kf()).raw();
+        let kf =
+            |k: crate::vo::KfId| KeyframeId::new(saved, KeyframeId::from_raw(k).client_kf()).raw();
         m.map
             .rename_ids(kf, |p| base + MapPointId::from_raw(p).counter());
         m.id = MapId::new(saved, 0);

@@ -481,6 +481,24 @@ impl ClientMap {
         Some(z[z.len() / 2])
     }
 
+    /// The keyframe observing most of `points` (the lowest id among equals): the reference
+    /// keyframe of a frame matched to them.
+    pub fn keyframe_sharing_most<'a>(
+        &self,
+        points: impl IntoIterator<Item = &'a PointId>,
+    ) -> Option<KfId> {
+        let mut counts: BTreeMap<KfId, usize> = BTreeMap::new();
+        for p in points {
+            for (k, _) in self.points.get(p).map_or(&[][..], |p| &p.observations[..]) {
+                *counts.entry(*k).or_insert(0) += 1;
+            }
+        }
+        counts
+            .into_iter()
+            .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
+            .map(|(k, _)| k)
+    }
+
     /// Number of points of keyframe `k` observed by at least `min_obs` keyframes.
     pub fn tracked_points(&self, k: KfId, min_obs: usize) -> usize {
         self.keyframes.get(&k).map_or(0, |kf| {
