@@ -205,13 +205,13 @@ impl Mapper {
     /// the loaded maps' worker when the keyframe names their points (its session may join
     /// a loaded map, `slam_core::server::names_loaded_points`), else on a worker of its own.
     fn queue(&mut self, c: u32, job: Job) -> anyhow::Result<()> {
-        let loaded_host = match &job {
+        let loaded_host = || match &job {
             Job::Keyframe { kf, .. } if slam_core::server::names_loaded_points(kf) => {
                 self.saved_hosts.values().next().copied()
             }
             _ => None,
         };
-        let w = match self.clients[c as usize].worker.or(loaded_host) {
+        let w = match self.clients[c as usize].worker.or_else(loaded_host) {
             Some(w) => {
                 self.clients[c as usize].worker = Some(w);
                 w
